@@ -1,0 +1,1 @@
+"""Ground-truth matching, scoring, the end-to-end harness, sweeps and benchmarks."""

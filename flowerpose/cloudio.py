@@ -1,0 +1,112 @@
+"""Point-cloud files: read with validation, write binary PLY. Shared by every package."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from flowerpose.errors import InputError
+
+#: Largest extent (metres) a single-plant scan in metres can plausibly have.
+MAX_METRIC_EXTENT_M = 5.0
+#: Extents (file units) that identify a scan written in millimetres.
+MM_EXTENT_RANGE = (50.0, 10_000.0)
+
+Units = Literal["auto", "m", "mm"]
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """A coloured point cloud.
+
+    points: (N, 3) float64, metres, bed frame (x along the bed, y across, z up, z = 0 on soil).
+    colors: (N, 3) uint8 RGB.
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def subset(self, index: np.ndarray) -> Cloud:
+        return Cloud(self.points[index], self.colors[index])
+
+
+def _o3d():
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
+
+
+def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = False) -> Cloud:
+    """Read a coloured cloud (.ply or .pcd) and check it is usable.
+
+    Refuses missing or unreadable files, clouds without colours, NaN or infinite
+    coordinates and empty clouds, with an InputError naming the file. With units="auto"
+    a cloud whose extent says millimetres is converted to metres and a note is printed
+    on stderr; an extent that fits neither unit is refused.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    if not path.is_file():
+        raise InputError(path, "not a file")
+    if path.suffix.lower() not in (".ply", ".pcd"):
+        raise InputError(path, "expected a .ply or .pcd point cloud")
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(4)
+    except OSError as err:
+        raise InputError(path, f"cannot read ({err.strerror})") from None
+    if path.suffix.lower() == ".ply" and head[:3] != b"ply":
+        raise InputError(path, "not a PLY file (no 'ply' header)")
+    cloud = _o3d().io.read_point_cloud(str(path))
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if len(points) == 0:
+        if allow_empty:
+            return Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+        raise InputError(path, "the cloud has no points (empty or unreadable file)")
+    if not cloud.has_colors():
+        raise InputError(path, "the cloud has no colours; the pipeline needs RGB per point")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise InputError(path, f"{int(bad.sum())} of {len(points)} points have NaN or infinite "
+                         "coordinates; clean the cloud first")
+    colors = np.clip(np.asarray(cloud.colors) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return Cloud(to_metres(points, units, path), colors)
+
+
+def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarray:
+    """Points in metres, deciding the file's unit from its extent when units="auto"."""
+    if units == "m":
+        return points
+    if units == "mm":
+        return points * 1e-3
+    extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+    if extent <= MAX_METRIC_EXTENT_M:
+        return points
+    if MM_EXTENT_RANGE[0] <= extent <= MM_EXTENT_RANGE[1]:
+        print(f"note: {source}: extent {extent:.0f} units looks like millimetres; "
+              "converted to metres", file=sys.stderr)
+        return points * 1e-3
+    raise InputError(source, f"extent {extent:.3g} units fits neither metres (<= "
+                     f"{MAX_METRIC_EXTENT_M:g}) nor millimetres ({MM_EXTENT_RANGE[0]:g}-"
+                     f"{MM_EXTENT_RANGE[1]:g}); rescale the cloud to metres")
+
+
+def write_cloud(path: str | Path, cloud: Cloud) -> Path:
+    """Write a binary PLY (float64 xyz, uint8 rgb as Open3D stores it)."""
+    o3d = _o3d()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(cloud.points, np.float64)))
+    pcd.colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors, np.float64) / 255.0)
+    if not o3d.io.write_point_cloud(str(path), pcd, write_ascii=False):
+        raise InputError(path, "cannot write the point cloud")
+    return path

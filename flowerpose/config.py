@@ -1,0 +1,137 @@
+"""Nested config dataclasses: dotted overrides (`cluster.eps=0.008`), TOML files, plain dicts.
+
+Every stage has its own documented dataclass; a top-level dataclass nests them. The helpers
+here only know dataclasses, so the pipeline and the harness share them.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import tomllib
+import typing
+from pathlib import Path
+from typing import Any
+
+from flowerpose.errors import InputError
+
+
+def to_dict(config: Any) -> dict[str, Any]:
+    """The config as plain JSON-ready data (tuples become lists)."""
+    return _plain(dataclasses.asdict(config))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(raw: Any, annotation: Any, key: str) -> Any:
+    """Turn a TOML value or a `--set` string into the field's declared type."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is typing.Literal:
+        value = raw if not isinstance(raw, str) else _parse_scalar(raw)
+        if value not in args and str(value) not in [str(a) for a in args]:
+            raise InputError(key, f"must be one of {', '.join(map(str, args))}, got {raw!r}")
+        return next(a for a in args if str(a) == str(value))
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        non_none = [a for a in args if a is not type(None)]
+        if isinstance(raw, str) and raw.lower() in ("none", "null"):
+            return None
+        return _coerce(raw, non_none[0], key)
+    if origin is tuple:
+        items = _parse_scalar(raw) if isinstance(raw, str) else raw
+        if not isinstance(items, list | tuple):
+            items = [items]
+        inner = args[0] if args else float
+        return tuple(_coerce(v, inner, key) for v in items)
+    if annotation is bool:
+        if isinstance(raw, bool):
+            return raw
+        text = str(raw).strip().lower()
+        if text in ("1", "true", "yes", "on"):
+            return True
+        if text in ("0", "false", "no", "off"):
+            return False
+        raise InputError(key, f"expected true or false, got {raw!r}")
+    if annotation in (int, float, str):
+        try:
+            value = annotation(_parse_scalar(raw) if isinstance(raw, str) and annotation is not str else raw)
+        except (TypeError, ValueError):
+            raise InputError(key, f"expected {annotation.__name__}, got {raw!r}") from None
+        if annotation is float and not (value == value and abs(value) != float("inf")):
+            raise InputError(key, f"expected a finite number, got {raw!r}")
+        return value
+    return raw
+
+
+def _parse_scalar(text: str) -> Any:
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def apply_overrides(config: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
+    """A copy of `config` with `overrides` applied.
+
+    `overrides` maps dotted keys ("cluster.eps") or nested dicts (from TOML) to values;
+    unknown keys raise InputError naming the key, so typos never pass silently.
+    """
+    nested: dict[str, Any] = {}
+    for key, value in overrides.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        elif isinstance(value, dict):
+            nested.setdefault(head, {}).update(value)
+        else:
+            nested[head] = value
+    hints = _field_types(type(config))
+    changes: dict[str, Any] = {}
+    for name, value in nested.items():
+        key = f"{prefix}{name}"
+        if name not in hints:
+            known = ", ".join(f"{prefix}{f.name}" for f in dataclasses.fields(config))
+            raise InputError(key, f"no such setting (known: {known})")
+        current = getattr(config, name)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise InputError(key, "is a section; set one of its fields, e.g. "
+                                 f"{key}.{dataclasses.fields(current)[0].name}=...")
+            changes[name] = apply_overrides(current, value, prefix=f"{key}.")
+        else:
+            changes[name] = _coerce(value, hints[name], key)
+    return dataclasses.replace(config, **changes)
+
+
+def parse_set_options(items: list[str]) -> dict[str, str]:
+    """`["cluster.eps=0.008", ...]` to `{"cluster.eps": "0.008"}`."""
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise InputError("--set", f"expected key=value, got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def load_toml(path: Path) -> dict[str, Any]:
+    """Read a TOML config file; errors name the file."""
+    try:
+        with open(path, "rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise InputError(path, "config file not found") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(path, f"not valid TOML ({err})") from None
+    except OSError as err:
+        raise InputError(path, f"cannot read ({err.strerror})") from None

@@ -1,0 +1,1 @@
+"""The field pipeline: point cloud to flower poses. Never imports sim, hardware or eval."""

@@ -1,0 +1,1 @@
+"""The synthetic world: procedural strawberry plants with exact ground truth."""
