@@ -1,0 +1,58 @@
+import numpy as np
+
+from flowerpose.cloudio import Cloud
+from flowerpose.pipeline.segment import (
+    GroundConfig,
+    crop_flowers,
+    oriented_box,
+    remove_ground,
+    split_by_centres,
+)
+
+
+def test_ground_plane_is_removed_even_when_tilted_and_offset():
+    rng = np.random.default_rng(0)
+    soil = np.c_[rng.uniform(-0.3, 0.3, (20000, 2)), np.zeros(20000)]
+    tilt = np.radians(5)
+    soil[:, 2] = 0.03 + np.tan(tilt) * soil[:, 0] + rng.normal(0, 0.001, 20000)
+    plant = np.c_[rng.uniform(-0.1, 0.1, (3000, 2)), rng.uniform(0.08, 0.3, 3000)]
+    points = np.vstack([soil, plant])
+    cloud = Cloud(points, np.full((len(points), 3), 120, np.uint8))
+    kept = remove_ground(cloud, GroundConfig(method="plane"))
+    assert set(kept) == set(range(20000, 23000))
+    # The bed-frame rule keeps the soil, which sits 3 cm up here.
+    assert len(remove_ground(cloud, GroundConfig(method="height"))) > 20000
+
+
+def test_oriented_box_fits_a_rotated_slab():
+    rng = np.random.default_rng(1)
+    local = rng.uniform(-0.5, 0.5, (2000, 3)) * [0.03, 0.02, 0.004]
+    angle = 0.7
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                    [0, 0, 1]])
+    points = local @ rot.T + [1.0, 2.0, 0.3]
+    box = oriented_box(points)
+    np.testing.assert_allclose(np.sort(box.extent), [0.004, 0.02, 0.03], atol=1e-3)
+    assert box.contains(points).all()
+    assert not box.contains(np.array([[1.0, 2.0, 0.31]])).any()
+    assert np.isclose(np.linalg.det(box.rotation), 1.0)
+
+
+def test_split_by_centres_merges_close_centres_and_splits_far_ones():
+    points = np.array([[0, 0, 0], [0.001, 0, 0], [0.03, 0, 0], [0.031, 0, 0]], float)
+    far = split_by_centres(points, np.array([[0, 0, 0], [0.03, 0, 0]]), 0.012)
+    assert far[0] == far[1] != far[2] == far[3]
+    close = split_by_centres(points, np.array([[0, 0, 0], [0.005, 0, 0]]), 0.012)
+    assert (close == 0).all()
+
+
+def test_crops_of_overlapping_boxes_do_not_share_points():
+    rng = np.random.default_rng(2)
+    a = rng.normal([0, 0, 0], 0.005, (300, 3))
+    b = rng.normal([0.02, 0, 0], 0.005, (300, 3))
+    points = np.vstack([a, b])
+    cloud = Cloud(points, np.full((600, 3), 250, np.uint8))
+    boxes, crops = crop_flowers(cloud, [np.arange(300), np.arange(300, 600)], margin=0.004)
+    assert len(boxes) == 2
+    assert not set(crops[0]) & set(crops[1])
+    assert np.mean(crops[0] < 300) > 0.95 and np.mean(crops[1] >= 300) > 0.95

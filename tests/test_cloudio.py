@@ -1,0 +1,54 @@
+import numpy as np
+import pytest
+
+from flowerpose.cloudio import Cloud, read_cloud, write_cloud
+from flowerpose.errors import InputError
+
+
+def _write(path, points, colors=True):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
+    if colors:
+        pcd.colors = o3d.utility.Vector3dVector(np.full((len(points), 3), 0.5))
+    o3d.io.write_point_cloud(str(path), pcd)
+    return path
+
+
+def test_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    cloud = Cloud(rng.random((50, 3)), rng.integers(0, 256, (50, 3)).astype(np.uint8))
+    back = read_cloud(write_cloud(tmp_path / "c.ply", cloud))
+    np.testing.assert_array_equal(back.points, cloud.points)
+    np.testing.assert_array_equal(back.colors, cloud.colors)
+
+
+def test_millimetres_are_recognised_and_converted(tmp_path, capsys):
+    points = np.random.default_rng(1).random((100, 3)) * 400.0
+    cloud = read_cloud(_write(tmp_path / "mm.ply", points))
+    np.testing.assert_allclose(cloud.points, points / 1000)
+    assert "millimetres" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("problem, make", [
+    ("file not found", lambda d: d / "missing.ply"),
+    ("no colours", lambda d: _write(d / "grey.ply", np.random.rand(10, 3), colors=False)),
+    ("NaN", lambda d: _write(d / "nan.ply", np.r_[np.random.rand(9, 3), [[np.nan, 0, 0]]])),
+    ("fits neither", lambda d: _write(d / "huge.ply", np.random.rand(10, 3) * 40)),
+    ("not a PLY", lambda d: (d / "text.ply").write_text("hello") and d / "text.ply"),
+    ("expected a .ply", lambda d: (d / "c.txt").write_text("1 2 3") and d / "c.txt"),
+])
+def test_bad_clouds_are_refused_with_the_file_named(tmp_path, problem, make):
+    path = make(tmp_path)
+    with pytest.raises(InputError, match=problem) as err:
+        read_cloud(path)
+    assert str(path) in str(err.value)
+
+
+def test_empty_cloud(tmp_path):
+    path = tmp_path / "empty.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                    "property float z\nend_header\n")
+    with pytest.raises(InputError, match="no points"):
+        read_cloud(path)
+    assert len(read_cloud(path, allow_empty=True)) == 0

@@ -1,0 +1,57 @@
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from flowerpose.config import apply_overrides, load_toml, parse_set_options, to_dict
+from flowerpose.errors import InputError
+
+
+@dataclass(frozen=True)
+class Inner:
+    eps: float = 0.01
+    """doc"""
+    mode: Literal["mask", "box"] = "mask"
+    range_: tuple[float, float] = (1.0, 2.0)
+    flag: bool = False
+
+
+@dataclass(frozen=True)
+class Outer:
+    inner: Inner = field(default_factory=Inner)
+    count: int = 3
+
+
+def test_dotted_overrides_coerce_to_field_types():
+    config = apply_overrides(Outer(), parse_set_options(
+        ["inner.eps=0.008", "inner.mode=box", "count=5", "inner.flag=true",
+         "inner.range_=(0.5, 3)"]))
+    assert config.inner == Inner(0.008, "box", (0.5, 3.0), True)
+    assert config.count == 5
+    assert Outer().inner.eps == 0.01  # the original is untouched
+
+
+def test_nested_dicts_from_toml(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("count = 7\n[inner]\neps = 0.02\n")
+    config = apply_overrides(Outer(), load_toml(path))
+    assert (config.count, config.inner.eps) == (7, 0.02)
+    assert to_dict(config) == {"inner": {"eps": 0.02, "mode": "mask", "range_": [1.0, 2.0],
+                                         "flag": False}, "count": 7}
+
+
+@pytest.mark.parametrize("item, match", [
+    ("inner.epss=1", "inner.epss"), ("count=abc", "count"), ("inner.mode=circle", "inner.mode"),
+    ("inner=3", "inner"), ("inner.eps=nan", "inner.eps"), ("noequals", "--set")])
+def test_bad_overrides_name_the_key(item, match):
+    with pytest.raises(InputError, match=match):
+        apply_overrides(Outer(), parse_set_options([item]))
+
+
+def test_bad_toml_names_the_file(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("count = = 3")
+    with pytest.raises(InputError, match="bad.toml"):
+        load_toml(path)
+    with pytest.raises(InputError, match="not found"):
+        load_toml(tmp_path / "missing.toml")
