@@ -1,2 +1,2 @@
-"""flowerpose: robotic 3D flower pose estimation, with a simulation-backed harness that scores it."""
+"""flowerpose: robotic 3D flower pose estimation, and a simulation-backed harness to score it."""
 __version__ = "0.1.0"

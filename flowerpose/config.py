@@ -64,7 +64,8 @@ def _coerce(raw: Any, annotation: Any, key: str) -> Any:
         raise InputError(key, f"expected true or false, got {raw!r}")
     if annotation in (int, float, str):
         try:
-            value = annotation(_parse_scalar(raw) if isinstance(raw, str) and annotation is not str else raw)
+            parsed = _parse_scalar(raw) if isinstance(raw, str) and annotation is not str else raw
+            value = annotation(parsed)
         except (TypeError, ValueError):
             raise InputError(key, f"expected {annotation.__name__}, got {raw!r}") from None
         if annotation is float and not (value == value and abs(value) != float("inf")):

@@ -149,7 +149,8 @@ def project(cloud: Cloud, view: View, config: GridConfig) -> Projection:
     np.minimum.at(nearest, row * width + col, rank)
     ranks = nearest.reshape(height, width).astype(np.float32)
     if r > 0:
-        ranks = cv2.erode(ranks, splat_disc(r), borderType=cv2.BORDER_CONSTANT, borderValue=float(n))
+        ranks = cv2.erode(ranks, splat_disc(r), borderType=cv2.BORDER_CONSTANT,
+                          borderValue=float(n))
     owner_rank = ranks.astype(np.int64)
     hit = owner_rank < n
     index = np.full((height, width), -1, np.int32)

@@ -59,8 +59,12 @@ class ClusterConfig:
     """DBSCAN neighbourhood radius, metres (the paper: 0.01)."""
     min_points: int = 20
     """DBSCAN core-point neighbour count (the paper: 20)."""
-    min_white_fraction: float = 0.7
-    """A cluster is a flower when more than this share of its points is whitish (upstream)."""
+    min_flower_fraction: float = 0.7
+    """A cluster is a flower when more than this share of its points is whitish or has the
+    pistil's yellow (deviation: upstream counted whitish points alone, which rejects flowers
+    seen face-on, where the yellow centre is a third of the points)."""
+    min_white_fraction: float = 0.35
+    """... and at least this share is whitish: a flower has petals."""
     white_max_saturation: float = 0.39
     """Whitish: saturation at most this (upstream)."""
     split_min_separation_m: float = 0.012

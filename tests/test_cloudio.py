@@ -4,6 +4,8 @@ import pytest
 from flowerpose.cloudio import Cloud, read_cloud, write_cloud
 from flowerpose.errors import InputError
 
+RNG = np.random.default_rng(0)
+
 
 def _write(path, points, colors=True):
     import open3d as o3d
@@ -32,9 +34,9 @@ def test_millimetres_are_recognised_and_converted(tmp_path, capsys):
 
 @pytest.mark.parametrize("problem, make", [
     ("file not found", lambda d: d / "missing.ply"),
-    ("no colours", lambda d: _write(d / "grey.ply", np.random.rand(10, 3), colors=False)),
-    ("NaN", lambda d: _write(d / "nan.ply", np.r_[np.random.rand(9, 3), [[np.nan, 0, 0]]])),
-    ("fits neither", lambda d: _write(d / "huge.ply", np.random.rand(10, 3) * 40)),
+    ("no colours", lambda d: _write(d / "grey.ply", RNG.random((10, 3)), colors=False)),
+    ("NaN", lambda d: _write(d / "nan.ply", np.r_[RNG.random((9, 3)), [[np.nan, 0, 0]]])),
+    ("fits neither", lambda d: _write(d / "huge.ply", RNG.random((10, 3)) * 40)),
     ("not a PLY", lambda d: (d / "text.ply").write_text("hello") and d / "text.ply"),
     ("expected a .ply", lambda d: (d / "c.txt").write_text("1 2 3") and d / "c.txt"),
 ])

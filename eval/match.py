@@ -1,0 +1,119 @@
+"""Matching estimated flowers to true ones and scoring one plant (DESIGN.md's report fields).
+
+Centres are in metres and normals unit vectors, estimates and truth in the same frame
+(the bed frame for generated plants).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from flowerpose.eval.truth import TruthFlower
+from flowerpose.pipeline.pose import METHODS, FlowerPose
+
+#: Largest centre distance of a match, metres (DESIGN.md and the paper: 2 cm).
+MAX_MATCH_DISTANCE = 0.02
+
+#: An estimated flower: a FlowerPose, or a flowers.json entry ("center", "normals").
+Estimate = FlowerPose | Mapping[str, Any]
+
+
+def match_flowers(est_centers: np.ndarray, gt_centers: np.ndarray,
+                  max_distance: float = MAX_MATCH_DISTANCE) -> list[tuple[int, int]]:
+    """One-to-one matches (estimate index, truth index) by centre distance, Hungarian.
+
+    est_centers: (M, 3), gt_centers: (K, 3), metres, one frame. Pairs farther apart than
+    `max_distance` (metres) are never matched. Among the assignments with the most
+    matches, the one with the least total distance is returned, sorted by estimate index;
+    [] when either side is empty.
+    """
+    est = np.asarray(est_centers, dtype=np.float64).reshape(-1, 3)
+    gt = np.asarray(gt_centers, dtype=np.float64).reshape(-1, 3)
+    if len(est) == 0 or len(gt) == 0:
+        return []
+    distance = np.linalg.norm(est[:, None, :] - gt[None, :, :], axis=2)
+    feasible = distance <= max_distance
+    # An infeasible pair costs more than any set of feasible pairs together, so the
+    # assignment first maximises the number of feasible pairs, then minimises their sum.
+    infeasible_cost = (min(len(est), len(gt)) + 1) * max(float(max_distance), 1.0)
+    rows, cols = linear_sum_assignment(np.where(feasible, distance, infeasible_cost))
+    keep = feasible[rows, cols]
+    return [(int(r), int(c)) for r, c in zip(rows[keep], cols[keep], strict=True)]
+
+
+def angle_error_deg(est: np.ndarray, gt: np.ndarray) -> float:
+    """Angle between two normals, degrees in [0, 180]: a flipped normal scores 180.
+
+    est, gt: (3,) direction vectors (normalised here).
+    """
+    est = np.asarray(est, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    cosine = float(est @ gt) / float(np.linalg.norm(est) * np.linalg.norm(gt))
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
+@dataclass
+class PlantScore:
+    """One plant's scores (DESIGN.md's report.json plant fields, plus details).
+
+    gt: truth flowers. visible: visible truth flowers. detections: estimates. found: truth
+    flowers matched. found_visible: visible truth flowers matched (recall_visible's
+    numerator). extra: estimates matched to a truth flower that is not visible. fp:
+    estimates matching no flower. error_deg: per method, the angle errors (degrees) of the
+    estimates matched to visible flowers, in match order. failed: per method, how many of
+    those estimates have no normal (None) for it. pairs: the matches (estimate index,
+    truth index).
+    """
+
+    gt: int
+    visible: int
+    detections: int
+    found: int
+    found_visible: int
+    extra: int
+    fp: int
+    error_deg: dict[str, list[float]] = field(default_factory=dict)
+    failed: dict[str, int] = field(default_factory=dict)
+    pairs: list[tuple[int, int]] = field(default_factory=list)
+
+
+def _center(estimate: Estimate) -> np.ndarray:
+    return np.asarray(estimate.center if isinstance(estimate, FlowerPose)
+                      else estimate["center"], dtype=np.float64)
+
+
+def _normals(estimate: Estimate) -> Mapping[str, Any]:
+    return estimate.normals if isinstance(estimate, FlowerPose) else estimate["normals"]
+
+
+def score_plant(estimates: Sequence[Estimate], truth: Sequence[TruthFlower],
+                max_distance: float = MAX_MATCH_DISTANCE) -> PlantScore:
+    """Match one plant's estimated flowers to its truth and measure their normals.
+
+    estimates: FlowerPose objects or flowers.json entries (centre metres, normals unit or
+    None per method). Like the paper, which scored only flowers with a hand label, angle
+    errors come from matches to visible flowers; matches to hidden ones count as `extra`.
+    """
+    est_centers = np.array([_center(e) for e in estimates]).reshape(-1, 3)
+    gt_centers = np.array([t.center for t in truth]).reshape(-1, 3)
+    pairs = match_flowers(est_centers, gt_centers, max_distance)
+    scored = [(i, j) for i, j in pairs if truth[j].visible]
+    error_deg: dict[str, list[float]] = {m: [] for m in METHODS}
+    failed = dict.fromkeys(METHODS, 0)
+    for i, j in scored:
+        normals = _normals(estimates[i])
+        for method in METHODS:
+            normal = normals.get(method)
+            if normal is None:
+                failed[method] += 1
+            else:
+                error_deg[method].append(angle_error_deg(np.asarray(normal), truth[j].normal))
+    return PlantScore(
+        gt=len(truth), visible=sum(t.visible for t in truth), detections=len(estimates),
+        found=len(pairs), found_visible=len(scored), extra=len(pairs) - len(scored),
+        fp=len(estimates) - len(pairs), error_deg=error_deg, failed=failed, pairs=pairs)

@@ -1,0 +1,124 @@
+"""Reports: `report.json` (a contract: DESIGN.md's keys), `report.md`, and the paper's Table I."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+METHODS = ("plane", "superellipsoid", "paraboloid")
+#: The paper's Table I column order, with its published numbers for comparison.
+TABLE_METHODS = ("superellipsoid", "paraboloid", "plane")
+PAPER = {"found_pct": 80.3, "mean": {"superellipsoid": 19.3, "paraboloid": 57.9, "plane": 7.7},
+         "median": {"superellipsoid": 8.9, "paraboloid": 11.8, "plane": 5.9},
+         "std": {"superellipsoid": 33.6, "paraboloid": 73.3, "plane": 5.8}}
+
+
+def error_stats(errors: list[float]) -> dict[str, float | int | None]:
+    """Mean, median, population std (degrees) and count; None where there is no error."""
+    if not errors:
+        return {"mean": None, "median": None, "std": None, "n": 0}
+    values = np.asarray(errors, float)
+    return {"mean": round(float(values.mean()), 4), "median": round(float(np.median(values)), 4),
+            "std": round(float(values.std()), 4), "n": int(len(values))}
+
+
+def plant_entry(name: str, score: Any) -> dict:
+    """One plant's row of report.json from a PlantScore."""
+    return {"plant": name, "gt": score.gt, "visible": score.visible,
+            "detections": score.detections, "found": score.found,
+            "found_visible": score.found_visible, "extra": score.extra, "fp": score.fp,
+            "error_deg": {m: [round(e, 4) for e in score.error_deg[m]] for m in METHODS},
+            "failed": {m: score.failed[m] for m in METHODS}}
+
+
+def summarise(plants: list[dict]) -> dict:
+    """The report's summary over plant entries: totals, recalls and error statistics."""
+    total = {key: sum(p[key] for p in plants)
+             for key in ("gt", "visible", "detections", "found", "found_visible", "extra", "fp")}
+    return {**total,
+            "recall": round(total["found"] / total["gt"], 4) if total["gt"] else None,
+            "recall_visible": (round(total["found_visible"] / total["visible"], 4)
+                               if total["visible"] else None),
+            "fp_rate": round(total["fp"] / total["detections"], 4) if total["detections"] else None,
+            "error_deg": {m: error_stats([e for p in plants for e in p["error_deg"][m]])
+                          for m in METHODS},
+            "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}
+
+
+def build_report(config: dict, plants: list[dict], timing_s: dict[str, float],
+                 extra: dict | None = None) -> dict:
+    """The whole report.json document."""
+    report = {"config": config, "plants": plants, "summary": summarise(plants),
+              "timing_s": timing_s}
+    report.update(extra or {})
+    return report
+
+
+def _deg(value: float | None) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) \
+        else f"{value:.1f}°"
+
+
+def table(report: dict) -> str:
+    """The paper's Table I for a report: per plant, then total, mean, median, std."""
+    header = ["Plant", "GT", "Visible", "Found (%)", "Extra", "FP",
+              "Superellipsoid", "Paraboloid", "Plane"]
+    rows = []
+    for p in report["plants"]:
+        pct = 100.0 * p["found"] / p["gt"] if p["gt"] else 0.0
+        rows.append([p["plant"], str(p["gt"]), str(p["visible"]), f"{p['found']} ({pct:.1f})",
+                     str(p["extra"]), str(p["fp"])]
+                    + [_deg(error_stats(p["error_deg"][m])["mean"]) for m in TABLE_METHODS])
+    s = report["summary"]
+    pct = 100.0 * s["found"] / s["gt"] if s["gt"] else 0.0
+    rows.append(["Total", str(s["gt"]), str(s["visible"]), f"{s['found']} ({pct:.1f})",
+                 str(s["extra"]), str(s["fp"]), "-", "-", "-"])
+    for stat, label in (("mean", "Mean"), ("median", "Median"), ("std", "Std Dev")):
+        rows.append([label, "-", "-", "-", "-", "-"]
+                    + [_deg(s["error_deg"][m][stat]) for m in TABLE_METHODS])
+    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
+
+    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+    body = [line(header), rule] + [line(r) for r in rows[:-4]] + [rule] + \
+        [line(r) for r in rows[-4:]]
+    return "\n".join(body)
+
+
+def summary_lines(report: dict) -> list[str]:
+    """Short human summary under the table, with the paper's numbers beside ours."""
+    s = report["summary"]
+    lines = []
+    if s["recall"] is not None:
+        lines.append(f"recall {s['recall']:.3f} (paper {PAPER['found_pct'] / 100:.3f}), "
+                     f"recall of visible flowers {s['recall_visible'] or 0:.3f}, "
+                     f"false positives {s['fp']} of {s['detections']} detections")
+    for m in METHODS:
+        st = s["error_deg"][m]
+        if st["n"]:
+            lines.append(f"{m}: mean {st['mean']:.2f}°, median {st['median']:.2f}°, "
+                         f"std {st['std']:.2f}° over {st['n']} flowers, {s['failed'][m]} failed "
+                         f"(paper mean {PAPER['mean'][m]}°)")
+    if "total" in report["timing_s"]:
+        lines.append(f"wall time {report['timing_s']['total']:.1f} s")
+    return lines
+
+
+def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
+    """Write report.json and report.md into out_dir."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    json_path = out_dir / "report.json"
+    json_path.write_text(json.dumps(report, indent=1))
+    md = [f"# {title}", "", table(report), "", *[f"- {line}" for line in summary_lines(report)],
+          "", "## Timing (seconds)", "", "| stage | seconds |", "|---|---|"]
+    md += [f"| {k} | {v:.3f} |" for k, v in report["timing_s"].items()]
+    md += ["", "## Configuration", "", "```json", json.dumps(report["config"], indent=1), "```", ""]
+    md_path = out_dir / "report.md"
+    md_path.write_text("\n".join(md))
+    return json_path, md_path

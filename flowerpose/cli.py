@@ -1,0 +1,213 @@
+"""The `flowerpose` command line: one console script, one subcommand per stage or job."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from flowerpose.errors import InputError
+
+
+def _add_config_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, metavar="FILE.toml",
+                        help="settings file (TOML, sections as in report.json's config)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one setting by its dotted key, e.g. cluster.eps=0.008")
+
+
+def _configure(base: Any, args: argparse.Namespace) -> Any:
+    """`base` with the --config file, then each --set, applied."""
+    from flowerpose.config import apply_overrides, load_toml, parse_set_options
+
+    config = base
+    if args.config is not None:
+        config = apply_overrides(config, load_toml(args.config))
+    return apply_overrides(config, parse_set_options(args.set))
+
+
+def _default_out() -> Path:
+    return Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config, run_eval
+
+    config = eval_config(args.preset, lambda base: _configure(base, args))
+    out = args.out or _default_out()
+    report = run_eval(config, source=args.source, plants=args.plants, seed=args.seed,
+                      out_dir=out, workers=args.workers)
+    from flowerpose.eval.report import summary_lines, table
+
+    print(table(report))
+    for line in summary_lines(report):
+        print(line)
+    print(f"report: {out / 'report.json'}, {out / 'report.md'}")
+    return 0
+
+
+def cmd_plant(args: argparse.Namespace) -> int:
+    from flowerpose.sim.export import make_plant
+
+    bundle = make_plant(args.seed, preset=args.preset, points=args.points, out_dir=args.out)
+    visible = int(sum(bundle.visible))
+    print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
+          f"{visible} visible, {len(bundle.cloud)} cloud points -> {args.out}")
+    return 0
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    from flowerpose.cloudio import read_cloud, write_cloud
+    from flowerpose.config import to_dict
+    from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, write_flowers
+    from flowerpose.pipeline.views import write_views
+
+    config = _configure(PipelineConfig(), args)
+    cloud = read_cloud(args.cloud, units=args.units)
+    result = find_flowers(cloud, config)
+    out: Path = args.out
+    write_flowers(out / "flowers.json", result)
+    (out / "config.json").write_text(json.dumps(to_dict(config), indent=1))
+    write_views(out / "views", result.projections, result.detections)
+    for flower in result.flowers:
+        write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply", cloud.subset(flower.crop))
+    found = sum(f.pose.normals["plane"] is not None for f in result.flowers)
+    print(f"{len(result.flowers)} flowers ({found} with a normal) in "
+          f"{result.timing_s['total']:.2f} s -> {out / 'flowers.json'}, {out / 'views.png'}")
+    return 0
+
+
+def cmd_pose(args: argparse.Namespace) -> int:
+    from flowerpose.cloudio import read_cloud
+    from flowerpose.pipeline.pose import PoseConfig, estimate_pose
+
+    config = _configure(PoseConfig(), args)
+    crop = read_cloud(args.crop, units=args.units)
+    print(json.dumps(estimate_pose(crop, config).to_json(), indent=1))
+    return 0
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import score_files
+
+    report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,
+                         args.max_distance)
+    from flowerpose.eval.report import summary_lines, table, write_report
+
+    print(table(report))
+    for line in summary_lines(report):
+        print(line)
+    if args.out:
+        paths = write_report(args.out, report, f"flowerpose score: {args.flowers.name}")
+        print(f"report: {paths[0]}, {paths[1]}")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config
+    from flowerpose.eval.sweep import parse_grid, run_sweep
+
+    config = eval_config(args.preset, lambda base: _configure(base, args))
+    grid = parse_grid(args.grid, config)
+    best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
+                     workers=args.workers)
+    print(f"best: {best}")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from flowerpose.eval.bench import run_bench
+
+    run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="flowerpose",
+        description="3D strawberry flower poses from point clouds, scored against exact truth.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("eval", help="the synthetic benchmark: plants -> clouds -> flowers -> "
+                       "scores (the paper's Table I)")
+    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
+                   help="where clouds come from: oracle = the plant's surfaces sampled "
+                   "directly (default)")
+    p.add_argument("--plants", type=int, default=10, help="number of seeded plants (10)")
+    p.add_argument("--seed", type=int, default=0, help="first plant seed (0)")
+    p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("plant", help="generate one plant: plant.json (truth), mesh, oracle cloud")
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--points", type=int, default=None, help="oracle cloud points (60000)")
+    p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
+    p.add_argument("--out", type=Path, required=True)
+    p.set_defaults(func=cmd_plant)
+
+    p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
+    p.add_argument("cloud", type=Path, metavar="CLOUD.ply")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
+                   help="the cloud's unit (auto: decided from its extent)")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("pose", help="normals of one flower crop, printed as JSON")
+    p.add_argument("crop", type=Path, metavar="CROP.ply")
+    p.add_argument("--units", choices=("auto", "m", "mm"), default="auto")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_pose)
+
+    p = sub.add_parser("score", help="score flowers.json against truth (plant.json or "
+                       "SageMaker cuboids)")
+    p.add_argument("flowers", type=Path, metavar="FLOWERS.json")
+    p.add_argument("truth", type=Path, metavar="TRUTH.json")
+    p.add_argument("--truth-format", choices=("plant", "sagemaker"), default="plant")
+    p.add_argument("--truth-scale", type=float, default=25.0,
+                   help="SageMaker labels: the factor the labelled cloud was scaled by (25)")
+    p.add_argument("--max-distance", type=float, default=0.02,
+                   help="largest centre distance of a match, metres (0.02)")
+    p.add_argument("--out", type=Path, help="also write report.json and report.md here")
+    p.set_defaults(func=cmd_score)
+
+    p = sub.add_parser("sweep", help="evaluate a grid of settings over seeded plants")
+    p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
+                   help="a setting and its values; repeat for a grid over several")
+    p.add_argument("--plants", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--out", type=Path, required=True)
+    _add_config_options(p)
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("bench", help="time the pipeline from cloud to flower poses")
+    p.add_argument("--points", type=int, nargs="+", default=[125_000, 1_000_000])
+    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, help="also write bench.json here")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as err:
+        print(f"flowerpose: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("flowerpose: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,175 @@
+"""The detect stage: a cloud in, flowers with their normals out (`flowers.json`).
+
+    ground removal -> translating occupancy grid -> 2D detection -> back-projection
+    -> outlier removal + DBSCAN -> whiteness filter -> split touching flowers
+    -> oriented boxes -> crops -> petal / pistil split -> plane, superellipsoid, paraboloid
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from flowerpose.cloudio import Cloud
+from flowerpose.errors import InputError
+from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
+from flowerpose.pipeline.grid import GridConfig, Projection, project_all
+from flowerpose.pipeline.pose import (
+    FlowerPose,
+    PoseConfig,
+    estimate_pose,
+    pistil_candidate_mask,
+    pistil_clusters,
+)
+from flowerpose.pipeline.segment import (
+    ClusterConfig,
+    GroundConfig,
+    OrientedBox,
+    OutlierConfig,
+    crop_flowers,
+    dbscan,
+    is_whitish,
+    remove_ground,
+    remove_outliers,
+    split_by_centres,
+)
+
+METHODS = ("plane", "superellipsoid", "paraboloid")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every setting of the field pipeline, one section per stage."""
+
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
+    outliers: OutlierConfig = field(default_factory=OutlierConfig)
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+
+
+@dataclass
+class Flower:
+    """One detected flower."""
+
+    id: int
+    pose: FlowerPose
+    box: OrientedBox
+    crop: np.ndarray
+    """Indices of the flower's points in the input cloud."""
+
+    def to_json(self) -> dict:
+        entry = {"id": self.id}
+        entry.update(self.pose.to_json())
+        entry["box"] = self.box.to_json()
+        return entry
+
+
+@dataclass
+class FlowerResult:
+    """Everything the detect stage found, with what it saw on the way."""
+
+    flowers: list[Flower]
+    projections: list[Projection]
+    detections: list[list[Detection]]
+    timing_s: dict[str, float]
+
+    def to_json(self) -> dict:
+        return {"flowers": [f.to_json() for f in self.flowers], "timing_s": self.timing_s}
+
+
+class _Timer:
+    def __init__(self):
+        self.timing: dict[str, float] = {}
+        self._start = time.perf_counter()
+        self._last = self._start
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.timing[stage] = round(self.timing.get(stage, 0.0) + now - self._last, 6)
+        self._last = now
+
+    def total(self) -> dict[str, float]:
+        self.timing["total"] = round(time.perf_counter() - self._start, 6)
+        return self.timing
+
+
+def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> FlowerResult:
+    """Flowers and their normals in a coloured cloud (metres, bed frame, z up)."""
+    timer = _Timer()
+    above_ground = remove_ground(cloud, config.ground)
+    plant = cloud.subset(above_ground)
+    timer.lap("ground")
+    projections = project_all(plant, config.grid)
+    timer.lap("grid")
+    detector = make_detector(config.detect)
+    detections = [detector(p.image, p.occupied, p.pixel_size_m) for p in projections]
+    timer.lap("detect")
+    picked = [backproject(d, p.index, config.detect.backproject)
+              for d, p in zip(detections, projections, strict=True)]
+    candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
+    timer.lap("backproject")
+    clusters = _cluster(plant, candidates, config)
+    boxes, crops = crop_flowers(plant, clusters, config.cluster.box_margin_m)
+    timer.lap("cluster")
+    flowers = []
+    for box, crop in zip(boxes, crops, strict=True):
+        pose = estimate_pose(plant.subset(crop), config.pose)
+        flowers.append(Flower(len(flowers), pose, box, above_ground[crop]))
+    timer.lap("pose")
+    return FlowerResult(flowers, projections, detections, timer.total())
+
+
+def _cluster(plant: Cloud, candidates: np.ndarray, config: PipelineConfig) -> list[np.ndarray]:
+    """Candidate points (indices into `plant`) grouped into one index array per flower."""
+    if len(candidates) == 0:
+        return []
+    kept = candidates[remove_outliers(plant.points[candidates], config.outliers)]
+    labels = dbscan(plant.points[kept], config.cluster.eps, config.cluster.min_points)
+    clusters = []
+    for label in range(labels.max() + 1 if len(labels) else 0):
+        members = kept[labels == label]
+        white = is_whitish(plant.colors[members], config.cluster.white_max_saturation)
+        centre = pistil_candidate_mask(plant.colors[members], config.pose)
+        if ((white | centre).mean() <= config.cluster.min_flower_fraction
+                or white.mean() < config.cluster.min_white_fraction):
+            continue
+        centres = [plant.points[members[c]].mean(axis=0)
+                   for c in pistil_clusters(plant.subset(members), config.pose)]
+        parts = split_by_centres(plant.points[members], np.array(centres).reshape(-1, 3),
+                                 config.cluster.split_min_separation_m)
+        clusters.extend(members[parts == k] for k in range(parts.max() + 1))
+    return [c for c in clusters if len(c) >= config.cluster.min_points]
+
+
+def write_flowers(path: Path, result: FlowerResult) -> Path:
+    """Write `flowers.json` (DESIGN.md's format)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result.to_json(), indent=1))
+    return path
+
+
+def read_flowers(path: Path) -> list[dict]:
+    """The flower entries of a `flowers.json`; errors name the file."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(path, f"cannot read ({err})") from None
+    except json.JSONDecodeError as err:
+        raise InputError(path, f"not valid JSON ({err.msg} at line {err.lineno})") from None
+    flowers = data.get("flowers") if isinstance(data, dict) else None
+    if not isinstance(flowers, list):
+        raise InputError(path, "no 'flowers' list: not a flowers.json")
+    for entry in flowers:
+        if not isinstance(entry, dict) or len(entry.get("center") or []) != 3:
+            raise InputError(path, "a flower entry without a 3D 'center'")
+        if not np.all(np.isfinite(np.asarray(entry["center"], float))):
+            raise InputError(path, f"flower {entry.get('id')}: centre is not finite")
+    return flowers

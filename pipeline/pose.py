@@ -1,0 +1,277 @@
+"""Per-flower pose: split a flower crop into petals and pistil, fit three surfaces, orient them.
+
+A flower normal is a unit vector from the flower centre along the axis the corolla opens
+toward (away from the peduncle), in the crop's frame (the bed frame: metres, z up).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from flowerpose.cloudio import Cloud
+from flowerpose.errors import InputError
+from flowerpose.pipeline.colour import rgb_to_hsv
+from flowerpose.pipeline.fit import (
+    EXPONENT_BOUNDS,
+    MAX_EVALUATIONS,
+    MAX_FLATNESS,
+    MIN_FIT_POINTS,
+    SIZE_BOUNDS,
+    SuperellipsoidInit,
+    fit_paraboloid,
+    fit_plane,
+    fit_superellipsoid,
+)
+from flowerpose.pipeline.segment import dbscan
+
+#: Fitting methods, in the order reports list them.
+METHODS = ("plane", "superellipsoid", "paraboloid")
+
+DirectionReference = Literal["crop", "petal_base"]
+
+
+@dataclass
+class PoseConfig:
+    """Per-flower pose estimation: colour split, pistil clustering, surface fits, direction."""
+
+    petal_min_value: float = 0.75
+    """Petal points have HSV value above this (0-1): the petals are bright white."""
+    petal_reject_hue: tuple[float, float] = (40.0, 140.0)
+    """Hue band (degrees) of yellow and green points excluded from the petals when saturated."""
+    petal_reject_saturation: float = 0.15
+    """Saturation (0-1) from which a point in `petal_reject_hue` is not a petal."""
+    pistil_hue: tuple[float, float] = (40.0, 63.0)
+    """Hue band (degrees) of pistil candidates (yellow receptacle and anthers)."""
+    pistil_min_saturation: float = 0.30
+    """Least saturation (0-1) of a pistil candidate."""
+    pistil_min_value: float = 0.65
+    """Least HSV value (0-1) of a pistil candidate."""
+    pistil_eps: float = 0.005
+    """DBSCAN neighbourhood radius (metres) clustering the pistil candidates."""
+    pistil_min_points: int = 5
+    """DBSCAN least points per core neighbourhood; the candidate cluster nearest the petal
+    centroid is the pistil."""
+    direction_reference: DirectionReference = "petal_base"
+    """What the pistil centroid is compared with to orient the normals. "crop" (upstream):
+    the centroid of the whole crop, which a cupped corolla lifts above the receptacle and so
+    flips the normal. "petal_base" (deviation): the petal points around the pistil, which
+    the receptacle protrudes from along the normal whether the petals cup up or curl down."""
+    base_radius_factor: float = 2.0
+    """Petal points within this many pistil radii of the pistil centroid form the petal
+    base ("petal_base" reference); the pistil radius is the 90th percentile distance of its
+    points from their centroid."""
+    base_min_points: int = 10
+    """Fewest petal base points: when fewer lie within the radius, the nearest this many."""
+    support_hue: tuple[float, float] = (40.0, 180.0)
+    """Hue band (degrees) of sepal and peduncle points behind the flower, used to orient
+    the normals (away from them) when no pistil is found."""
+    support_min_saturation: float = 0.15
+    """Least saturation (0-1) of a sepal or peduncle point."""
+    support_min_points: int = 10
+    """Fewest sepal or peduncle points that may orient the normals without a pistil;
+    with fewer, every normal is None."""
+    min_fit_points: int = MIN_FIT_POINTS
+    """Fewest petal points a fit accepts; with fewer it gives None."""
+    max_fit_points: int = 400
+    """Most petal points the superellipsoid and paraboloid fits use (a seeded random
+    subsample above this, for speed; the plane always uses all)."""
+    seed: int = 0
+    """Seed of the petal subsample."""
+    superellipsoid_init: SuperellipsoidInit = "pca"
+    """Superellipsoid start: "pca" (deviation: rotation and half-axes from the petals'
+    principal axes) or "upstream" (5 mm half-axes along the bed axes, which the paper
+    found stuck in local minima)."""
+    superellipsoid_size_bounds: tuple[float, float] = SIZE_BOUNDS
+    """Bounds (metres) of the half-axes a, b, c. Upstream's lower bound is 0, which divides
+    by zero; 0.1 m reflects real flowers."""
+    superellipsoid_exponent_bounds: tuple[float, float] = EXPONENT_BOUNDS
+    """Bounds of the shape exponents e1, e2 (the paper's)."""
+    superellipsoid_max_flatness: float = MAX_FLATNESS
+    """Largest ratio of the half-axis across the petals to the lesser one along them, at
+    the "pca" start (deviation: upstream bounds only by 0.1 m). A corolla is flatter than
+    wide; unbounded, a fit with a centre prefers a cap of a long ellipsoid whose shortest
+    axis lies in the petal plane."""
+    axis_through_pistil: bool = True
+    """Make the superellipsoid and paraboloid axes pass through the pistil centroid when a
+    pistil is found, leaving free only the centre's (vertex's) position along the axis
+    (deviation: upstream fixes it at the petal centroid). A sideways shift of a shallow
+    cap mimics a tilt, so with a free 3-D centre the axes of a clean 3 mm cup are off by
+    1.6 degrees on average and up to 4 (0.15 through a point on the axis)."""
+    max_evaluations: int = MAX_EVALUATIONS
+    """Most residual evaluations one nonlinear fit may spend."""
+
+
+@dataclass
+class FlowerPose:
+    """One flower's pose.
+
+    center: (3,) float64, metres, crop frame: the flower centre on its axis. With a pistil
+    it is the pistil centroid, which sits on the axis a little (about half the receptacle's
+    height) above the petal base; else the petal centroid; else the crop centroid.
+    normals: per method in METHODS, a unit (3,) float64 normal, or None when that fit
+    failed or nothing could orient it.
+    """
+
+    center: np.ndarray
+    normals: dict[str, np.ndarray | None]
+    pistil_found: bool
+    n_points: int
+    n_petal_points: int
+
+    def to_json(self) -> dict[str, Any]:
+        """The DESIGN.md flowers.json entry fields, as plain lists, numbers and None."""
+        return {
+            "center": [float(v) for v in self.center],
+            "normals": {m: None if n is None else [float(v) for v in n]
+                        for m, n in self.normals.items()},
+            "points": self.n_points,
+            "petal_points": self.n_petal_points,
+            "pistil_found": self.pistil_found,
+        }
+
+
+def _in_band(values: np.ndarray, band: tuple[float, float]) -> np.ndarray:
+    return (values >= band[0]) & (values <= band[1])
+
+
+def _petal_mask(hsv: np.ndarray, config: PoseConfig) -> np.ndarray:
+    hue, sat, val = hsv[:, 0], hsv[:, 1], hsv[:, 2]
+    return (val > config.petal_min_value) & ~(
+        _in_band(hue, config.petal_reject_hue) & (sat >= config.petal_reject_saturation))
+
+
+def pistil_candidate_mask(colors: np.ndarray, config: PoseConfig) -> np.ndarray:
+    """(N,) bool: colours (N, 3) uint8 that pass the pistil colour rule."""
+    return _pistil_candidates(rgb_to_hsv(colors), config)
+
+
+def _pistil_candidates(hsv: np.ndarray, config: PoseConfig) -> np.ndarray:
+    return (_in_band(hsv[:, 0], config.pistil_hue) & (hsv[:, 1] >= config.pistil_min_saturation)
+            & (hsv[:, 2] >= config.pistil_min_value))
+
+
+def _clusters(points: np.ndarray, candidate: np.ndarray, config: PoseConfig) -> list[np.ndarray]:
+    index = np.flatnonzero(candidate)
+    if len(index) < config.pistil_min_points:
+        return []
+    labels = dbscan(points[index], config.pistil_eps, config.pistil_min_points)
+    order = np.argsort(labels, kind="stable")
+    edges = np.searchsorted(labels[order], np.arange(labels.max(initial=-1) + 2))
+    return [index[order[edges[k]:edges[k + 1]]] for k in range(len(edges) - 1)]
+
+
+def pistil_clusters(crop: Cloud, config: PoseConfig) -> list[np.ndarray]:
+    """The pistil candidate clusters of a crop: yellow points grouped by DBSCAN.
+
+    crop: points (N, 3) metres, colors (N, 3) uint8. Returns one index array into the
+    crop per cluster (DBSCAN noise left out); empty when there is none.
+    """
+    return _clusters(crop.points, _pistil_candidates(rgb_to_hsv(crop.colors), config), config)
+
+
+def split_petals_pistil(crop: Cloud, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Petal and pistil masks of a flower crop by colour; the pistil picked by DBSCAN.
+
+    The pistil is the candidate cluster whose centroid is nearest the petal centroid (the
+    crop centroid when there are no petal points). crop: points (N, 3) metres, colors
+    (N, 3) uint8. Returns (petal_mask, pistil_mask), both (N,) bool; pistil_mask is all
+    False when no candidate cluster exists.
+    """
+    hsv = rgb_to_hsv(crop.colors)
+    petal = _petal_mask(hsv, config)
+    pistil = np.zeros(len(crop), dtype=bool)
+    clusters = _clusters(crop.points, _pistil_candidates(hsv, config), config)
+    if not clusters:
+        return petal, pistil
+    anchor = crop.points[petal].mean(axis=0) if petal.any() else crop.points.mean(axis=0)
+    centroids = np.array([crop.points[c].mean(axis=0) for c in clusters])
+    pistil[clusters[int(np.argmin(np.linalg.norm(centroids - anchor, axis=1)))]] = True
+    return petal, pistil
+
+
+def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
+                 config: PoseConfig) -> np.ndarray | None:
+    """A vector (metres, crop frame) the normals must agree with, or None if none is known.
+
+    With a pistil it points from a reference to the pistil centroid: the pistil sits on the
+    side the corolla opens to. "crop" uses the crop centroid (upstream). "petal_base" uses
+    the petals nearest the pistil: the receptacle dome protrudes from the petal base along
+    the normal whatever the petals do further out, while a cupped corolla lifts the crop
+    centroid above the receptacle and reverses upstream's vector. Without a pistil, the
+    sepals and peduncle lie behind the flower, so the normal points away from them.
+    """
+    points = crop.points
+    if pistil.any():
+        pistil_points = points[pistil]
+        pistil_centroid = pistil_points.mean(axis=0)
+        if config.direction_reference == "crop" or not petal.any():
+            return pistil_centroid - points.mean(axis=0)
+        radius = np.percentile(np.linalg.norm(pistil_points - pistil_centroid, axis=1), 90)
+        petal_points = points[petal]
+        distance = np.linalg.norm(petal_points - pistil_centroid, axis=1)
+        base = distance <= config.base_radius_factor * radius
+        if base.sum() < config.base_min_points:
+            base = np.argsort(distance)[:config.base_min_points]
+        return pistil_centroid - petal_points[base].mean(axis=0)
+    hsv = rgb_to_hsv(crop.colors)
+    support = (~petal & _in_band(hsv[:, 0], config.support_hue)
+               & (hsv[:, 1] >= config.support_min_saturation))
+    if support.sum() < config.support_min_points or not petal.any():
+        return None
+    return points[petal].mean(axis=0) - points[support].mean(axis=0)
+
+
+def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
+    """Normals of one flower by the plane, superellipsoid and paraboloid fits.
+
+    crop: the cloud points inside one flower's box, points (N, 3) float64 metres in the
+    bed frame, colors (N, 3) uint8. Normals come back in the same frame, each oriented by
+    the pistil (or, without one, away from the sepals and peduncle), or None: for a failed
+    fit, or for all three when nothing orients them (the fits are then skipped).
+    """
+    config = config or PoseConfig()
+    if len(crop) == 0:
+        raise InputError("flower crop", "the crop has no points")
+    petal, pistil = split_petals_pistil(crop, config)
+    petal_points = crop.points[petal]
+    found = bool(pistil.any())
+    if found:
+        center = crop.points[pistil].mean(axis=0)
+    elif petal.any():
+        center = petal_points.mean(axis=0)
+    else:
+        center = crop.points.mean(axis=0)
+    normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
+    reference = _orientation(crop, petal, pistil, config)
+    if reference is not None:
+        axes = _fit_axes(petal_points, center if found else None, config)
+        normals = {m: None if axis is None else (axis if axis @ reference >= 0.0 else -axis)
+                   for m, axis in axes.items()}
+    return FlowerPose(center=center, normals=normals, pistil_found=found,
+                      n_points=len(crop), n_petal_points=len(petal_points))
+
+
+def _fit_axes(petal_points: np.ndarray, pistil_centroid: np.ndarray | None,
+              config: PoseConfig) -> dict[str, np.ndarray | None]:
+    """Unoriented unit axes (or None) of the three fits, keyed by METHODS."""
+    fit_points = petal_points
+    if len(petal_points) > config.max_fit_points:
+        rng = np.random.default_rng(config.seed)
+        fit_points = petal_points[rng.choice(len(petal_points), config.max_fit_points,
+                                             replace=False)]
+    axis_point = pistil_centroid if config.axis_through_pistil else None
+    return {
+        "plane": fit_plane(petal_points, config.min_fit_points),
+        "superellipsoid": fit_superellipsoid(
+            fit_points, axis_point=axis_point, init=config.superellipsoid_init,
+            size_bounds=config.superellipsoid_size_bounds,
+            exponent_bounds=config.superellipsoid_exponent_bounds,
+            max_flatness=config.superellipsoid_max_flatness,
+            max_evaluations=config.max_evaluations, min_points=config.min_fit_points),
+        "paraboloid": fit_paraboloid(fit_points, axis_point=axis_point,
+                                     max_evaluations=config.max_evaluations,
+                                     min_points=config.min_fit_points),
+    }

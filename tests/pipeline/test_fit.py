@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from flowerpose.pipeline.fit import fit_paraboloid, fit_plane, fit_superellipsoid
+
+RADIUS = 0.015  # corolla radius, metres
+INNER = 0.003  # receptacle radius: no petals inside it
+
+
+def petal_disc(seed: int, rim: float, n: int = 300, noise: float = 3e-4):
+    """Petals of a cupped disc (rim raised by `rim` metres; negative curls down), rotated
+    at random: points (n, 3) metres, the true normal and a point on the flower axis."""
+    rng = np.random.default_rng(seed)
+    r = RADIUS * np.sqrt(rng.uniform((INNER / RADIUS) ** 2, 1.0, n))
+    theta = rng.uniform(0.0, 2.0 * np.pi, n)
+    local = np.column_stack([r * np.cos(theta), r * np.sin(theta), rim * (r / RADIUS) ** 2])
+    local += rng.normal(0.0, noise, local.shape)
+    rotation = Rotation.random(random_state=seed)
+    offset = np.array([0.4, 0.3, 0.2])
+    return rotation.apply(local) + offset, rotation.apply([0.0, 0.0, 1.0]), offset
+
+
+def axis_error_deg(axis, normal):
+    """Angle between an unoriented axis and the normal, degrees."""
+    return float(np.degrees(np.arccos(min(1.0, abs(float(axis @ normal))))))
+
+
+@pytest.mark.parametrize("rim", [0.003, -0.003, 0.0], ids=["cupped", "curled", "flat"])
+@pytest.mark.parametrize("seed", range(4))
+def test_each_fit_recovers_the_axis(rim, seed):
+    points, normal, centre = petal_disc(seed, rim)
+    axes = {"plane": fit_plane(points),
+            "superellipsoid": fit_superellipsoid(points, axis_point=centre),
+            "paraboloid": fit_paraboloid(points, axis_point=centre)}
+    for method, axis in axes.items():
+        assert axis is not None, method
+        assert np.isclose(np.linalg.norm(axis), 1.0)
+        assert axis_error_deg(axis, normal) < 1.0, method
+
+
+@pytest.mark.parametrize("rim", [0.003, -0.003], ids=["cupped", "curled"])
+def test_a_free_centre_still_finds_the_axis_roughly(rim):
+    # Without a point on the axis, a sideways shift of the centre or vertex mimics a tilt
+    # of the shallow cap, which leaves a few degrees of error.
+    for seed in range(4):
+        points, normal, _ = petal_disc(seed, rim)
+        assert axis_error_deg(fit_superellipsoid(points), normal) < 5.0
+        assert axis_error_deg(fit_paraboloid(points), normal) < 5.0
+
+
+def test_upstream_start_fits_a_flat_disc():
+    points, normal, _ = petal_disc(0, 0.0)
+    assert axis_error_deg(fit_superellipsoid(points, init="upstream"), normal) < 1.0
+
+
+def test_too_few_or_bad_points_give_none():
+    points, _, centre = petal_disc(0, 0.003)
+    few = points[:9]
+    assert fit_plane(few) is None
+    assert fit_superellipsoid(few, axis_point=centre) is None
+    assert fit_paraboloid(few, axis_point=centre) is None
+    broken = points.copy()
+    broken[5, 1] = np.nan
+    assert fit_plane(broken) is None
+    assert fit_superellipsoid(broken) is None
+    assert fit_paraboloid(broken) is None
+    assert fit_paraboloid(points, axis_point=np.array([np.nan, 0.0, 0.0])) is None
