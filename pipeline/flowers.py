@@ -115,7 +115,7 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
     clusters = _cluster(plant, candidates, config)
-    boxes, crops = crop_flowers(plant, clusters, config.cluster.box_margin_m)
+    boxes, crops = crop_flowers(plant, clusters, config.cluster.crop_margin_m)
     timer.lap("cluster")
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
@@ -139,10 +139,10 @@ def _cluster(plant: Cloud, candidates: np.ndarray, config: PipelineConfig) -> li
         if ((white | centre).mean() <= config.cluster.min_flower_fraction
                 or white.mean() < config.cluster.min_white_fraction):
             continue
-        centres = [plant.points[members[c]].mean(axis=0)
-                   for c in pistil_clusters(plant.subset(members), config.pose)]
-        parts = split_by_centres(plant.points[members], np.array(centres).reshape(-1, 3),
-                                 config.cluster.split_min_separation_m)
+        parts = split_by_centres(plant.points[members],
+                                 pistil_clusters(plant.subset(members), config.pose),
+                                 config.cluster.split_min_separation_m,
+                                 config.cluster.split_link_m)
         clusters.extend(members[parts == k] for k in range(parts.max() + 1))
     return [c for c in clusters if len(c) >= config.cluster.min_points]
 

@@ -39,11 +39,27 @@ def test_oriented_box_fits_a_rotated_slab():
 
 
 def test_split_by_centres_merges_close_centres_and_splits_far_ones():
-    points = np.array([[0, 0, 0], [0.001, 0, 0], [0.03, 0, 0], [0.031, 0, 0]], float)
-    far = split_by_centres(points, np.array([[0, 0, 0], [0.03, 0, 0]]), 0.012)
-    assert far[0] == far[1] != far[2] == far[3]
-    close = split_by_centres(points, np.array([[0, 0, 0], [0.005, 0, 0]]), 0.012)
+    points = np.c_[np.arange(0, 0.04, 0.002), np.zeros(20), np.zeros(20)]
+    far = split_by_centres(points, [np.array([0]), np.array([15])], 0.012, 0.004)
+    assert (far[:7] == far[0]).all() and (far[9:] == far[15]).all() and far[0] != far[15]
+    close = split_by_centres(points, [np.array([0]), np.array([2])], 0.012, 0.004)
     assert (close == 0).all()
+
+
+def test_split_follows_the_surface_not_the_straight_line():
+    # Flower A: a disc in the plane z = 0 around the origin. Flower B: a vertical disc whose
+    # pistil is 18 mm away and whose lower petals hang over A's centre side of the bisector.
+    grid = np.arange(-0.015, 0.0151, 0.0015)
+    u, v = np.meshgrid(grid, grid)
+    disc = np.c_[u.ravel(), v.ravel()][np.hypot(u.ravel(), v.ravel()) <= 0.015]
+    a = np.c_[disc, np.zeros(len(disc))]
+    b = np.c_[np.full(len(disc), 0.018), disc[:, 0], disc[:, 1] + 0.016]
+    points = np.vstack([a, b])
+    centre_a = np.flatnonzero(np.linalg.norm(points, axis=1) < 0.002)
+    centre_b = len(a) + np.flatnonzero(np.linalg.norm(b - [0.018, 0, 0.016], axis=1) < 0.002)
+    labels = split_by_centres(points, [centre_a, centre_b], 0.012, 0.004)
+    assert (labels[:len(a)] == labels[centre_a[0]]).mean() > 0.97
+    assert (labels[len(a):] == labels[centre_b[0]]).mean() > 0.97
 
 
 def test_crops_of_overlapping_boxes_do_not_share_points():

@@ -1,0 +1,188 @@
+"""Configuration of the synthetic world: plant generator, oracle cloud, scan viewpoints.
+
+Three plant presets. All share the plant's size (26-31 cm high, 34-42 cm across, like the
+paper's 38 x 30 cm plants), the flower size (2-3.5 cm across, a yellow receptacle 6-8 mm
+wide), the 25 cm soil disc and the colours. They differ in:
+
+- ``easy``: a tidy plant for smoke tests. 7-10 leaves; 4-8 open flowers, all with 5
+  petals, facing at most 45 degrees off straight up; nearly flat corollas (petal tips
+  between 0.1 of the petal length below and 0.2 above the petal base); no flower under a
+  leaf, no touching flowers, no buds or fruit.
+- ``realistic`` (the benchmark default): 12-18 trifoliate leaves; 6-20 open flowers on
+  inflorescences of 1-3, 5 petals (6-8 in about one flower in seven); corollas from curled
+  down (-0.45) to cupped up (+0.4); normals from facing up through sideways to facing down
+  (0-150 degrees from vertical, 80% within 90 degrees of up, azimuth mostly away from the
+  plant axis); 15% of inflorescences start a few centimetres under a leaflet; 15% of second
+  and third flowers touch their neighbour at the rim; 0-4 green buds and 0-3 green or red
+  fruit as distractors.
+- ``hard``: a crowded plant. 16-24 leaves; 10-24 flowers; stronger curl (-0.6 to +0.5);
+  more flowers sideways and facing down (up to 170 degrees from vertical, 30% beyond 90)
+  and a wider azimuth spread; 30% of inflorescences under leaflets; 35% touching; 2-8 buds
+  and 2-6 fruit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+from flowerpose.errors import InputError
+
+PresetName = Literal["easy", "realistic", "hard"]
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """Everything the procedural strawberry-plant generator varies (ranges are inclusive)."""
+
+    name: str = "realistic"
+    """Preset this config was made from (informational, written into plant.json)."""
+    center_xy_m: tuple[float, float] = (0.0, 0.0)
+    """Crown position on the bed, metres, bed frame (the crown stands at z = 0)."""
+    height_m: tuple[float, float] = (0.26, 0.31)
+    """Range of the plant's target height (top of leaves and flowers), metres."""
+    spread_m: tuple[float, float] = (0.34, 0.42)
+    """Range of the plant's diameter (leaf tip to leaf tip), metres."""
+    leaves: tuple[int, int] = (12, 18)
+    """Range of the number of trifoliate leaves."""
+    leaflet_length_m: tuple[float, float] = (0.045, 0.08)
+    """Range of the central leaflet's length, metres (lateral leaflets are 85-95% of it)."""
+    leaflet_aspect: tuple[float, float] = (0.6, 0.8)
+    """Range of leaflet width / length."""
+    leaflet_teeth: tuple[int, int] = (8, 13)
+    """Range of the number of serration teeth along each leaflet edge."""
+    leaf_fold_deg: tuple[float, float] = (5.0, 30.0)
+    """Range of the fold of each leaflet half about its midrib, degrees (upward V)."""
+    leaf_droop: tuple[float, float] = (-0.05, 0.25)
+    """Range of leaflet curvature: drop of the tip below the base plane / leaflet length."""
+    flowers: tuple[int, int] = (6, 20)
+    """Range of the number of open flowers (the truth)."""
+    flower_diameter_m: tuple[float, float] = (0.020, 0.035)
+    """Range of open-flower diameters (petal tip to petal tip, projected), metres."""
+    petal_counts: tuple[int, ...] = (5, 6, 7, 8)
+    """Possible numbers of petals per flower."""
+    petal_count_weights: tuple[float, ...] = (0.86, 0.08, 0.04, 0.02)
+    """Probabilities of `petal_counts` (normalised)."""
+    cup: tuple[float, float] = (-0.45, 0.4)
+    """Range of the corolla shape: petal tip height above the petal base along the normal,
+    as a fraction of the petal length; positive is cupped up, negative curled down."""
+    petal_cup_jitter: float = 0.06
+    """Standard deviation of each petal's own cup around its flower's cup (same units)."""
+    polar_bins_deg: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0, 120.0, 150.0)
+    """Bin edges of the angle between a flower normal and +z, degrees (0 faces up, 180 down)."""
+    polar_bin_weights: tuple[float, ...] = (0.3, 0.3, 0.2, 0.12, 0.08)
+    """Probability of each polar-angle bin (the angle is uniform inside a bin)."""
+    azimuth_spread_deg: float = 50.0
+    """Standard deviation of a normal's azimuth around the outward direction from the plant
+    axis through the flower, degrees."""
+    flowers_per_inflorescence_weights: tuple[float, float, float] = (0.4, 0.4, 0.2)
+    """Probabilities of 1, 2 and 3 flowers on one inflorescence (peduncle)."""
+    hidden_probability: float = 0.15
+    """Probability that an inflorescence's first flower is placed 1.5-6 cm under a leaflet
+    (its other flowers grow next to it)."""
+    cluster_probability: float = 0.15
+    """Probability that the second or third flower of an inflorescence touches the previous
+    one at the rim (a touching cluster)."""
+    cluster_normal_spread_deg: float = 25.0
+    """Largest angle between the normals of two touching flowers, degrees."""
+    flower_clearance_m: float = 0.004
+    """Least distance from a flower's surface (petals, sepals, receptacle, stamens) to any
+    leaf, stem (except its own pedicel behind it), distractor or other flower, metres."""
+    touch_gap_m: float = 0.0006
+    """Gap left between the rims of two touching flowers, metres (they never interpenetrate)."""
+    buds: tuple[int, int] = (0, 4)
+    """Range of the number of closed green buds (distractors, not in the truth)."""
+    fruit: tuple[int, int] = (0, 3)
+    """Range of the number of fruit (distractors, not in the truth)."""
+    ripe_fruit_probability: float = 0.5
+    """Probability that a fruit is red (ripe) rather than green."""
+    soil_radius_m: float = 0.25
+    """Radius of the soil disc around the crown, metres."""
+    soil_roughness_m: float = 0.0015
+    """Standard deviation of the soil height around z = 0, metres."""
+
+
+@dataclass(frozen=True)
+class OracleCloudConfig:
+    """The oracle cloud: what a perfect photogrammetry reconstruction of the plant would give."""
+
+    points: int = 60_000
+    """Exact number of points returned (plant and soil together)."""
+    position_noise_m: float = 0.0
+    """Standard deviation of Gaussian noise added to every coordinate, metres."""
+    color_jitter: float = 0.02
+    """Standard deviation of independent noise per RGB channel, in [0, 1] colour units."""
+    shading: float = 0.12
+    """Darkening of a surface lit edge-on: two-sided Lambert factor 1 - shading * (1 - |n.l|)."""
+    light_direction: tuple[float, float, float] = (0.3, 0.2, 0.93)
+    """Direction towards the light, bed frame (normalised internally)."""
+    soil_density: float = 0.5
+    """Points per unit area on soil relative to the plant: photogrammetry remeshing (Polycam
+    "max polygons") keeps fewer vertices on flat, plain soil than on the plant."""
+    visible_only: bool = True
+    """Keep only points seen from at least one scan viewpoint (photogrammetry reconstructs
+    nothing no camera saw)."""
+    visibility_tolerance_m: float = 0.001
+    """A point is seen when the first surface hit on the ray from a viewpoint lies within
+    this distance of it, metres."""
+    max_viewpoints: int = 72
+    """Viewpoints used for the visibility test, evenly chosen along the scan path (speed)."""
+
+
+@dataclass(frozen=True)
+class ViewpointConfig:
+    """Camera positions of the paper's cylinder + dome scan path (upstream.md), metres."""
+
+    cylinder_radius_m: float = 0.5
+    """Radius of the cylinder around the plant axis, metres."""
+    cylinder_z_min_m: float = 0.05
+    """Height of the lowest cylinder ring above the soil, metres."""
+    cylinder_z_step_m: float = 0.02
+    """Height step between cylinder rings, metres."""
+    cylinder_top_margin_m: float = 0.02
+    """The highest cylinder ring is at most this far above the plant height, metres."""
+    cylinder_azimuth_step_deg: float = 20.0
+    """Azimuth step around the cylinder, degrees."""
+    dome_radius_m: float = 0.3
+    """Radius of the dome, metres."""
+    dome_center: Literal["top", "half"] = "top"
+    """Dome centre on the plant axis: at the plant height ("top": the dome caps the cylinder
+    scan, as on the FarmBot) or at half the plant height ("half")."""
+    dome_polar_deg: tuple[float, ...] = (70.0, 50.0, 30.0, 10.0)
+    """Polar angles of the dome rings from the vertical, degrees."""
+    dome_azimuth_step_deg: float = 20.0
+    """Azimuth step around the dome, degrees."""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The whole synthetic world: plant, scan path and oracle cloud."""
+
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    """Plant generator."""
+    viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
+    """Scan path whose cameras decide visibility."""
+    oracle: OracleCloudConfig = field(default_factory=OracleCloudConfig)
+    """Oracle point cloud."""
+
+
+def preset(name: PresetName) -> PlantConfig:
+    """The plant config of a named preset (see the module docstring)."""
+    realistic = PlantConfig()
+    if name == "realistic":
+        return realistic
+    if name == "easy":
+        return dataclasses.replace(
+            realistic, name="easy", leaves=(7, 10), flowers=(4, 8), petal_counts=(5,),
+            petal_count_weights=(1.0,), cup=(-0.1, 0.2), petal_cup_jitter=0.03,
+            polar_bins_deg=(0.0, 20.0, 45.0), polar_bin_weights=(0.6, 0.4),
+            azimuth_spread_deg=30.0, hidden_probability=0.0, cluster_probability=0.0,
+            buds=(0, 0), fruit=(0, 0))
+    if name == "hard":
+        return dataclasses.replace(
+            realistic, name="hard", leaves=(16, 24), flowers=(10, 24), cup=(-0.6, 0.5),
+            petal_cup_jitter=0.1, polar_bins_deg=(0.0, 30.0, 60.0, 90.0, 120.0, 170.0),
+            polar_bin_weights=(0.2, 0.25, 0.25, 0.17, 0.13), azimuth_spread_deg=70.0,
+            hidden_probability=0.3, cluster_probability=0.35, buds=(2, 8), fruit=(2, 6))
+    raise InputError("preset", f"unknown plant preset {name!r} (easy, realistic, hard)")
