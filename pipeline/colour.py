@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
     """HSV of uint8 RGB colours.
 
-    rgb: (..., 3) uint8. Returns (..., 3) float64: hue in degrees [0, 360), saturation
+    rgb: (..., 3) uint8. Returns (..., 3) float32: hue in degrees [0, 360), saturation
     and value in [0, 1] (the units upstream.md uses for every threshold).
     """
-    c = np.asarray(rgb, dtype=np.float64) / 255.0
-    r, g, b = c[..., 0], c[..., 1], c[..., 2]
-    v = c.max(axis=-1)
-    chroma = v - c.min(axis=-1)
-    s = np.divide(chroma, v, out=np.zeros_like(v), where=v > 0)
-    safe = np.where(chroma > 0, chroma, 1.0)
-    h = np.where(
-        v == r,
-        ((g - b) / safe) % 6.0,
-        np.where(v == g, (b - r) / safe + 2.0, (r - g) / safe + 4.0),
-    )
-    h = np.where(chroma > 0, h * 60.0, 0.0)
-    return np.stack([h, s, v], axis=-1)
+    rgb = np.asarray(rgb)
+    if rgb.size == 0:
+        return np.zeros(rgb.shape, np.float32)
+    # OpenCV's float conversion: the same definition as colorsys, ~30x faster than NumPy.
+    flat = rgb.reshape(-1, 1, 3).astype(np.float32) * np.float32(1 / 255)
+    return cv2.cvtColor(flat, cv2.COLOR_RGB2HSV).reshape(rgb.shape)
