@@ -76,7 +76,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
         write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply", cloud.subset(flower.crop))
     found = sum(f.pose.normals["plane"] is not None for f in result.flowers)
     print(f"{len(result.flowers)} flowers ({found} with a normal) in "
-          f"{result.timing_s['total']:.2f} s -> {out / 'flowers.json'}, {out / 'views.png'}")
+          f"{result.timing_s['total']:.2f} s -> {out / 'flowers.json'}, "
+          f"{out / 'views' / 'views.png'}")
     return 0
 
 

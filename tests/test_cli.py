@@ -1,0 +1,136 @@
+"""The command line: each job end to end on a small plant, and every error path."""
+
+import json
+
+import numpy as np
+import pytest
+
+from flowerpose.cli import main
+from flowerpose.cloudio import Cloud, write_cloud
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _assert_one_line_error(code, err, *words):
+    assert code == 2
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("flowerpose: error: "), err
+    assert "Traceback" not in err
+    for word in words:
+        assert word in lines[0]
+
+
+def test_detect_pose_score_chain(plant0, tmp_path, capsys):
+    _, plant_dir = plant0
+    out = tmp_path / "det"
+    code, text, _ = _run(capsys, "detect", plant_dir / "cloud.ply", "--out", out)
+    assert code == 0 and "flowers" in text
+    flowers = json.loads((out / "flowers.json").read_text())
+    assert len(flowers["flowers"]) == 6
+    assert {"center", "normals", "points", "petal_points", "pistil_found", "box"} <= set(
+        flowers["flowers"][0])
+    assert flowers["timing_s"]["total"] > 0
+    assert (out / "views" / "views.png").exists()
+    assert len(list((out / "views").glob("view_*.png"))) == 6
+    code, text, _ = _run(capsys, "pose", out / "crops" / "flower_00.ply")
+    entry = json.loads(text)
+    assert code == 0 and entry["pistil_found"] and len(entry["normals"]["plane"]) == 3
+    code, text, _ = _run(capsys, "score", out / "flowers.json", plant_dir / "plant.json",
+                         "--out", tmp_path / "score")
+    report = json.loads((tmp_path / "score" / "report.json").read_text())
+    assert code == 0 and "Plane" in text
+    assert report["summary"]["found"] == 6 and report["summary"]["fp"] == 0
+    assert report["summary"]["error_deg"]["plane"]["mean"] < 4.0
+
+
+def test_eval_writes_the_report_contract(tmp_path, capsys):
+    out = tmp_path / "eval"
+    code, text, _ = _run(capsys, "eval", "--plants", 1, "--seed", 1, "--workers", 1,
+                         "--out", out, "--set", "cluster.eps=0.01")
+    assert code == 0
+    assert "Superellipsoid" in text and "Total" in text and "Std Dev" in text
+    report = json.loads((out / "report.json").read_text())
+    assert set(report) >= {"config", "plants", "summary", "timing_s"}
+    assert set(report["plants"][0]) >= {"plant", "gt", "visible", "detections", "found", "extra",
+                                        "fp", "error_deg"}
+    assert set(report["summary"]) >= {"gt", "visible", "detections", "found", "recall",
+                                      "recall_visible", "extra", "fp", "error_deg"}
+    assert set(report["summary"]["error_deg"]["plane"]) == {"mean", "median", "std", "n"}
+    assert report["config"]["cluster"]["eps"] == 0.01
+    assert report["timing_s"]["total"] > 0
+    assert report["summary"]["recall_visible"] >= 0.9
+    assert (out / "report.md").read_text().startswith("# flowerpose eval")
+    assert (out / "plants" / "seed-1" / "flowers.json").exists()
+
+
+def test_plant_command(tmp_path, capsys):
+    code, text, _ = _run(capsys, "plant", "--seed", 4, "--points", 5000, "--preset", "easy",
+                         "--out", tmp_path / "p")
+    assert code == 0 and "5000 cloud points" in text
+    truth = json.loads((tmp_path / "p" / "plant.json").read_text())
+    assert truth["units"] == "m" and truth["frame"] == "bed" and truth["seed"] == 4
+    assert {"id", "center", "normal", "radius", "petals", "stage", "visible"} <= set(
+        truth["flowers"][0])
+
+
+def test_a_cloud_without_flowers_gives_an_empty_result(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    leaves = Cloud(rng.random((3000, 3)) * [0.3, 0.3, 0.2] + [0, 0, 0.05],
+                   np.tile([50, 120, 40], (3000, 1)).astype(np.uint8))
+    path = write_cloud(tmp_path / "leaves.ply", leaves)
+    code, text, _ = _run(capsys, "detect", path, "--out", tmp_path / "out")
+    assert code == 0 and text.startswith("0 flowers")
+    assert json.loads((tmp_path / "out" / "flowers.json").read_text())["flowers"] == []
+
+
+def test_a_millimetre_cloud_is_converted_and_said(plant0, tmp_path, capsys):
+    bundle, _ = plant0
+    path = write_cloud(tmp_path / "mm.ply", Cloud(bundle.cloud.points * 1000, bundle.cloud.colors))
+    code, text, err = _run(capsys, "detect", path, "--out", tmp_path / "out")
+    assert code == 0 and "millimetres" in err and text.startswith("6 flowers")
+
+
+def _grey_cloud(path):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).random(
+        (20, 3))))
+    o3d.io.write_point_cloud(str(path), pcd)
+    return path
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["detect", "{tmp}/missing.ply", "--out", "{tmp}/o"], ["missing.ply", "not found"]),
+    (["detect", "{grey}", "--out", "{tmp}/o"], ["grey.ply", "no colours"]),
+    (["detect", "{nan}", "--out", "{tmp}/o"], ["nan.ply", "NaN"]),
+    (["detect", "{empty}", "--out", "{tmp}/o"], ["empty.ply", "no points"]),
+    (["pose", "{tmp}/missing.ply"], ["missing.ply"]),
+    (["detect", "{nan}", "--out", "{tmp}/o", "--set", "cluster.epz=1"], ["cluster.epz"]),
+    (["detect", "{nan}", "--out", "{tmp}/o", "--set", "cluster.eps=big"], ["cluster.eps"]),
+    (["detect", "{nan}", "--out", "{tmp}/o", "--config", "{tmp}/none.toml"], ["none.toml"]),
+    (["score", "{badjson}", "{badjson}"], ["bad.json", "JSON"]),
+    (["score", "{tmp}/missing.json", "{badjson}"], ["missing.json"]),
+    (["score", "{badjson}", "{badjson}", "--truth-scale", "0"], ["--truth-scale"]),
+    (["eval", "--source", "scan", "--out", "{tmp}/e"], ["--source"]),
+    (["eval", "--plants", "0", "--out", "{tmp}/e"], ["--plants"]),
+    (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
+    (["sweep", "--grid", "nope.eps=1,2", "--out", "{tmp}/s"], ["nope"]),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
+    import open3d as o3d
+
+    nan = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array([[0, 0, 0], [np.nan, 0, 0]])))
+    nan.colors = o3d.utility.Vector3dVector(np.full((2, 3), 0.5))
+    o3d.io.write_point_cloud(str(tmp_path / "nan.ply"), nan)
+    (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float "
+                                        "x\nproperty float y\nproperty float z\nend_header\n")
+    (tmp_path / "bad.json").write_text("{not json")
+    names = {"tmp": tmp_path, "grey": _grey_cloud(tmp_path / "grey.ply"),
+             "nan": tmp_path / "nan.ply", "empty": tmp_path / "empty.ply",
+             "badjson": tmp_path / "bad.json"}
+    code, _, err = _run(capsys, *[a.format(**names) for a in argv])
+    _assert_one_line_error(code, err, *words)
