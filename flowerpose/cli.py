@@ -126,11 +126,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: `flowerpose: error: ...`, exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        command = self.prog.removeprefix("flowerpose").strip()
+        where = f"{command}: " if command else ""
+        self.exit(2, f"flowerpose: error: {where}{message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="flowerpose",
         description="3D strawberry flower poses from point clouds, scored against exact truth.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                parser_class=_Parser)
 
     p = sub.add_parser("eval", help="the synthetic benchmark: plants -> clouds -> flowers -> "
                        "scores (the paper's Table I)")
@@ -205,6 +215,12 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except InputError as err:
         print(f"flowerpose: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        # A path the user gave that cannot be written or read (an --out that is a file, a
+        # read-only folder, a full disk): their problem to fix, not a bug.
+        where = err.filename or "file system"
+        print(f"flowerpose: error: {where}: {err.strerror or err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("flowerpose: interrupted", file=sys.stderr)

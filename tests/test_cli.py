@@ -119,6 +119,10 @@ def _grey_cloud(path):
     (["eval", "--plants", "0", "--out", "{tmp}/e"], ["--plants"]),
     (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
     (["sweep", "--grid", "nope.eps=1,2", "--out", "{tmp}/s"], ["nope"]),
+    (["eval", "--plants", "abc"], ["--plants", "invalid int"]),
+    (["detect"], ["required"]),
+    (["frobnicate"], ["invalid choice"]),
+    (["eval", "--plants", "1", "--workers", "1", "--out", "{badjson}"], ["bad.json"]),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     import open3d as o3d
@@ -132,5 +136,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     names = {"tmp": tmp_path, "grey": _grey_cloud(tmp_path / "grey.ply"),
              "nan": tmp_path / "nan.ply", "empty": tmp_path / "empty.ply",
              "badjson": tmp_path / "bad.json"}
-    code, _, err = _run(capsys, *[a.format(**names) for a in argv])
+    try:
+        code, _, err = _run(capsys, *[a.format(**names) for a in argv])
+    except SystemExit as exit_:
+        code, err = exit_.code, capsys.readouterr().err
     _assert_one_line_error(code, err, *words)
