@@ -39,6 +39,7 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
     code, text, _ = _run(capsys, "pose", out / "crops" / "flower_00.ply")
     entry = json.loads(text)
     assert code == 0 and entry["pistil_found"] and len(entry["normals"]["plane"]) == 3
+    assert set(entry) == set(flowers["flowers"][0])
     code, text, _ = _run(capsys, "score", out / "flowers.json", plant_dir / "plant.json",
                          "--out", tmp_path / "score")
     report = json.loads((tmp_path / "score" / "report.json").read_text())
