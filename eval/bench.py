@@ -18,9 +18,10 @@ UPSTREAM_SECONDS = (78, 105)
 
 
 def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
-              out: Path | None = None, config: PipelineConfig = PipelineConfig()) -> dict:
+              out: Path | None = None, config: PipelineConfig | None = None) -> dict:
     """Median wall seconds per stage over `repeat` runs for each cloud size; prints a table
     and writes bench.json to `out` when given."""
+    config = config or PipelineConfig()
     results = []
     for points in point_counts:
         print(f"generating a {points:,}-point cloud (seed {seed}, realistic)...", file=sys.stderr)

@@ -110,6 +110,19 @@ def cmd_score(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_frames(args: argparse.Namespace) -> int:
+    from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
+
+    config = FrameSelectConfig(count=args.count, crop_px=args.crop,
+                               brightness_penalty=args.brightness_penalty)
+    result = select_frames(args.scan, args.out, config)
+    sharp = [f["sharpness"] for f in result["frames"]]
+    print(f"{len(result['frames'])} of {result['recorded']} frames chosen in "
+          f"{result['seconds']:.1f} s (sharpness median {sorted(sharp)[len(sharp) // 2]:.1f}) "
+          f"-> {args.out / 'frames.json'}")
+    return 0
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_config
     from flowerpose.eval.sweep import parse_grid, run_sweep
@@ -164,6 +177,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=cmd_plant)
+
+    p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")
+    p.add_argument("scan", type=Path, metavar="SCAN_DIR")
+    p.add_argument("--count", type=int, default=200, help="number of bins and frames (200)")
+    p.add_argument("--crop", type=int, default=400, help="centre crop side, pixels (400)")
+    p.add_argument("--brightness-penalty", action="store_true",
+                   help="subtract |mean V - 105| from the score, as the authors' code did")
+    p.add_argument("--out", type=Path, required=True)
+    p.set_defaults(func=cmd_frames)
 
     p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
     p.add_argument("cloud", type=Path, metavar="CLOUD.ply")

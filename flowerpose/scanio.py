@@ -1,0 +1,207 @@
+"""The scan folder: what a scan records and every later stage reads (DESIGN.md).
+
+    scan.json         manifest: source, plant position, path parameters, progress
+    camera.json       intrinsics: {"model": "PINHOLE", "width", "height", "fx", "fy", "cx",
+                      "cy", "fps"}
+    trajectory.csv    one row per recorded frame (TRAJECTORY_COLUMNS)
+    frames/           frame_000000.jpg, ... (what the camera recorded, in order), and/or
+    video.mp4         the same frames as a video
+
+Trajectory units: seconds, metres and radians in the bed frame. The camera pose is
+camera-to-bed with OpenCV camera axes (x right, y down, z forward along the optical axis),
+as a position and a unit quaternion (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flowerpose.errors import InputError
+
+TRAJECTORY_COLUMNS = ("frame", "t", "x", "y", "z", "yaw", "pitch",
+                      "cam_x", "cam_y", "cam_z", "qw", "qx", "qy", "qz")
+"""frame index, time (s), gantry tool-mount position (m), head yaw and pitch (rad),
+camera position (m), camera-to-bed rotation quaternion."""
+FRAME_PATTERN = "frame_{:06d}.jpg"
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels; the image is width x height."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    fps: float = 30.0
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) camera matrix K."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> Intrinsics:
+        """The same camera at another resolution (the field of view kept)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx,
+                          self.cy * sy, self.fps)
+
+    def to_json(self) -> dict:
+        return {"model": "PINHOLE", "width": self.width, "height": self.height,
+                "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "fps": self.fps}
+
+
+def read_json(path: Path) -> dict:
+    """A JSON object from a file; errors name the file."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(path, f"cannot read ({err})") from None
+    except json.JSONDecodeError as err:
+        raise InputError(path, f"not valid JSON ({err.msg} at line {err.lineno})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object")
+    return data
+
+
+def read_intrinsics(path: Path) -> Intrinsics:
+    """camera.json to Intrinsics, checked."""
+    data = read_json(path)
+    try:
+        values = {k: float(data[k]) for k in ("fx", "fy", "cx", "cy")}
+        width, height = int(data["width"]), int(data["height"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(path, f"camera.json needs width, height, fx, fy, cx, cy ({err})") \
+            from None
+    if width <= 0 or height <= 0 or values["fx"] <= 0 or values["fy"] <= 0 or not all(
+            np.isfinite(list(values.values()))):
+        raise InputError(path, "intrinsics must be positive and finite")
+    return Intrinsics(width, height, fps=float(data.get("fps", 30.0)), **values)
+
+
+def write_json(path: Path, data: dict) -> Path:
+    """Write JSON atomically (a crash never leaves half a file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(path.suffix + ".tmp")
+    temporary.write_text(json.dumps(data, indent=1))
+    temporary.replace(path)
+    return path
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """trajectory.csv as arrays, one row per frame."""
+
+    frame: np.ndarray
+    """(F,) int frame indices."""
+    t: np.ndarray
+    """(F,) seconds since the scan started."""
+    gantry: np.ndarray
+    """(F, 3) tool-mount position, metres, bed frame."""
+    head: np.ndarray
+    """(F, 2) yaw, pitch, radians."""
+    camera_position: np.ndarray
+    """(F, 3) metres, bed frame."""
+    camera_rotation: np.ndarray
+    """(F, 3, 3) camera-to-bed rotations (columns: camera x, y, z axes in the bed frame)."""
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions (w, x, y, z) to (..., 3, 3) rotation matrices."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(q, float)
+    return Rotation.from_quat(q[..., [1, 2, 3, 0]].reshape(-1, 4)).as_matrix().reshape(
+        q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices to (..., 4) unit quaternions (w, x, y, z), w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = np.asarray(rotation, float)
+    xyzw = Rotation.from_matrix(rotation.reshape(-1, 3, 3)).as_quat()
+    wxyz = xyzw[:, [3, 0, 1, 2]] * np.where(xyzw[:, 3:4] < 0, -1.0, 1.0)
+    return wxyz.reshape(rotation.shape[:-2] + (4,))
+
+
+def read_trajectory(path: Path) -> Trajectory:
+    """trajectory.csv, checked: the header, numbers, finite values, increasing frames."""
+    try:
+        with open(path, newline="") as handle:
+            reader = csv.reader(handle)
+            header = next(reader, None)
+            rows = [row for row in reader if row]
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except OSError as err:
+        raise InputError(path, f"cannot read ({err.strerror})") from None
+    if header is None or tuple(h.strip() for h in header) != TRAJECTORY_COLUMNS:
+        raise InputError(path, f"expected the header {','.join(TRAJECTORY_COLUMNS)}")
+    try:
+        table = np.array(rows, dtype=np.float64).reshape(-1, len(TRAJECTORY_COLUMNS))
+    except ValueError:
+        raise InputError(path, "every row needs 14 numbers") from None
+    if not np.isfinite(table).all():
+        raise InputError(path, "NaN or infinite values")
+    frame = table[:, 0].astype(np.int64)
+    if len(frame) and np.any(np.diff(frame) <= 0):
+        raise InputError(path, "frame indices must increase")
+    return Trajectory(frame, table[:, 1], table[:, 2:5], table[:, 5:7], table[:, 7:10],
+                      quaternion_to_matrix(table[:, 10:14]))
+
+
+def trajectory_row(frame: int, t: float, gantry: np.ndarray, yaw: float, pitch: float,
+                   camera_position: np.ndarray, camera_rotation: np.ndarray) -> list[str]:
+    """One trajectory.csv row in fixed-point text."""
+    values = [t, *gantry, yaw, pitch, *camera_position, *matrix_to_quaternion(camera_rotation)]
+    return [str(int(frame))] + [f"{float(v):.9f}" for v in values]
+
+
+def frame_files(scan_dir: Path) -> list[Path]:
+    """The recorded frame images of a scan folder, in order."""
+    return sorted((Path(scan_dir) / "frames").glob("frame_*.jpg"))
+
+
+def iter_frames(scan_dir: Path) -> Iterator[tuple[int, np.ndarray]]:
+    """(index, RGB uint8 image) for every recorded frame: frames/ if present, else video.mp4."""
+    import cv2
+
+    scan_dir = Path(scan_dir)
+    files = frame_files(scan_dir)
+    if files:
+        for path in files:
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if image is None:
+                raise InputError(path, "unreadable image")
+            yield int(path.stem.split("_")[-1]), cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        return
+    video = scan_dir / "video.mp4"
+    if not video.exists():
+        raise InputError(scan_dir, "no frames/ and no video.mp4: not a scan folder")
+    capture = cv2.VideoCapture(str(video))
+    if not capture.isOpened():
+        raise InputError(video, "cannot open the video")
+    index = 0
+    try:
+        while True:
+            ok, image = capture.read()
+            if not ok:
+                break
+            yield index, cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+            index += 1
+    finally:
+        capture.release()

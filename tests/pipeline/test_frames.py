@@ -1,0 +1,99 @@
+import csv
+
+import cv2
+import numpy as np
+import pytest
+
+from flowerpose.errors import InputError
+from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, frame_score, select_frames
+from flowerpose.scanio import (
+    FRAME_PATTERN,
+    TRAJECTORY_COLUMNS,
+    Intrinsics,
+    read_trajectory,
+    trajectory_row,
+    write_json,
+)
+
+
+def _scan(path, blur_px, texture_seed=0, video=False):
+    """A scan folder whose frame k is a textured image blurred by blur_px[k] pixels."""
+    rng = np.random.default_rng(texture_seed)
+    base = cv2.resize(rng.integers(0, 256, (60, 80, 3)).astype(np.uint8), (320, 240),
+                      interpolation=cv2.INTER_NEAREST)
+    (path / "frames").mkdir(parents=True)
+    rows = []
+    writer = None
+    if video:
+        writer = cv2.VideoWriter(str(path / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30,
+                                 (320, 240))
+    for k, blur in enumerate(blur_px):
+        image = cv2.GaussianBlur(base, (0, 0), blur) if blur > 0 else base
+        if video:
+            writer.write(image)
+        else:
+            cv2.imwrite(str(path / "frames" / FRAME_PATTERN.format(k)), image,
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+        angle = k * 0.01
+        rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                             [0, 0, 1]])
+        rows.append(trajectory_row(k, k / 30, np.array([1.0, 0.5, 0.3]), angle, 0.1,
+                                   np.array([1.0, 0.5 + k * 1e-3, 0.2]), rotation))
+    if writer is not None:
+        writer.release()
+    with open(path / "trajectory.csv", "w", newline="") as handle:
+        csv.writer(handle).writerows([TRAJECTORY_COLUMNS, *rows])
+    write_json(path / "camera.json", Intrinsics(320, 240, 300, 300, 160, 120).to_json())
+    return path
+
+
+@pytest.mark.parametrize("video", [False, True], ids=["frames", "video"])
+def test_the_sharpest_frame_of_each_bin_is_chosen(tmp_path, video):
+    rng = np.random.default_rng(1)
+    blur = rng.uniform(1.0, 4.0, 60)
+    sharp = [int(b * 10 + rng.integers(0, 10)) for b in range(6)]
+    blur[sharp] = 0.0
+    scan = _scan(tmp_path / "scan", blur, video=video)
+    result = select_frames(scan, tmp_path / "out", FrameSelectConfig(count=6), progress=False)
+    assert [f["index"] for f in result["frames"]] == sharp
+    assert all((tmp_path / "out" / f["file"]).exists() for f in result["frames"])
+    assert (tmp_path / "out" / "camera.json").exists()
+    np.testing.assert_allclose(result["frames"][0]["pose"]["position"], [1.0, 0.5 + sharp[0] * 1e-3,
+                                                                         0.2], atol=1e-9)
+
+
+def test_score_falls_with_blur_and_brightness_penalty_prefers_105():
+    rng = np.random.default_rng(2)
+    image = rng.integers(0, 256, (200, 200, 3)).astype(np.uint8)
+    config = FrameSelectConfig()
+    scores = [frame_score(cv2.GaussianBlur(image, (0, 0), s), config)[0] for s in (0.5, 1, 2, 4)]
+    assert scores == sorted(scores, reverse=True)
+    flat = FrameSelectConfig(brightness_penalty=True)
+    dark, mid = np.full((50, 50, 3), 20, np.uint8), np.full((50, 50, 3), 105, np.uint8)
+    assert frame_score(mid, flat)[0] > frame_score(dark, flat)[0]
+
+
+def test_bins_are_equal_and_sequential():
+    edges = bin_edges(1000, 200)
+    assert edges[0] == 0 and edges[-1] == 1000 and set(np.diff(edges)) == {5}
+
+
+def test_trajectory_round_trip_keeps_the_pose(tmp_path):
+    scan = _scan(tmp_path / "scan", [0.0, 1.0, 2.0])
+    trajectory = read_trajectory(scan / "trajectory.csv")
+    assert len(trajectory) == 3
+    angle = 0.02
+    np.testing.assert_allclose(trajectory.camera_rotation[2][:2, :2],
+                               [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]],
+                               atol=1e-8)
+
+
+def test_errors_name_the_problem(tmp_path):
+    scan = _scan(tmp_path / "scan", [0.0] * 5)
+    with pytest.raises(InputError, match="fewer than the 10 bins"):
+        select_frames(scan, tmp_path / "o", FrameSelectConfig(count=10), progress=False)
+    with pytest.raises(InputError, match="scan folder not found"):
+        select_frames(tmp_path / "nope", tmp_path / "o", FrameSelectConfig(), progress=False)
+    (scan / "trajectory.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="header"):
+        select_frames(scan, tmp_path / "o", FrameSelectConfig(count=2), progress=False)
