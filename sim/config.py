@@ -38,8 +38,9 @@ class PlantConfig:
 
     name: str = "realistic"
     """Preset this config was made from (informational, written into plant.json)."""
-    center_xy_m: tuple[float, float] = (0.0, 0.0)
-    """Crown position on the bed, metres, bed frame (the crown stands at z = 0)."""
+    center_xy_m: tuple[float, float] = (1.5, 0.75)
+    """Crown position on the bed, metres, bed frame (the crown stands at z = 0): the middle
+    of the 3 x 1.5 m bed, where the gantry's scan path reaches all round it."""
     height_m: tuple[float, float] = (0.26, 0.31)
     """Range of the plant's target height (top of leaves and flowers), metres."""
     spread_m: tuple[float, float] = (0.34, 0.42)

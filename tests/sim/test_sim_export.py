@@ -19,7 +19,7 @@ def test_make_plant_writes_truth_mesh_labels_and_cloud(tmp_path):
     truth = json.loads(paths["truth"].read_text())
     assert truth["seed"] == 2 and truth["units"] == "m" and truth["frame"] == "bed"
     assert truth["preset"] == "easy"
-    assert truth["plant_center"] == [0.0, 0.0, 0.0]
+    assert truth["plant_center"] == [1.5, 0.75, 0.0]
     assert truth["height"] == pytest.approx(bundle.plant.height)
     assert truth["distractors"] == {"buds": 0, "fruit": 0}
     assert len(truth["flowers"]) == len(bundle.plant.flowers)
