@@ -1,0 +1,63 @@
+import functools
+
+import numpy as np
+import pytest
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.bot import KinematicBot, SolidCamera
+from flowerpose.hardware.errors import StallError
+from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scanpath import ScanPathConfig, plan_scan
+from flowerpose.scanio import read_json
+
+SMALL = ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2, dome_polar_deg=(50.0,))
+SOURCE = {"backend": "kinematic"}
+
+
+def _bot(**kwargs):
+    return KinematicBot(camera=functools.partial(SolidCamera, width=32, height=24, fps=2),
+                        **kwargs)
+
+
+class _StallsAt(KinematicBot):
+    """Stalls on Y during its `count`-th move."""
+
+    def __init__(self, count):
+        super().__init__(camera=functools.partial(SolidCamera, width=32, height=24, fps=2))
+        self.moves, self.count = 0, count
+
+    def move_to(self, xyz, speed_fraction=1.0):
+        self.moves += 1
+        if self.moves == self.count:
+            self.fail_next_move(32)
+        super().move_to(xyz, speed_fraction)
+
+
+def test_scan_visits_every_waypoint_and_takes_the_planned_time(tmp_path):
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    activities = []
+    bot = _bot(observer=activities.append, head_settle_s=0.5)
+    manifest = run_scan(bot, plan, tmp_path, source=SOURCE, progress=False)
+    assert manifest["status"] == "complete" and manifest["completed"] == len(plan.waypoints)
+    np.testing.assert_allclose(bot.position(), plan.waypoints[-1].pose.gantry, atol=1e-12)
+    first_move = [a for a in activities if a.kind == "move"][0].elapsed
+    expected = plan.duration_s + first_move + 0.5 * len(plan.waypoints)
+    assert bot.now() == pytest.approx(expected)
+    assert [a.kind for a in activities[:3]] == ["move", "head", "dwell"]
+    assert (tmp_path / "camera.json").exists() and (tmp_path / "video.mp4").exists()
+
+
+def test_an_interrupted_scan_resumes_at_the_next_waypoint(tmp_path):
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    with pytest.raises(StallError):
+        run_scan(_StallsAt(4), plan, tmp_path, source=SOURCE, progress=False)
+    stopped = read_json(tmp_path / "scan.json")
+    assert stopped["status"] == "interrupted" and stopped["completed"] == 3
+    assert "StallError" in stopped["sessions"][0]["error"]
+    resumed_bot = _bot()
+    manifest = run_scan(resumed_bot, plan, tmp_path, source=SOURCE, progress=False)
+    assert manifest["status"] == "complete" and manifest["completed"] == len(plan.waypoints)
+    assert [s["started_waypoint"] for s in manifest["sessions"]] == [0, 3]
+    other = plan_scan(np.array([1.4, 0.75]), 0.25, SMALL)
+    with pytest.raises(InputError, match="different scan"):
+        run_scan(_bot(), other, tmp_path, source=SOURCE, progress=False)
