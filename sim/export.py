@@ -1,14 +1,20 @@
-"""Writing a generated plant: truth (plant.json), mesh (plant.ply), labels, oracle cloud."""
+"""Writing and reading a generated plant: truth (plant.json), mesh (plant.ply), labels,
+oracle cloud."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from flowerpose.cloudio import Cloud, write_cloud
-from flowerpose.sim.plant import Plant
+from flowerpose.errors import InputError
+from flowerpose.scanio import read_json
+from flowerpose.sim.config import preset
+from flowerpose.sim.plant import FlowerTruth, Plant
 
 
 def truth_dict(plant: Plant, visible: np.ndarray | None = None,
@@ -48,3 +54,35 @@ def write_plant(plant: Plant, out_dir: str | Path, cloud: Cloud | None = None,
     if cloud is not None:
         paths["cloud"] = write_cloud(out / "cloud.ply", cloud)
     return paths
+
+
+def read_plant(plant_dir: str | Path) -> Plant:
+    """The plant a `write_plant` folder holds: mesh, face labels and truth, as a `Plant`.
+
+    The config is the named preset's with the recorded crown position; generator settings
+    beyond those are not stored, but nothing that reads a written plant needs them.
+    """
+    folder = Path(plant_dir)
+    truth = read_json(folder / "plant.json")
+    for name in ("plant.ply", "plant_labels.npz"):
+        if not (folder / name).exists():
+            raise InputError(folder / name, "missing: not a folder written by flowerpose plant")
+    try:
+        mesh = trimesh.load(folder / "plant.ply", process=False, force="mesh")
+        labels = np.load(folder / "plant_labels.npz")
+        face_part, face_flower = labels["face_part"], labels["face_flower"]
+        flowers = [FlowerTruth(int(f["id"]), np.asarray(f["center"], float),
+                               np.asarray(f["normal"], float), float(f["radius"]),
+                               int(f["petals"]), str(f.get("stage", "open")))
+                   for f in truth["flowers"]]
+        center = truth["plant_center"]
+        config = dataclasses.replace(preset(truth.get("preset", "realistic")),
+                                     center_xy_m=(float(center[0]), float(center[1])))
+        seed, height = int(truth["seed"]), float(truth["height"])
+        distractors = truth.get("distractors", {})
+    except (KeyError, TypeError, ValueError, OSError) as err:
+        raise InputError(folder, f"unreadable plant files ({err})") from None
+    if len(face_part) != len(mesh.faces) or len(face_flower) != len(mesh.faces):
+        raise InputError(folder / "plant_labels.npz", "labels do not match the mesh's faces")
+    return Plant(mesh, face_part, face_flower, flowers, seed, config, height,
+                 buds=int(distractors.get("buds", 0)), fruit=int(distractors.get("fruit", 0)))

@@ -46,3 +46,20 @@ def test_make_plant_writes_truth_mesh_labels_and_cloud(tmp_path):
     again = make_plant(2, "easy", points=4000, out_dir=tmp_path / "b")
     for name, path in paths.items():
         assert path.read_bytes() == again.paths[name].read_bytes(), name
+
+
+def test_read_plant_gives_back_the_mesh_labels_and_truth(tmp_path):
+    from flowerpose.sim.export import read_plant
+
+    bundle = make_plant(1, "easy", points=2000, out_dir=tmp_path)
+    plant = read_plant(tmp_path)
+    original = bundle.plant
+    np.testing.assert_allclose(plant.mesh.vertices, original.mesh.vertices, atol=1e-6)
+    np.testing.assert_array_equal(plant.mesh.faces, original.mesh.faces)
+    np.testing.assert_array_equal(plant.mesh.visual.vertex_colors,
+                                  original.mesh.visual.vertex_colors)
+    np.testing.assert_array_equal(plant.face_flower, original.face_flower)
+    assert [f.id for f in plant.flowers] == [f.id for f in original.flowers]
+    np.testing.assert_allclose(plant.flowers[0].normal, original.flowers[0].normal)
+    np.testing.assert_allclose(plant.center, original.center)
+    assert plant.height == pytest.approx(original.height)
