@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from datetime import datetime
 from pathlib import Path
@@ -110,6 +111,54 @@ def cmd_score(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_scan(args: argparse.Namespace) -> int:
+    if not args.sim:
+        raise InputError("scan", "the physical bot's backends (--port, --cloud) are not built "
+                         "yet; use --sim with --plant")
+    if args.plant is None:
+        raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
+    from flowerpose.hardware.scan import run_scan
+    from flowerpose.hardware.scanpath import ScanPathConfig, plan_scan
+    from flowerpose.sim.export import plant_obstacles, read_plant
+
+    plant = read_plant(args.plant)
+    plan = plan_scan(plant.center[:2], plant.height, ScanPathConfig(),
+                     obstacles=plant_obstacles(plant))
+    print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
+          f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
+          "of bot time; reach and collisions checked")
+    if args.dry_run:
+        _print_plan(plan)
+        return 0
+    from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_preview
+
+    config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=args.frame_rate,
+                                                 workers=args.workers),
+                          width=args.width, height=args.height)
+    with SimBot([args.plant], config) as bot:
+        manifest = run_scan(bot, plan, args.out,
+                            source={**bot.describe(), "plants": [str(args.plant.resolve())]})
+    frames = sum(s.get("frames", 0) for s in manifest["sessions"])
+    print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
+          f"waypoints, {frames} frames -> {args.out}")
+    if args.preview:
+        print(f"preview: {write_preview(args.out, [plant.center], [plant.height])}")
+    return 0
+
+
+def _print_plan(plan) -> None:
+    """The planned moves in FarmBot's own units (what a physical bot would be sent)."""
+    from flowerpose.hardware.geometry import bed_to_farmbot_mm
+    from flowerpose.hardware.kinematics import servo_commands
+
+    print("waypoint kind      X mm     Y mm     Z mm   yaw cmd  pitch cmd")
+    for w in plan.waypoints:
+        x, y, z = bed_to_farmbot_mm(w.pose.gantry)
+        yaw, pitch = servo_commands(w.pose)
+        print(f"{w.index:8d} {w.kind:8s} {x:8.2f} {y:8.2f} {z:8.2f} {float(yaw):8.1f} "
+              f"{float(pitch):9.1f}")
+
+
 def cmd_frames(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
 
@@ -178,6 +227,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=cmd_plant)
 
+    p = sub.add_parser("scan", help="scan a plant along the cylinder and dome: --sim films a "
+                       "generated plant with the simulated FarmBot")
+    p.add_argument("--sim", action="store_true", help="the simulated bot (MuJoCo + renderer)")
+    p.add_argument("--plant", type=Path, help="plant folder from flowerpose plant (--sim)")
+    p.add_argument("--out", type=Path, required=True, help="scan folder (resumes a scan "
+                   "already there)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the planned moves, checked against the bot's limits; no scan")
+    p.add_argument("--frame-rate", type=float, default=0.6,
+                   help="frames rendered per second of bot time (0.6)")
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=720)
+    p.add_argument("--workers", type=int, default=None, help="render processes (all cores)")
+    p.add_argument("--no-preview", dest="preview", action="store_false",
+                   help="skip preview.mp4 (the gantry scanning, seen from outside)")
+    p.set_defaults(func=cmd_scan)
+
     p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")
     p.add_argument("scan", type=Path, metavar="SCAN_DIR")
     p.add_argument("--count", type=int, default=200, help="number of bins and frames (200)")
@@ -241,6 +307,10 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as err:
         print(f"flowerpose: error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader went away (`flowerpose ... | head`): nothing left to tell anyone.
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115
+        return 0
     except OSError as err:
         # A path the user gave that cannot be written or read (an --out that is a file, a
         # read-only folder, a full disk): their problem to fix, not a bug.

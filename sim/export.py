@@ -86,3 +86,14 @@ def read_plant(plant_dir: str | Path) -> Plant:
         raise InputError(folder / "plant_labels.npz", "labels do not match the mesh's faces")
     return Plant(mesh, face_part, face_flower, flowers, seed, config, height,
                  buds=int(distractors.get("buds", 0)), fruit=int(distractors.get("fruit", 0)))
+
+
+def plant_obstacles(plant: Plant, points: int = 20_000, seed: int = 0) -> np.ndarray:
+    """(N, 3) points on the plant's surfaces above the soil, bed frame, metres: what a scan
+    path must keep clear of."""
+    from flowerpose.sim.pieces import Part
+
+    above = np.flatnonzero(plant.face_part != Part.SOIL)
+    body = trimesh.Trimesh(plant.mesh.vertices, plant.mesh.faces[above], process=False)
+    samples, _ = trimesh.sample.sample_surface(body, points, seed=seed)
+    return np.asarray(samples)

@@ -1,0 +1,472 @@
+"""The simulated backend: the bot on MuJoCo, filming generated plants with an imperfect camera.
+
+`SimBot` is the in-memory `KinematicBot` (FarmBot's motion profile on a simulated clock)
+whose camera is `SimCamera`. The camera's pose comes from the MuJoCo model
+(`assets/farmbot/scene.xml`) at the joint positions the bot takes. While recording, the
+camera takes frames on a fixed grid of the bot's clock, `frame_rate_hz` of the real 30 fps
+video. Each frame's state is known exactly: the gantry on its motion profile, the head
+turning at servo speed, the image's speed (motion blur) and the time since the camera
+stopped (defocus while the autofocus settles). `stop_recording` renders the frames in a
+process pool with pyrender, applies the sensor model and writes `frames/`,
+`trajectory.csv` and `frames_truth.csv` (the blur and noise each frame got) in order. An
+interrupted render resumes by skipping the frames already written. Per-flower visibility
+from the rendered instance masks at each settled waypoint goes to `visibility.json`.
+
+This is the one module of `hardware` that imports `sim`.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Headless rendering (MuJoCo's preview, pyrender's frames) unless the user chose otherwise.
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import csv  # noqa: E402
+import functools
+import math
+import multiprocessing
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicBot, Recording
+from flowerpose.hardware.errors import CameraError
+from flowerpose.hardware.geometry import FARMBOT_ASSETS
+from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.scanio import (
+    FRAME_PATTERN,
+    TRAJECTORY_COLUMNS,
+    Intrinsics,
+    trajectory_row,
+    write_json,
+)
+
+TRUTH_COLUMNS = ("frame", "t", "speed_px_s", "since_stop_s", "motion_blur_px", "defocus_px",
+                 "noise_sigma", "sharpness")
+"""frames_truth.csv: what the simulator did to each frame (pixels, seconds; sharpness: the
+share of fine detail the blur kept, `sim.sensor.SensorRecord.sharpness`)."""
+
+
+@dataclass(frozen=True)
+class SimCameraConfig:
+    """The simulated camera's recording (its optics: `sim.camera.CameraConfig`; its
+    imperfections: `sim.sensor.SensorConfig`)."""
+
+    frame_rate_hz: float = 0.6
+    """Frames rendered per second of the bot's clock. The real camera records 30 fps, about
+    36,000 frames in a 20-minute scan; rendering them all would take hours, and the frame
+    stage keeps 200. 0.6 Hz gives about 700 frames taken at moments spread evenly over the
+    scan: while moving (motion blur), just after stopping (defocus) and settled (sharp), in
+    the proportions a real scan has. Each pause also gives its last video frame, the
+    settled view the real camera records 90 of in a 3 s pause."""
+    servo_speed_rad_s: float = 6.0
+    """Head turning speed, radians per second (35 kg servos: about 0.17 s per 60 degrees)."""
+    velocity_dt_s: float = 1 / 30
+    """Time step of the finite difference that gives the image's speed, seconds."""
+    image_depth_m: float = 0.5
+    """Depth of the scene point whose image motion stands for the frame's motion, metres
+    (the plant's distance on the cylinder)."""
+    visibility_width: int = 320
+    """Width of the instance-mask renders that decide flower visibility, pixels."""
+    visibility_samples: int = 200
+    """Petal surface samples per flower for visibility."""
+    workers: int | None = None
+    """Render processes (default: every core)."""
+    seed: int = 0
+    """Seed of the sensor noise (frame k uses seed + k)."""
+
+
+class MujocoPoser:
+    """Camera poses from the MuJoCo model of the bot."""
+
+    def __init__(self, scene: Path = FARMBOT_ASSETS / "scene.xml"):
+        import mujoco
+
+        self._mujoco = mujoco
+        self.model = mujoco.MjModel.from_xml_path(str(scene))
+        self.data = mujoco.MjData(self.model)
+        self._camera = self.model.camera("camera").id
+
+    def camera_to_bed(self, gantry: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
+        """(4, 4) camera-to-bed, OpenCV axes, of the head at (gantry, yaw, pitch), bed frame,
+        metres and radians (the servos' flip applied as the real head takes it)."""
+        self.data.qpos[:] = joint_positions(HeadPose(gantry, yaw, pitch))
+        self._mujoco.mj_kinematics(self.model, self.data)
+        self._mujoco.mj_camlight(self.model, self.data)
+        pose = np.eye(4)
+        pose[:3, 3] = self.data.cam_xpos[self._camera]
+        # MuJoCo's camera looks along its -z with +y up; OpenCV's looks along +z, y down.
+        pose[:3, :3] = self.data.cam_xmat[self._camera].reshape(3, 3) @ np.diag([1, -1, -1])
+        return pose
+
+
+@dataclass(frozen=True)
+class FrameTask:
+    """One frame to render: its index, time and pose, and its sensor state."""
+
+    index: int
+    t: float
+    gantry: np.ndarray
+    yaw: float
+    pitch: float
+    camera_to_bed: np.ndarray
+    speed_px_s: np.ndarray
+    """(2,) image-plane velocity, pixels per second."""
+    since_stop_s: float
+    """Seconds since the image stopped moving (0 while moving)."""
+
+
+# Render workers: one renderer per process, built once from the plant folders.
+_worker: dict = {}
+
+
+def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
+                 samples: int, seed: int) -> None:
+    from flowerpose.sim.export import read_plant
+    from flowerpose.sim.render import PlantRenderer
+
+    plants = [read_plant(d) for d in plant_dirs]
+    _worker["renderer"] = PlantRenderer(plants)
+    _worker["intrinsics"] = Intrinsics(**{k: intrinsics[k] for k in
+                                          ("width", "height", "fx", "fy", "cx", "cy", "fps")})
+    width = visibility_width
+    height = round(width * intrinsics["height"] / intrinsics["width"])
+    _worker["small"] = _worker["intrinsics"].scaled(width, height)
+    _worker["petals"] = _petal_samples(plants, samples, seed)
+
+
+def _petal_samples(plants, samples: int, seed: int) -> list[tuple[int, np.ndarray]]:
+    """(instance id, (S, 3) petal surface points) per open flower of every plant."""
+    import trimesh
+
+    from flowerpose.sim.pieces import Part
+
+    out, offset = [], 0
+    rng = np.random.default_rng(seed)
+    for plant in plants:
+        for flower in plant.flowers:
+            faces = np.flatnonzero((plant.face_flower == flower.id)
+                                   & (plant.face_part == Part.PETAL))
+            sub = trimesh.Trimesh(plant.mesh.vertices, plant.mesh.faces[faces], process=False)
+            points, _ = trimesh.sample.sample_surface(sub, samples, seed=int(rng.integers(2**31)))
+            out.append((offset + flower.id, np.asarray(points)))
+        offset += max((f.id for f in plant.flowers), default=-1) + 1
+    return out
+
+
+def _render_frame(task: FrameTask, frames_dir: str, sensor_seed: int) -> dict:
+    import cv2
+
+    from flowerpose.sim.render import Output
+    from flowerpose.sim.sensor import SensorConfig, apply_sensor
+
+    rgb = _worker["renderer"].render(task.camera_to_bed, _worker["intrinsics"], Output.RGB).rgb
+    rng = np.random.default_rng([sensor_seed, task.index])
+    sensor = SensorConfig()
+    # The stored JPEG is the camera's compression: apply_sensor stops before it.
+    image, record = apply_sensor(rgb, task.speed_px_s, task.since_stop_s,
+                                 replace(sensor, jpeg_quality=None), rng)
+    ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
+                            [cv2.IMWRITE_JPEG_QUALITY, int(sensor.jpeg_quality or 95)])
+    if not ok:
+        raise CameraError(f"frame {task.index}: JPEG encoding failed")
+    path = Path(frames_dir) / FRAME_PATTERN.format(task.index)
+    temporary = path.with_suffix(".tmp")
+    temporary.write_bytes(jpeg.tobytes())
+    temporary.replace(path)
+    return {"motion_blur_px": record.motion_blur_px, "defocus_px": record.defocus_px,
+            "noise_sigma": record.noise_sigma_dn, "sharpness": record.sharpness}
+
+
+def _visible_fractions(camera_to_bed: np.ndarray) -> dict[int, float]:
+    """Per flower instance, the share of its petal samples this camera sees: inside the
+    image, on a pixel of its own instance mask, at the rendered depth."""
+    from flowerpose.sim.camera import project
+    from flowerpose.sim.render import Output
+
+    small = _worker["small"]
+    out = _worker["renderer"].render(camera_to_bed, small, Output.INSTANCE | Output.DEPTH)
+    fractions = {}
+    for instance, points in _worker["petals"]:
+        uv, depth = project(points, camera_to_bed, small)
+        col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        inside = (depth > 0) & (col >= 0) & (row >= 0) & (col < small.width) & (
+            row < small.height)
+        seen = np.zeros(len(points), bool)
+        c, r = col[inside], row[inside]
+        seen[inside] = (out.instance[r, c] == instance) & (
+            np.abs(out.depth[r, c] - depth[inside]) < 0.005)
+        fractions[instance] = float(seen.mean())
+    return fractions
+
+
+class SimCamera(Camera):
+    """The simulated IMX219 on the head: see the module docstring."""
+
+    def __init__(self, clock, plant_dirs: list[Path], intrinsics: Intrinsics,
+                 poser: MujocoPoser, config: SimCameraConfig, state):
+        self._clock = clock
+        self._plant_dirs = [str(p) for p in plant_dirs]
+        self._intrinsics = intrinsics
+        self._poser = poser
+        self.config = config
+        self._state = state  # () -> (gantry, yaw, pitch) now
+        self._scan_dir: Path | None = None
+        self._tasks: list[FrameTask] = []
+        self._settled: list[np.ndarray] = []
+        self._still_since = 0.0
+        self._next_index = 0
+        self._start = 0.0
+
+    def intrinsics(self) -> dict[str, float]:
+        return self._intrinsics.to_json()
+
+    def frame(self) -> Frame:
+        from flowerpose.sim.export import read_plant
+        from flowerpose.sim.render import Output, PlantRenderer
+
+        gantry, yaw, pitch = self._state()
+        renderer = PlantRenderer([read_plant(d) for d in self._plant_dirs])
+        pose = self._poser.camera_to_bed(gantry, yaw, pitch)
+        return Frame(renderer.render(pose, self._intrinsics, Output.RGB).rgb, self._clock())
+
+    def start_recording(self, path: str | Path) -> None:
+        if self._scan_dir is not None:
+            raise CameraError(f"{path}: already recording; stop that recording first")
+        self._scan_dir = Path(path).parent
+        (self._scan_dir / "frames").mkdir(parents=True, exist_ok=True)
+        self._next_index, last_t = _last_row(self._scan_dir / "trajectory.csv")
+        self._tasks, self._settled, self._start = [], [], self._clock()
+        self._still_since = self._clock()
+        # A resumed scan's times continue the recorded ones (the new bot's clock restarts).
+        self._time_offset = 0.0 if last_t is None else last_t + 1.0 / 30.0 - self._clock()
+
+    def _pose_state(self, activity: Activity, t: float) -> tuple[np.ndarray, float, float]:
+        """(gantry, yaw, pitch) at bot time t within `activity`."""
+        from flowerpose.hardware.motion import move_trajectory
+
+        local = min(max(t - activity.t0, 0.0), activity.elapsed)
+        if activity.kind == "move":
+            gantry = move_trajectory([local], activity.gantry_start, activity.gantry_end,
+                                     activity.profile)[0]
+            return gantry, *activity.head_start
+        if activity.kind == "head":
+            turn = self._turn_time(activity)
+            f = 1.0 if turn <= 0 else min(local / turn, 1.0)
+            (y0, p0), (y1, p1) = activity.head_start, activity.head_end
+            return activity.gantry_end, y0 + f * (y1 - y0), p0 + f * (p1 - p0)
+        return activity.gantry_end, *activity.head_end
+
+    def _turn_time(self, activity: Activity) -> float:
+        (y0, p0), (y1, p1) = activity.head_start, activity.head_end
+        turn = max(abs(y1 - y0), abs(p1 - p0)) / self.config.servo_speed_rad_s
+        return min(turn, activity.elapsed)
+
+    def _image_speed(self, activity: Activity, t: float, pose: np.ndarray) -> np.ndarray:
+        """(2,) pixels per second the image moves at time t (finite difference)."""
+        from flowerpose.sim.sensor import image_velocity
+
+        dt = self.config.velocity_dt_s
+        later = self._poser.camera_to_bed(*self._pose_state(activity, t + dt))
+        return image_velocity(pose, later, dt, self._intrinsics, self.config.image_depth_m)
+
+    def observe(self, activity: Activity) -> None:
+        """Schedule the frames the camera takes during `activity` (bot clock seconds)."""
+        if self._scan_dir is None:
+            return
+        end = activity.t0 + activity.elapsed
+        moving_until = activity.t0
+        if activity.kind == "move" and np.any(activity.gantry_start != activity.gantry_end):
+            moving_until = end
+        elif activity.kind == "head":
+            moving_until = activity.t0 + self._turn_time(activity)
+        rate = self.config.frame_rate_hz
+        first = math.ceil(activity.t0 * rate - 1e-9)
+        times = [k / rate for k in range(first, math.ceil(end * rate - 1e-9))]
+        video_frame = 1.0 / 30.0
+        if activity.kind == "dwell" and activity.elapsed > video_frame and (
+                not times or times[-1] < end - 2 * video_frame):
+            # The last video frame of each pause: the settled view the pause exists for.
+            times.append(end - video_frame)
+        for t in times:
+            gantry, yaw, pitch = self._pose_state(activity, t)
+            pose = self._poser.camera_to_bed(gantry, yaw, pitch)
+            moving = t < moving_until
+            speed = self._image_speed(activity, t, pose) if moving else np.zeros(2)
+            since = 0.0 if moving else t - max(self._still_since, moving_until)
+            self._tasks.append(FrameTask(self._next_index + len(self._tasks),
+                                         t + self._time_offset, gantry, yaw, pitch, pose, speed,
+                                         since))
+        if moving_until > activity.t0:
+            self._still_since = moving_until
+        if activity.kind == "dwell" and activity.elapsed > 0:
+            self._settled.append(self._poser.camera_to_bed(*self._pose_state(activity, end)))
+
+    def stop_recording(self) -> Recording:
+        if self._scan_dir is None:
+            raise CameraError("stop_recording: not recording; start a recording first")
+        scan_dir, tasks, settled = self._scan_dir, self._tasks, self._settled
+        self._scan_dir, self._tasks, self._settled = None, [], []
+        written = self._render(scan_dir, tasks, settled)
+        return Recording(scan_dir / "frames", self._start, self._clock(),
+                         self.config.frame_rate_hz, written)
+
+    def _render(self, scan_dir: Path, tasks: list[FrameTask], settled: list[np.ndarray]) -> int:
+        """Render the scheduled frames (and visibility) in a process pool; frames and their
+        trajectory rows are written in order, so an interruption keeps a clean prefix."""
+        workers = self.config.workers or os.cpu_count() or 1
+        init = (self._plant_dirs, self._intrinsics.to_json(), self.config.visibility_width,
+                self.config.visibility_samples, self.config.seed)
+        trajectory_path = scan_dir / "trajectory.csv"
+        truth_path = scan_dir / "frames_truth.csv"
+        new = not trajectory_path.exists()
+        start, written = time.perf_counter(), 0
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
+                                 initargs=init) as pool, \
+                open(trajectory_path, "a", newline="") as trajectory_file, \
+                open(truth_path, "a", newline="") as truth_file:
+            trajectory, truth = csv.writer(trajectory_file), csv.writer(truth_file)
+            if new:
+                trajectory.writerow(TRAJECTORY_COLUMNS)
+                truth.writerow(TRUTH_COLUMNS)
+            render = functools.partial(_render_frame, frames_dir=str(scan_dir / "frames"),
+                                       sensor_seed=self.config.seed)
+            visibility = pool.map(_visible_fractions, settled, chunksize=4) if settled else []
+            for task, record in zip(tasks, pool.map(render, tasks, chunksize=4), strict=True):
+                trajectory.writerow(trajectory_row(task.index, task.t, task.gantry, task.yaw,
+                                                   task.pitch, task.camera_to_bed[:3, 3],
+                                                   task.camera_to_bed[:3, :3]))
+                truth.writerow([task.index, f"{task.t:.6f}",
+                                f"{float(np.linalg.norm(task.speed_px_s)):.3f}",
+                                f"{task.since_stop_s:.6f}", f"{record['motion_blur_px']:.4f}",
+                                f"{record['defocus_px']:.4f}", f"{record['noise_sigma']:.4f}",
+                                f"{record['sharpness']:.6f}"])
+                trajectory_file.flush()
+                truth_file.flush()
+                written += 1
+                if written % 100 == 0:
+                    print(f"scan: rendered {written}/{len(tasks)} frames "
+                          f"({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
+            _merge_visibility(scan_dir / "visibility.json", list(visibility))
+        return written
+
+
+def _last_row(path: Path) -> tuple[int, float | None]:
+    """(data rows, time of the last row) of a trajectory.csv; (0, None) when there is none."""
+    if not path.exists():
+        return 0, None
+    with open(path) as handle:
+        rows = [line for line in handle if line.strip()][1:]
+    return len(rows), (float(rows[-1].split(",")[1]) if rows else None)
+
+
+def _merge_visibility(path: Path, fractions: list[dict[int, float]]) -> None:
+    """Keep, per flower, the largest share of its petals seen from any settled waypoint,
+    merged with an earlier session's (a resumed scan)."""
+    from flowerpose.scanio import read_json
+
+    best: dict[str, float] = {}
+    if path.exists():
+        best = {str(k): float(v) for k, v in read_json(path).get("fraction", {}).items()}
+    for per_pose in fractions:
+        for instance, value in per_pose.items():
+            best[str(instance)] = max(best.get(str(instance), 0.0), value)
+    write_json(path, {"rule": "visible: at least half of the petal samples seen (own instance "
+                      "mask, rendered depth) from one settled waypoint",
+                      "fraction": best,
+                      "visible": {k: v >= 0.5 for k, v in best.items()}})
+
+
+@dataclass(frozen=True)
+class SimBotConfig:
+    """The simulated bot: its camera and head."""
+
+    camera: SimCameraConfig = field(default_factory=SimCameraConfig)
+    head_settle_s: float = 0.5
+    """Seconds `set_head` takes (the servos turn, then settle)."""
+    width: int = 1280
+    """Frame width, pixels (the paper's 1280 x 720 video)."""
+    height: int = 720
+    """Frame height, pixels."""
+
+
+class SimBot(KinematicBot):
+    """The simulated FarmBot: `KinematicBot` timing, MuJoCo's camera pose, rendered frames."""
+
+    def __init__(self, plant_dirs: list[Path], config: SimBotConfig = SimBotConfig()):
+        from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
+
+        for folder in plant_dirs:
+            if not (Path(folder) / "plant.json").exists():
+                raise InputError(folder, "not a plant folder (no plant.json): make one with "
+                                 "flowerpose plant")
+        intrinsics = intrinsics_from_config(CameraConfig(width=config.width,
+                                                         height=config.height))
+        poser = MujocoPoser()
+        self.sim_config = config
+        super().__init__(BotInfo.from_geometry("simulated (MuJoCo)"),
+                         head_settle_s=config.head_settle_s,
+                         camera=lambda clock: SimCamera(clock, plant_dirs, intrinsics, poser,
+                                                        config.camera, self._current),
+                         observer=lambda activity: self.camera.observe(activity))
+
+    def _current(self) -> tuple[np.ndarray, float, float]:
+        yaw, pitch = self.head()
+        return self.position(), yaw, pitch
+
+    def describe(self) -> dict:
+        """The backend's settings, for scan.json."""
+        return {"backend": "sim", **asdict(self.sim_config)}
+
+
+def write_preview(scan_dir: Path, plant_centers: list[np.ndarray], plant_heights: list[float],
+                  width: int = 640, height: int = 360, fps: float = 15.0,
+                  max_frames: int = 300) -> Path:
+    """preview.mp4: MuJoCo's view of the gantry scanning, from outside the bed, at most
+    `max_frames` frames spread over trajectory.csv; each plant stands in as a green
+    ellipsoid. Shadows and reflections are off: on a CPU they triple the time."""
+    import cv2
+    import mujoco
+
+    from flowerpose.scanio import read_trajectory
+
+    trajectory = read_trajectory(scan_dir / "trajectory.csv")
+    spec = mujoco.MjSpec.from_file(str(FARMBOT_ASSETS / "scene.xml"))
+    for center, plant_height in zip(plant_centers, plant_heights, strict=True):
+        geom = spec.worldbody.add_geom()
+        geom.type = mujoco.mjtGeom.mjGEOM_ELLIPSOID
+        geom.size = [0.19, 0.19, plant_height / 2]
+        geom.pos = [center[0], center[1], plant_height / 2]
+        geom.rgba = [0.25, 0.6, 0.2, 1.0]
+        geom.contype = geom.conaffinity = 0
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    renderer = mujoco.Renderer(model, height, width)
+    options = mujoco.MjvOption()
+    view = mujoco.MjvCamera()
+    view.lookat[:] = [*plant_centers[0][:2], 0.3]
+    view.distance, view.azimuth, view.elevation = 1.8, 235.0, -22.0
+    path = scan_dir / "preview.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+    try:
+        qpos = joint_positions(HeadPose(trajectory.gantry, trajectory.head[:, 0],
+                                        trajectory.head[:, 1]))
+        for k in np.unique(np.linspace(0, len(trajectory) - 1, max_frames).round().astype(int)):
+            data.qpos[:] = qpos[k]
+            mujoco.mj_kinematics(model, data)
+            renderer.update_scene(data, camera=view, scene_option=options)
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+            writer.write(np.ascontiguousarray(renderer.render()[:, :, ::-1]))
+    finally:
+        writer.release()
+        renderer.close()
+    return path
