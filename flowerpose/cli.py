@@ -118,11 +118,11 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
     from flowerpose.hardware.scan import run_scan
-    from flowerpose.hardware.scanpath import ScanPathConfig, plan_scan
+    from flowerpose.hardware.scanpath import ScanConfig, plan_scan
     from flowerpose.sim.export import plant_obstacles, read_plant
 
     plant = read_plant(args.plant)
-    plan = plan_scan(plant.center[:2], plant.height, ScanPathConfig(),
+    plan = plan_scan(plant.center[:2], plant.height, ScanConfig(),
                      obstacles=plant_obstacles(plant))
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
           f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
@@ -130,7 +130,13 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.dry_run:
         _print_plan(plan)
         return 0
-    from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_preview
+    from flowerpose.hardware.sim_bot import (
+        SimBot,
+        SimBotConfig,
+        SimCameraConfig,
+        write_preview,
+        write_scan_truth,
+    )
 
     config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=args.frame_rate,
                                                  workers=args.workers),
@@ -139,8 +145,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
         manifest = run_scan(bot, plan, args.out,
                             source={**bot.describe(), "plants": [str(args.plant.resolve())]})
     frames = sum(s.get("frames", 0) for s in manifest["sessions"])
+    truth = write_scan_truth(args.out, args.plant)
     print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
-          f"waypoints, {frames} frames -> {args.out}")
+          f"waypoints, {frames} frames -> {args.out} (truth with the scan's visibility: "
+          f"{truth})")
     if args.preview:
         print(f"preview: {write_preview(args.out, [plant.center], [plant.height])}")
     return 0

@@ -10,7 +10,7 @@ between waypoints, each axis on FarmBot's own motion profile.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -20,31 +20,15 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry
 from flowerpose.hardware.kinematics import HeadPose, check_reachable, forward, look_at
 from flowerpose.hardware.motion import MotionProfile, move_duration, move_trajectory
+from flowerpose.scanpath import ScanPathConfig, path_cameras
 
 
 @dataclass(frozen=True)
-class ScanPathConfig:
-    """The cylinder + dome scan path (upstream.md, "Scan path"), in metres and degrees."""
+class ScanConfig:
+    """A scan: the path's geometry plus how the bot flies it."""
 
-    cylinder_radius_m: float = 0.5
-    """Distance of the cylinder's cameras from the plant axis (the paper: 500 mm)."""
-    cylinder_bottom_m: float = 0.16
-    """Height of the lowest ring above the soil. The paper's bot, with its Z travel, takes a
-    level camera no lower than about 0.158 m (hardware/geometry.py)."""
-    cylinder_top_margin_m: float = 0.0
-    """The highest ring sits this far above the plant's top."""
-    cylinder_step_m: float = 0.02
-    """Height between rings (the paper: 20 mm)."""
-    azimuth_step_deg: float = 20.0
-    """Angle between neighbouring views on a ring or dome circle (the paper: 20 degrees)."""
-    dome_radius_m: float = 0.3
-    """Radius of the dome (the paper: 300 mm)."""
-    dome_center: Literal["half", "top"] = "half"
-    """The dome's centre on the plant axis: at half the plant's height (default) or at its
-    top. The paper does not say; over a 0.3 m plant a dome centred on its top puts the
-    highest views beyond the paper's Z travel."""
-    dome_polar_deg: tuple[float, ...] = (70.0, 50.0, 30.0, 10.0)
-    """Polar angles of the dome's rings from the vertical, lowest ring first (the paper)."""
+    path: ScanPathConfig = field(default_factory=ScanPathConfig)
+    """Where the camera stops and what it looks at."""
     pause_s: float = 3.0
     """Stop at each waypoint so the autofocus settles (the paper: about 3 s)."""
     head_clearance_m: float = 0.04
@@ -74,50 +58,14 @@ class ScanPlan:
     """(2,) plant axis x, y, metres, bed frame."""
     plant_height: float
     waypoints: list[Waypoint]
-    config: ScanPathConfig
+    config: ScanConfig
     duration_s: float
     """Moves plus pauses on the motion profile, seconds."""
 
     def to_json(self) -> dict:
         return {"plant_center": self.plant_center.tolist(), "plant_height": self.plant_height,
                 "waypoints": len(self.waypoints), "duration_s": round(self.duration_s, 2),
-                "config": {k: (list(v) if isinstance(v, tuple) else v)
-                           for k, v in self.config.__dict__.items()}}
-
-
-def _ring_order(count: int, reverse: bool) -> np.ndarray:
-    order = np.arange(count)
-    return order[::-1] if reverse else order
-
-
-def plan_cameras(plant_center: np.ndarray, plant_height: float,
-                 config: ScanPathConfig) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(kind, camera position (3,), target (3,)) in travel order, metres, bed frame."""
-    if plant_height <= 0 or not np.isfinite(plant_height):
-        raise InputError("plant height", f"must be positive, got {plant_height}")
-    center = np.asarray(plant_center, float)
-    azimuths = np.radians(np.arange(0.0, 360.0, config.azimuth_step_deg))
-    top = plant_height + config.cylinder_top_margin_m
-    heights = np.arange(config.cylinder_bottom_m, top + 1e-9, config.cylinder_step_m)
-    if len(heights) == 0:
-        heights = np.array([config.cylinder_bottom_m])
-    stops = []
-    for ring, z in enumerate(heights):
-        for k in _ring_order(len(azimuths), reverse=ring % 2 == 1):
-            a = azimuths[k]
-            camera = np.array([center[0] + config.cylinder_radius_m * np.cos(a),
-                               center[1] + config.cylinder_radius_m * np.sin(a), z])
-            stops.append(("cylinder", camera, np.array([center[0], center[1], z])))
-    dome_z = plant_height / 2 if config.dome_center == "half" else plant_height
-    dome = np.array([center[0], center[1], dome_z])
-    for ring, polar in enumerate(np.radians(config.dome_polar_deg)):
-        reverse = (len(heights) + ring) % 2 == 1
-        for k in _ring_order(len(azimuths), reverse):
-            a = azimuths[k]
-            offset = config.dome_radius_m * np.array(
-                [np.sin(polar) * np.cos(a), np.sin(polar) * np.sin(a), np.cos(polar)])
-            stops.append(("dome", dome + offset, dome))
-    return stops
+                "config": asdict(self.config)}
 
 
 def _head_points(pose: HeadPose, geometry: BotGeometry) -> np.ndarray:
@@ -127,7 +75,7 @@ def _head_points(pose: HeadPose, geometry: BotGeometry) -> np.ndarray:
     return np.stack([np.atleast_2d(camera), np.atleast_2d(axis)], axis=1)
 
 
-def plan_scan(plant_center, plant_height: float, config: ScanPathConfig = ScanPathConfig(),
+def plan_scan(plant_center, plant_height: float, config: ScanConfig = ScanConfig(),
               geometry: BotGeometry = PAPER_BOT, profile: MotionProfile | None = None,
               obstacles: np.ndarray | None = None, samples_per_move: int = 16) -> ScanPlan:
     """Plan and check the cylinder + dome path around a plant.
@@ -138,14 +86,12 @@ def plan_scan(plant_center, plant_height: float, config: ScanPathConfig = ScanPa
     where the head would pass closer than `head_clearance_m` to the plant.
     """
     profile = profile or MotionProfile()
-    stops = plan_cameras(np.asarray(plant_center, float)[:2], plant_height, config)
-    cameras = np.array([c for _, c, _ in stops])
-    targets = np.array([t for _, _, t in stops])
+    kinds, cameras, targets = path_cameras(plant_center, plant_height, config.path)
     poses = look_at(cameras, targets, geometry)
     check_reachable(poses, geometry, name="scan waypoint")
     waypoints = [Waypoint(i, kind, cameras[i], targets[i],
                           HeadPose(poses.gantry[i], poses.yaw[i], poses.pitch[i]))
-                 for i, (kind, _, _) in enumerate(stops)]
+                 for i, kind in enumerate(kinds)]
     duration = len(waypoints) * config.pause_s + sum(
         move_duration(a.pose.gantry, b.pose.gantry, profile)
         for a, b in zip(waypoints, waypoints[1:], strict=False))
@@ -157,7 +103,7 @@ def plan_scan(plant_center, plant_height: float, config: ScanPathConfig = ScanPa
 
 
 def _check_collisions(waypoints: list[Waypoint], obstacles: np.ndarray,
-                      config: ScanPathConfig, geometry: BotGeometry, profile: MotionProfile,
+                      config: ScanConfig, geometry: BotGeometry, profile: MotionProfile,
                       samples: int) -> None:
     """Refuse a path whose head passes too close to the plant at a waypoint or on a move.
 

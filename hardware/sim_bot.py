@@ -470,3 +470,19 @@ def write_preview(scan_dir: Path, plant_centers: list[np.ndarray], plant_heights
         writer.release()
         renderer.close()
     return path
+
+
+def write_scan_truth(scan_dir: Path, plant_dir: Path) -> Path:
+    """scan_dir/plant.json: the plant's truth with `visible` and `visible_fraction` from this
+    scan's own views (visibility.json: rendered instance masks at every settled waypoint)
+    instead of the path's geometry alone. Scores of this scan's clouds use it."""
+    from flowerpose.scanio import read_json
+
+    truth = read_json(Path(plant_dir) / "plant.json")
+    seen = read_json(Path(scan_dir) / "visibility.json")
+    for flower in truth["flowers"]:
+        key = str(flower["id"])
+        flower["visible"] = bool(seen["visible"].get(key, False))
+        flower["visible_fraction"] = float(seen["fraction"].get(key, 0.0))
+    truth["visibility"] = "scan"
+    return write_json(Path(scan_dir) / "plant.json", truth)

@@ -8,9 +8,11 @@ scan fits.
 
 from __future__ import annotations
 
+import os
 import shutil
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,6 +60,13 @@ def frame_score(rgb: np.ndarray, config: FrameSelectConfig) -> tuple[float, floa
     return score, sharpness, brightness
 
 
+def _score_file(path: Path, config: FrameSelectConfig) -> tuple[float, float, float]:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError(path, "unreadable image")
+    return frame_score(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), config)
+
+
 def bin_edges(frame_count: int, bins: int) -> np.ndarray:
     """(bins + 1,) frame-index edges of equal sequential bins."""
     return np.linspace(0, frame_count, bins + 1).round().astype(np.int64)
@@ -81,27 +90,39 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     row_of = {int(f): k for k, f in enumerate(trajectory.frame)}
     edges = bin_edges(total, config.count)
     bin_of_row = np.searchsorted(edges, np.arange(total), side="right") - 1
-    best: dict[int, tuple[float, float, float, int, np.ndarray]] = {}
+    best: dict[int, tuple[float, float, float, int, np.ndarray | None]] = {}
     start = time.perf_counter()
-    seen = 0
-    for index, image in iter_frames(scan_dir):
-        row = row_of.get(index)
-        if row is None:
-            continue
-        seen += 1
-        score, sharpness, brightness = frame_score(image, config)
+    sources = {int(p.stem.split("_")[-1]): p for p in frame_files(scan_dir)}
+
+    def keep(seen: int, index: int, scored: tuple[float, float, float],
+             image: np.ndarray | None) -> None:
+        row = row_of[index]
         b = int(bin_of_row[row])
-        if b not in best or score > best[b][0]:
-            best[b] = (score, sharpness, brightness, row, image)
+        if b not in best or scored[0] > best[b][0]:
+            best[b] = (*scored, row, image)
         if progress and seen % 500 == 0:
             print(f"frames: scored {seen}/{total} ({time.perf_counter() - start:.1f} s)",
                   file=sys.stderr, flush=True)
+
+    if sources:
+        # Recorded images: score them on every core (decoding releases the GIL) and copy the
+        # winners' files as they are, so no image needs keeping.
+        indices = [i for i in sorted(sources) if i in row_of]
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+            scores = pool.map(lambda i: _score_file(sources[i], config), indices)
+            for seen, (index, scored) in enumerate(zip(indices, scores, strict=True), 1):
+                keep(seen, index, scored, None)
+    else:
+        seen = 0
+        for index, image in iter_frames(scan_dir):
+            if index in row_of:
+                seen += 1
+                keep(seen, index, frame_score(image, config), image)
     if len(best) < config.count:
         raise InputError(scan_dir, f"frames for only {len(best)} of {config.count} bins: the "
                          "video or frames/ holds fewer frames than trajectory.csv")
     images_dir = out_dir / "frames"
     images_dir.mkdir(parents=True, exist_ok=True)
-    sources = {int(p.stem.split("_")[-1]): p for p in frame_files(scan_dir)}
     chosen = []
     for b in range(config.count):
         score, sharpness, brightness, row, image = best[b]

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.cloudio import Cloud
+from flowerpose.scanpath import path_cameras
 from flowerpose.sim.config import PresetName, SimConfig
 from flowerpose.sim.config import preset as plant_preset
 from flowerpose.sim.export import write_plant
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.plant import Plant, generate_plant
-from flowerpose.sim.viewpoints import scan_viewpoints
 from flowerpose.sim.visibility import flower_visibility
 
 #: Stream of the seed's random numbers used for the oracle cloud (the plant uses the seed).
@@ -58,7 +58,7 @@ def make_plant(seed: int, preset: PresetName = "realistic", points: int | None =
         config = dataclasses.replace(config,
                                      oracle=dataclasses.replace(config.oracle, points=points))
     plant = generate_plant(seed, config.plant)
-    viewpoints = scan_viewpoints(plant.center[:2], plant.height, config.viewpoints)
+    _, viewpoints, _ = path_cameras(plant.center[:2], plant.height, config.viewpoints)
     visible, fraction = flower_visibility(plant, viewpoints)
     rng = np.random.default_rng([seed, ORACLE_STREAM])
     cloud, point_part, point_flower = sample_oracle_cloud(plant, config.oracle, viewpoints, rng)

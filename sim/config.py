@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from flowerpose.errors import InputError
+from flowerpose.scanpath import ScanPathConfig
 
 PresetName = Literal["easy", "realistic", "hard"]
 
@@ -132,38 +133,13 @@ class OracleCloudConfig:
 
 
 @dataclass(frozen=True)
-class ViewpointConfig:
-    """Camera positions of the paper's cylinder + dome scan path (upstream.md), metres."""
-
-    cylinder_radius_m: float = 0.5
-    """Radius of the cylinder around the plant axis, metres."""
-    cylinder_z_min_m: float = 0.05
-    """Height of the lowest cylinder ring above the soil, metres."""
-    cylinder_z_step_m: float = 0.02
-    """Height step between cylinder rings, metres."""
-    cylinder_top_margin_m: float = 0.02
-    """The highest cylinder ring is at most this far above the plant height, metres."""
-    cylinder_azimuth_step_deg: float = 20.0
-    """Azimuth step around the cylinder, degrees."""
-    dome_radius_m: float = 0.3
-    """Radius of the dome, metres."""
-    dome_center: Literal["top", "half"] = "top"
-    """Dome centre on the plant axis: at the plant height ("top": the dome caps the cylinder
-    scan, as on the FarmBot) or at half the plant height ("half")."""
-    dome_polar_deg: tuple[float, ...] = (70.0, 50.0, 30.0, 10.0)
-    """Polar angles of the dome rings from the vertical, degrees."""
-    dome_azimuth_step_deg: float = 20.0
-    """Azimuth step around the dome, degrees."""
-
-
-@dataclass(frozen=True)
 class SimConfig:
     """The whole synthetic world: plant, scan path and oracle cloud."""
 
     plant: PlantConfig = field(default_factory=PlantConfig)
     """Plant generator."""
-    viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
-    """Scan path whose cameras decide visibility."""
+    viewpoints: ScanPathConfig = field(default_factory=ScanPathConfig)
+    """Scan path whose cameras decide visibility (the one the bot's planner flies)."""
     oracle: OracleCloudConfig = field(default_factory=OracleCloudConfig)
     """Oracle point cloud."""
 

@@ -7,10 +7,12 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.bot import KinematicBot, SolidCamera
 from flowerpose.hardware.errors import StallError
 from flowerpose.hardware.scan import run_scan
-from flowerpose.hardware.scanpath import ScanPathConfig, plan_scan
+from flowerpose.hardware.scanpath import ScanConfig, plan_scan
 from flowerpose.scanio import read_json
+from flowerpose.scanpath import ScanPathConfig
 
-SMALL = ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2, dome_polar_deg=(50.0,))
+SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,
+                                  dome_polar_deg=(50.0,)))
 SOURCE = {"backend": "kinematic"}
 
 

@@ -3,7 +3,8 @@ import pytest
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.kinematics import UnreachableError, forward
-from flowerpose.hardware.scanpath import ScanPathConfig, plan_cameras, plan_scan
+from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.scanpath import ScanPathConfig, path_cameras
 
 MID_BED = np.array([1.5, 0.75])
 
@@ -27,8 +28,7 @@ def test_path_is_the_papers_cylinder_then_dome_and_looks_where_commanded():
 
 
 def test_rings_alternate_direction_so_the_path_never_jumps_a_full_turn():
-    stops = plan_cameras(MID_BED, 0.2, ScanPathConfig())
-    cameras = np.array([c for _, c, _ in stops])
+    _, cameras, _ = path_cameras(MID_BED, 0.2, ScanPathConfig())
     steps = np.linalg.norm(np.diff(cameras, axis=0), axis=1)
     assert steps.max() < 0.25
 
@@ -37,7 +37,8 @@ def test_unreachable_paths_are_refused_before_moving():
     with pytest.raises(UnreachableError, match="gantry X"):
         plan_scan(np.array([0.1, 0.75]), 0.25)  # the cylinder leaves the bed's travel
     with pytest.raises(UnreachableError, match="gantry Z"):
-        plan_scan(MID_BED, 0.25, ScanPathConfig(dome_center="top", dome_radius_m=0.45))
+        plan_scan(MID_BED, 0.25, ScanConfig(ScanPathConfig(dome_center="top",
+                                                           dome_radius_m=0.45)))
     with pytest.raises(InputError, match="plant height"):
         plan_scan(MID_BED, -1.0)
 
@@ -52,3 +53,15 @@ def test_a_path_through_the_plant_is_refused_naming_the_waypoint():
         plan_scan(MID_BED, 0.25, obstacles=bush)
     small = bush[np.linalg.norm(bush[:, :2] - MID_BED, axis=1) < 0.15]
     assert len(plan_scan(MID_BED, 0.25, obstacles=small).waypoints) > 100
+
+
+def test_path_geometry_is_the_papers():
+    kinds, cameras, targets = path_cameras(np.array([0.4, 0.3]), 0.30)
+    rings = len(np.arange(0.16, 0.30 + 1e-9, 0.02))
+    assert kinds.count("cylinder") == rings * 18 and kinds.count("dome") == 4 * 18
+    cylinder, dome = cameras[:rings * 18], cameras[rings * 18:]
+    assert np.linalg.norm(cylinder[:, :2] - [0.4, 0.3], axis=1) == pytest.approx(0.5)
+    np.testing.assert_allclose(cylinder[:, 2], targets[:rings * 18, 2])  # level views
+    assert np.linalg.norm(dome - [0.4, 0.3, 0.15], axis=1) == pytest.approx(0.3)
+    polar = np.degrees(np.arccos((dome[:, 2] - 0.15) / 0.3))
+    assert sorted(set(np.round(polar, 6))) == [10.0, 30.0, 50.0, 70.0]

@@ -7,14 +7,15 @@ import pytest
 
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.scan import run_scan
-from flowerpose.hardware.scanpath import ScanPathConfig, plan_scan
-from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig
+from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_scan_truth
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_frames
 from flowerpose.scanio import frame_files, read_json, read_trajectory
+from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.bundle import make_plant
 
-SMALL = ScanPathConfig(azimuth_step_deg=60.0, cylinder_bottom_m=0.22, cylinder_step_m=0.04,
-                       dome_polar_deg=(50.0,))
+SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=60.0, cylinder_bottom_m=0.22,
+                                  cylinder_step_m=0.04, dome_polar_deg=(50.0,)))
 CONFIG = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=1.0, workers=1,
                                              visibility_width=96),
                       width=160, height=90)
@@ -71,6 +72,10 @@ def test_scan_records_frames_poses_and_truth_then_resumes(plant_dir, tmp_path):
     truth = read_json(plant_dir / "plant.json")
     assert set(visibility["visible"]) == {str(f["id"]) for f in truth["flowers"]}
     assert sum(visibility["visible"].values()) >= len(truth["flowers"]) - 1
+    scan_truth = read_json(write_scan_truth(scan, plant_dir))
+    assert scan_truth["visibility"] == "scan"
+    assert [f["visible"] for f in scan_truth["flowers"]] == [
+        visibility["visible"][str(f["id"])] for f in truth["flowers"]]
 
 
 def test_frame_selection_picks_the_frames_the_simulator_left_sharp(plant_dir, tmp_path):

@@ -10,15 +10,15 @@ import pytest
 from simhelpers import box, cached_plant, handmade_plant
 
 from flowerpose.pipeline.colour import rgb_to_hsv
-from flowerpose.sim.config import OracleCloudConfig, ViewpointConfig
+from flowerpose.scanpath import path_cameras
+from flowerpose.sim.config import OracleCloudConfig
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.pieces import Part
 from flowerpose.sim.raycast import make_scene, seen_from_any
-from flowerpose.sim.viewpoints import scan_viewpoints
 
 
 def _viewpoints(plant):
-    return scan_viewpoints(plant.center[:2], plant.height, ViewpointConfig())
+    return path_cameras(plant.center[:2], plant.height)[1]
 
 
 def test_exact_count_and_same_rng_gives_same_cloud():
@@ -72,7 +72,7 @@ def test_enclosed_flower_gets_no_points():
     up = np.array([0.0, 0.0, 1.0])
     plant = handmade_plant([(np.array([0.0, 0.0, 0.1]), up), (np.array([0.1, 0.0, 0.1]), up)],
                            [box([0.1, 0.0, 0.1], [0.06, 0.06, 0.04])])
-    views = scan_viewpoints(np.zeros(2), 0.2, ViewpointConfig())
+    views = path_cameras(np.zeros(2), 0.2)[1]
     config = OracleCloudConfig(points=5000)
     _, _, flower = sample_oracle_cloud(plant, config, views, np.random.default_rng(0))
     assert (flower == 0).sum() > 100 and not (flower == 1).any()

@@ -7,15 +7,14 @@ import time
 import numpy as np
 from simhelpers import box, cached_plant, handmade_plant
 
-from flowerpose.sim.config import ViewpointConfig
-from flowerpose.sim.viewpoints import scan_viewpoints
+from flowerpose.scanpath import path_cameras
 from flowerpose.sim.visibility import flower_visibility
 
 UP = np.array([0.0, 0.0, 1.0])
 
 
 def _views(height: float = 0.2) -> np.ndarray:
-    return scan_viewpoints(np.zeros(2), height, ViewpointConfig())
+    return path_cameras(np.zeros(2), height)[1]
 
 
 def test_boxed_flower_is_invisible_and_open_one_visible():
@@ -46,7 +45,7 @@ def test_sideways_flower_seen_from_both_faces():
 
 def test_generated_plant_fractions_and_speed():
     plant = cached_plant(0, "realistic")
-    views = scan_viewpoints(plant.center[:2], plant.height, ViewpointConfig())
+    views = path_cameras(plant.center[:2], plant.height)[1]
     start = time.perf_counter()
     visible, fraction = flower_visibility(plant, views)
     assert time.perf_counter() - start < 3.0
