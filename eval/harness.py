@@ -145,8 +145,8 @@ def run_eval(config: EvalConfig, source: str = "oracle", plants: int = 10, seed:
     """The synthetic benchmark: returns report.json's content and writes report.json,
     report.md and, per plant, its truth, cloud and flowers under out_dir."""
     if source != "oracle":
-        raise InputError("--source", f"'{source}' needs the simulated scanner and "
-                         "reconstruction, which are not built yet; use --source oracle")
+        raise InputError("--source", f"'{source}' needs photogrammetry (reconstruct), which "
+                         "is not built yet; use --source oracle")
     if plants < 1:
         raise InputError("--plants", f"must be at least 1, got {plants}")
     start = time.perf_counter()
