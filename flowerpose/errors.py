@@ -5,7 +5,25 @@ from __future__ import annotations
 from pathlib import Path
 
 
-class InputError(Exception):
+def rebuild_error(cls: type, message: str, state: dict) -> Exception:
+    """An exception of `cls` with its message and attributes, without calling its
+    __init__ (whose arguments differ between classes)."""
+    error = cls.__new__(cls)
+    Exception.__init__(error, message)
+    error.__dict__.update(state)
+    return error
+
+
+class PicklableError(Exception):
+    """An exception that survives pickling whatever its __init__ takes, so one raised in a
+    worker process reaches the command line intact (Exception's default pickling calls
+    __init__ with the message alone)."""
+
+    def __reduce__(self):
+        return rebuild_error, (type(self), str(self), dict(self.__dict__))
+
+
+class InputError(PicklableError):
     """Bad input from the user (a file, a value, a device): reported as one line, exit 2.
 
     `source` names what was wrong (a file path, a config key, a device) so the message

@@ -25,12 +25,12 @@ range, a bad speed fraction) are the user's to fix: `OutOfRangeError`, an `Input
 
 from __future__ import annotations
 
-from flowerpose.errors import InputError
+from flowerpose.errors import InputError, PicklableError
 
 _AXIS_CODES = {31: "x", 32: "y", 33: "z"}
 
 
-class BotError(Exception):
+class BotError(PicklableError):
     """The bot did not complete an operation. `str(error)` is one line: what happened,
     then what to do."""
 
