@@ -58,7 +58,14 @@ def run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, *, source: dict,
     if start and progress:
         _progress(f"scan: resuming at waypoint {start} of {len(plan.waypoints)}")
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_json(out_dir / "camera.json", bot.camera.intrinsics())
+    intrinsics = bot.camera.intrinsics()
+    if start and (out_dir / "camera.json").exists():
+        recorded = read_json(out_dir / "camera.json")
+        if any(not np.isclose(float(recorded.get(k, np.nan)), float(v))
+               for k, v in intrinsics.items() if isinstance(v, int | float)):
+            raise InputError(out_dir / "camera.json", "the scan was recorded with other camera "
+                             "settings; resume with the same ones or choose a new --out folder")
+    write_json(out_dir / "camera.json", intrinsics)
     session = {"started_waypoint": start, "bot_time_start": bot.now(),
                "wall_start": time.time()}
     manifest["sessions"].append(session)

@@ -6,11 +6,12 @@ whose camera is `SimCamera`. The camera's pose comes from the MuJoCo model
 camera takes frames on a fixed grid of the bot's clock, `frame_rate_hz` of the real 30 fps
 video. Each frame's state is known exactly: the gantry on its motion profile, the head
 turning at servo speed, the image's speed (motion blur) and the time since the camera
-stopped (defocus while the autofocus settles). `stop_recording` renders the frames in a
-process pool with pyrender, applies the sensor model and writes `frames/`,
-`trajectory.csv` and `frames_truth.csv` (the blur and noise each frame got) in order. An
-interrupted render resumes by skipping the frames already written. Per-flower visibility
-from the rendered instance masks at each settled waypoint goes to `visibility.json`.
+stopped (defocus while the autofocus settles). At the end of every pause the frames so far
+are rendered in a process pool with pyrender, given the sensor model's imperfections and
+appended to `frames/`, `trajectory.csv` and `frames_truth.csv` (the blur and noise each
+frame got), before the executor records the waypoint as done: an interrupted scan keeps
+every frame written and resumes at the next waypoint. What each settled waypoint's camera
+sees of every flower (its rendered instance mask) is merged into `visibility.json`.
 
 This is the one module of `hardware` that imports `sim`.
 """
@@ -81,6 +82,14 @@ class SimCameraConfig:
     """Render processes (default: every core)."""
     seed: int = 0
     """Seed of the sensor noise (frame k uses seed + k)."""
+
+    def __post_init__(self):
+        if not (self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz)):
+            raise InputError("--frame-rate", f"must be positive, got {self.frame_rate_hz}")
+        if self.workers is not None and self.workers < 1:
+            raise InputError("--workers", f"must be at least 1, got {self.workers}")
+        if self.visibility_width < 16 or self.visibility_samples < 1:
+            raise InputError("visibility", "needs at least 16 pixels and 1 sample per flower")
 
 
 class MujocoPoser:
@@ -219,8 +228,9 @@ class SimCamera(Camera):
         self.config = config
         self._state = state  # () -> (gantry, yaw, pitch) now
         self._scan_dir: Path | None = None
+        self._writer: _FrameWriter | None = None
         self._tasks: list[FrameTask] = []
-        self._settled: list[np.ndarray] = []
+        self._written = 0
         self._still_since = 0.0
         self._next_index = 0
         self._start = 0.0
@@ -240,13 +250,15 @@ class SimCamera(Camera):
     def start_recording(self, path: str | Path) -> None:
         if self._scan_dir is not None:
             raise CameraError(f"{path}: already recording; stop that recording first")
-        self._scan_dir = Path(path).parent
-        (self._scan_dir / "frames").mkdir(parents=True, exist_ok=True)
-        self._next_index, last_t = _last_row(self._scan_dir / "trajectory.csv")
-        self._tasks, self._settled, self._start = [], [], self._clock()
+        scan_dir = Path(path).parent
+        (scan_dir / "frames").mkdir(parents=True, exist_ok=True)
+        self._next_index, last_t = _last_row(scan_dir / "trajectory.csv")
+        self._tasks, self._written, self._start = [], 0, self._clock()
         self._still_since = self._clock()
         # A resumed scan's times continue the recorded ones (the new bot's clock restarts).
         self._time_offset = 0.0 if last_t is None else last_t + 1.0 / 30.0 - self._clock()
+        self._writer = _FrameWriter(scan_dir, self._plant_dirs, self._intrinsics, self.config)
+        self._scan_dir = scan_dir
 
     def _pose_state(self, activity: Activity, t: float) -> tuple[np.ndarray, float, float]:
         """(gantry, yaw, pitch) at bot time t within `activity`."""
@@ -307,56 +319,81 @@ class SimCamera(Camera):
         if moving_until > activity.t0:
             self._still_since = moving_until
         if activity.kind == "dwell" and activity.elapsed > 0:
-            self._settled.append(self._poser.camera_to_bed(*self._pose_state(activity, end)))
+            # Render this waypoint's frames before the executor records it as done, so what
+            # scan.json calls complete is on disk.
+            settled = self._poser.camera_to_bed(*self._pose_state(activity, end))
+            self._written += self._writer.write(self._tasks, settled)
+            self._next_index += len(self._tasks)
+            self._tasks = []
 
     def stop_recording(self) -> Recording:
         if self._scan_dir is None:
             raise CameraError("stop_recording: not recording; start a recording first")
-        scan_dir, tasks, settled = self._scan_dir, self._tasks, self._settled
-        self._scan_dir, self._tasks, self._settled = None, [], []
-        written = self._render(scan_dir, tasks, settled)
+        scan_dir, writer, tasks = self._scan_dir, self._writer, self._tasks
+        self._scan_dir, self._tasks = None, []
+        try:
+            self._written += writer.write(tasks, None) if tasks else 0
+        finally:
+            writer.close()
         return Recording(scan_dir / "frames", self._start, self._clock(),
-                         self.config.frame_rate_hz, written)
+                         self.config.frame_rate_hz, self._written)
 
-    def _render(self, scan_dir: Path, tasks: list[FrameTask], settled: list[np.ndarray]) -> int:
-        """Render the scheduled frames (and visibility) in a process pool; frames and their
-        trajectory rows are written in order, so an interruption keeps a clean prefix."""
-        workers = self.config.workers or os.cpu_count() or 1
-        init = (self._plant_dirs, self._intrinsics.to_json(), self.config.visibility_width,
-                self.config.visibility_samples, self.config.seed)
-        trajectory_path = scan_dir / "trajectory.csv"
-        truth_path = scan_dir / "frames_truth.csv"
+
+class _FrameWriter:
+    """Renders frames in a process pool and appends them, in order, to the scan folder:
+    each image is written before its trajectory.csv row, so an interruption leaves rows only
+    for frames on disk."""
+
+    def __init__(self, scan_dir: Path, plant_dirs: list[str], intrinsics: Intrinsics,
+                 config: SimCameraConfig):
+        self.scan_dir = scan_dir
+        init = (plant_dirs, intrinsics.to_json(), config.visibility_width,
+                config.visibility_samples, config.seed)
+        self._pool = ProcessPoolExecutor(config.workers or os.cpu_count() or 1,
+                                         mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_init_worker, initargs=init)
+        trajectory_path, truth_path = scan_dir / "trajectory.csv", scan_dir / "frames_truth.csv"
         new = not trajectory_path.exists()
-        start, written = time.perf_counter(), 0
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                                 initargs=init) as pool, \
-                open(trajectory_path, "a", newline="") as trajectory_file, \
-                open(truth_path, "a", newline="") as truth_file:
-            trajectory, truth = csv.writer(trajectory_file), csv.writer(truth_file)
-            if new:
-                trajectory.writerow(TRAJECTORY_COLUMNS)
-                truth.writerow(TRUTH_COLUMNS)
-            render = functools.partial(_render_frame, frames_dir=str(scan_dir / "frames"),
-                                       sensor_seed=self.config.seed)
-            visibility = pool.map(_visible_fractions, settled, chunksize=4) if settled else []
-            for task, record in zip(tasks, pool.map(render, tasks, chunksize=4), strict=True):
-                trajectory.writerow(trajectory_row(task.index, task.t, task.gantry, task.yaw,
-                                                   task.pitch, task.camera_to_bed[:3, 3],
-                                                   task.camera_to_bed[:3, :3]))
-                truth.writerow([task.index, f"{task.t:.6f}",
-                                f"{float(np.linalg.norm(task.speed_px_s)):.3f}",
-                                f"{task.since_stop_s:.6f}", f"{record['motion_blur_px']:.4f}",
-                                f"{record['defocus_px']:.4f}", f"{record['noise_sigma']:.4f}",
-                                f"{record['sharpness']:.6f}"])
-                trajectory_file.flush()
-                truth_file.flush()
-                written += 1
-                if written % 100 == 0:
-                    print(f"scan: rendered {written}/{len(tasks)} frames "
-                          f"({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
-            _merge_visibility(scan_dir / "visibility.json", list(visibility))
-        return written
+        self._trajectory_file = open(trajectory_path, "a", newline="")  # noqa: SIM115
+        self._truth_file = open(truth_path, "a", newline="")  # noqa: SIM115
+        self._trajectory = csv.writer(self._trajectory_file)
+        self._truth = csv.writer(self._truth_file)
+        if new:
+            self._trajectory.writerow(TRAJECTORY_COLUMNS)
+            self._truth.writerow(TRUTH_COLUMNS)
+        self._render = functools.partial(_render_frame, frames_dir=str(scan_dir / "frames"),
+                                         sensor_seed=config.seed)
+        self._started, self._count = time.perf_counter(), 0
+
+    def write(self, tasks: list[FrameTask], settled: np.ndarray | None) -> int:
+        """Render and append `tasks`; with a settled camera pose, also merge what it sees
+        into visibility.json. Returns the number of frames written."""
+        visibility = self._pool.submit(_visible_fractions, settled) if settled is not None \
+            else None
+        for task, record in zip(tasks, self._pool.map(self._render, tasks), strict=True):
+            self._trajectory.writerow(trajectory_row(task.index, task.t, task.gantry, task.yaw,
+                                                     task.pitch, task.camera_to_bed[:3, 3],
+                                                     task.camera_to_bed[:3, :3]))
+            self._truth.writerow([task.index, f"{task.t:.6f}",
+                                  f"{float(np.linalg.norm(task.speed_px_s)):.3f}",
+                                  f"{task.since_stop_s:.6f}", f"{record['motion_blur_px']:.4f}",
+                                  f"{record['defocus_px']:.4f}", f"{record['noise_sigma']:.4f}",
+                                  f"{record['sharpness']:.6f}"])
+            self._count += 1
+            if self._count % 100 == 0:
+                print(f"scan: rendered {self._count} frames "
+                      f"({time.perf_counter() - self._started:.0f} s)", file=sys.stderr,
+                      flush=True)
+        self._trajectory_file.flush()
+        self._truth_file.flush()
+        if visibility is not None:
+            _merge_visibility(self.scan_dir / "visibility.json", [visibility.result()])
+        return len(tasks)
+
+    def close(self) -> None:
+        self._pool.shutdown(cancel_futures=True)
+        self._trajectory_file.close()
+        self._truth_file.close()
 
 
 def _last_row(path: Path) -> tuple[int, float | None]:
@@ -396,6 +433,11 @@ class SimBotConfig:
     """Frame width, pixels (the paper's 1280 x 720 video)."""
     height: int = 720
     """Frame height, pixels."""
+
+    def __post_init__(self):
+        if self.width < 16 or self.height < 16:
+            raise InputError("--width/--height", f"{self.width} x {self.height} pixels: both "
+                             "must be at least 16")
 
 
 class SimBot(KinematicBot):

@@ -1,10 +1,12 @@
 """The simulated backend end to end on a small, low-resolution scan."""
 
 import csv
+import dataclasses
 
 import numpy as np
 import pytest
 
+from flowerpose.errors import InputError
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scanpath import ScanConfig, plan_scan
@@ -54,6 +56,9 @@ def test_scan_records_frames_poses_and_truth_then_resumes(plant_dir, tmp_path):
     first = read_trajectory(scan / "trajectory.csv")
     assert read_json(scan / "scan.json")["completed"] == 4
     assert len(first) == len(frame_files(scan)) > 0  # the frames recorded so far are kept
+    with SimBot([plant_dir], dataclasses.replace(CONFIG, width=96, height=54)) as bot:
+        with pytest.raises(InputError, match="other camera settings"):
+            run_scan(bot, plan, scan, source={"backend": "sim"}, progress=False)
     with SimBot([plant_dir], CONFIG) as bot:
         manifest = run_scan(bot, plan, scan, source={"backend": "sim"}, progress=False)
     assert manifest["status"] == "complete"
