@@ -8,6 +8,7 @@ The pipeline reads only the cloud, exactly as it would a real scan.
 from __future__ import annotations
 
 import dataclasses
+import math
 import multiprocessing
 import os
 import sys
@@ -168,13 +169,17 @@ def run_eval(config: EvalConfig, source: str = "oracle", plants: int = 10, seed:
 def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant",
                 truth_scale: float = 25.0, max_distance: float = MAX_MATCH_DISTANCE) -> dict:
     """A one-plant report for a flowers.json against plant.json or SageMaker labels."""
-    if not truth_scale > 0:
+    if not (truth_scale > 0 and math.isfinite(truth_scale)):
         raise InputError("--truth-scale", f"must be positive, got {truth_scale}")
+    if not (max_distance > 0 and math.isfinite(max_distance)):
+        raise InputError("--max-distance", f"must be positive, got {max_distance}")
     estimates = read_flowers(flowers_path)
     truth = (read_plant_truth(truth_path) if truth_format == "plant"
              else read_sagemaker_truth(truth_path, truth_scale))
+    start = time.perf_counter()
     score = score_plant(estimates, truth, max_distance)
     config = {"truth_format": truth_format, "truth_scale": truth_scale,
               "max_distance_m": max_distance}
     return build_report(config, [plant_entry(flowers_path.parent.name or "plant", score)],
-                        {})
+                        {"score": round(time.perf_counter() - start, 6),
+                         "total": round(time.perf_counter() - start, 6)})

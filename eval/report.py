@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-METHODS = ("plane", "superellipsoid", "paraboloid")
+from flowerpose.pipeline.pose import METHODS
+
 #: The paper's Table I column order, with its published numbers for comparison.
 TABLE_METHODS = ("superellipsoid", "paraboloid", "plane")
 PAPER = {"found_pct": 80.3, "mean": {"superellipsoid": 19.3, "paraboloid": 57.9, "plane": 7.7},

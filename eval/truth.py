@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from flowerpose.errors import InputError
+from flowerpose.jsonio import read_text, unit3, vector3
 
 EulerConvention = Literal["upstream", "sagemaker"]
 
@@ -37,36 +38,6 @@ class TruthFlower:
     visible: bool = True
 
 
-def _read_text(path: Path) -> str:
-    if not path.exists():
-        raise InputError(path, "file not found")
-    if not path.is_file():
-        raise InputError(path, "not a file")
-    try:
-        return path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise InputError(path, f"cannot read ({err.strerror})") from None
-    except UnicodeDecodeError:
-        raise InputError(path, "not a UTF-8 text file") from None
-
-
-def _vector(value: Any, path: Path, where: str) -> np.ndarray:
-    """Three finite numbers as a (3,) float64 array, or an InputError naming `where`."""
-    numbers = value if isinstance(value, list | tuple) else None
-    if (numbers is None or len(numbers) != 3
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in numbers)
-            or not all(math.isfinite(v) for v in numbers)):
-        raise InputError(path, f"{where} must be 3 finite numbers, got {value!r}")
-    return np.array(numbers, dtype=np.float64)
-
-
-def _unit(vector: np.ndarray, path: Path, where: str) -> np.ndarray:
-    norm = float(np.linalg.norm(vector))
-    if norm < 1e-9:
-        raise InputError(path, f"{where} is the zero vector")
-    return vector / norm
-
-
 def read_plant_truth(path: str | Path) -> list[TruthFlower]:
     """The flowers of a generator's plant.json (DESIGN.md): centres and normals, bed frame.
 
@@ -75,7 +46,7 @@ def read_plant_truth(path: str | Path) -> list[TruthFlower]:
     """
     path = Path(path)
     try:
-        document = json.loads(_read_text(path))
+        document = json.loads(read_text(path))
     except json.JSONDecodeError as err:
         raise InputError(path, f"not valid JSON ({err.msg}, line {err.lineno})") from None
     flowers = document.get("flowers") if isinstance(document, dict) else None
@@ -95,8 +66,8 @@ def read_plant_truth(path: str | Path) -> list[TruthFlower]:
             raise InputError(path, f'{where}: "visible" must be true or false')
         truth.append(TruthFlower(
             id=entry.get("id", i),
-            center=_vector(entry.get("center"), path, f'{where}: "center"'),
-            normal=_unit(_vector(entry.get("normal"), path, f'{where}: "normal"'), path,
+            center=vector3(entry.get("center"), path, f'{where}: "center"'),
+            normal=unit3(vector3(entry.get("normal"), path, f'{where}: "normal"'), path,
                          f'{where}: "normal"'),
             radius=None if radius is None else float(radius),
             visible=visible))
@@ -175,7 +146,7 @@ def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
     path = Path(path)
     if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
         raise InputError(path, f"the truth scale must be a positive number, got {scale!r}")
-    cuboids = [c for document in _json_documents(_read_text(path), path)
+    cuboids = [c for document in _json_documents(read_text(path), path)
                for found in _cuboid_lists(document) for c in found]
     if not cuboids:
         raise InputError(path, 'no "boundingCuboids" labels found')

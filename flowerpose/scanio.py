@@ -15,7 +15,6 @@ as a position and a unit quaternion (w, x, y, z).
 from __future__ import annotations
 
 import csv
-import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.errors import InputError
+from flowerpose.jsonio import read_json
 
 TRAJECTORY_COLUMNS = ("frame", "t", "x", "y", "z", "yaw", "pitch",
                       "cam_x", "cam_y", "cam_z", "qw", "qx", "qy", "qz")
@@ -59,21 +59,6 @@ class Intrinsics:
                 "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "fps": self.fps}
 
 
-def read_json(path: Path) -> dict:
-    """A JSON object from a file; errors name the file."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(path, f"cannot read ({err})") from None
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON ({err.msg} at line {err.lineno})") from None
-    if not isinstance(data, dict):
-        raise InputError(path, "expected a JSON object")
-    return data
-
-
 def read_intrinsics(path: Path) -> Intrinsics:
     """camera.json to Intrinsics, checked."""
     data = read_json(path)
@@ -87,15 +72,6 @@ def read_intrinsics(path: Path) -> Intrinsics:
             np.isfinite(list(values.values()))):
         raise InputError(path, "intrinsics must be positive and finite")
     return Intrinsics(width, height, fps=float(data.get("fps", 30.0)), **values)
-
-
-def write_json(path: Path, data: dict) -> Path:
-    """Write JSON atomically (a crash never leaves half a file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(path.suffix + ".tmp")
-    temporary.write_text(json.dumps(data, indent=1))
-    temporary.replace(path)
-    return path
 
 
 @dataclass(frozen=True)

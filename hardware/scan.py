@@ -19,7 +19,7 @@ import numpy as np
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot
 from flowerpose.hardware.scanpath import ScanPlan
-from flowerpose.scanio import read_json, write_json
+from flowerpose.jsonio import read_json, write_json
 
 
 def plan_id(plan: ScanPlan) -> str:

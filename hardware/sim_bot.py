@@ -41,12 +41,12 @@ from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicB
 from flowerpose.hardware.errors import CameraError
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.jsonio import read_json, write_json
 from flowerpose.scanio import (
     FRAME_PATTERN,
     TRAJECTORY_COLUMNS,
     Intrinsics,
     trajectory_row,
-    write_json,
 )
 
 TRUTH_COLUMNS = ("frame", "t", "speed_px_s", "since_stop_s", "motion_blur_px", "defocus_px",
@@ -408,7 +408,6 @@ def _last_row(path: Path) -> tuple[int, float | None]:
 def _merge_visibility(path: Path, fractions: list[dict[int, float]]) -> None:
     """Keep, per flower, the largest share of its petals seen from any settled waypoint,
     merged with an earlier session's (a resumed scan)."""
-    from flowerpose.scanio import read_json
 
     best: dict[str, float] = {}
     if path.exists():
@@ -518,7 +517,6 @@ def write_scan_truth(scan_dir: Path, plant_dir: Path) -> Path:
     """scan_dir/plant.json: the plant's truth with `visible` and `visible_fraction` from this
     scan's own views (visibility.json: rendered instance masks at every settled waypoint)
     instead of the path's geometry alone. Scores of this scan's clouds use it."""
-    from flowerpose.scanio import read_json
 
     truth = read_json(Path(plant_dir) / "plant.json")
     seen = read_json(Path(scan_dir) / "visibility.json")

@@ -7,7 +7,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +15,7 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
+from flowerpose.jsonio import read_json, unit3, vector3, write_json
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.pose import (
@@ -37,8 +37,6 @@ from flowerpose.pipeline.segment import (
     remove_outliers,
     split_by_centres,
 )
-
-METHODS = ("plane", "superellipsoid", "paraboloid")
 
 
 @dataclass(frozen=True)
@@ -149,27 +147,29 @@ def _cluster(plant: Cloud, candidates: np.ndarray, config: PipelineConfig) -> li
 
 def write_flowers(path: Path, result: FlowerResult) -> Path:
     """Write `flowers.json` (DESIGN.md's format)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result.to_json(), indent=1))
-    return path
+    return write_json(path, result.to_json())
 
 
 def read_flowers(path: Path) -> list[dict]:
-    """The flower entries of a `flowers.json`; errors name the file."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(path, f"cannot read ({err})") from None
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON ({err.msg} at line {err.lineno})") from None
-    flowers = data.get("flowers") if isinstance(data, dict) else None
+    """The flower entries of a `flowers.json`, checked: a 3D centre and, per method, a
+    normal that is `null` or 3 finite numbers (normalised here). Errors name the file and
+    the flower."""
+    data = read_json(path)
+    flowers = data.get("flowers")
     if not isinstance(flowers, list):
         raise InputError(path, "no 'flowers' list: not a flowers.json")
-    for entry in flowers:
-        if not isinstance(entry, dict) or len(entry.get("center") or []) != 3:
-            raise InputError(path, "a flower entry without a 3D 'center'")
-        if not np.all(np.isfinite(np.asarray(entry["center"], float))):
-            raise InputError(path, f"flower {entry.get('id')}: centre is not finite")
-    return flowers
+    checked = []
+    for k, entry in enumerate(flowers):
+        where = f"flower {entry.get('id', k) if isinstance(entry, dict) else k}"
+        if not isinstance(entry, dict):
+            raise InputError(path, f"{where} is not an object")
+        normals = entry.get("normals")
+        if not isinstance(normals, dict):
+            raise InputError(path, f"{where}: 'normals' must be an object of method: "
+                             "normal or null")
+        checked.append({**entry, "center": vector3(entry.get("center"), path, f"{where}: center"),
+                        "normals": {m: None if n is None else
+                                    unit3(vector3(n, path, f"{where}: normals.{m}"), path,
+                                          f"{where}: normals.{m}")
+                                    for m, n in normals.items()}})
+    return checked

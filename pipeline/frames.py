@@ -20,13 +20,13 @@ import cv2
 import numpy as np
 
 from flowerpose.errors import InputError
+from flowerpose.jsonio import write_json
 from flowerpose.scanio import (
     FRAME_PATTERN,
     frame_files,
     iter_frames,
     read_intrinsics,
     read_trajectory,
-    write_json,
 )
 
 

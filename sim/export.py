@@ -12,7 +12,7 @@ import trimesh
 
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
-from flowerpose.scanio import read_json
+from flowerpose.jsonio import read_json
 from flowerpose.sim.config import preset
 from flowerpose.sim.plant import FlowerTruth, Plant
 

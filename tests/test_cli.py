@@ -118,6 +118,12 @@ def _grey_cloud(path):
     (["score", "{badjson}", "{badjson}"], ["bad.json", "JSON"]),
     (["score", "{tmp}/missing.json", "{badjson}"], ["missing.json"]),
     (["score", "{badjson}", "{badjson}", "--truth-scale", "0"], ["--truth-scale"]),
+    (["score", "{badjson}", "{badjson}", "--max-distance", "nan"], ["--max-distance"]),
+    (["score", "{flowers_string}", "{badjson}"], ["flower 0: normals.plane"]),
+    (["score", "{flowers_zero}", "{badjson}"], ["zero vector"]),
+    (["score", "{flowers_nan}", "{badjson}"], ["flower 0: center"]),
+    (["score", "{flowers_bool}", "{badjson}"], ["normals.plane"]),
+    (["score", "{flowers_nonormals}", "{badjson}"], ["'normals'"]),
     (["eval", "--source", "scan", "--out", "{tmp}/e"], ["--source"]),
     (["eval", "--plants", "0", "--out", "{tmp}/e"], ["--plants"]),
     (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
@@ -139,7 +145,15 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float "
                                         "x\nproperty float y\nproperty float z\nend_header\n")
     (tmp_path / "bad.json").write_text("{not json")
+    flowers = {"string": {"center": [0, 0, 0], "normals": {"plane": ["a", "b", "c"]}},
+               "zero": {"center": [0, 0, 0], "normals": {"plane": [0, 0, 0]}},
+               "nan": {"center": [float("nan"), 0, 0], "normals": {"plane": None}},
+               "bool": {"center": [0, 0, 0], "normals": {"plane": [True, False, False]}},
+               "nonormals": {"center": [0, 0, 0]}}
+    for name, entry in flowers.items():
+        (tmp_path / f"flowers_{name}.json").write_text(json.dumps({"flowers": [entry]}))
     names = {"tmp": tmp_path, "grey": _grey_cloud(tmp_path / "grey.ply"),
+             **{f"flowers_{n}": tmp_path / f"flowers_{n}.json" for n in flowers},
              "nan": tmp_path / "nan.ply", "empty": tmp_path / "empty.ply",
              "badjson": tmp_path / "bad.json"}
     try:

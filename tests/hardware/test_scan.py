@@ -8,7 +8,7 @@ from flowerpose.hardware.bot import KinematicBot, SolidCamera
 from flowerpose.hardware.errors import StallError
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scanpath import ScanConfig, plan_scan
-from flowerpose.scanio import read_json
+from flowerpose.jsonio import read_json
 from flowerpose.scanpath import ScanPathConfig
 
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,

@@ -11,8 +11,9 @@ from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scanpath import ScanConfig, plan_scan
 from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_scan_truth
+from flowerpose.jsonio import read_json
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_frames
-from flowerpose.scanio import frame_files, read_json, read_trajectory
+from flowerpose.scanio import frame_files, read_trajectory
 from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.bundle import make_plant
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
+from flowerpose.jsonio import write_json
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, frame_score, select_frames
 from flowerpose.scanio import (
     FRAME_PATTERN,
@@ -12,7 +13,6 @@ from flowerpose.scanio import (
     Intrinsics,
     read_trajectory,
     trajectory_row,
-    write_json,
 )
 
 

@@ -1,0 +1,69 @@
+"""JSON files the project reads and writes: checked reading, atomic writing, and validation
+of the vectors they hold. Every error names the file and what is wrong."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flowerpose.errors import InputError
+
+
+def read_text(path: str | Path) -> str:
+    """A UTF-8 text file's content; errors name the file."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    if not path.is_file():
+        raise InputError(path, "not a file")
+    try:
+        return path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise InputError(path, f"cannot read ({err.strerror})") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "not a UTF-8 text file") from None
+
+
+def read_json(path: str | Path) -> dict:
+    """A JSON object from a file; errors name the file."""
+    try:
+        data = json.loads(read_text(path))
+    except json.JSONDecodeError as err:
+        raise InputError(path, f"not valid JSON ({err.msg} at line {err.lineno})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object")
+    return data
+
+
+def write_json(path: str | Path, data: dict) -> Path:
+    """Write JSON atomically (a crash never leaves half a file); NaN is refused, since strict
+    JSON readers reject it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(path.suffix + ".tmp")
+    temporary.write_text(json.dumps(data, indent=1, allow_nan=False))
+    temporary.replace(path)
+    return path
+
+
+def vector3(value: Any, source: str | Path, where: str) -> np.ndarray:
+    """Three finite numbers (not booleans) as a (3,) float64 array, or an InputError naming
+    `source` and `where`."""
+    numbers = value if isinstance(value, list | tuple) else None
+    if (numbers is None or len(numbers) != 3
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in numbers)
+            or not all(math.isfinite(v) for v in numbers)):
+        raise InputError(source, f"{where} must be 3 finite numbers, got {value!r}")
+    return np.array(numbers, dtype=np.float64)
+
+
+def unit3(vector: np.ndarray, source: str | Path, where: str) -> np.ndarray:
+    """`vector` normalised; InputError for the zero vector."""
+    norm = float(np.linalg.norm(vector))
+    if norm < 1e-9:
+        raise InputError(source, f"{where} is the zero vector")
+    return vector / norm
