@@ -127,10 +127,14 @@ def read_trajectory(path: Path) -> Trajectory:
         raise InputError(path, f"cannot read ({err.strerror})") from None
     if header is None or tuple(h.strip() for h in header) != TRAJECTORY_COLUMNS:
         raise InputError(path, f"expected the header {','.join(TRAJECTORY_COLUMNS)}")
+    wrong = next((k for k, row in enumerate(rows) if len(row) != len(TRAJECTORY_COLUMNS)), None)
+    if wrong is not None:
+        raise InputError(path, f"row {wrong + 1} has {len(rows[wrong])} values, not "
+                         f"{len(TRAJECTORY_COLUMNS)}")
     try:
         table = np.array(rows, dtype=np.float64).reshape(-1, len(TRAJECTORY_COLUMNS))
     except ValueError:
-        raise InputError(path, "every row needs 14 numbers") from None
+        raise InputError(path, "every value must be a number") from None
     if not np.isfinite(table).all():
         raise InputError(path, "NaN or infinite values")
     frame = table[:, 0].astype(np.int64)

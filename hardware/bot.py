@@ -269,7 +269,7 @@ class SolidCamera(Camera):
 
     def intrinsics(self) -> dict[str, float]:
         return {"width": self._width, "height": self._height, "fx": self._f, "fy": self._f,
-                "cx": (self._width - 1) / 2, "cy": (self._height - 1) / 2}
+                "cx": self._width / 2, "cy": self._height / 2}
 
     def _image(self) -> np.ndarray:
         return np.broadcast_to(self._rgb, (self._height, self._width, 3)).copy()
@@ -537,3 +537,5 @@ class KinematicBot(Bot):
     def close(self) -> None:
         with self._lock:
             self._closed = True
+            # A command still running ends now, as an emergency stop would end it.
+            self._stop.set()

@@ -56,8 +56,17 @@ def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return centroid, values, vectors
 
 
+MIN_SPREAD_M = 2e-4
+"""Least standard deviation along the second widest principal axis for any fit, metres:
+below it the points are a blob or a line (rounding noise, not a surface) and no normal is
+defined, so the fit gives None rather than a made-up vector."""
+
+
 def _usable(points: np.ndarray, min_points: int) -> bool:
-    return len(points) >= max(min_points, MIN_FIT_POINTS) and bool(np.isfinite(points).all())
+    if len(points) < max(min_points, MIN_FIT_POINTS) or not np.isfinite(points).all():
+        return False
+    spread = np.linalg.eigvalsh(np.cov(np.asarray(points, np.float64).T))
+    return bool(spread[1] > MIN_SPREAD_M**2)
 
 
 def _unit_or_none(axis: np.ndarray) -> np.ndarray | None:
@@ -76,7 +85,7 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS) -> np.ndarra
     if not _usable(points, min_points):
         return None
     _, values, vectors = principal_axes(points)
-    if not np.isfinite(values).all() or values[1] <= 0.0:
+    if not np.isfinite(values).all():
         return None
     return _unit_or_none(vectors[:, 2])
 

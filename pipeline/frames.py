@@ -122,7 +122,11 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         raise InputError(scan_dir, f"frames for only {len(best)} of {config.count} bins: the "
                          "video or frames/ holds fewer frames than trajectory.csv")
     images_dir = out_dir / "frames"
+    if images_dir.resolve() == (scan_dir / "frames").resolve():
+        raise InputError("--out", "must not be the scan folder itself")
     images_dir.mkdir(parents=True, exist_ok=True)
+    for stale in images_dir.glob("frame_*.jpg"):  # an earlier selection's, not this one's
+        stale.unlink()
     chosen = []
     for b in range(config.count):
         score, sharpness, brightness, row, image = best[b]

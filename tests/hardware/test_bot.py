@@ -191,7 +191,8 @@ def test_camera_frames_and_recording(tmp_path):
 
     bot = KinematicBot(camera=functools.partial(SolidCamera, width=64, height=48, fps=10.0))
     intrinsics = bot.camera.intrinsics()
-    assert (intrinsics["width"], intrinsics["height"], intrinsics["cx"]) == (64, 48, 31.5)
+    # COLMAP's pixel convention, as camera.json everywhere: pixel centres at +0.5.
+    assert (intrinsics["width"], intrinsics["height"], intrinsics["cx"]) == (64, 48, 32.0)
     assert intrinsics["fx"] == pytest.approx(32 / math.tan(math.radians(31.1)))
     bot.camera.start_recording(tmp_path / "scan" / "video.mp4")
     bot.move_to(HOME + [0.1, 0.0, 0.0])
@@ -204,3 +205,16 @@ def test_camera_frames_and_recording(tmp_path):
     assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == recording.frames
     with pytest.raises(InputError, match="suffix"):
         bot.camera.start_recording(tmp_path / "video.mkv")
+
+
+def test_close_from_another_thread_ends_a_running_move():
+    bot = KinematicBot(time_scale=0.1)  # a 14.6 s move would block for 1.46 s
+    thread = threading.Thread(target=lambda: (time.sleep(0.2), bot.close()))
+    thread.start()
+    began = time.monotonic()
+    with pytest.raises(EmergencyStopError):
+        bot.move_to(HOME + [1.0, 0.0, 0.0])
+    thread.join()
+    assert time.monotonic() - began < 1.2
+    with pytest.raises(BotError, match="closed"):
+        bot.move_to(HOME)

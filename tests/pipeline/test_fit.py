@@ -66,3 +66,15 @@ def test_too_few_or_bad_points_give_none():
     assert fit_superellipsoid(broken) is None
     assert fit_paraboloid(broken) is None
     assert fit_paraboloid(points, axis_point=np.array([np.nan, 0.0, 0.0])) is None
+
+
+@pytest.mark.parametrize("shape", ["blob", "line"])
+def test_points_without_a_surface_give_no_normal(shape):
+    rng = np.random.default_rng(3)
+    if shape == "blob":
+        points = np.tile([0.1, 0.2, 0.3], (500, 1)) + rng.normal(0, 1e-12, (500, 3))
+    else:
+        points = np.outer(np.linspace(0, 0.02, 200), [1.0, 2.0, 0.5]) + [0.1, 0.2, 0.3]
+    assert fit_plane(points) is None
+    assert fit_superellipsoid(points) is None
+    assert fit_paraboloid(points) is None

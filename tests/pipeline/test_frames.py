@@ -97,3 +97,16 @@ def test_errors_name_the_problem(tmp_path):
     (scan / "trajectory.csv").write_text("a,b\n1,2\n")
     with pytest.raises(InputError, match="header"):
         select_frames(scan, tmp_path / "o", FrameSelectConfig(count=2), progress=False)
+
+
+def test_a_second_selection_replaces_the_first_and_short_rows_are_refused(tmp_path):
+    scan = _scan(tmp_path / "scan", [0.0] * 12)
+    select_frames(scan, tmp_path / "out", FrameSelectConfig(count=6), progress=False)
+    select_frames(scan, tmp_path / "out", FrameSelectConfig(count=3), progress=False)
+    assert len(list((tmp_path / "out" / "frames").glob("*.jpg"))) == 3
+    with pytest.raises(InputError, match="scan folder itself"):
+        select_frames(scan, scan, FrameSelectConfig(count=3), progress=False)
+    lines = (scan / "trajectory.csv").read_text().splitlines()
+    (scan / "trajectory.csv").write_text("\n".join([lines[0], "0,0,1,1,1,0,0", "1,0,1,1,1,1,0"]))
+    with pytest.raises(InputError, match="row 1 has 7 values"):
+        read_trajectory(scan / "trajectory.csv")
