@@ -199,6 +199,23 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _at_least(minimum: int):
+    """An argparse type: a whole number no smaller than `minimum`."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+    return parse
+
+
+SEED = _at_least(0)
+POSITIVE = _at_least(1)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors: `flowerpose: error: ...`, exit status 2."""
 
@@ -220,17 +237,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
                    help="where clouds come from: oracle = the plant's surfaces sampled "
                    "directly (default)")
-    p.add_argument("--plants", type=int, default=10, help="number of seeded plants (10)")
-    p.add_argument("--seed", type=int, default=0, help="first plant seed (0)")
+    p.add_argument("--plants", type=POSITIVE, default=10, help="number of seeded plants (10)")
+    p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
     p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
     _add_config_options(p)
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("plant", help="generate one plant: plant.json (truth), mesh, oracle cloud")
-    p.add_argument("--seed", type=int, required=True)
-    p.add_argument("--points", type=int, default=None, help="oracle cloud points (60000)")
+    p.add_argument("--seed", type=SEED, required=True)
+    p.add_argument("--points", type=_at_least(100), default=None,
+                   help="oracle cloud points (60000)")
     p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=cmd_plant)
@@ -245,17 +263,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the planned moves, checked against the bot's limits; no scan")
     p.add_argument("--frame-rate", type=float, default=0.6,
                    help="frames rendered per second of bot time (0.6)")
-    p.add_argument("--width", type=int, default=1280)
-    p.add_argument("--height", type=int, default=720)
-    p.add_argument("--workers", type=int, default=None, help="render processes (all cores)")
+    p.add_argument("--width", type=_at_least(16), default=1280)
+    p.add_argument("--height", type=_at_least(16), default=720)
+    p.add_argument("--workers", type=POSITIVE, default=None, help="render processes (all cores)")
     p.add_argument("--no-preview", dest="preview", action="store_false",
                    help="skip preview.mp4 (the gantry scanning, seen from outside)")
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")
     p.add_argument("scan", type=Path, metavar="SCAN_DIR")
-    p.add_argument("--count", type=int, default=200, help="number of bins and frames (200)")
-    p.add_argument("--crop", type=int, default=400, help="centre crop side, pixels (400)")
+    p.add_argument("--count", type=POSITIVE, default=200, help="number of bins and frames (200)")
+    p.add_argument("--crop", type=_at_least(3), default=400,
+                   help="centre crop side, pixels (400)")
     p.add_argument("--brightness-penalty", action="store_true",
                    help="subtract |mean V - 105| from the score, as the authors' code did")
     p.add_argument("--out", type=Path, required=True)
@@ -290,18 +309,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sweep", help="evaluate a grid of settings over seeded plants")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting and its values; repeat for a grid over several")
-    p.add_argument("--plants", type=int, default=5)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plants", type=POSITIVE, default=5)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=POSITIVE, default=None)
     p.add_argument("--out", type=Path, required=True)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("bench", help="time the pipeline from cloud to flower poses")
-    p.add_argument("--points", type=int, nargs="+", default=[125_000, 1_000_000])
-    p.add_argument("--repeat", type=int, default=3)
-    p.add_argument("--seed", type=int, default=3,
+    p.add_argument("--points", type=_at_least(1000), nargs="+", default=[125_000, 1_000_000])
+    p.add_argument("--repeat", type=POSITIVE, default=3)
+    p.add_argument("--seed", type=SEED, default=3,
                    help="plant seed (3: a realistic plant with 18 open flowers)")
     p.add_argument("--out", type=Path, help="also write bench.json here")
     p.set_defaults(func=cmd_bench)

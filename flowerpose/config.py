@@ -51,6 +51,8 @@ def _coerce(raw: Any, annotation: Any, key: str) -> Any:
         items = _parse_scalar(raw) if isinstance(raw, str) else raw
         if not isinstance(items, list | tuple):
             items = [items]
+        if args and args[-1] is not Ellipsis and len(items) != len(args):
+            raise InputError(key, f"expected {len(args)} values, got {raw!r}")
         inner = args[0] if args else float
         return tuple(_coerce(v, inner, key) for v in items)
     if annotation is bool:
@@ -62,7 +64,13 @@ def _coerce(raw: Any, annotation: Any, key: str) -> Any:
         if text in ("0", "false", "no", "off"):
             return False
         raise InputError(key, f"expected true or false, got {raw!r}")
-    if annotation in (int, float, str):
+    if annotation is int:
+        parsed = _parse_scalar(raw) if isinstance(raw, str) else raw
+        if isinstance(parsed, bool) or not isinstance(parsed, int | float) or (
+                isinstance(parsed, float) and not parsed.is_integer()):
+            raise InputError(key, f"expected a whole number, got {raw!r}")
+        return int(parsed)
+    if annotation in (float, str):
         try:
             parsed = _parse_scalar(raw) if isinstance(raw, str) and annotation is not str else raw
             value = annotation(parsed)
@@ -112,6 +120,12 @@ def apply_overrides(config: Any, overrides: dict[str, Any], prefix: str = "") ->
         else:
             changes[name] = _coerce(value, hints[name], key)
     return dataclasses.replace(config, **changes)
+
+
+def require(condition: bool, key: str, problem: str) -> None:
+    """Raise InputError(key, problem) unless `condition`: for config __post_init__ checks."""
+    if not condition:
+        raise InputError(key, problem)
 
 
 def parse_set_options(items: list[str]) -> dict[str, str]:

@@ -14,6 +14,7 @@ from typing import Literal, Protocol
 import cv2
 import numpy as np
 
+from flowerpose.config import require
 from flowerpose.pipeline.colour import rgb_to_hsv
 
 
@@ -46,6 +47,16 @@ class DetectConfig:
     min_white_fraction: float = 0.5
     """A component's share of white (petal) pixels, at least this: yellow alone is a bud or
     a stem, not a flower."""
+
+    def __post_init__(self):
+        for name in ("white_max_saturation", "white_min_value", "yellow_min_saturation",
+                     "yellow_min_value", "min_white_fraction"):
+            require(0 <= getattr(self, name) <= 1, f"detect.{name}", "must be within 0-1")
+        low, high = self.yellow_hue_deg
+        require(0 <= low <= high <= 360, "detect.yellow_hue_deg", "must be (low, high) degrees")
+        require(self.close_radius_px >= 0, "detect.close_radius_px", "must be 0 or more")
+        require(0 < self.min_area_m2 < self.max_area_m2, "detect.min_area_m2",
+                "needs 0 < detect.min_area_m2 < detect.max_area_m2")
 
 
 @dataclass(frozen=True)

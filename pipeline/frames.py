@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
 from flowerpose.scanio import (
@@ -44,6 +45,10 @@ class FrameSelectConfig:
     (both terms weighted 2.5 there, so equally)."""
     brightness_target: float = 105.0
     """Mean HSV value (0-255) the brightness penalty prefers."""
+
+    def __post_init__(self):
+        require(self.count >= 1, "--count", f"must be at least 1, got {self.count}")
+        require(self.crop_px >= 3, "--crop", f"must be at least 3 pixels, got {self.crop_px}")
 
 
 def frame_score(rgb: np.ndarray, config: FrameSelectConfig) -> tuple[float, float, float]:

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from flowerpose.cloudio import Cloud
+from flowerpose.config import require
 from flowerpose.errors import InputError
 
 
@@ -39,6 +40,12 @@ class GridConfig:
     """Grey level of empty pixels (the authors' code)."""
     max_image_px: int = 8000
     """Largest image side allowed; a larger one means the pixel is too fine for the cloud."""
+
+    def __post_init__(self):
+        require(self.pixel_size_m > 0, "grid.pixel_size_m", "must be positive (metres)")
+        require(self.splat_radius_px >= 0, "grid.splat_radius_px", "must be 0 or more")
+        require(0 <= self.background <= 255, "grid.background", "must be a grey level 0-255")
+        require(self.max_image_px >= 1, "grid.max_image_px", "must be positive")
 
 
 @dataclass(frozen=True)

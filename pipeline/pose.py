@@ -12,6 +12,7 @@ from typing import Any, Literal
 import numpy as np
 
 from flowerpose.cloudio import Cloud
+from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import rgb_to_hsv
 from flowerpose.pipeline.fit import (
@@ -105,6 +106,21 @@ class PoseConfig:
     1.6 degrees on average and up to 4 (0.15 through a point on the axis)."""
     max_evaluations: int = MAX_EVALUATIONS
     """Most residual evaluations one nonlinear fit may spend."""
+
+    def __post_init__(self):
+        for name in ("petal_min_value", "petal_reject_saturation", "pistil_min_saturation",
+                     "pistil_min_value", "support_min_saturation"):
+            require(0 <= getattr(self, name) <= 1, f"pose.{name}", "must be within 0-1")
+        for name in ("petal_reject_hue", "pistil_hue", "support_hue"):
+            low, high = getattr(self, name)
+            require(0 <= low <= high <= 360, f"pose.{name}", "must be (low, high) degrees")
+        require(self.pistil_eps > 0, "pose.pistil_eps", "must be positive (metres)")
+        for name in ("pistil_min_points", "base_min_points", "support_min_points"):
+            require(getattr(self, name) >= 1, f"pose.{name}", "must be at least 1")
+        require(self.base_radius_factor > 0, "pose.base_radius_factor", "must be positive")
+        require(3 <= self.min_fit_points <= self.max_fit_points, "pose.max_fit_points",
+                "needs 3 <= pose.min_fit_points <= pose.max_fit_points")
+        require(self.max_evaluations >= 1, "pose.max_evaluations", "must be at least 1")
 
 
 @dataclass

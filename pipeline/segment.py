@@ -15,6 +15,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from flowerpose.cloudio import Cloud
+from flowerpose.config import require
 from flowerpose.pipeline.colour import rgb_to_hsv
 
 
@@ -36,6 +37,14 @@ class GroundConfig:
     sample_points: int = 30_000
     """Points used for the RANSAC fit (a random subset, for speed)."""
 
+    def __post_init__(self):
+        require(self.clearance_m >= 0, "ground.clearance_m", "must be 0 or more")
+        require(self.plane_distance_m > 0, "ground.plane_distance_m", "must be positive")
+        require(0 <= self.max_tilt_deg <= 90, "ground.max_tilt_deg", "must be 0-90 degrees")
+        require(0 <= self.min_inlier_fraction <= 1, "ground.min_inlier_fraction",
+                "must be within 0-1")
+        require(self.sample_points >= 100, "ground.sample_points", "must be at least 100")
+
 
 @dataclass(frozen=True)
 class OutlierConfig:
@@ -55,6 +64,14 @@ class OutlierConfig:
     """Radius outlier removal: neighbours needed within `radius_m` (upstream: 15)."""
     radius_m: float = 0.01
     """Radius outlier removal: radius, metres (upstream: 0.01)."""
+
+    def __post_init__(self):
+        require(self.statistical_neighbours >= 0, "outliers.statistical_neighbours",
+                "must be 0 (off) or more")
+        require(self.statistical_std_ratio > 0, "outliers.statistical_std_ratio",
+                "must be positive")
+        require(self.radius_points >= 0, "outliers.radius_points", "must be 0 (off) or more")
+        require(self.radius_m > 0, "outliers.radius_m", "must be positive (metres)")
 
 
 @dataclass(frozen=True)
@@ -84,6 +101,14 @@ class ClusterConfig:
     the receptacle, sepals and petal parts hidden in every view come along. Deviation: the
     published code cropped the whole oriented box, which on tilted or touching flowers takes
     in a neighbour's petals and the leaves behind."""
+
+    def __post_init__(self):
+        require(self.eps > 0, "cluster.eps", "must be positive (metres)")
+        require(self.min_points >= 1, "cluster.min_points", "must be at least 1")
+        for name in ("min_flower_fraction", "min_white_fraction", "white_max_saturation"):
+            require(0 <= getattr(self, name) <= 1, f"cluster.{name}", "must be within 0-1")
+        for name in ("split_min_separation_m", "split_link_m", "crop_margin_m"):
+            require(getattr(self, name) > 0, f"cluster.{name}", "must be positive (metres)")
 
 
 @dataclass(frozen=True)

@@ -128,7 +128,7 @@ def _grey_cloud(path):
     (["eval", "--plants", "0", "--out", "{tmp}/e"], ["--plants"]),
     (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
     (["sweep", "--grid", "nope.eps=1,2", "--out", "{tmp}/s"], ["nope"]),
-    (["eval", "--plants", "abc"], ["--plants", "invalid int"]),
+    (["eval", "--plants", "abc"], ["--plants", "whole number"]),
     (["detect"], ["required"]),
     (["frobnicate"], ["invalid choice"]),
     (["eval", "--plants", "1", "--workers", "1", "--out", "{badjson}"], ["bad.json"]),

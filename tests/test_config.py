@@ -40,9 +40,21 @@ def test_nested_dicts_from_toml(tmp_path):
                                          "flag": False}, "count": 7}
 
 
+def test_stage_configs_refuse_values_outside_their_range():
+    from flowerpose.pipeline.flowers import PipelineConfig
+
+    for item in ("grid.pixel_size_m=0", "grid.splat_radius_px=-1", "cluster.eps=0",
+                 "cluster.min_points=-5", "outliers.radius_m=-1", "pose.max_fit_points=-1",
+                 "detect.min_area_m2=1", "pose.pistil_hue=(70, 40)", "ground.sample_points=0"):
+        with pytest.raises(InputError, match=item.split("=")[0].split(".")[0]):
+            apply_overrides(PipelineConfig(), parse_set_options([item]))
+
+
 @pytest.mark.parametrize("item, match", [
     ("inner.epss=1", "inner.epss"), ("count=abc", "count"), ("inner.mode=circle", "inner.mode"),
-    ("inner=3", "inner"), ("inner.eps=nan", "inner.eps"), ("noequals", "--set")])
+    ("inner=3", "inner"), ("inner.eps=nan", "inner.eps"), ("noequals", "--set"),
+    ("count=2.5", "whole number"), ("count=true", "whole number"),
+    ("inner.range_=(1, 2, 3)", "expected 2 values")])
 def test_bad_overrides_name_the_key(item, match):
     with pytest.raises(InputError, match=match):
         apply_overrides(Outer(), parse_set_options([item]))

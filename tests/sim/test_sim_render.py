@@ -9,7 +9,8 @@ import open3d as o3d
 import pytest
 from simhelpers import box, cached_plant, handmade_plant
 
-from flowerpose.scanio import read_intrinsics, write_json
+from flowerpose.jsonio import write_json
+from flowerpose.scanio import read_intrinsics
 from flowerpose.sim.camera import (
     CameraConfig,
     intrinsics_from_config,
