@@ -35,11 +35,12 @@ the image turned by 180 degrees. `kinematics.look_at` follows upstream; its
 from __future__ import annotations
 
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
 
-FARMBOT_ASSETS = Path(__file__).resolve().parents[1] / "assets" / "farmbot"
+FARMBOT_ASSETS = Path(str(files("flowerpose.assets") / "farmbot"))
 """Folder of the MuJoCo model (`farmbot.xml`, `scene.xml`), whose numbers agree with
 `BotGeometry()` (tests/hardware/test_model.py checks it)."""
 

@@ -1,0 +1,1 @@
+"""Models and data files: the FarmBot MJCF model (farmbot/)."""
