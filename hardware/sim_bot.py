@@ -48,6 +48,7 @@ from flowerpose.scanio import (
     Intrinsics,
     trajectory_row,
 )
+from flowerpose.sim.visibility import VISIBLE_SHARE
 
 TRUTH_COLUMNS = ("frame", "t", "speed_px_s", "since_stop_s", "motion_blur_px", "defocus_px",
                  "noise_sigma", "sharpness")
@@ -148,25 +149,25 @@ def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
     width = visibility_width
     height = round(width * intrinsics["height"] / intrinsics["width"])
     _worker["small"] = _worker["intrinsics"].scaled(width, height)
-    _worker["petals"] = _petal_samples(plants, samples, seed)
+    _worker["petals"] = _petal_samples(plants, _worker["renderer"], samples, seed)
 
 
-def _petal_samples(plants, samples: int, seed: int) -> list[tuple[int, np.ndarray]]:
-    """(instance id, (S, 3) petal surface points) per open flower of every plant."""
+def _petal_samples(plants, renderer, samples: int,
+                   seed: int) -> list[tuple[int, np.ndarray]]:
+    """(instance id in `renderer`, (S, 3) petal surface points) per open flower."""
     import trimesh
 
     from flowerpose.sim.pieces import Part
 
-    out, offset = [], 0
+    out = []
     rng = np.random.default_rng(seed)
-    for plant in plants:
+    for index, plant in enumerate(plants):
         for flower in plant.flowers:
             faces = np.flatnonzero((plant.face_flower == flower.id)
                                    & (plant.face_part == Part.PETAL))
             sub = trimesh.Trimesh(plant.mesh.vertices, plant.mesh.faces[faces], process=False)
             points, _ = trimesh.sample.sample_surface(sub, samples, seed=int(rng.integers(2**31)))
-            out.append((offset + flower.id, np.asarray(points)))
-        offset += max((f.id for f in plant.flowers), default=-1) + 1
+            out.append((renderer.instance_id(index, flower.id), np.asarray(points)))
     return out
 
 
@@ -418,7 +419,7 @@ def _merge_visibility(path: Path, fractions: list[dict[int, float]]) -> None:
     write_json(path, {"rule": "visible: at least half of the petal samples seen (own instance "
                       "mask, rendered depth) from one settled waypoint",
                       "fraction": best,
-                      "visible": {k: v >= 0.5 for k, v in best.items()}})
+                      "visible": {k: v >= VISIBLE_SHARE for k, v in best.items()}})
 
 
 @dataclass(frozen=True)

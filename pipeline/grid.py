@@ -73,7 +73,8 @@ class Projection:
     depth: np.ndarray
     """(H, W) float32 depth of the owning point along the view direction, metres (NaN if none)."""
     origin: np.ndarray
-    """(2,) bed-frame (right, up) coordinates of pixel (0, 0)'s corner, metres."""
+    """(2,) bed-frame (right, up) coordinates, metres, of the top-left corner of pixel
+    (r, r), r the splat radius (the image has an r-pixel border for the splats)."""
     pixel_size_m: float
 
     @property

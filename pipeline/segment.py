@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.pipeline.colour import rgb_to_hsv
+from flowerpose.pipeline.fit import principal_axes
 
 
 @dataclass(frozen=True)
@@ -134,10 +135,7 @@ class OrientedBox:
 
 def oriented_box(points: np.ndarray) -> OrientedBox:
     """PCA-aligned box around points (N, 3), metres."""
-    mean = points.mean(axis=0)
-    _, vectors = np.linalg.eigh(np.cov((points - mean).T) if len(points) > 1 else np.eye(3))
-    if np.linalg.det(vectors) < 0:
-        vectors[:, 0] = -vectors[:, 0]
+    mean, _, vectors = principal_axes(points)
     local = (points - mean) @ vectors
     low, high = local.min(axis=0), local.max(axis=0)
     return OrientedBox(mean + vectors @ ((low + high) / 2), vectors, high - low)
