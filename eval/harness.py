@@ -24,8 +24,10 @@ from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.report import build_report, error_stats, plant_entry, write_report
+from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.truth import read_plant_truth, read_sagemaker_truth
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, read_flowers, write_flowers
+from flowerpose.pipeline.rgbd import FusionConfig
 from flowerpose.sim.config import PresetName, SimConfig
 from flowerpose.sim.config import preset as plant_preset
 
@@ -44,6 +46,8 @@ class EvalConfig(PipelineConfig):
 
     sim: SimConfig = field(default_factory=SimConfig)
     score: ScoreConfig = field(default_factory=ScoreConfig)
+    rgbd: RgbdConfig = field(default_factory=RgbdConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
 
 
 def eval_config(preset: PresetName, configure: Callable[[Any], Any] = lambda c: c) -> EvalConfig:
@@ -66,15 +70,15 @@ def generate_plant_files(seed: int, sim: SimConfig, plant_dir: Path) -> float:
     return time.perf_counter() - start
 
 
-def evaluate_cloud(plant_dir: Path, config: EvalConfig, out_dir: Path,
+def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_dir: Path,
                    name: str) -> tuple[dict, dict[str, float]]:
-    """Run the pipeline on plant_dir/cloud.ply, write flowers.json to out_dir, score it
-    against plant_dir/plant.json; returns the report's plant entry and stage timings."""
-    cloud = read_cloud(plant_dir / "cloud.ply")
+    """Run the pipeline on a cloud, write flowers.json to out_dir, score it against the
+    truth; returns the report's plant entry and stage timings."""
+    cloud = read_cloud(cloud_path)
     result = find_flowers(cloud, pipeline_part(config))
     write_flowers(out_dir / "flowers.json", result)
     start = time.perf_counter()
-    truth = read_plant_truth(plant_dir / "plant.json")
+    truth = read_plant_truth(truth_path)
     score = score_plant([f.pose for f in result.flowers], truth, config.score.max_distance_m)
     timing = dict(result.timing_s)
     timing["score"] = time.perf_counter() - start
@@ -145,25 +149,57 @@ def run_eval(config: EvalConfig, source: str = "oracle", plants: int = 10, seed:
              out_dir: Path = Path("runs/eval"), workers: int | None = None) -> dict:
     """The synthetic benchmark: returns report.json's content and writes report.json,
     report.md and, per plant, its truth, cloud and flowers under out_dir."""
-    if source != "oracle":
+    if source not in ("oracle", "rgbd"):
         raise InputError("--source", f"'{source}' needs photogrammetry (reconstruct), which "
-                         "is not built yet; use --source oracle")
+                         "is not built yet; use --source oracle or rgbd")
     if plants < 1:
         raise InputError("--plants", f"must be at least 1, got {plants}")
     start = time.perf_counter()
     seeds = list(range(seed, seed + plants))
     plants_dir = out_dir / "plants"
     generation = generate_plants(seeds, config.sim, plants_dir, workers)
-    jobs = [(plants_dir / f"seed-{s}", config, plants_dir / f"seed-{s}", f"seed-{s}")
-            for s in seeds]
+    timing = {"plant": round(sum(generation), 4)}
+    folders = {s: plants_dir / f"seed-{s}" for s in seeds}
+    clouds = {s: (folders[s] / "cloud.ply", folders[s] / "plant.json") for s in seeds}
+    extra = {}
+    if source == "rgbd":
+        captured = run_jobs(capture_rgbd, [(folders[s], config) for s in seeds], workers,
+                            lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
+                            f"fused into {v['points']} points ({v['seconds']:.1f} s)")
+        timing["rgbd"] = round(sum(c["seconds"] for c in captured), 4)
+        clouds = {s: (folders[s] / "rgbd" / "cloud.ply", folders[s] / "rgbd" / "plant.json")
+                  for s in seeds}
+        extra["reconstruction"] = {f"seed-{s}": c["quality"]
+                                   for s, c in zip(seeds, captured, strict=True)}
+    jobs = [(*clouds[s], config, folders[s], f"seed-{s}") for s in seeds]
     results = run_jobs(evaluate_cloud, jobs, workers, _describe_entry)
-    timing = {"plant": round(sum(generation), 4), **sum_timings(t for _, t in results)}
+    timing.update(sum_timings(t for _, t in results))
     timing["total"] = round(time.perf_counter() - start, 4)
     report = build_report({"source": source, "plants": plants, "seed": seed, **to_dict(config)},
-                          [entry for entry, _ in results], timing)
+                          [entry for entry, _ in results], timing, extra)
     write_report(out_dir, report, f"flowerpose eval: {plants} {config.sim.plant.name} plants, "
                  f"{source} clouds")
     return report
+
+
+def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:
+    """The RGB-D source for one plant: record plant_dir/rgbd/, fuse it into
+    plant_dir/rgbd/cloud.ply, and measure the cloud against the truth mesh."""
+    from flowerpose.cloudio import write_cloud
+    from flowerpose.eval.quality import reconstruction_quality
+    from flowerpose.eval.rgbd_source import record_rgbd_scan
+    from flowerpose.pipeline.rgbd import fuse_rgbd_scan
+    from flowerpose.sim.export import read_plant
+
+    start = time.perf_counter()
+    scan_dir = plant_dir / "rgbd"
+    recorded = record_rgbd_scan(plant_dir, scan_dir, config.rgbd)
+    cloud, fusion = fuse_rgbd_scan(scan_dir, config.fusion)
+    write_cloud(scan_dir / "cloud.ply", cloud)
+    plant = read_plant(plant_dir)
+    quality = reconstruction_quality(cloud.points, plant.mesh, plant.face_part, samples=100_000)
+    return {"frames": recorded["frames"], "points": fusion["points"], "quality": quality,
+            "seconds": time.perf_counter() - start}
 
 
 def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant",

@@ -56,10 +56,14 @@ def reconstruction_quality(points: np.ndarray, mesh: trimesh.Trimesh, face_part:
     points = np.asarray(points, np.float64)
     plant_faces = np.flatnonzero(face_part != Part.SOIL)
     plant = trimesh.Trimesh(mesh.vertices, mesh.faces[plant_faces], process=False)
-    distance, face = _closest(plant, points) if len(points) else (np.zeros(0), np.zeros(0, int))
-    # Cloud points on the plant: near its surface rather than on the soil around it.
-    on_plant = distance <= 0.02
-    part = face_part[plant_faces][face]
+    # Cloud points of the plant: in the plant's box (grown by 1 cm) and nearer to a plant
+    # surface than to the soil; their distance to that surface is their error.
+    low, high = plant.bounds[0] - 0.01, plant.bounds[1] + 0.01
+    region = np.flatnonzero(np.all((points >= low) & (points <= high), axis=1))
+    distance, face = (_closest(mesh, points[region]) if len(region)
+                      else (np.zeros(0), np.zeros(0, int)))
+    on_plant = face_part[face] != Part.SOIL
+    part = face_part[face]
     truth, truth_face = trimesh.sample.sample_surface(plant, samples, seed=seed)
     tree = cKDTree(points) if len(points) else None
     to_cloud = tree.query(truth)[0] if tree is not None else np.full(len(truth), np.inf)

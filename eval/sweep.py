@@ -99,8 +99,9 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
             base = out_dir / (f"plants-{k}" if sim_varies else "plants")
             generate_plants(seeds, cfg.sim, base, workers)
         plant_dirs.append(base)
-    jobs = [(plant_dirs[k] / f"seed-{s}", cfg, out_dir / f"setting-{k}" / f"seed-{s}",
-             f"seed-{s}") for k, cfg in enumerate(configs) for s in seeds]
+    jobs = [(plant_dirs[k] / f"seed-{s}" / "cloud.ply", plant_dirs[k] / f"seed-{s}" / "plant.json",
+             cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}")
+            for k, cfg in enumerate(configs) for s in seeds]
     results = run_jobs(evaluate_cloud, jobs, workers,
                        lambda j, v: f"setting {j // len(seeds)} {v[0]['plant']}: "
                        f"{v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp")

@@ -48,7 +48,7 @@ from flowerpose.scanio import (
     Intrinsics,
     trajectory_row,
 )
-from flowerpose.sim.visibility import VISIBLE_SHARE
+from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
 
 TRUTH_COLUMNS = ("frame", "t", "speed_px_s", "since_stop_s", "motion_blur_px", "defocus_px",
                  "noise_sigma", "sharpness")
@@ -149,26 +149,7 @@ def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
     width = visibility_width
     height = round(width * intrinsics["height"] / intrinsics["width"])
     _worker["small"] = _worker["intrinsics"].scaled(width, height)
-    _worker["petals"] = _petal_samples(plants, _worker["renderer"], samples, seed)
-
-
-def _petal_samples(plants, renderer, samples: int,
-                   seed: int) -> list[tuple[int, np.ndarray]]:
-    """(instance id in `renderer`, (S, 3) petal surface points) per open flower."""
-    import trimesh
-
-    from flowerpose.sim.pieces import Part
-
-    out = []
-    rng = np.random.default_rng(seed)
-    for index, plant in enumerate(plants):
-        for flower in plant.flowers:
-            faces = np.flatnonzero((plant.face_flower == flower.id)
-                                   & (plant.face_part == Part.PETAL))
-            sub = trimesh.Trimesh(plant.mesh.vertices, plant.mesh.faces[faces], process=False)
-            points, _ = trimesh.sample.sample_surface(sub, samples, seed=int(rng.integers(2**31)))
-            out.append((renderer.instance_id(index, flower.id), np.asarray(points)))
-    return out
+    _worker["petals"] = petal_samples(plants, _worker["renderer"].instance_id, samples, seed)
 
 
 def _render_frame(task: FrameTask, frames_dir: str, sensor_seed: int) -> dict:
@@ -196,25 +177,12 @@ def _render_frame(task: FrameTask, frames_dir: str, sensor_seed: int) -> dict:
 
 
 def _visible_fractions(camera_to_bed: np.ndarray) -> dict[int, float]:
-    """Per flower instance, the share of its petal samples this camera sees: inside the
-    image, on a pixel of its own instance mask, at the rendered depth."""
-    from flowerpose.sim.camera import project
+    """Per flower instance, the share of its petal samples this camera sees."""
     from flowerpose.sim.render import Output
 
     small = _worker["small"]
     out = _worker["renderer"].render(camera_to_bed, small, Output.INSTANCE | Output.DEPTH)
-    fractions = {}
-    for instance, points in _worker["petals"]:
-        uv, depth = project(points, camera_to_bed, small)
-        col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        inside = (depth > 0) & (col >= 0) & (row >= 0) & (col < small.width) & (
-            row < small.height)
-        seen = np.zeros(len(points), bool)
-        c, r = col[inside], row[inside]
-        seen[inside] = (out.instance[r, c] == instance) & (
-            np.abs(out.depth[r, c] - depth[inside]) < 0.005)
-        fractions[instance] = float(seen.mean())
-    return fractions
+    return seen_in_render(out.instance, out.depth, camera_to_bed, small, _worker["petals"])
 
 
 class SimCamera(Camera):

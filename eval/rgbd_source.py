@@ -1,0 +1,100 @@
+"""The RGB-D source: a depth camera on the same head films the plant from every settled
+waypoint of the planned scan, and the frames are fused into the cloud the pipeline gets.
+
+The simulator renders colour and depth aligned, at the pose MuJoCo gives the head, adds the
+colour sensor's noise and compression (the camera is at rest) and the depth sensor's error
+model (`sim.depth`), and writes an RGB-D scan folder (`pipeline.rgbd`). Visibility truth
+comes from the same views' rendered instance masks.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from flowerpose.config import require
+from flowerpose.jsonio import read_json, write_json
+from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
+from flowerpose.sim.depth import DepthSensorConfig
+
+
+@dataclass(frozen=True)
+class RgbdConfig:
+    """The simulated RGB-D scan."""
+
+    width: int = 640
+    """Image width of the aligned colour and depth, pixels (an RGB-D camera's depth
+    stream; the head's 62.2 degree field of view)."""
+    height: int = 360
+    """Image height, pixels."""
+    depth: DepthSensorConfig = field(default_factory=DepthSensorConfig)
+    seed: int = 0
+    """Seed of the sensor noise."""
+
+    def __post_init__(self):
+        require(self.width >= 16 and self.height >= 16, "rgbd.width",
+                "width and height must be at least 16 pixels")
+
+
+def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig) -> dict:
+    """Film the plant in plant_dir at every waypoint of its planned scan; write an RGB-D
+    scan folder to out_dir (frames/, depth/, trajectory.csv, camera.json, plant.json with
+    the views' visibility). Returns a small report."""
+    from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+    from flowerpose.hardware.sim_bot import MujocoPoser
+    from flowerpose.pipeline.rgbd import DEPTH_PATTERN
+    from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
+    from flowerpose.sim.depth import apply_depth_sensor
+    from flowerpose.sim.export import plant_obstacles, read_plant
+    from flowerpose.sim.render import Output, PlantRenderer
+    from flowerpose.sim.sensor import SensorConfig, apply_sensor
+    from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
+
+    plant = read_plant(plant_dir)
+    plan = plan_scan(plant.center[:2], plant.height, ScanConfig(),
+                     obstacles=plant_obstacles(plant))
+    poser = MujocoPoser()
+    intrinsics = intrinsics_from_config(CameraConfig(width=config.width, height=config.height))
+    renderer = PlantRenderer([plant])
+    petals = petal_samples([plant], renderer.instance_id, seed=config.seed)
+    (out_dir / "frames").mkdir(parents=True, exist_ok=True)
+    (out_dir / "depth").mkdir(parents=True, exist_ok=True)
+    best = {flower: 0.0 for flower, _ in petals}
+    rows = []
+    unit = config.depth.unit_m
+    for k, waypoint in enumerate(plan.waypoints):
+        pose = poser.camera_to_bed(waypoint.pose.gantry, float(waypoint.pose.yaw),
+                                   float(waypoint.pose.pitch))
+        out = renderer.render(pose, intrinsics, Output.ALL)
+        rng = np.random.default_rng([config.seed, k])
+        colour, _ = apply_sensor(out.rgb, np.zeros(2), 3.0, SensorConfig(), rng)
+        depth = apply_depth_sensor(out.depth, config.depth, rng)
+        cv2.imwrite(str(out_dir / "frames" / FRAME_PATTERN.format(k)),
+                    cv2.cvtColor(colour, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        cv2.imwrite(str(out_dir / "depth" / DEPTH_PATTERN.format(k)),
+                    np.round(depth / unit).astype(np.uint16))
+        for flower, share in seen_in_render(out.instance, out.depth, pose, intrinsics,
+                                            petals).items():
+            best[flower] = max(best[flower], share)
+        rows.append(trajectory_row(k, k * plan.config.pause_s, waypoint.pose.gantry,
+                                   float(waypoint.pose.yaw), float(waypoint.pose.pitch),
+                                   pose[:3, 3], pose[:3, :3]))
+    renderer.close()
+    with open(out_dir / "trajectory.csv", "w", newline="") as handle:
+        csv.writer(handle).writerows([TRAJECTORY_COLUMNS, *rows])
+    write_json(out_dir / "camera.json", {**intrinsics.to_json(), "depth_unit_m": unit})
+    truth = read_json(plant_dir / "plant.json")
+    for flower in truth["flowers"]:
+        share = best.get(renderer.instance_id(0, flower["id"]), 0.0)
+        flower["visible"], flower["visible_fraction"] = bool(share >= VISIBLE_SHARE), share
+    truth["visibility"] = "rgbd scan"
+    write_json(out_dir / "plant.json", truth)
+    write_json(out_dir / "scan.json", {"version": 1, "source": {
+        "backend": "sim rgbd", **dataclasses.asdict(config)}, "plan": plan.to_json(),
+        "waypoints": len(rows), "completed": len(rows), "status": "complete"})
+    return {"frames": len(rows)}
