@@ -49,6 +49,7 @@ def apply_depth_sensor(depth: np.ndarray, config: DepthSensorConfig,
     kernel = np.ones((3, 3), np.uint8)
     far = cv2.dilate(np.where(valid, clean, 0).astype(np.float32), kernel)
     near = -cv2.dilate(np.where(valid, -clean, -np.inf).astype(np.float32), kernel)
+    near = np.where(np.isfinite(near), near, clean)  # no valid neighbour: no jump either
     edge = valid & ((far - near) > config.edge_jump_m)
     out = clean + (config.sigma_at_1m_m * clean**2 * rng.standard_normal(clean.shape)).astype(
         np.float32)
