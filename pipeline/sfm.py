@@ -1,0 +1,725 @@
+"""Sparse reconstruction of a frames folder with pycolmap, in the bed frame.
+
+    frames_dir/frames.json, frames/*.jpg, camera.json (optional)   (`flowerpose frames`)
+      -> work_dir/database.db      SIFT features and verified matches
+      -> work_dir/pairs.txt        the image pairs matched: sequential + nearby poses
+      -> work_dir/sparse/          the COLMAP model, already in the bed frame (metres)
+      -> work_dir/sparse.ply       its points, coloured
+      -> work_dir/sparse.json      the report (counts, errors, alignment, seconds, config)
+
+Two ways to get camera poses (SfmConfig.mode):
+- "poses": the bot's recorded poses are the cameras; points are triangulated with them and
+  refined by bundle adjustment (optionally the poses too). Needs camera.json.
+- "incremental": COLMAP's full incremental mapping from the images alone.
+Either way a robust similarity from the reconstructed camera centres to the recorded ones
+puts the model in the bed frame, and its residual is reported.
+"""
+
+from __future__ import annotations
+
+# cv2 must be imported before pycolmap: the other order makes a later cv2.imwrite of a PNG
+# abort the process (both bundle libpng; double free). tests/pipeline/test_sfm.py keeps it
+# caught.
+import cv2  # isort: skip
+
+import contextlib
+import dataclasses
+import os
+import shutil
+import sys
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pycolmap
+
+from flowerpose.cloudio import Cloud, write_cloud
+from flowerpose.errors import InputError
+from flowerpose.jsonio import read_json, write_json
+from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
+from flowerpose.scanio import Intrinsics, read_intrinsics
+
+#: An image that sees fewer triangulated points than this counts as not registered (the
+#: inliers COLMAP's mapper asks of a new image's pose, abs_pose_min_num_inliers).
+MIN_IMAGE_POINTS = 30
+#: Frames closer than this in position (metres) and viewing direction (degrees) show the
+#: same view; only the first is used.
+SAME_POSE_M = 0.001
+SAME_POSE_DEG = 0.5
+#: Fewest matches for an image pair to count (COLMAP's two_view_geometry min_num_inliers).
+MIN_PAIR_MATCHES = 15
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """How the sparse reconstruction runs."""
+
+    mode: Literal["poses", "incremental"] = "poses"
+    """"poses": match and triangulate with the recorded camera poses, then bundle
+    adjustment; "incremental": COLMAP's incremental mapping from the images alone, then a
+    similarity onto the recorded camera centres. Without camera.json the intrinsics are
+    unknown and incremental mapping runs (it estimates them). On a simulated 200-frame
+    1280 x 720 scan "poses" registered 169 of 170 distinct views in about a quarter of the
+    CPU time, "incremental" 111."""
+    refine_poses: bool = True
+    """"poses" mode: bundle adjustment also refines the poses (held near the recorded
+    positions by pose_prior_m), then the points are triangulated again with them. A real
+    bot's recorded poses are off by millimetres and a fraction of a degree; on the
+    simulator, whose poses are exact, it changes nothing measurable."""
+    pose_prior_m: float = 0.005
+    """Standard deviation per axis of a camera centre about its recorded position in that
+    bundle adjustment, metres."""
+    max_image_size: int = 1280
+    """Longest image side SIFT sees, pixels; larger frames are downscaled for extraction
+    (keypoints are scaled back to the full image)."""
+    max_features: int = 4096
+    """Most SIFT features kept per image (COLMAP: 8192); simulated 1280 x 720 frames give
+    about 1,200 with the defaults here."""
+    first_octave: int | None = None
+    """SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 starts at full
+    size (2.7 times faster, about 25 % fewer features). None: 0 in "poses" mode, where the
+    recorded poses guide matching, -1 in "incremental" mode, which needs the features (it
+    registered 46 instead of 111 of 170 views with 0)."""
+    peak_threshold: float = 0.0025
+    """SIFT's contrast threshold of a keypoint (COLMAP: 0.0067); lower finds more features
+    on faint texture such as leaves and soil."""
+    sequential_overlap: int = 5
+    """Each frame is matched with this many following frames of the scan."""
+    pose_neighbours: int = 6
+    """And with this many nearest recorded camera centres (neighbouring rings of the path)."""
+    max_view_angle_deg: float = 60.0
+    """Pose pairs only between cameras whose optical axes differ by at most this."""
+    min_baseline_m: float = 0.01
+    """"poses" mode: pairs whose camera centres are closer than this are not matched (their
+    epipolar geometry checks nothing)."""
+    max_ratio: float = 0.8
+    """Lowe's ratio test on SIFT matches (COLMAP's default); in "poses" mode among the
+    features near the epipolar line."""
+    epipolar_max_px: float = 4.0
+    """"poses" mode: a match lies within this of the epipolar line of the recorded poses,
+    pixels (full image). Raise it for a bot whose recorded rotations are off by more than
+    about 0.2 degree (1 degree is about 18 px at 1280 x 720 with a 60 degree lens)."""
+    min_track_length: int = 3
+    """Points seen by fewer images are dropped: two-view points are mostly wrong matches
+    along the epipolar line (median 10 mm off the truth on a simulated scan, against under
+    1 mm for three views and more)."""
+    max_reprojection_px: float = 2.0
+    """Points whose mean reprojection error exceeds this are dropped, pixels."""
+    align_threshold_m: float = 0.02
+    """Camera centres farther than this from their recorded position after alignment are
+    outliers of the similarity to the bed frame, metres."""
+    min_registered: int = 3
+    """Fewest registered images accepted."""
+    min_registered_fraction: float = 0.5
+    """Smallest fraction of the images (at distinct poses) that must register."""
+    num_threads: int = 0
+    """Threads for extraction, matching and mapping; 0: every core."""
+    seed: int = 0
+    """Random seed for COLMAP's RANSAC and mapping and for the alignment."""
+    colmap_log: bool = False
+    """Show COLMAP's own log lines (stderr) besides the progress lines."""
+
+
+@dataclass
+class SparseResult:
+    """A sparse reconstruction in the bed frame."""
+
+    reconstruction: pycolmap.Reconstruction
+    """Cameras, images and points, metres, bed frame (cam_from_world maps bed to camera)."""
+    cloud: Cloud
+    """The triangulated points, metres, bed frame, with their colours."""
+    report: dict
+    """Counts, errors, the alignment residual, seconds per step and the config."""
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame of frames.json."""
+
+    name: str
+    """Image path relative to the frames folder (COLMAP's image name)."""
+    position: np.ndarray
+    """(3,) recorded camera centre, metres, bed frame."""
+    rotation: np.ndarray
+    """(3, 3) camera-to-bed rotation, OpenCV camera axes."""
+
+
+def _progress(message: str) -> None:
+    print(f"sfm: {message}", file=sys.stderr, flush=True)
+
+
+@contextlib.contextmanager
+def _colmap_logging(show: bool) -> Iterator[None]:
+    """COLMAP's INFO lines hidden unless asked for (they are hundreds per step)."""
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if show else 2
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
+
+def read_frames(frames_dir: Path) -> list[FrameRecord]:
+    """frames.json's frames with their recorded poses, checked (images present, poses
+    finite and rotations proper)."""
+    path = Path(frames_dir) / "frames.json"
+    data = read_json(path)
+    entries = data.get("frames")
+    if not isinstance(entries, list):
+        raise InputError(path, "expected a \"frames\" list")
+    frames = []
+    for k, entry in enumerate(entries):
+        try:
+            name = str(entry["file"])
+            position = np.asarray(entry["pose"]["position"], dtype=np.float64)
+            rotation = np.asarray(entry["pose"]["rotation"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise InputError(path, f"frame {k} needs \"file\" and \"pose\" with \"position\" "
+                             "(3) and \"rotation\" (3 x 3)") from None
+        if position.shape != (3,) or rotation.shape != (3, 3) or not (
+                np.isfinite(position).all() and np.isfinite(rotation).all()):
+            raise InputError(path, f"frame {k}: pose needs a finite position (3) and "
+                             "rotation (3 x 3)")
+        if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-4 or np.linalg.det(rotation) < 0:
+            raise InputError(path, f"frame {k}: pose rotation is not a proper rotation")
+        if not (Path(frames_dir) / name).is_file():
+            raise InputError(Path(frames_dir) / name, "image listed in frames.json not found")
+        frames.append(FrameRecord(name, position, rotation))
+    return frames
+
+
+def distinct_poses(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """(N,) bool: False for a frame recorded at the pose of an earlier kept one.
+
+    A stop-and-go scan often gives two chosen frames at one stop. Such a pair has no
+    baseline: its matches confirm any feature, and a track through both counts one view
+    twice (on a simulated scan those tracks held most points more than 5 mm off).
+    positions: (N, 3) metres, bed frame; rotations: (N, 3, 3) camera-to-bed.
+    """
+    keep = np.ones(len(positions), dtype=bool)
+    axes = rotations[:, :, 2]
+    for i in range(1, len(positions)):
+        earlier = np.flatnonzero(keep[:i])
+        close = (np.linalg.norm(positions[earlier] - positions[i], axis=1) < SAME_POSE_M) & (
+            axes[earlier] @ axes[i] > np.cos(np.radians(SAME_POSE_DEG)))
+        keep[i] = not close.any()
+    return keep
+
+
+def sequential_pairs(count: int, overlap: int) -> set[tuple[int, int]]:
+    """(i, j), i < j: each frame with the `overlap` frames after it."""
+    return {(i, j) for i in range(count) for j in range(i + 1, min(count, i + overlap + 1))}
+
+
+def pairs_from_poses(positions: np.ndarray, rotations: np.ndarray, neighbours: int,
+                     max_angle_deg: float) -> set[tuple[int, int]]:
+    """(i, j), i < j: each camera with its nearest cameras that look the same way.
+
+    positions: (N, 3) camera centres, metres, bed frame; rotations: (N, 3, 3) camera-to-bed
+    (the third column is the optical axis).
+    """
+    n = len(positions)
+    if n < 2 or neighbours < 1:
+        return set()
+    axes = rotations[:, :, 2]
+    distance = np.linalg.norm(positions[:, None] - positions[None], axis=2)
+    usable = axes @ axes.T >= np.cos(np.radians(max_angle_deg))
+    np.fill_diagonal(usable, False)
+    distance = np.where(usable, distance, np.inf)
+    order = np.argsort(distance, axis=1, kind="stable")[:, :neighbours]
+    rows = np.repeat(np.arange(n), order.shape[1])
+    cols = order.ravel()
+    keep = np.isfinite(distance[rows, cols])
+    return {(int(min(i, j)), int(max(i, j))) for i, j in zip(rows[keep], cols[keep],
+                                                             strict=True)}
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(path, "unreadable image")
+    return image.shape[1], image.shape[0]
+
+
+def _threads(config: SfmConfig) -> int:
+    return config.num_threads if config.num_threads > 0 else (os.cpu_count() or 1)
+
+
+def _extract(database: Path, frames_dir: Path, names: list[str],
+             intrinsics: Intrinsics | None, mode: str, config: SfmConfig) -> None:
+    reader = pycolmap.ImageReaderOptions()
+    if intrinsics is not None:
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = ",".join(repr(float(v)) for v in (
+            intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
+    else:
+        reader.camera_model = "SIMPLE_RADIAL"
+    options = pycolmap.FeatureExtractionOptions()
+    options.max_image_size = config.max_image_size
+    options.num_threads = _threads(config)
+    options.sift.max_num_features = config.max_features
+    options.sift.first_octave = config.first_octave if config.first_octave is not None \
+        else (0 if mode == "poses" else -1)
+    options.sift.peak_threshold = config.peak_threshold
+    chunk = 25
+    start = time.perf_counter()
+    for first in range(0, len(names), chunk):
+        pycolmap.extract_features(database, frames_dir, image_names=names[first:first + chunk],
+                                  camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=options,
+                                  device=pycolmap.Device.cpu)
+        done = min(len(names), first + chunk)
+        _progress(f"features {done}/{len(names)} images ({time.perf_counter() - start:.1f} s)")
+
+
+def _write_pairs(path: Path, names: list[str], pairs: list[tuple[int, int]]) -> Path:
+    path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
+    return path
+
+
+def _match_ransac(database: Path, work_dir: Path, names: list[str],
+                  pairs: list[tuple[int, int]], config: SfmConfig) -> None:
+    """COLMAP's matcher and RANSAC verification on the pairs (images alone)."""
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = _threads(config)
+    matching.sift.max_ratio = config.max_ratio
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = config.seed
+    chunk = 200
+    start = time.perf_counter()
+    part = work_dir / "pairs_part.txt"
+    for first in range(0, len(pairs), chunk):
+        _write_pairs(part, names, pairs[first:first + chunk])
+        pycolmap.match_image_pairs(
+            database, matching_options=matching,
+            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=part),
+            verification_options=verification, device=pycolmap.Device.cpu)
+        done = min(len(pairs), first + chunk)
+        _progress(f"matched {done}/{len(pairs)} pairs ({time.perf_counter() - start:.1f} s)")
+    part.unlink()
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def epipolar_matches(points1: np.ndarray, points2: np.ndarray, descriptors1: np.ndarray,
+                     descriptors2: np.ndarray, fundamental: np.ndarray, max_px: float,
+                     max_ratio: float = 0.8, max_angle: float = 0.7) -> np.ndarray:
+    """(K, 2) indices of features that match across two images of known relative pose.
+
+    Each feature's candidates are the other image's features within max_px of its epipolar
+    line; among them the nearest descriptor must be mutual, closer than
+    max_angle (radians between unit descriptors) and than max_ratio times the second
+    nearest (Lowe's test with COLMAP's defaults, here among the candidates), so the
+    repeated texture of a leaf along the line is refused while true matches that a global
+    ratio test would lose are kept.
+    points1 (N, 2), points2 (M, 2): pixels; descriptors1 (N, D), descriptors2 (M, D): SIFT;
+    fundamental: (3, 3), x2^T F x1 = 0 for pixel coordinates.
+    """
+    empty = np.zeros((0, 2), dtype=np.int64)
+    if len(points1) == 0 or len(points2) == 0:
+        return empty
+    x1 = np.c_[points1, np.ones(len(points1))]
+    x2 = np.c_[points2, np.ones(len(points2))]
+    lines2 = x1 @ fundamental.T
+    lines2 /= np.maximum(np.linalg.norm(lines2[:, :2], axis=1, keepdims=True), 1e-12)
+    # A band round each epipolar line holds a few percent of the other image's features:
+    # one dense pass finds them, everything after works on that short list.
+    rows, cols = np.nonzero(np.abs(lines2.astype(np.float32) @ x2.T.astype(np.float32))
+                            < max_px)
+    if len(rows) == 0:
+        return empty
+    d1 = descriptors1.astype(np.float32)
+    d2 = descriptors2.astype(np.float32)
+    d1 /= np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-9)
+    d2 /= np.maximum(np.linalg.norm(d2, axis=1, keepdims=True), 1e-9)
+    angle = np.arccos(np.clip((d1 @ d2.T)[rows, cols], -1.0, 1.0))
+    # rows come sorted from np.nonzero, so each feature's candidates are contiguous.
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    counts = np.diff(np.r_[starts, len(rows)])
+    nearest = np.minimum.reduceat(angle, starts)
+    is_nearest = angle == np.repeat(nearest, counts)
+    best = np.flatnonzero(is_nearest)
+    best = best[np.r_[True, rows[best][1:] != rows[best][:-1]]]
+    others = angle.copy()
+    others[best] = np.inf
+    second = np.minimum.reduceat(others, starts)
+    good = (nearest < max_angle) & (nearest < max_ratio * second)
+    chosen = best[good]
+    nearest_of_col = np.full(len(points2), np.inf)
+    np.minimum.at(nearest_of_col, cols, angle)
+    chosen = chosen[angle[chosen] <= nearest_of_col[cols[chosen]]]
+    chosen = chosen[np.unique(cols[chosen], return_index=True)[1]]
+    return np.c_[rows[chosen], cols[chosen]]
+
+
+def _in_front(rays1: np.ndarray, rays2: np.ndarray, baseline: np.ndarray) -> np.ndarray:
+    """(K,) whether the closest points of paired rays lie in front of both cameras.
+
+    rays1, rays2: (K, 3) directions in the bed frame from centres c1 and c2 (camera z > 0
+    along them); baseline: c1 - c2.
+    """
+    a = (rays1 * rays1).sum(1)
+    b = (rays1 * rays2).sum(1)
+    c = (rays2 * rays2).sum(1)
+    d = rays1 @ baseline
+    e = rays2 @ baseline
+    denominator = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (b * e - c * d) / denominator
+        t = (a * e - b * d) / denominator
+    return (s > 0) & (t > 0)
+
+
+def _match_with_poses(database: Path, names: list[str],
+                      pairs: list[tuple[int, int]], frames: list[FrameRecord],
+                      config: SfmConfig) -> None:
+    """Epipolar-guided matching on the recorded poses; the matches are written as verified
+    (calibrated) two-view geometries, so no RANSAC runs."""
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        camera = db.read_all_cameras()[0]
+        inverse_k = np.linalg.inv(camera.calibration_matrix())
+        keypoints = {i: db.read_keypoints(i)[:, :2].astype(np.float64) for i in ids.values()}
+        descriptors = {i: db.read_descriptors(i).data for i in ids.values()}
+
+        def match(pair: tuple[int, int]) -> tuple[int, int, pycolmap.TwoViewGeometry | None]:
+            k1, k2 = pair
+            id1, id2 = ids[names[k1]], ids[names[k2]]
+            if id1 > id2:
+                k1, k2, id1, id2 = k2, k1, id2, id1
+            f1, f2 = frames[k1], frames[k2]
+            rotation = f2.rotation.T @ f1.rotation
+            translation = f2.rotation.T @ (f1.position - f2.position)
+            essential = _skew(translation) @ rotation
+            fundamental = inverse_k.T @ essential @ inverse_k
+            found = epipolar_matches(keypoints[id1], keypoints[id2], descriptors[id1],
+                                     descriptors[id2], fundamental, config.epipolar_max_px,
+                                     config.max_ratio)
+            if len(found):
+                rays1 = np.c_[keypoints[id1][found[:, 0]], np.ones(len(found))] @ \
+                    (f1.rotation @ inverse_k).T
+                rays2 = np.c_[keypoints[id2][found[:, 1]], np.ones(len(found))] @ \
+                    (f2.rotation @ inverse_k).T
+                found = found[_in_front(rays1, rays2, f1.position - f2.position)]
+            if len(found) < MIN_PAIR_MATCHES:
+                return id1, id2, None
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+            geometry.E = essential
+            geometry.F = fundamental
+            geometry.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation),
+                                                       translation)
+            geometry.inlier_matches = found.astype(np.uint32)
+            return id1, id2, geometry
+
+        start = time.perf_counter()
+        with ThreadPoolExecutor(_threads(config)) as pool:
+            for done, (id1, id2, geometry) in enumerate(pool.map(match, pairs), 1):
+                if geometry is not None:
+                    db.write_matches(id1, id2, geometry.inlier_matches)
+                    db.write_two_view_geometry(id1, id2, geometry)
+                if done % 200 == 0 or done == len(pairs):
+                    _progress(f"matched {done}/{len(pairs)} pairs on the recorded poses "
+                              f"({time.perf_counter() - start:.1f} s)")
+    finally:
+        db.close()
+
+
+def _mapper_options(config: SfmConfig, intrinsics_known: bool
+                    ) -> pycolmap.IncrementalPipelineOptions:
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = _threads(config)
+    options.random_seed = config.seed
+    options.mapper.random_seed = config.seed
+    options.triangulation.random_seed = config.seed
+    if intrinsics_known:
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+        options.mapper.abs_pose_refine_focal_length = False
+        options.mapper.abs_pose_refine_extra_params = False
+    return options
+
+
+def _cam_from_world(frame: FrameRecord) -> pycolmap.Rigid3d:
+    rotation = frame.rotation.T
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ frame.position)
+
+
+def _posed_reconstruction(database: Path, frames: dict[str, FrameRecord]
+                          ) -> pycolmap.Reconstruction:
+    """The database's cameras and images, each at its recorded pose (no points yet)."""
+    db = pycolmap.Database.open(database)
+    try:
+        reconstruction = pycolmap.Reconstruction()
+        for camera in db.read_all_cameras():
+            reconstruction.add_camera_with_trivial_rig(camera)
+        for image in db.read_all_images():
+            if image.name not in frames:
+                continue
+            posed = pycolmap.Image(name=image.name, camera_id=image.camera_id,
+                                   image_id=image.image_id)
+            reconstruction.add_image_with_trivial_frame(posed,
+                                                        _cam_from_world(frames[image.name]))
+    finally:
+        db.close()
+    return reconstruction
+
+
+def _triangulate(posed: pycolmap.Reconstruction, database: Path, frames_dir: Path,
+                 output: Path, config: SfmConfig) -> pycolmap.Reconstruction:
+    """Points from the database's verified matches, triangulated with `posed`'s cameras
+    held fixed (COLMAP's point_triangulator; its own filters at 4 px)."""
+    return pycolmap.triangulate_points(posed, database, frames_dir, output,
+                                       clear_points=True,
+                                       options=_mapper_options(config, True),
+                                       refine_intrinsics=False)
+
+
+def _filter_points(reconstruction: pycolmap.Reconstruction, config: SfmConfig) -> None:
+    """Drop points seen by too few images, or that reproject too far, or that lie at
+    too small a triangulation angle (COLMAP's filter_min_tri_angle) or behind a camera."""
+    manager = pycolmap.ObservationManager(reconstruction)
+    manager.filter_all_points3D(config.max_reprojection_px,
+                                pycolmap.IncrementalMapperOptions().filter_min_tri_angle)
+    manager.filter_points3D_with_short_tracks(config.min_track_length)
+
+
+def _bundle_adjust(reconstruction: pycolmap.Reconstruction, frames: dict[str, FrameRecord],
+                   config: SfmConfig) -> None:
+    """Refine points and poses (intrinsics fixed), the camera centres held near their
+    recorded positions (a prior of config.pose_prior_m per axis)."""
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = False
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.solver_options.num_threads = _threads(config)
+    setup = pycolmap.BundleAdjustmentConfig()
+    priors = []
+    for image_id in reconstruction.reg_image_ids():
+        image = reconstruction.image(image_id)
+        setup.add_image(image_id)
+        priors.append(pycolmap.PosePrior(
+            corr_data_id=image.data_id, position=frames[image.name].position,
+            position_covariance=np.eye(3) * config.pose_prior_m ** 2,
+            coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN))
+    for camera_id in reconstruction.cameras:
+        setup.set_constant_cam_intrinsics(camera_id)
+    adjuster = pycolmap.create_pose_prior_bundle_adjuster(
+        options, pycolmap.PosePriorBundleAdjustmentOptions(), setup, priors, reconstruction)
+    adjuster.solve()
+
+
+def _map_incremental(database: Path, frames_dir: Path, output: Path, total: int,
+                     config: SfmConfig, intrinsics_known: bool) -> pycolmap.Reconstruction:
+    start = time.perf_counter()
+    registered = [0]
+
+    def next_image() -> None:
+        registered[0] += 1
+        if registered[0] % 20 == 0:
+            _progress(f"mapping: {registered[0]} registrations, {total} images "
+                      f"({time.perf_counter() - start:.1f} s)")
+
+    options = _mapper_options(config, intrinsics_known)
+    models = pycolmap.incremental_mapping(database, frames_dir, output, options,
+                                          next_image_callback=next_image)
+    if not models:
+        return pycolmap.Reconstruction()
+    return max(models.values(), key=lambda m: m.num_reg_images())
+
+
+def _to_bed_frame(reconstruction: pycolmap.Reconstruction, frames: dict[str, FrameRecord],
+                  config: SfmConfig, frames_dir: Path) -> tuple[Similarity, dict]:
+    """Move the model onto the recorded camera centres (robust similarity, in place)."""
+    images = [im for im in reconstruction.images.values() if im.has_pose]
+    centres = np.array([im.projection_center() for im in images])
+    recorded = np.array([frames[im.name].position for im in images])
+    try:
+        similarity, inliers = robust_similarity(centres, recorded, config.align_threshold_m,
+                                                seed=config.seed)
+    except InputError as err:
+        raise InputError(frames_dir, f"cannot align the reconstruction to the recorded camera "
+                         f"positions: {err.problem}") from None
+    reconstruction.transform(pycolmap.Sim3d(similarity.scale,
+                                            pycolmap.Rotation3d(similarity.rotation),
+                                            similarity.translation))
+    return similarity, residuals(similarity, centres, recorded, inliers)
+
+
+def _cloud(reconstruction: pycolmap.Reconstruction) -> Cloud:
+    points = reconstruction.points3D.values()
+    xyz = np.array([p.xyz for p in points], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in points], dtype=np.uint8).reshape(-1, 3)
+    return Cloud(xyz, rgb)
+
+
+def _model(mode: str, database: Path, frames_dir: Path, sparse_dir: Path,
+           frames: dict[str, FrameRecord], config: SfmConfig, intrinsics_known: bool,
+           seconds: dict[str, float]) -> pycolmap.Reconstruction:
+    """Poses and filtered points from the matched database, by `mode`; adds the seconds
+    of each step to `seconds`."""
+    tick = time.perf_counter()
+    if mode == "incremental":
+        _progress(f"incremental mapping of {len(frames)} images")
+        reconstruction = _map_incremental(database, frames_dir, sparse_dir, len(frames),
+                                          config, intrinsics_known)
+        _filter_points(reconstruction, config)
+        seconds["mapping"] = time.perf_counter() - tick
+        return reconstruction
+    _progress(f"triangulating with the {len(frames)} recorded poses")
+    reconstruction = _triangulate(_posed_reconstruction(database, frames), database,
+                                  frames_dir, sparse_dir, config)
+    seconds["triangulation"] = time.perf_counter() - tick
+    if config.refine_poses:
+        tick = time.perf_counter()
+        # Two-view points are mostly wrong matches: keep them out of the adjustment.
+        pycolmap.ObservationManager(reconstruction).filter_points3D_with_short_tracks(
+            config.min_track_length)
+        _progress(f"bundle adjustment of {reconstruction.num_points3D()} points and "
+                  f"{reconstruction.num_reg_images()} poses")
+        _bundle_adjust(reconstruction, frames, config)
+        seconds["bundle_adjustment"] = time.perf_counter() - tick
+        tick = time.perf_counter()
+        # Matches the recorded poses were too far off to triangulate fit the refined ones.
+        reconstruction = _triangulate(reconstruction, database, frames_dir, sparse_dir,
+                                      config)
+        seconds["triangulation"] += time.perf_counter() - tick
+    _filter_points(reconstruction, config)
+    return reconstruction
+
+
+def _distinct_frames(frames_dir: Path, given: list[FrameRecord], config: SfmConfig
+                     ) -> list[FrameRecord]:
+    """The frames at distinct poses; InputError when too few are left."""
+    if len({f.name for f in given}) != len(given):
+        raise InputError(frames_dir / "frames.json", "an image is listed twice")
+    distinct = distinct_poses(np.array([f.position for f in given]).reshape(-1, 3),
+                              np.array([f.rotation for f in given]).reshape(-1, 3, 3))
+    frames = [f for f, keep in zip(given, distinct, strict=True) if keep]
+    repeated = f" at distinct poses ({len(given)} given)" if len(frames) < len(given) else ""
+    need = max(3, config.min_registered)
+    if len(frames) < need:
+        raise InputError(frames_dir, f"{len(frames)} images{repeated}: structure from motion "
+                         f"needs at least {need}")
+    if repeated:
+        _progress(f"{len(given) - len(frames)} of {len(given)} frames repeat an earlier "
+                  "frame's pose: left out")
+    return frames
+
+
+def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | None = None
+                       ) -> SparseResult:
+    """Sparse reconstruction of a frames folder, in the bed frame (metres, z up).
+
+    Reads frames_dir/frames.json (images and recorded camera-to-bed poses) and camera.json
+    when present; writes the database, the pairs, work_dir/sparse/ (COLMAP model, bed
+    frame), sparse.ply and sparse.json. Raises InputError naming the frames folder when
+    fewer than config.min_registered images, or fewer than config.min_registered_fraction
+    of them, register.
+    """
+    config = config or SfmConfig()
+    frames_dir, work_dir = Path(frames_dir), Path(work_dir)
+    if not frames_dir.is_dir():
+        raise InputError(frames_dir, "frames folder not found")
+    started = time.perf_counter()
+    given = read_frames(frames_dir)
+    frames = _distinct_frames(frames_dir, given, config)
+    names = [f.name for f in frames]
+    by_name = dict(zip(names, frames, strict=True))
+    camera_path = frames_dir / "camera.json"
+    intrinsics = None
+    if camera_path.exists():
+        width, height = _image_size(frames_dir / names[0])
+        intrinsics = read_intrinsics(camera_path).scaled(width, height)
+    mode = config.mode
+    if mode == "poses" and intrinsics is None:
+        _progress("no camera.json: intrinsics unknown, running incremental mapping")
+        mode = "incremental"
+
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    sparse_dir = work_dir / "sparse"
+    for stale in (database, sparse_dir):
+        if stale.is_dir():
+            shutil.rmtree(stale)
+        elif stale.exists():
+            stale.unlink()
+    sparse_dir.mkdir()
+    seconds: dict[str, float] = {}
+    pycolmap.set_random_seed(config.seed)
+    with _colmap_logging(config.colmap_log):
+        tick = time.perf_counter()
+        _extract(database, frames_dir, names, intrinsics, mode, config)
+        seconds["features"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        positions = np.array([f.position for f in frames])
+        rotations = np.array([f.rotation for f in frames])
+        pairs = sorted(sequential_pairs(len(frames), config.sequential_overlap)
+                       | pairs_from_poses(positions, rotations, config.pose_neighbours,
+                                          config.max_view_angle_deg))
+        if mode == "poses":
+            # Without a baseline the epipolar geometry checks nothing.
+            pairs = [(i, j) for i, j in pairs if np.linalg.norm(
+                positions[i] - positions[j]) >= config.min_baseline_m]
+            _match_with_poses(database, names, pairs, frames, config)
+        else:
+            _match_ransac(database, work_dir, names, pairs, config)
+        _write_pairs(work_dir / "pairs.txt", names, pairs)
+        seconds["matching"] = time.perf_counter() - tick
+
+        reconstruction = _model(mode, database, frames_dir, sparse_dir, by_name, config,
+                                intrinsics is not None, seconds)
+
+    registered = [im for im in reconstruction.images.values()
+                  if im.has_pose and im.num_points3D >= MIN_IMAGE_POINTS]
+    wanted = max(config.min_registered, int(np.ceil(config.min_registered_fraction
+                                                    * len(frames))))
+    if len(registered) < wanted:
+        raise InputError(frames_dir, f"only {len(registered)} of {len(frames)} images registered "
+                         f"(need {wanted}): too blurry, too little texture or too little "
+                         "overlap between frames")
+
+    tick = time.perf_counter()
+    similarity, alignment = _to_bed_frame(reconstruction, by_name, config, frames_dir)
+    seconds["alignment"] = time.perf_counter() - tick
+    for stale in sparse_dir.iterdir():
+        if stale.is_dir():
+            shutil.rmtree(stale)
+    reconstruction.write(sparse_dir)
+    cloud = _cloud(reconstruction)
+    write_cloud(work_dir / "sparse.ply", cloud)
+    seconds["total"] = time.perf_counter() - started
+    camera = next(iter(reconstruction.cameras.values()))
+    report = {
+        "frames": str(frames_dir), "mode": mode,
+        "intrinsics": "camera.json" if intrinsics is not None else "estimated",
+        "camera": {"model": camera.model.name, "width": camera.width,
+                   "height": camera.height, "params": [float(v) for v in camera.params]},
+        "images_given": len(given), "images_used": len(frames),
+        "images_registered": len(registered),
+        "images_posed": reconstruction.num_reg_images(), "pairs": len(pairs),
+        "points": reconstruction.num_points3D(),
+        "mean_track_length": float(reconstruction.compute_mean_track_length()),
+        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "alignment": {**alignment, "scale": similarity.scale,
+                      "threshold_m": config.align_threshold_m},
+        "alignment_rms_m": alignment["rms_m"],
+        "seconds": {k: round(v, 3) for k, v in seconds.items()},
+        "config": dataclasses.asdict(config),
+    }
+    write_json(work_dir / "sparse.json", report)
+    _progress(f"{len(registered)}/{len(frames)} images, {report['points']} points, reprojection "
+              f"{report['mean_reprojection_error_px']:.2f} px, camera centres "
+              f"{1000 * alignment['rms_m']:.1f} mm RMS from the recorded ones "
+              f"({seconds['total']:.1f} s)")
+    return SparseResult(reconstruction, cloud, report)

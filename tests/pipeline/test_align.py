@@ -1,0 +1,95 @@
+"""Similarity alignment: exact recovery, robustness to gross outliers, clear refusals."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from flowerpose.errors import InputError
+from flowerpose.pipeline.align import Similarity, residuals, robust_similarity, umeyama
+
+
+def known_similarity(seed: int = 1) -> Similarity:
+    rng = np.random.default_rng(seed)
+    rotation = Rotation.random(random_state=seed).as_matrix()
+    return Similarity(float(rng.uniform(0.05, 20.0)), rotation, rng.normal(0, 2.0, 3))
+
+
+def test_umeyama_recovers_a_known_similarity_exactly():
+    truth = known_similarity()
+    source = np.random.default_rng(2).normal(0, 1.0, (40, 3))
+    found = umeyama(source, truth.apply(source))
+    assert found.scale == pytest.approx(truth.scale, rel=1e-9)
+    np.testing.assert_allclose(found.rotation, truth.rotation, atol=1e-9)
+    np.testing.assert_allclose(found.translation, truth.translation, atol=1e-9)
+    np.testing.assert_allclose(found.apply(source), truth.apply(source), atol=1e-9)
+
+
+def test_umeyama_minimal_and_without_scale():
+    truth = Similarity(1.0, Rotation.from_euler("zyx", [30, -20, 75], degrees=True)
+                       .as_matrix(), np.array([1.5, 0.75, 0.3]))
+    source = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    found = umeyama(source, truth.apply(source), with_scale=False)
+    assert found.scale == 1.0
+    np.testing.assert_allclose(found.matrix, truth.matrix, atol=1e-12)
+
+
+def test_inverse_and_apply_round_trip():
+    truth = known_similarity(3)
+    points = np.random.default_rng(4).uniform(-1, 1, (10, 3))
+    np.testing.assert_allclose(truth.inverse().apply(truth.apply(points)), points, atol=1e-12)
+    np.testing.assert_allclose(truth.inverse().matrix, np.linalg.inv(truth.matrix),
+                               atol=1e-12)
+    np.testing.assert_allclose(truth.apply(points[0]), truth.apply(points)[0])
+
+
+def test_robust_similarity_ignores_30_percent_gross_outliers():
+    rng = np.random.default_rng(5)
+    truth = known_similarity(6)
+    source = rng.uniform(-1, 1, (100, 3))
+    target = truth.apply(source) + rng.normal(0, 0.002, (100, 3))
+    outliers = rng.permutation(100)[:30]
+    target[outliers] += rng.uniform(0.5, 3.0, (30, 3)) * rng.choice([-1, 1], (30, 3))
+    found, inliers = robust_similarity(source, target, threshold_m=0.02, seed=0)
+    expected = np.ones(100, bool)
+    expected[outliers] = False
+    np.testing.assert_array_equal(inliers, expected)
+    assert found.scale == pytest.approx(truth.scale, rel=1e-3)
+    angle = Rotation.from_matrix(found.rotation @ truth.rotation.T).magnitude()
+    assert np.degrees(angle) < 0.1
+    clean = source[expected]
+    assert np.abs(found.apply(clean) - truth.apply(clean)).max() < 0.003
+    stats = residuals(found, source, target, inliers)
+    assert stats["inliers"] == 70 and stats["points"] == 100
+    assert 0.001 < stats["rms_m"] < 0.006 and stats["median_m"] <= stats["max_m"] < 0.02
+    # A plain least-squares fit is pulled away by the same outliers.
+    assert residuals(umeyama(source, target), source, target, expected)["rms_m"] > 0.05
+    again, again_inliers = robust_similarity(source, target, threshold_m=0.02, seed=0)
+    np.testing.assert_array_equal(again.matrix, found.matrix)
+    np.testing.assert_array_equal(again_inliers, inliers)
+
+
+@pytest.mark.parametrize("points, message", [
+    (np.zeros((0, 3)), "at least 3 point pairs, got 0"),
+    (np.array([[0.0, 0, 0], [1, 1, 1]]), "at least 3 point pairs, got 2"),
+    (np.outer(np.arange(6.0), [1.0, 2.0, 0.5]), "collinear"),
+    (np.ones((5, 3)), "collinear"),
+])
+def test_degenerate_input_is_refused_clearly(points, message):
+    for fit in (lambda s, t: umeyama(s, t),
+                lambda s, t: robust_similarity(s, t, threshold_m=0.01)):
+        with pytest.raises(InputError, match=message) as caught:
+            fit(points, points + 1.0)
+        assert caught.value.source == "alignment"
+
+
+def test_mismatched_or_bad_values_are_refused():
+    with pytest.raises(InputError, match="equal length"):
+        umeyama(np.zeros((4, 3)), np.zeros((5, 3)))
+    bad = np.random.default_rng(0).normal(size=(5, 3))
+    bad[2, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        umeyama(bad, bad)
+    with pytest.raises(InputError, match="no similarity brings 3"):
+        rng = np.random.default_rng(1)
+        robust_similarity(rng.normal(size=(20, 3)), rng.normal(size=(20, 3)) * 10,
+                          threshold_m=1e-6)
