@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from flowerpose.errors import InputError
-from flowerpose.jsonio import read_text, unit3, vector3
+from flowerpose.jsonio import object_list, read_json, read_text, unit3, vector3
 
 EulerConvention = Literal["upstream", "sagemaker"]
 
@@ -45,18 +45,9 @@ def read_plant_truth(path: str | Path) -> list[TruthFlower]:
     InputError naming the file for a missing or invalid file or a malformed flower.
     """
     path = Path(path)
-    try:
-        document = json.loads(read_text(path))
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON ({err.msg}, line {err.lineno})") from None
-    flowers = document.get("flowers") if isinstance(document, dict) else None
-    if not isinstance(flowers, list):
-        raise InputError(path, 'expected a JSON object with a "flowers" list')
     truth = []
-    for i, entry in enumerate(flowers):
+    for i, entry in enumerate(object_list(read_json(path), "flowers", path, "flower")):
         where = f"flower {i}"
-        if not isinstance(entry, dict):
-            raise InputError(path, f"{where} is not a JSON object")
         radius = entry.get("radius")
         if radius is not None and (not isinstance(radius, int | float)
                                    or not math.isfinite(radius)):

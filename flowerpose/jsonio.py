@@ -67,3 +67,15 @@ def unit3(vector: np.ndarray, source: str | Path, where: str) -> np.ndarray:
     if norm < 1e-9:
         raise InputError(source, f"{where} is the zero vector")
     return vector / norm
+
+
+def object_list(data: dict, key: str, source: str | Path, item: str) -> list[dict]:
+    """data[key] as a list of JSON objects, or an InputError naming `source` and the
+    offending entry (`item` names one: "flower", "frame")."""
+    entries = data.get(key)
+    if not isinstance(entries, list):
+        raise InputError(source, f'expected a JSON object with a "{key}" list')
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise InputError(source, f"{item} {k} is not a JSON object")
+    return entries

@@ -15,7 +15,7 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
-from flowerpose.jsonio import read_json, unit3, vector3, write_json
+from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.pose import (
@@ -154,15 +154,9 @@ def read_flowers(path: Path) -> list[dict]:
     """The flower entries of a `flowers.json`, checked: a 3D centre and, per method, a
     normal that is `null` or 3 finite numbers (normalised here). Errors name the file and
     the flower."""
-    data = read_json(path)
-    flowers = data.get("flowers")
-    if not isinstance(flowers, list):
-        raise InputError(path, "no 'flowers' list: not a flowers.json")
     checked = []
-    for k, entry in enumerate(flowers):
-        where = f"flower {entry.get('id', k) if isinstance(entry, dict) else k}"
-        if not isinstance(entry, dict):
-            raise InputError(path, f"{where} is not an object")
+    for k, entry in enumerate(object_list(read_json(path), "flowers", path, "flower")):
+        where = f"flower {entry.get('id', k)}"
         normals = entry.get("normals")
         if not isinstance(normals, dict):
             raise InputError(path, f"{where}: 'normals' must be an object of method: "

@@ -39,7 +39,7 @@ import pycolmap
 
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
-from flowerpose.jsonio import read_json, write_json
+from flowerpose.jsonio import object_list, read_json, write_json
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
@@ -167,12 +167,8 @@ def read_frames(frames_dir: Path) -> list[FrameRecord]:
     """frames.json's frames with their recorded poses, checked (images present, poses
     finite and rotations proper)."""
     path = Path(frames_dir) / "frames.json"
-    data = read_json(path)
-    entries = data.get("frames")
-    if not isinstance(entries, list):
-        raise InputError(path, "expected a \"frames\" list")
     frames = []
-    for k, entry in enumerate(entries):
+    for k, entry in enumerate(object_list(read_json(path), "frames", path, "frame")):
         try:
             name = str(entry["file"])
             position = np.asarray(entry["pose"]["position"], dtype=np.float64)
