@@ -29,15 +29,19 @@ class DetectConfig:
     default) or every pixel of its box (the paper)."""
     white_max_saturation: float = 0.39
     """Petal pixels: saturation at most this (upstream's whitish threshold), [0, 1]."""
-    white_min_value: float = 0.70
-    """Petal pixels: value at least this, [0, 1]. A little under the pose stage's 0.75 so
-    shaded petal edges still join their flower."""
+    white_min_value: float = 0.40
+    """Petal pixels: value at least this, [0, 1]. Deviation: upstream's 0.75 suits petals
+    in full light only; in images of a scan most of a petal is seen from its shaded side or
+    edge-on (value 0.4-0.7), so photogrammetry clouds were missing half their flowers
+    (README, "Colour thresholds"). Saturation separates white from green and brown; the
+    pistil test (`cluster.require_pistil`) rejects what is merely grey."""
     yellow_hue_deg: tuple[float, float] = (40.0, 63.0)
     """Flower-centre pixels: hue range, degrees (upstream's pistil rule)."""
     yellow_min_saturation: float = 0.30
     """Flower-centre pixels: saturation at least this."""
-    yellow_min_value: float = 0.65
-    """Flower-centre pixels: value at least this."""
+    yellow_min_value: float = 0.30
+    """Flower-centre pixels: value at least this (deviation, as for `white_min_value`:
+    upstream 0.65; a shaded receptacle has value 0.4-0.6)."""
     close_radius_px: int = 1
     """Morphological closing radius joining a flower's pixels across small gaps, pixels."""
     min_area_m2: float = 2.0e-5

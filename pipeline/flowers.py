@@ -118,6 +118,8 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
         pose = estimate_pose(plant.subset(crop), config.pose)
+        if config.cluster.require_pistil and not pose.pistil_found:
+            continue
         flowers.append(Flower(len(flowers), pose, box, above_ground[crop]))
     timer.lap("pose")
     return FlowerResult(flowers, projections, detections, timer.total())

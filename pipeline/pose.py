@@ -25,6 +25,7 @@ from flowerpose.pipeline.fit import (
     fit_paraboloid,
     fit_plane,
     fit_superellipsoid,
+    principal_axes,
 )
 from flowerpose.pipeline.segment import dbscan
 
@@ -38,18 +39,35 @@ DirectionReference = Literal["crop", "petal_base"]
 class PoseConfig:
     """Per-flower pose estimation: colour split, pistil clustering, surface fits, direction."""
 
-    petal_min_value: float = 0.75
-    """Petal points have HSV value above this (0-1): the petals are bright white."""
+    petal_min_value: float = 0.40
+    """Petal points have HSV value above this (0-1). Deviation: upstream's 0.75 keeps only
+    petals in full light (see `DetectConfig.white_min_value`); `petal_max_radius_m` keeps the
+    grey points of stems and neighbours out instead."""
     petal_reject_hue: tuple[float, float] = (40.0, 140.0)
     """Hue band (degrees) of yellow and green points excluded from the petals when saturated."""
     petal_reject_saturation: float = 0.15
     """Saturation (0-1) from which a point in `petal_reject_hue` is not a petal."""
-    pistil_hue: tuple[float, float] = (40.0, 63.0)
-    """Hue band (degrees) of pistil candidates (yellow receptacle and anthers)."""
+    petal_max_radius_m: float | None = 0.02
+    """Petal points lie within this distance of the pistil centroid, metres (open
+    strawberry flowers are 20-35 mm across); None: no limit. Deviation: upstream fitted
+    every petal-coloured point of the crop, so the pale peduncle under a flower and the
+    petals of a touching neighbour tilted the fits."""
+    petal_trim_factor: float | None = 3.0
+    """Petal points farther from the petals' least-squares plane than this many times their
+    median distance (and than `petal_trim_min_m`) are dropped, twice: what is left of a
+    stem or a leaf edge inside `petal_max_radius_m` lies off the corolla. None: no trim."""
+    petal_trim_min_m: float = 0.003
+    """The trim never drops points nearer the plane than this, metres (a cupped corolla's
+    rim rises up to 6 mm above its base)."""
+    pistil_hue: tuple[float, float] = (40.0, 60.0)
+    """Hue band (degrees) of pistil candidates (yellow receptacle and anthers). Upstream:
+    40-63; shaded yellow-green sepals reach down to 60 and, once darker pistil points count
+    (`pistil_min_value`), pulled a pistil below its petals and flipped a normal."""
     pistil_min_saturation: float = 0.30
     """Least saturation (0-1) of a pistil candidate."""
-    pistil_min_value: float = 0.65
-    """Least HSV value (0-1) of a pistil candidate."""
+    pistil_min_value: float = 0.30
+    """Least HSV value (0-1) of a pistil candidate (upstream 0.65, which drops a receptacle
+    in shade)."""
     pistil_eps: float = 0.005
     """DBSCAN neighbourhood radius (metres) clustering the pistil candidates."""
     pistil_min_points: int = 5
@@ -115,6 +133,11 @@ class PoseConfig:
             low, high = getattr(self, name)
             require(0 <= low <= high <= 360, f"pose.{name}", "must be (low, high) degrees")
         require(self.pistil_eps > 0, "pose.pistil_eps", "must be positive (metres)")
+        require(self.petal_max_radius_m is None or self.petal_max_radius_m > 0,
+                "pose.petal_max_radius_m", "must be positive (metres) or unset")
+        require(self.petal_trim_factor is None or self.petal_trim_factor > 0,
+                "pose.petal_trim_factor", "must be positive or unset")
+        require(self.petal_trim_min_m >= 0, "pose.petal_trim_min_m", "must be 0 or more (metres)")
         for name in ("pistil_min_points", "base_min_points", "support_min_points"):
             require(getattr(self, name) >= 1, f"pose.{name}", "must be at least 1")
         require(self.base_radius_factor > 0, "pose.base_radius_factor", "must be positive")
@@ -255,14 +278,15 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
     if len(crop) == 0:
         raise InputError("flower crop", "the crop has no points")
     petal, pistil = split_petals_pistil(crop, config)
-    petal_points = crop.points[petal]
     found = bool(pistil.any())
+    petal = _corolla(crop.points, petal, pistil, config)
     if found:
         center = crop.points[pistil].mean(axis=0)
     elif petal.any():
-        center = petal_points.mean(axis=0)
+        center = crop.points[petal].mean(axis=0)
     else:
         center = crop.points.mean(axis=0)
+    petal_points = crop.points[petal]
     normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
     reference = _orientation(crop, petal, pistil, config)
     if reference is not None:
@@ -271,6 +295,25 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
                    for m, axis in axes.items()}
     return FlowerPose(center=center, normals=normals, pistil_found=found,
                       n_points=len(crop), n_petal_points=len(petal_points))
+
+
+def _corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
+             config: PoseConfig) -> np.ndarray:
+    """The petal mask without what only looks like petals: points beyond
+    `petal_max_radius_m` of the pistil, then points far off the petals' plane
+    (`petal_trim_factor`, twice)."""
+    if pistil.any() and config.petal_max_radius_m is not None:
+        offset = points - points[pistil].mean(axis=0)
+        petal = petal & (np.einsum("ij,ij->i", offset, offset) <= config.petal_max_radius_m ** 2)
+    for _ in range(2 if config.petal_trim_factor is not None else 0):
+        if petal.sum() < config.min_fit_points:
+            break
+        centroid, _, vectors = principal_axes(points[petal])
+        distance = np.abs((points - centroid) @ vectors[:, 2])
+        limit = max(config.petal_trim_factor * float(np.median(distance[petal])),
+                    config.petal_trim_min_m)
+        petal = petal & (distance <= limit)
+    return petal
 
 
 def _fit_axes(petal_points: np.ndarray, pistil_centroid: np.ndarray | None,

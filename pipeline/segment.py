@@ -91,6 +91,12 @@ class ClusterConfig:
     """... and at least this share is whitish: a flower has petals."""
     white_max_saturation: float = 0.39
     """Whitish: saturation at most this (upstream)."""
+    require_pistil: bool = True
+    """A flower's crop must hold a pistil (a cluster of yellow points), else it is dropped.
+    Deviation: upstream's detector was a trained network; with colour detection, leaves
+    sheened with sky colour and stereo fringe floating in the sky are whitish too, and on
+    a reconstructed cloud none of them has a pistil, while a flower's receptacle is seen
+    from some view of the scan. It also leaves no flower without a normal."""
     split_min_separation_m: float = 0.012
     """Flower centres (pistil clusters) this far apart inside one cluster split it into one
     flower per centre, metres: touching flowers merge under DBSCAN."""

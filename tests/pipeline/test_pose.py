@@ -162,3 +162,20 @@ def test_to_json_gives_plain_values():
 def test_an_empty_crop_is_refused():
     with pytest.raises(InputError):
         estimate_pose(Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8)))
+
+
+def test_a_pale_stem_under_the_flower_does_not_tilt_the_fits():
+    # Grey peduncle points pass the petal colour test; only the petals lie near the pistil.
+    crop, normal = flower(5)
+    side = np.cross(normal, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    direction = -np.cos(np.radians(40)) * normal + np.sin(np.radians(40)) * side
+    # As many points per millimetre of stem as a 2 mm stem gets at the petals' density.
+    length = np.linspace(0.004, 0.045, 100)[:, None]
+    stem = CENTRE + length * direction + np.random.default_rng(5).normal(0, 3e-4, (100, 3))
+    crop = Cloud(np.vstack([crop.points, stem]),
+                 np.vstack([crop.colors, np.full((100, 3), 150, np.uint8)]))
+    unlimited = estimate_pose(crop, PoseConfig(petal_max_radius_m=None, petal_trim_factor=None))
+    limited = estimate_pose(crop)
+    assert angle_deg(unlimited.normals["plane"], normal) > 20.0
+    assert max(angle_deg(limited.normals[m], normal) for m in METHODS) < 3.0
