@@ -30,6 +30,7 @@ import math
 import multiprocessing
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -41,6 +42,12 @@ from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicB
 from flowerpose.hardware.errors import CameraError
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.hardware.trajectory import (
+    SERVO_SPEED_RAD_S,
+    head_turn_time,
+    last_recorded,
+    pose_at,
+)
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.scanio import (
     FRAME_PATTERN,
@@ -68,7 +75,7 @@ class SimCameraConfig:
     scan: while moving (motion blur), just after stopping (defocus) and settled (sharp), in
     the proportions a real scan has. Each pause also gives its last video frame, the
     settled view the real camera records 90 of in a 3 s pause."""
-    servo_speed_rad_s: float = 6.0
+    servo_speed_rad_s: float = SERVO_SPEED_RAD_S
     """Head turning speed, radians per second (35 kg servos: about 0.17 s per 60 degrees)."""
     velocity_dt_s: float = 1 / 30
     """Time step of the finite difference that gives the image's speed, seconds."""
@@ -221,7 +228,7 @@ class SimCamera(Camera):
             raise CameraError(f"{path}: already recording; stop that recording first")
         scan_dir = Path(path).parent
         (scan_dir / "frames").mkdir(parents=True, exist_ok=True)
-        self._next_index, last_t = _last_row(scan_dir / "trajectory.csv")
+        self._next_index, last_t = last_recorded(scan_dir)
         self._tasks, self._written, self._start = [], 0, self._clock()
         self._still_since = self._clock()
         # A resumed scan's times continue the recorded ones (the new bot's clock restarts).
@@ -231,24 +238,8 @@ class SimCamera(Camera):
 
     def _pose_state(self, activity: Activity, t: float) -> tuple[np.ndarray, float, float]:
         """(gantry, yaw, pitch) at bot time t within `activity`."""
-        from flowerpose.hardware.motion import move_trajectory
-
-        local = min(max(t - activity.t0, 0.0), activity.elapsed)
-        if activity.kind == "move":
-            gantry = move_trajectory([local], activity.gantry_start, activity.gantry_end,
-                                     activity.profile)[0]
-            return gantry, *activity.head_start
-        if activity.kind == "head":
-            turn = self._turn_time(activity)
-            f = 1.0 if turn <= 0 else min(local / turn, 1.0)
-            (y0, p0), (y1, p1) = activity.head_start, activity.head_end
-            return activity.gantry_end, y0 + f * (y1 - y0), p0 + f * (p1 - p0)
-        return activity.gantry_end, *activity.head_end
-
-    def _turn_time(self, activity: Activity) -> float:
-        (y0, p0), (y1, p1) = activity.head_start, activity.head_end
-        turn = max(abs(y1 - y0), abs(p1 - p0)) / self.config.servo_speed_rad_s
-        return min(turn, activity.elapsed)
+        gantry, yaw, pitch = pose_at(activity, [t], self.config.servo_speed_rad_s)
+        return gantry[0], float(yaw[0]), float(pitch[0])
 
     def _image_speed(self, activity: Activity, t: float, pose: np.ndarray) -> np.ndarray:
         """(2,) pixels per second the image moves at time t (finite difference)."""
@@ -267,7 +258,8 @@ class SimCamera(Camera):
         if activity.kind == "move" and np.any(activity.gantry_start != activity.gantry_end):
             moving_until = end
         elif activity.kind == "head":
-            moving_until = activity.t0 + self._turn_time(activity)
+            moving_until = activity.t0 + head_turn_time(activity,
+                                                        self.config.servo_speed_rad_s)
         rate = self.config.frame_rate_hz
         first = math.ceil(activity.t0 * rate - 1e-9)
         times = [k / rate for k in range(first, math.ceil(end * rate - 1e-9))]
@@ -365,15 +357,6 @@ class _FrameWriter:
         self._truth_file.close()
 
 
-def _last_row(path: Path) -> tuple[int, float | None]:
-    """(data rows, time of the last row) of a trajectory.csv; (0, None) when there is none."""
-    if not path.exists():
-        return 0, None
-    with open(path) as handle:
-        rows = [line for line in handle if line.strip()][1:]
-    return len(rows), (float(rows[-1].split(",")[1]) if rows else None)
-
-
 def _merge_visibility(path: Path, fractions: list[dict[int, float]]) -> None:
     """Keep, per flower, the largest share of its petals seen from any settled waypoint,
     merged with an earlier session's (a resumed scan)."""
@@ -408,24 +391,32 @@ class SimBotConfig:
                              "must be at least 16")
 
 
+def sim_camera(plant_dirs: list[Path], config: SimBotConfig,
+               state: Callable[[], tuple[np.ndarray, float, float]],
+               ) -> Callable[[Callable[[], float]], SimCamera]:
+    """A bot's camera factory (it takes the bot's clock) making `SimCamera`s that film the
+    plants in `plant_dirs` (checked now) as `config` says. state: () -> (gantry (3,)
+    metres bed frame, yaw, pitch radians) now. The bot's observer must hand every
+    Activity to `camera.observe`."""
+    from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
+
+    for folder in plant_dirs:
+        if not (Path(folder) / "plant.json").exists():
+            raise InputError(folder, "not a plant folder (no plant.json): make one with "
+                             "flowerpose plant")
+    intrinsics = intrinsics_from_config(CameraConfig(width=config.width, height=config.height))
+    poser = MujocoPoser()
+    return lambda clock: SimCamera(clock, plant_dirs, intrinsics, poser, config.camera, state)
+
+
 class SimBot(KinematicBot):
     """The simulated FarmBot: `KinematicBot` timing, MuJoCo's camera pose, rendered frames."""
 
     def __init__(self, plant_dirs: list[Path], config: SimBotConfig = SimBotConfig()):
-        from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
-
-        for folder in plant_dirs:
-            if not (Path(folder) / "plant.json").exists():
-                raise InputError(folder, "not a plant folder (no plant.json): make one with "
-                                 "flowerpose plant")
-        intrinsics = intrinsics_from_config(CameraConfig(width=config.width,
-                                                         height=config.height))
-        poser = MujocoPoser()
         self.sim_config = config
         super().__init__(BotInfo.from_geometry("simulated (MuJoCo)"),
                          head_settle_s=config.head_settle_s,
-                         camera=lambda clock: SimCamera(clock, plant_dirs, intrinsics, poser,
-                                                        config.camera, self._current),
+                         camera=sim_camera(plant_dirs, config, self._current),
                          observer=lambda activity: self.camera.observe(activity))
 
     def _current(self) -> tuple[np.ndarray, float, float]:
