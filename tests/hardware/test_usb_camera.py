@@ -1,0 +1,140 @@
+"""The USB camera against a fake V4L2 capture: mode checks, locked exposure and focus, frames
+saved with their times, resumed recordings that append, and one-line errors."""
+
+import csv
+import math
+import time
+
+import cv2
+import numpy as np
+import pytest
+from cloud_fakes import FakeCapture
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.errors import CameraError
+from flowerpose.hardware.usb_camera import UsbCamera, UsbCameraConfig, estimated_intrinsics
+from flowerpose.jsonio import write_json
+from flowerpose.scanio import frame_files
+
+SMALL = UsbCameraConfig(width=64, height=48, settle_s=0.0, frame_timeout_s=0.5)
+
+
+def _camera(capture=None, config=SMALL, clock=time.monotonic):
+    capture = capture or FakeCapture()
+    return UsbCamera("/dev/v4l/by-id/fake-video-index0", clock, config,
+                     capture=lambda device: capture), capture
+
+
+def _times(scan_dir):
+    with open(scan_dir / "frame_times.csv", newline="") as handle:
+        rows = list(csv.reader(handle))
+    assert rows[0] == ["frame", "t"]
+    return np.array(rows[1:], dtype=float)
+
+
+def test_opens_in_the_asked_mode_locks_exposure_and_focus_and_gives_frames(capsys):
+    camera, capture = _camera()
+    assert capture.get(cv2.CAP_PROP_FOURCC) == cv2.VideoWriter_fourcc(*"MJPG")
+    assert capture.get(cv2.CAP_PROP_AUTO_EXPOSURE) == 1.0  # V4L2's manual exposure
+    assert capture.get(cv2.CAP_PROP_AUTOFOCUS) == 0.0
+    assert capture.get(cv2.CAP_PROP_EXPOSURE) == 156.0  # where the automatics settled
+    assert capsys.readouterr().err == ""
+    frame = camera.frame()
+    assert frame.image.shape == (48, 64, 3) and frame.image.dtype == np.uint8
+    assert abs(frame.t_s - time.monotonic()) < 0.5  # stamped with the (bot's) clock
+    intrinsics = camera.intrinsics()
+    assert intrinsics["fx"] == pytest.approx(32 / math.tan(math.radians(62.2) / 2))
+    assert (intrinsics["cx"], intrinsics["cy"], intrinsics["fps"]) == (32, 24, 30.0)
+    camera.close()
+    assert capture.released
+
+
+def test_a_driver_that_refuses_settings_gives_one_warning_line_each(capsys):
+    capture = FakeCapture(refuse={cv2.CAP_PROP_AUTO_EXPOSURE, cv2.CAP_PROP_FOCUS,
+                                  cv2.CAP_PROP_FOURCC})
+    camera, _ = _camera(capture, UsbCameraConfig(width=64, height=48, settle_s=0.0,
+                                                 exposure=80.0, focus=10.0))
+    camera.close()
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 3 and all(line.startswith("warning: camera /dev/v4l/") for line in lines)
+    assert "pixel format" in lines[0] and "exposure" in lines[1] and "focus" in lines[2]
+    assert capture.get(cv2.CAP_PROP_EXPOSURE) == 80.0
+
+
+@pytest.mark.parametrize("capture, words", [
+    (FakeCapture(opened=False), "cannot open the camera"),
+    (FakeCapture(deliver=(640, 480)), "delivers 640 x 480 frames, not the 64 x 48"),
+    (FakeCapture(frames=0), "no frame within 0.5 s"),
+])
+def test_a_busy_silent_or_wrong_mode_camera_is_one_clear_error(capture, words):
+    with pytest.raises(CameraError) as raised:
+        _camera(capture)
+    assert words in str(raised.value) and "\n" not in str(raised.value)
+    assert str(raised.value).startswith("/dev/v4l/by-id/fake-video-index0")
+    assert capture.released
+
+
+def test_a_missing_device_is_named():
+    with pytest.raises(CameraError, match="no-such-camera: no such camera device"):
+        UsbCamera("/dev/v4l/by-id/no-such-camera", config=SMALL)
+
+
+def test_intrinsics_from_a_calibration_at_the_same_resolution(tmp_path):
+    path = write_json(tmp_path / "camera.json", {"model": "PINHOLE", "width": 64, "height": 48,
+                                                 "fx": 70.5, "fy": 71.0, "cx": 31.0,
+                                                 "cy": 25.5})
+    camera, _ = _camera(config=UsbCameraConfig(width=64, height=48, settle_s=0.0,
+                                               calibration=path))
+    assert camera.intrinsics() == {"model": "PINHOLE", "width": 64, "height": 48, "fx": 70.5,
+                                   "fy": 71.0, "cx": 31.0, "cy": 25.5, "fps": 30.0}
+    camera.close()
+    with pytest.raises(InputError, match="calibrated at 64 x 48"):
+        _camera(config=UsbCameraConfig(width=32, height=24, settle_s=0.0, calibration=path))
+    assert estimated_intrinsics(1280, 720, 90.0, 30.0).fx == pytest.approx(640.0)
+
+
+def test_recording_saves_every_frame_with_its_time_and_a_resumed_one_appends(tmp_path):
+    camera, capture = _camera()
+    camera.start_recording(tmp_path / "video.mp4")
+    time.sleep(0.15)
+    saved = camera.saved_frames()
+    recording = camera.stop_recording()
+    saved += camera.saved_frames()
+    first = len(saved)
+    assert recording.frames == first >= 10 and recording.path == tmp_path / "frames"
+    times = _times(tmp_path)
+    np.testing.assert_array_equal(times[:, 0], np.arange(first))
+    np.testing.assert_allclose(times[:, 1], [t for _, t in saved], atol=1e-6)
+    assert np.all(np.diff(times[:, 1]) > 0)
+    # Each file holds its frame: the fake's grey level counts frames up, one by one.
+    levels = [int(cv2.imread(str(p))[0, 0, 0]) for p in frame_files(tmp_path)]
+    assert np.all(np.abs(np.diff(levels) - 1) <= 2)
+
+    camera.start_recording(tmp_path / "video.mp4")  # a second session in the same folder
+    time.sleep(0.1)
+    camera.stop_recording()
+    later = camera.saved_frames()
+    assert later[0][0] == first and len(frame_files(tmp_path)) == first + len(later)
+    np.testing.assert_array_equal(_times(tmp_path)[:, 0], np.arange(first + len(later)))
+    camera.close()
+
+
+def test_a_camera_that_stops_mid_recording_fails_the_check(tmp_path):
+    camera, capture = _camera(FakeCapture(frames=20))
+    camera.start_recording(tmp_path / "video.mp4")
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        try:
+            camera.check()
+        except CameraError as err:
+            assert "no frame for 0.5 s" in str(err)
+            break
+        time.sleep(0.05)
+    else:
+        pytest.fail("the stalled camera was never reported")
+    with pytest.raises(CameraError):
+        camera.stop_recording()
+    # Every frame it delivered while recording is kept, up to its last (the 20th).
+    levels = [int(cv2.imread(str(p))[0, 0, 0]) for p in frame_files(tmp_path)]
+    assert levels == list(range(levels[0], 21))
+    camera.close()
