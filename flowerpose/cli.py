@@ -112,9 +112,14 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    bots = [name for name, chosen in (("--sim", args.sim), ("--port", args.port),
+                                      ("--cloud", args.cloud)) if chosen]
+    if len(bots) != 1:
+        raise InputError("scan", "choose one bot: --sim (simulated), --port PORT (a Farmduino "
+                         "on serial) or --cloud (through FarmBot's web app)"
+                         + (f", not {' and '.join(bots)}" if bots else ""))
     if not args.sim:
-        raise InputError("scan", "the physical bot's backends (--port, --cloud) are not built "
-                         "yet; use --sim with --plant")
+        return _scan_field(args)
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
     from flowerpose.hardware.scan import run_scan
@@ -167,6 +172,130 @@ def _print_plan(plan) -> None:
               f"{float(pitch):9.1f}")
 
 
+def _scan_field(args: argparse.Namespace) -> int:
+    """scan --port / --cloud: the physical bot films a real plant with its USB camera."""
+    import math
+
+    import numpy as np
+
+    from flowerpose.hardware.geometry import PAPER_BOT
+    from flowerpose.hardware.scan import run_scan
+    from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+
+    if args.plant_at is None:
+        raise InputError("--plant-at", "needed with --port and --cloud: where the plant's stem "
+                         "stands, X,Y in metres in the bed frame")
+    if args.token_file is not None and not args.cloud:
+        raise InputError("--token-file", "is for --cloud")
+    x, y = args.plant_at
+    length, width = PAPER_BOT.bed_size_m
+    if not (0 <= x <= length and 0 <= y <= width):
+        raise InputError("--plant-at", f"({x:g}, {y:g}) m is outside the bed: x 0..{length:g} m "
+                         f"along it, y 0..{width:g} m across")
+    for name, value in (("--plant-height", args.plant_height),
+                        ("--plant-radius", args.plant_radius)):
+        if not (math.isfinite(value) and value > 0):
+            raise InputError(name, f"must be a positive number of metres, got {value:g}")
+    plan = plan_scan(np.array([x, y]), args.plant_height, ScanConfig(),
+                     obstacles=_plant_envelope(x, y, args.plant_height, args.plant_radius))
+    print(f"plan: {len(plan.waypoints)} waypoints around the plant at ({x:.3f}, {y:.3f}) m, "
+          f"{plan.duration_s / 60:.1f} min of bot time; the paper's bot's travel and servo "
+          f"range, and clearance from a {args.plant_radius:g} m x {args.plant_height:g} m plant "
+          "envelope, checked")
+    if args.dry_run:
+        _print_plan(plan)
+        return 0
+    if args.camera is None:
+        raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
+                         "/dev/v4l/by-id/usb-...-video-index0")
+    if not Path(args.camera).exists():
+        raise InputError(args.camera, "no such camera device; list them with "
+                         "ls -l /dev/v4l/by-id/")
+    from flowerpose.hardware.trajectory import TrajectoryRecorder
+    from flowerpose.hardware.usb_camera import UsbCamera, UsbCameraConfig
+    from flowerpose.scanio import read_intrinsics
+
+    if args.calibration is not None:
+        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
+    camera = UsbCameraConfig(width=args.width, height=args.height, calibration=args.calibration)
+    recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
+    if args.cloud:
+        from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
+
+        credentials = CloudCredentials.from_environment(token_file=args.token_file)
+        source = {"backend": "farmbot-cloud", "server": credentials.server}
+
+        def connect():
+            return FarmbotCloudBot(credentials, camera=recorder.bind, observer=recorder.observe)
+    else:
+        from flowerpose.hardware.farmduino import FarmduinoBot
+
+        source = {"backend": "serial", "port": args.port}
+
+        def connect():
+            return FarmduinoBot(args.port, camera=recorder.bind, observer=recorder.observe)
+    source["camera"] = {"device": args.camera, "width": args.width, "height": args.height,
+                        "intrinsics": str(args.calibration or "estimated from the field of view")}
+    source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
+    try:
+        with connect() as bot:
+            _approach(bot, plan, args.out)
+            manifest = run_scan(bot, plan, args.out, source={
+                **source, "bot": bot.info.name, "firmware": bot.info.firmware})
+    finally:
+        recorder.close()
+    frames = sum(s.get("frames", 0) for s in manifest["sessions"])
+    print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
+          f"waypoints, {frames} frames ({recorder.rows} of this session's with a pose) -> "
+          f"{args.out}")
+    return 0
+
+
+def _plant_envelope(x: float, y: float, height: float, radius: float,
+                    spacing: float = 0.01):
+    """(N, 3) points on the side and top of a cylinder standing for a real plant, metres,
+    bed frame, `spacing` apart: what the scan path keeps clear of."""
+    import numpy as np
+
+    angles = np.linspace(0.0, 2 * np.pi, max(12, int(np.ceil(2 * np.pi * radius / spacing))),
+                         endpoint=False)
+    heights = np.linspace(0.0, height, max(2, int(np.ceil(height / spacing)) + 1))
+    radii = np.linspace(0.0, radius, max(2, int(np.ceil(radius / spacing)) + 1))
+    side = np.stack(np.broadcast_arrays(x + radius * np.cos(angles), y + radius * np.sin(angles),
+                                        heights[:, None]), -1)
+    top = np.stack(np.broadcast_arrays(x + radii[:, None] * np.cos(angles),
+                                       y + radii[:, None] * np.sin(angles), height), -1)
+    return np.concatenate([side.reshape(-1, 3), top.reshape(-1, 3)])
+
+
+def _approach(bot, plan, out_dir: Path) -> None:
+    """Lift the head to the top of Z where the bot stands, then travel over the waypoint the
+    scan starts (or resumes) at: the scan's first move then only descends, where a direct
+    move from wherever the bot stood might sweep through the plant."""
+    import numpy as np
+
+    from flowerpose.hardware.scan import plan_id
+    from flowerpose.jsonio import read_json
+
+    start = 0
+    if (out_dir / "scan.json").exists():
+        manifest = read_json(out_dir / "scan.json")
+        if manifest.get("plan_id") != plan_id(plan):
+            raise InputError(out_dir, "holds a different scan (another plant or path); "
+                             "choose a new --out folder")
+        start = int(manifest.get("completed", 0))
+    if start >= len(plan.waypoints):
+        return
+    here = bot.position()
+    if not np.all(np.isfinite(here)):
+        raise InputError(bot.info.name, "the gantry's position is unknown: home the bot "
+                         "before scanning")
+    top = bot.info.travel_max[2]
+    target = plan.waypoints[start].pose.gantry
+    bot.move_to([here[0], here[1], top])
+    bot.move_to([target[0], target[1], top])
+
+
 def cmd_frames(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
 
@@ -212,6 +341,18 @@ def _at_least(minimum: int):
     return parse
 
 
+def _plant_xy(text: str) -> tuple[float, float]:
+    """An argparse type: X,Y, two finite numbers (metres)."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres (e.g. 1.5,0.75), got "
+                                         f"{text!r}") from None
+    if not (abs(x) < float("inf") and abs(y) < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected two finite numbers, got {text!r}")
+    return x, y
+
+
 SEED = _at_least(0)
 POSITIVE = _at_least(1)
 
@@ -254,9 +395,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_plant)
 
     p = sub.add_parser("scan", help="scan a plant along the cylinder and dome: --sim films a "
-                       "generated plant with the simulated FarmBot")
+                       "generated plant with the simulated FarmBot; --port or --cloud a real "
+                       "plant with the physical bot and its USB camera")
     p.add_argument("--sim", action="store_true", help="the simulated bot (MuJoCo + renderer)")
     p.add_argument("--plant", type=Path, help="plant folder from flowerpose plant (--sim)")
+    p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
+                   "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
+    p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
+                   "app; log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
+                   "(FARMBOT_SERVER for another server), or --token-file")
+    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
+                   "the repository holding a FarmBot token (its JSON or its JWT)")
+    p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
+                   "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
+                   "--width x --height, 30 fps, exposure and focus locked")
+    p.add_argument("--calibration", type=Path, metavar="CAMERA.json", help="--port/--cloud: "
+                   "the camera's calibrated intrinsics at that size (default: estimated from "
+                   "a 62.2 degree horizontal field of view)")
+    p.add_argument("--plant-at", type=_plant_xy, metavar="X,Y", help="--port/--cloud: where "
+                   "the plant's stem stands, metres in the bed frame: x along the bed from "
+                   "FarmBot's home end, y across it, (0, 0) the soil corner at home")
+    p.add_argument("--plant-height", type=float, default=0.25, metavar="H",
+                   help="the plant's height above the soil, metres (0.25)")
+    p.add_argument("--plant-radius", type=float, default=0.15, metavar="R",
+                   help="how far the plant reaches from its stem, metres: the head keeps 4 cm "
+                   "clear of it (0.15)")
     p.add_argument("--out", type=Path, required=True, help="scan folder (resumes a scan "
                    "already there)")
     p.add_argument("--dry-run", action="store_true",

@@ -1,0 +1,140 @@
+"""flowerpose scan with the physical bot (--port, --cloud): the dry run, bad input as one line
+and exit 2, and a whole cloud scan on fakes that is interrupted and resumed."""
+
+import dataclasses
+import functools
+import json
+
+import numpy as np
+import pytest
+from cloud_fakes import FakeCapture, FakeDevice, fake_factory, make_token
+
+from flowerpose.cli import main
+from flowerpose.hardware import cloud_bot, scanpath, usb_camera
+from flowerpose.jsonio import read_json
+from flowerpose.scanio import frame_files, read_trajectory
+
+FARMBOT_VARIABLES = ("FARMBOT_TOKEN", "FARMBOT_EMAIL", "FARMBOT_PASSWORD", "FARMBOT_SERVER")
+
+
+@pytest.fixture(autouse=True)
+def no_credentials(monkeypatch):
+    for name in FARMBOT_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+
+
+def _run(capsys, *argv):
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exit_:
+        code = exit_.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("bot", [["--cloud"], ["--port", "/dev/no-such-port"]])
+def test_the_dry_run_prints_the_checked_moves_without_connecting(tmp_path, capsys, bot):
+    code, out, err = _run(capsys, "scan", *bot, "--plant-at", "1.5,0.75", "--out",
+                          tmp_path / "scan", "--dry-run")
+    lines = out.splitlines()
+    assert code == 0 and err == ""
+    assert lines[0].startswith("plan: 162 waypoints around the plant at (1.500, 0.750) m")
+    assert lines[1].split() == ["waypoint", "kind", "X", "mm", "Y", "mm", "Z", "mm", "yaw",
+                                "cmd", "pitch", "cmd"]
+    assert len(lines) == 2 + 162
+    x, y, z, yaw, pitch = (float(v) for v in lines[2].split()[2:])
+    assert 0 <= x <= 2722.2 and 0 <= y <= 1230 and -431.64 <= z <= 0
+    assert 0 <= yaw <= 180 and 0 <= pitch <= 180
+    assert not (tmp_path / "scan").exists()  # nothing connected, nothing written
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--cloud", "--plant-at", "1.5;0.75"], ["--plant-at", "expected X,Y in metres"]),
+    (["--cloud", "--plant-at", "1.5,nan"], ["--plant-at", "finite"]),
+    (["--cloud", "--plant-at", "3.2,0.75"], ["--plant-at", "outside the bed"]),
+    (["--cloud", "--plant-at", "0.2,0.75", "--dry-run"], ["scan waypoint", "unreachable"]),
+    (["--cloud", "--plant-at", "1.5,0.75", "--plant-radius", "0.4", "--dry-run"],
+     ["camera head passes"]),
+    (["--cloud", "--plant-at", "1.5,0.75", "--plant-height", "-1"], ["--plant-height"]),
+    (["--cloud"], ["--plant-at", "needed"]),
+    (["--plant-at", "1.5,0.75"], ["choose one bot"]),
+    (["--sim", "--cloud", "--plant-at", "1.5,0.75"], ["not --sim and --cloud"]),
+    (["--port", "/dev/ttyACM0", "--token-file", "{tmp}/t", "--plant-at", "1.5,0.75"],
+     ["--token-file", "is for --cloud"]),
+    (["--cloud", "--plant-at", "1.5,0.75"], ["--camera", "needed"]),
+    (["--cloud", "--plant-at", "1.5,0.75", "--camera", "/dev/v4l/by-id/none"],
+     ["/dev/v4l/by-id/none", "no such camera device"]),
+    (["--cloud", "--plant-at", "1.5,0.75", "--camera", "{device}"],
+     ["FARMBOT_TOKEN", "not set"]),
+    (["--cloud", "--plant-at", "1.5,0.75", "--camera", "{device}", "--token-file",
+      "{repo}/token.json"], ["token.json", "outside the git work tree"]),
+    (["--cloud", "--plant-at", "1.5,0.75", "--camera", "{device}", "--calibration",
+      "{tmp}/none.json"], ["none.json", "not found"]),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
+    (tmp_path / "repo" / ".git").mkdir(parents=True)
+    (tmp_path / "repo" / "token.json").write_text(json.dumps(make_token()))
+    (tmp_path / "video0").write_text("")
+    names = {"tmp": tmp_path, "repo": tmp_path / "repo", "device": tmp_path / "video0"}
+    code, _, err = _run(capsys, "scan", *[a.format(**names) for a in argv], "--out",
+                        tmp_path / "scan")
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("flowerpose: error: "), err
+    assert all(word in lines[0] for word in words), lines[0]
+    assert "Traceback" not in err and not (tmp_path / "scan").exists()
+
+
+def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys, monkeypatch):
+    device = FakeDevice(position_mm=(500.0, 300.0, -200.0))
+    monkeypatch.setenv("FARMBOT_TOKEN", json.dumps(make_token()))
+    monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=300.0))
+    monkeypatch.setattr(usb_camera, "UsbCameraConfig", functools.partial(
+        usb_camera.UsbCameraConfig, settle_s=0.0))
+    small = scanpath.ScanConfig(scanpath.ScanPathConfig(
+        azimuth_step_deg=120.0, cylinder_bottom_m=0.2, cylinder_step_m=0.1,
+        dome_polar_deg=(50.0,)), pause_s=0.05)
+    monkeypatch.setattr(scanpath, "ScanConfig", lambda: small)
+    (tmp_path / "video0").write_text("")
+    scan = tmp_path / "scan"
+    argv = ["scan", "--cloud", "--camera", tmp_path / "video0", "--width", 64, "--height", 48,
+            "--plant-at", "1.5,0.75", "--plant-height", 0.22, "--out", scan]
+
+    moves = []
+
+    def interrupt_on_sixth_move(client):
+        def move(**kwargs):
+            moves.append(kwargs)
+            if len(moves) == 6:
+                raise KeyboardInterrupt
+            return type(client).move(client, **kwargs)
+        return move
+
+    def factory():
+        client = fake_factory(device)()
+        client.move = interrupt_on_sixth_move(client)
+        return client
+
+    monkeypatch.setattr(cloud_bot, "_farmbot_client", factory)
+    code, _, err = _run(capsys, *argv)
+    assert code == 130 and "interrupted" in err
+    first = read_json(scan / "scan.json")
+    # Two approach moves (up, then over waypoint 0), then waypoints 0-2; the 6th move stops.
+    assert first["status"] == "interrupted" and first["completed"] == 3
+    assert moves[0]["z"] == 0.0 and moves[1]["z"] == 0.0
+    recorded = frame_files(scan)
+    assert len(read_trajectory(scan / "trajectory.csv")) > 0 and len(recorded) > 0
+
+    monkeypatch.setattr(cloud_bot, "_farmbot_client", lambda: fake_factory(device)())
+    code, out, err = _run(capsys, *argv)
+    assert code == 0, err
+    manifest = read_json(scan / "scan.json")
+    assert manifest["status"] == "complete" and len(manifest["sessions"]) == 2
+    assert "scan complete: 6/6 waypoints" in out
+    frames = frame_files(scan)
+    assert frames[:len(recorded)] == recorded and len(frames) > len(recorded)
+    trajectory = read_trajectory(scan / "trajectory.csv")
+    assert np.all(np.diff(trajectory.t) > 0) and trajectory.frame[-1] == len(frames) - 1
+    source = manifest["source"]
+    assert source["backend"] == "farmbot-cloud" and source["plant"]["at"] == [1.5, 0.75]
+    assert dataclasses.asdict(small)["pause_s"] == manifest["plan"]["config"]["pause_s"]
+    assert make_token()["token"]["encoded"] not in (scan / "scan.json").read_text()
