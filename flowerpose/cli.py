@@ -239,6 +239,10 @@ def _scan_field(args: argparse.Namespace) -> int:
     source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
     try:
         with connect() as bot:
+            if args.port is not None:
+                # Opening the port reset the board, which lost the position: home, Z first.
+                print(f"homing {bot.info.name} (Z, Y, X)", file=sys.stderr, flush=True)
+                bot.home()
             _approach(bot, plan, args.out)
             manifest = run_scan(bot, plan, args.out, source={
                 **source, "bot": bot.info.name, "firmware": bot.info.firmware})

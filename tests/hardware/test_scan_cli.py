@@ -138,3 +138,26 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
     assert source["backend"] == "farmbot-cloud" and source["plant"]["at"] == [1.5, 0.75]
     assert dataclasses.asdict(small)["pause_s"] == manifest["plan"]["config"]["pause_s"]
     assert make_token()["token"]["encoded"] not in (scan / "scan.json").read_text()
+
+
+def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, capsys,
+                                                                       monkeypatch):
+    virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
+    monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=100.0))
+    monkeypatch.setattr(usb_camera, "UsbCameraConfig", functools.partial(
+        usb_camera.UsbCameraConfig, settle_s=0.0))
+    small = scanpath.ScanConfig(scanpath.ScanPathConfig(
+        azimuth_step_deg=120.0, cylinder_bottom_m=0.2, cylinder_step_m=0.1,
+        dome_polar_deg=(50.0,)), pause_s=0.05)
+    monkeypatch.setattr(scanpath, "ScanConfig", lambda: small)
+    (tmp_path / "video0").write_text("")
+    scan = tmp_path / "scan"
+    with virtual.VirtualFarmduino(time_scale=100.0) as device:
+        code, out, err = _run(capsys, "scan", "--port", device.path, "--camera",
+                              tmp_path / "video0", "--width", 64, "--height", 48, "--plant-at",
+                              "1.5,0.75", "--plant-height", 0.22, "--out", scan)
+    assert code == 0, err
+    assert "homing" in err and "scan complete: 6/6 waypoints" in out
+    assert read_json(scan / "scan.json")["source"]["backend"] == "serial"
+    trajectory = read_trajectory(scan / "trajectory.csv")
+    assert len(trajectory) > 0 and trajectory.frame[-1] == len(frame_files(scan)) - 1
