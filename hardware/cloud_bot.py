@@ -103,6 +103,15 @@ class CloudCommandError(BotError):
                          "bot's logs in the web app")
 
 
+class CloudLinkError(ConnectionLostError):
+    """The link to FarmBot's web app, its MQTT broker or the bot itself failed."""
+
+    def __init__(self, link: str, detail: str):
+        self.link = link
+        BotError.__init__(self, f"{link}: {detail}; check the network, and that the web app "
+                          "shows the bot online")
+
+
 class CloudCredentials:
     """How to log in to FarmBot's web app: a token, or an email and a password.
 
@@ -261,7 +270,7 @@ class FarmbotCloudBot(Bot):
     The head's angles are unknown (NaN) until the first `set_head`, and again after an
     emergency stop until `unlock()` re-sends them. `head()` gives the angles the servos were
     sent: whole command degrees (FarmBot OS takes integers), 1.5 geometric degrees apart.
-    Connecting reads the status tree: an unreachable bot raises ConnectionLostError, a bot
+    Connecting reads the status tree: an unreachable bot raises CloudLinkError, a bot
     locked by an emergency stop refuses motion (LockedError) until `unlock()`.
     """
 
@@ -322,14 +331,14 @@ class FarmbotCloudBot(Bot):
                 client.get_token(self._credentials._email, self._credentials._password,
                                  self._credentials.server)
             except Exception as err:  # noqa: BLE001 - the client's own failures, scrubbed
-                raise ConnectionLostError(self._link, self._scrub(f"log in: {err}")) from None
+                raise CloudLinkError(self._link, self._scrub(f"log in: {err}")) from None
             token = getattr(client.state, "token", None)
             if not token or client.state.error:
                 error = self._scrub(str(client.state.error or "no token"))
                 if "password" in error.lower() or "422" in error:
                     raise InputError(f"{ENV_EMAIL} and {ENV_PASSWORD}", "FarmBot's server "
                                      "refused the login: wrong email or password") from None
-                raise ConnectionLostError(self._link, f"log in: {error}")
+                raise CloudLinkError(self._link, f"log in: {error}")
             token = parse_token(json.dumps(token), "FarmBot's login reply")
             self._secrets.append(token["token"]["encoded"])
         self._client.set_token(token)
@@ -346,17 +355,16 @@ class FarmbotCloudBot(Bot):
         try:
             tree = self._call(command, self._client.read_status, expect_reply=False)
         except CommandTimeoutError:
-            raise ConnectionLostError(self._link, "FarmBot OS sent no status within "
-                                      f"{self._timeouts['listen']:.0f} s: is the bot powered "
-                                      "and online (the web app shows it)?") from None
+            raise CloudLinkError(self._link, "no status from FarmBot OS within "
+                                 f"{self._timeouts['listen']:.0f} s") from None
         if not isinstance(tree, dict):
-            raise ConnectionLostError(self._link, "FarmBot OS sent no status tree")
+            raise CloudLinkError(self._link, "FarmBot OS sent no status tree")
         position = (tree.get("location_data") or {}).get("position") or {}
         mm = [position.get(axis) for axis in "xyz"]
         mm = [float(v) if isinstance(v, int | float) else math.nan for v in mm]
         settings = tree.get("informational_settings") or {}
-        return {"xyz": farmbot_mm_to_bed(mm, self._geometry), "locked": bool(
-                    settings.get("locked", False)),
+        return {"xyz": farmbot_mm_to_bed(mm, self._geometry),
+                "locked": bool(settings.get("locked", False)),
                 "firmware": settings.get("firmware_version"),
                 "mcu_params": tree.get("mcu_params")}
 
@@ -376,9 +384,8 @@ class FarmbotCloudBot(Bot):
         try:
             result = method(*args, **kwargs)
         except Exception as err:  # noqa: BLE001 - the client raises for a lost link
-            raise ConnectionLostError(self._link, self._scrub(f"{command}: "
-                                                              f"{type(err).__name__}: {err}")) \
-                from None
+            detail = self._scrub(f"{command}: {type(err).__name__}: {err}")
+            raise CloudLinkError(self._link, detail) from None
         error = state.error
         if error:
             raise self._error_for(command, str(error))
