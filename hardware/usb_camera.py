@@ -152,11 +152,7 @@ class UsbCamera(RecordingCamera):
                                             daemon=True)
             self._thread.start()
             image, _ = self._wait_frame()
-            if image.shape[:2] != (config.height, config.width):
-                raise CameraError(f"{self.device}: delivers {image.shape[1]} x "
-                                  f"{image.shape[0]} frames, not the {config.width} x "
-                                  f"{config.height} asked for; choose a mode it offers "
-                                  "(v4l2-ctl --list-formats-ext)")
+            self._check_size(image.shape[1], image.shape[0])
             time.sleep(config.settle_s)
             self._lock_exposure_and_focus()
             self._intrinsics = self._load_intrinsics()
@@ -188,16 +184,20 @@ class UsbCamera(RecordingCamera):
         with self._cap_lock:
             width = int(self._cap.get(self._prop("FRAME_WIDTH")))
             height = int(self._cap.get(self._prop("FRAME_HEIGHT")))
-        if (width, height) != (config.width, config.height):
-            raise CameraError(f"{self.device}: delivers {width} x {height} frames, not the "
-                              f"{config.width} x {config.height} asked for; choose a mode it "
-                              "offers (v4l2-ctl --list-formats-ext)")
+        self._check_size(width, height)
         if int(fourcc) != code:
             got = int(fourcc).to_bytes(4, "little").decode("ascii", "replace")
             _warn(self.device, f"pixel format {got!r} instead of {config.fourcc!r}; frames "
                   "may come slower")
         if abs(fps - config.fps) > 0.01 * config.fps:
             _warn(self.device, f"frame rate reads {fps:g} fps, not the {config.fps:g} asked for")
+
+    def _check_size(self, width: int, height: int) -> None:
+        """Refuse frames of another size than asked for, pixels."""
+        if (width, height) != (self.config.width, self.config.height):
+            raise CameraError(f"{self.device}: delivers {width} x {height} frames, not the "
+                              f"{self.config.width} x {self.config.height} asked for; choose "
+                              "a mode it offers (v4l2-ctl --list-formats-ext)")
 
     def _lock_exposure_and_focus(self) -> None:
         """Turn the automatics off at fixed values (asked for, or what the driver reports
