@@ -19,6 +19,7 @@ from flowerpose.pipeline.sfm import (
     distinct_poses,
     epipolar_matches,
     pairs_from_poses,
+    read_frames,
     reconstruct_sparse,
     sequential_pairs,
 )
@@ -293,3 +294,20 @@ def test_config_is_documented_and_overridable():
     assert config == replace(SfmConfig(), mode="incremental", max_features=2048)
     with pytest.raises(InputError, match="must be one of"):
         apply_overrides(SfmConfig(), {"mode": "global"})
+
+
+def test_refined_poses_for_dense_stereo_match_the_recorded_ones(scene, tmp_path):
+    from flowerpose.pipeline.reconstruct import refined_poses, sparse_intrinsics
+
+    frames_dir, positions = scene
+    result = reconstruct_sparse(frames_dir, tmp_path / "work", SfmConfig())
+    poses = refined_poses(result)
+    recorded = {f.name: f for f in read_frames(frames_dir)}
+    assert set(poses) == set(recorded) and len(poses) == VIEWS
+    for name, pose in poses.items():
+        assert np.linalg.norm(pose[:3, 3] - recorded[name].position) < 0.003
+        turn = pose[:3, :3].T @ recorded[name].rotation
+        assert np.degrees(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1, 1))) < 0.3
+    intrinsics = sparse_intrinsics(result)
+    assert (intrinsics.width, intrinsics.height) == (WIDTH, HEIGHT)
+    assert intrinsics.fx == pytest.approx(FOCAL) and intrinsics.cx == pytest.approx(WIDTH / 2)

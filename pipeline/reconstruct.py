@@ -1,0 +1,129 @@
+"""Photogrammetry of a frames folder: sparse structure from motion, then dense stereo.
+
+    frames_dir (`flowerpose frames`: frames/*.jpg, frames.json with the bot's poses,
+    camera.json)
+      -> out_dir/database.db, pairs.txt, sparse/, sparse.ply, sparse.json   (`sfm.py`)
+      -> out_dir/cloud.ply            the dense coloured cloud, metres, bed frame, z up
+      -> out_dir/reconstruction.json  images registered, the alignment residual, point
+                                      counts, seconds per stage, the config
+
+The sparse stage refines the camera poses and moves them into the bed frame (a robust
+similarity onto the bot's recorded camera centres); the dense stage then runs on those
+refined poses, so a real bot's pose errors (millimetres, fractions of a degree) do not
+smear the cloud.
+"""
+
+from __future__ import annotations
+
+# cv2 before pycolmap (sfm.py says why).
+import cv2  # noqa: F401  # isort: skip
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from flowerpose.cloudio import Cloud, write_cloud
+from flowerpose.errors import InputError
+from flowerpose.jsonio import write_json
+from flowerpose.pipeline.dense import DenseConfig, reconstruct_dense
+from flowerpose.pipeline.sfm import (
+    MIN_IMAGE_POINTS,
+    SfmConfig,
+    SparseResult,
+    reconstruct_sparse,
+)
+from flowerpose.scanio import Intrinsics
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Sparse then dense reconstruction of a frames folder."""
+
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    """The sparse stage (features, matching, poses, alignment to the bed frame)."""
+    dense: DenseConfig = field(default_factory=DenseConfig)
+    """The dense stage (pairwise semi-global matching and multi-view fusion)."""
+    dense_poses: Literal["refined", "recorded"] = "refined"
+    """Camera poses the dense stage uses: "refined" (the sparse stage's, in the bed frame;
+    frames that did not register are left out) or "recorded" (frames.json's, as the bot
+    logged them; every frame)."""
+
+
+@dataclass
+class Reconstruction:
+    """A reconstructed frames folder."""
+
+    cloud: Cloud
+    """The dense cloud: points (N, 3) metres, bed frame, colours (N, 3) uint8."""
+    sparse: SparseResult
+    """The sparse model, points and its report."""
+    report: dict
+    """reconstruction.json's content."""
+
+
+def refined_poses(sparse: SparseResult) -> dict[str, np.ndarray]:
+    """Camera-to-bed (4, 4) poses, metres, OpenCV camera axes, of the registered images
+    (posed, and seeing at least `MIN_IMAGE_POINTS` points), keyed by image name (the
+    frame's file as frames.json names it)."""
+    poses = {}
+    for image in sparse.reconstruction.images.values():
+        if not image.has_pose or image.num_points3D < MIN_IMAGE_POINTS:
+            continue
+        cam_from_bed = np.eye(4)
+        cam_from_bed[:3] = image.cam_from_world().matrix()
+        poses[image.name] = np.linalg.inv(cam_from_bed)
+    return poses
+
+
+def sparse_intrinsics(sparse: SparseResult) -> Intrinsics:
+    """The pinhole camera the sparse model used (camera.json's, at the frames' size)."""
+    camera = next(iter(sparse.reconstruction.cameras.values()))
+    fx, fy, cx, cy = (float(v) for v in camera.params)
+    return Intrinsics(camera.width, camera.height, fx, fy, cx, cy)
+
+
+def reconstruct(frames_dir: str | Path, out_dir: str | Path,
+                config: ReconstructConfig = ReconstructConfig(),
+                progress: bool = True) -> Reconstruction:
+    """Dense cloud of a frames folder in the bed frame; writes out_dir (see the module).
+
+    Raises InputError naming the frames folder when too few images register
+    (`SfmConfig.min_registered`, `min_registered_fraction`) or no stereo pair is usable.
+    """
+    frames_dir, out_dir = Path(frames_dir), Path(out_dir)
+    if not (frames_dir / "camera.json").is_file():
+        # Checked first: the sparse stage alone could estimate a distorted camera, but
+        # dense stereo needs a calibrated pinhole, and would fail only minutes later.
+        raise InputError(frames_dir / "camera.json", "not found: dense reconstruction needs "
+                         "the camera's intrinsics (flowerpose frames copies the scan's)")
+    started = time.perf_counter()
+    sparse = reconstruct_sparse(frames_dir, out_dir, config.sfm)
+    sparse_s = time.perf_counter() - started
+    poses = refined_poses(sparse) if config.dense_poses == "refined" else None
+    cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
+                                            intrinsics=sparse_intrinsics(sparse),
+                                            config=config.dense, progress=progress)
+    cloud_path = write_cloud(out_dir / "cloud.ply", cloud)
+    total_s = time.perf_counter() - started
+    sparse_report = {k: v for k, v in sparse.report.items() if k != "config"}
+    report = {
+        "frames": str(frames_dir),
+        "cloud": str(cloud_path),
+        "points": len(cloud),
+        "images_used": sparse_report["images_used"],
+        "images_registered": sparse_report["images_registered"],
+        "alignment_rms_m": sparse_report["alignment_rms_m"],
+        "alignment": sparse_report["alignment"],
+        "dense_poses": config.dense_poses,
+        "seconds": {"sparse": round(sparse_s, 3), "dense": round(total_s - sparse_s, 3),
+                    "total": round(total_s, 3)},
+        "sparse": sparse_report,
+        "dense": {k: v for k, v in dense_report.items() if k != "config"},
+        "config": dataclasses.asdict(config),
+    }
+    write_json(out_dir / "reconstruction.json", report)
+    return Reconstruction(cloud, sparse, report)
