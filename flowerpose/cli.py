@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.errors import BotError
 
 
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
@@ -112,6 +113,8 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    if args.via_farmduino and not args.sim:
+        raise InputError("scan --via-farmduino", "is for the simulated bot: add --sim")
     bots = [name for name, chosen in (("--sim", args.sim), ("--port", args.port),
                                       ("--cloud", args.cloud)) if chosen]
     if len(bots) != 1:
@@ -146,7 +149,13 @@ def cmd_scan(args: argparse.Namespace) -> int:
     config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=args.frame_rate,
                                                  workers=args.workers),
                           width=args.width, height=args.height)
-    with SimBot([args.plant], config) as bot:
+    if args.via_farmduino:
+        from flowerpose.hardware.virtual_farmduino import SimulatedSerialBot
+
+        bot = SimulatedSerialBot([args.plant], config)
+    else:
+        bot = SimBot([args.plant], config)
+    with bot:
         manifest = run_scan(bot, plan, args.out,
                             source={**bot.describe(), "plants": [str(args.plant.resolve())]})
     frames = sum(s.get("frames", 0) for s in manifest["sessions"])
@@ -156,6 +165,24 @@ def cmd_scan(args: argparse.Namespace) -> int:
           f"{truth})")
     if args.preview:
         print(f"preview: {write_preview(args.out, [plant.center], [plant.height])}")
+    return 0
+
+
+def cmd_farmduino(args: argparse.Namespace) -> int:
+    if not args.virtual:
+        raise InputError("farmduino", "only --virtual is available: it serves a virtual "
+                         "Farmduino on a pseudo-terminal")
+    from flowerpose.hardware.virtual_farmduino import VirtualFarmduino
+
+    with VirtualFarmduino(time_scale=args.time_scale) as device:
+        print(device.path, flush=True)
+        print(f"virtual Farmduino on {device.path} (now {device.device}) at {args.time_scale:g}"
+              " x real time; connect at 115200 baud; Ctrl-C stops it", file=sys.stderr,
+              flush=True)
+        try:
+            device.wait()
+        except KeyboardInterrupt:
+            print("virtual Farmduino stopped", file=sys.stderr)
     return 0
 
 
@@ -345,6 +372,17 @@ def _at_least(minimum: int):
     return parse
 
 
+def _positive_number(text: str) -> float:
+    """An argparse type: a finite number above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
 def _plant_xy(text: str) -> tuple[float, float]:
     """An argparse type: X,Y, two finite numbers (metres)."""
     try:
@@ -435,7 +473,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=POSITIVE, default=None, help="render processes (all cores)")
     p.add_argument("--no-preview", dest="preview", action="store_false",
                    help="skip preview.mp4 (the gantry scanning, seen from outside)")
+    p.add_argument("--via-farmduino", action="store_true",
+                   help="with --sim: drive the simulated bot through the serial Farmduino "
+                   "backend and a virtual Farmduino (100 x real time)")
     p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser("farmduino", help="--virtual: serve a virtual Farmduino (FarmBot's "
+                       "firmware protocol over the MuJoCo gantry) and print its device path")
+    p.add_argument("--virtual", action="store_true", help="serve a virtual Farmduino")
+    p.add_argument("--time-scale", type=_positive_number, default=1.0,
+                   help="simulated seconds per wall second (1)")
+    p.set_defaults(func=cmd_farmduino)
 
     p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")
     p.add_argument("scan", type=Path, metavar="SCAN_DIR")
@@ -498,7 +546,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except InputError as err:
+    except (InputError, BotError) as err:
+        # BotError: a fault of the bot or its link, said in one line that names the device.
         print(f"flowerpose: error: {err}", file=sys.stderr)
         return 2
     except BrokenPipeError:

@@ -1,0 +1,804 @@
+"""The serial Farmduino backend: the bot on FarmBot's own firmware over USB serial (pyserial).
+
+`FarmduinoBot` speaks the Farmduino protocol (reference/farmbot.md) defensively:
+
+- One command at a time, each with a Q number (1-999, cycling), sent once the previous one
+  got its final reply: `R02` done, or `R03 V<code>` (a typed error from `error_for_code`),
+  `R09` (unknown), `R87` (locked), `R88` (not configured), the refusals that come without
+  an `R03`. Everything else (echo, busy, idle, position reports, debug text, line noise) is
+  read and set aside. The firmware discards input that arrives while a command runs, so
+  nothing else is sent meanwhile but the emergency stop.
+- Numbers in fixed point ("%.2f"): the firmware takes any `e` or `E` byte as an emergency
+  stop, so no line but the emergency stop itself may hold one (`checked_line`). Every G00
+  names all three axes (a missing axis means 0). Servo angles are whole degrees, as the
+  firmware reads them, on pins 6 (yaw) and 5 (pitch) only.
+- At connect: wait for `R99 ARDUINO STARTUP COMPLETE` (opening the port resets the board)
+  or an idle report, read the version (F83) and the parameters the motion model needs
+  (F21: 11-13 timeouts, 41-44 ramps, 55-57 steps/mm, 61-64 and 71-74 speeds, 5 retries,
+  141-143 axis lengths), approve the configuration (`F22 P2 V1`) when the firmware has not,
+  re-send the servo angles, read the position (F82). The gantry moves on
+  `MotionProfile.from_firmware` of these parameters, the travel is cut to the calibrated
+  axis lengths, and command timeouts follow the firmware's own: a move may last its
+  axes' timeout (parameters 11-13) for each of its attempts (parameter 5) plus
+  `MOVE_SLACK_S`; anything else gets `REPLY_TIMEOUT_S`.
+- The position: a board that starts counts from 0 wherever the gantry stands, so after
+  connecting `move_to` refuses (`PositionLostError`) until `home()` has found home on all
+  three axes (Z first).
+- A dropped port (SerialException, EIO) is recovered: the same path is reopened with
+  backoff for up to `connect_timeout_s`, the firmware brought up again as at connect,
+  homed when the reopening restarted the board (Z first, away from the plant), and the
+  interrupted command sent again, so a scan goes on where it was. A board that restarts
+  while the port stays open (a brown-out, a watchdog) is not retried: the command raises
+  `PositionLostError` for a person to look at the bot, then `home()`.
+- `emergency_stop()` may be called from any thread at any time: it writes `E` at once,
+  under the write lock; the command blocked in the owner thread raises
+  `EmergencyStopError`; motion raises `LockedError` until `unlock()` (F09), which re-sends
+  the servo angles (the firmware cuts their pulses).
+
+The observer gets an `Activity` for every move, head turn and dwell as `KinematicBot`
+gives one: a move follows `move_trajectory(t - t0, start, target, profile)` with the
+profile from the firmware's parameters, `elapsed` measured on the bot's clock until the
+final reply. The bot's clock is the wall clock times `clock_scale` (1 for a real bot).
+
+Units: the `Bot` interface is SI in the bed frame; millimetres, steps and servo degrees
+appear only in the lines this module sends and reads (geometry.py converts).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import os
+import queue
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import serial
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.bot import (
+    Activity,
+    Bot,
+    BotInfo,
+    Camera,
+    Frame,
+    Recording,
+    check_axes,
+    check_head,
+    check_target,
+)
+from flowerpose.hardware.errors import (
+    BotError,
+    CameraError,
+    CommandTimeoutError,
+    ConnectionLostError,
+    EmergencyStopError,
+    LockedError,
+    NotConfiguredError,
+    OutOfRangeError,
+    UnknownCommandError,
+    error_for_code,
+)
+from flowerpose.hardware.geometry import bed_to_farmbot_mm, farmbot_mm_to_bed
+from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
+from flowerpose.hardware.motion import MotionProfile, move_trajectory
+
+BAUD = 115200
+SERVO_PINS = (4, 5, 6, 11)
+"""The only Farmduino pins that drive servos (F61 on another answers R02 and does nothing)."""
+YAW_PIN, PITCH_PIN = 6, 5
+BANNER = "ARDUINO STARTUP COMPLETE"
+AXIS_LENGTH_PARAMETERS = (141, 142, 143)
+READ_PARAMETERS = (2, 5, 11, 12, 13, 41, 42, 43, 44, 55, 56, 57, 61, 62, 63, 64, 71, 72, 73, 74,
+                   *AXIS_LENGTH_PARAMETERS)
+"""Parameters read at connect: 2 configuration approved, 5 movement retries, the motion
+model's (motion.FIRMWARE_PARAMETERS) and the axis lengths."""
+_Z_HOME_FALLBACK = {44: 43, 64: 63, 74: 73}
+"""A firmware without Z's own "toward home" settings moves Z up with its other settings."""
+REPLY_TIMEOUT_S = 15.0
+"""Wall seconds a command that does not move may take to its final reply."""
+MOVE_SLACK_S = 15.0
+"""Wall seconds a move may take beyond the firmware's own timeouts (the link, the retries'
+start-up, the board's reports)."""
+ESTOP_GRACE_S = 2.0
+"""Wall seconds the command that an emergency stop ended waits for its final reply."""
+HEAD_SETTLE_S = 0.5
+"""Bot seconds `set_head` waits after the servo commands: servos give no feedback."""
+_FINAL = {"R02", "R03", "R09", "R87", "R88"}
+_MAX_RECOVERIES = 3
+"""Link drops one command recovers from before it gives up."""
+_FORBIDDEN = re.compile(r"[eE@\r\n]")
+
+
+class PositionLostError(BotError):
+    """The Farmduino's counters do not locate the gantry: the board started (the port was
+    opened, or it restarted on its own) and no home() has run since."""
+
+    def __init__(self, command: str, why: str):
+        self.command = command
+        super().__init__(f"{command}: {why}; the position is unknown: home the bot "
+                         "(home(), Z first) before moving")
+
+
+class _LinkDropped(ConnectionLostError):
+    """The port failed under us (recovered inside this module)."""
+
+    def __init__(self, link: str, detail: str):
+        self.detail = detail
+        super().__init__(link, detail)
+
+
+class _BoardStarted(PositionLostError):
+    """The startup banner came while the port stayed open."""
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One line from the firmware: `code` ("R02", ...), its letter fields as numbers, its Q
+    (None when it has none) and its text after the code."""
+
+    code: str
+    values: dict[str, float]
+    q: int | None
+    text: str
+
+
+_CODE = re.compile(r"R\d\d")
+_FIELD = re.compile(r"(?<![A-Za-z])([A-Z])(-?\d+(?:\.\d+)?)(?![\w.])")
+
+
+def parse_reply(line: str) -> Reply | None:
+    """The reply in one received line, None for a line without one (noise). Noise before
+    the code is dropped; an echo's (R08) Q is the echoed command's, not its own."""
+    match = _CODE.search(line)
+    if match is None:
+        return None
+    code, text = match.group(), line[match.end():].strip()
+    if code == "R08":
+        return Reply(code, {}, None, text)
+    values = {letter: float(number) for letter, number in _FIELD.findall(text)}
+    q = values.pop("Q", None)
+    return Reply(code, values, None if q is None else int(q),
+                 re.sub(r"\s*Q\d+$", "", text))
+
+
+def checked_line(line: str) -> str:
+    """`line` if the firmware reads it as one command; BotError for an `e` or `E` (an
+    emergency stop to the firmware), an `@` (abort) or a line end inside it."""
+    bad = _FORBIDDEN.search(line)
+    if bad is not None:
+        raise BotError(f"{line!r}: refusing to send {bad.group()!r}, which the Farmduino reads "
+                       "as an emergency stop, an abort or a line end; this is a bug")
+    return line
+
+
+def fixed(value: float) -> str:
+    """`value` in fixed point with two decimals, never "-0.00": scientific notation's `e`
+    would be an emergency stop."""
+    return f"{round(float(value), 2) + 0.0:.2f}"
+
+
+def move_line(xyz_mm, speeds=(0, 0, 0)) -> str:
+    """The G00 line to FarmBot coordinates `xyz_mm` ((3,) millimetres, Z <= 0), all three
+    axes always; `speeds`: G00's A, B, C in whole steps/s, all 0 for none."""
+    xyz = np.asarray(xyz_mm, np.float64)
+    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
+        raise OutOfRangeError("G00", f"needs 3 finite coordinates (mm), got {xyz_mm!r}")
+    line = "G00 " + " ".join(f"{axis}{fixed(v)}" for axis, v in zip("XYZ", xyz, strict=True))
+    if any(speeds):
+        line += " " + " ".join(f"{c}{int(s)}" for c, s in zip("ABC", speeds, strict=True))
+    return checked_line(line)
+
+
+def servo_line(pin: int, degrees: float) -> str:
+    """The F61 line turning servo `pin` to `degrees` (0-180), rounded to whole degrees as
+    the firmware reads them; OutOfRangeError for a pin that drives no servo or an angle
+    outside 0-180 (the firmware would answer R02 and do something else)."""
+    if pin not in SERVO_PINS:
+        raise OutOfRangeError(f"servo pin {pin}", "only pins 4, 5, 6 and 11 drive servos; "
+                              "the firmware answers R02 for any other and does nothing")
+    if not (math.isfinite(degrees) and -0.5 < degrees < 180.5):
+        raise OutOfRangeError(f"servo pin {pin}", f"{degrees!r} degrees is outside 0-180")
+    return checked_line(f"F61 P{pin} V{round(degrees)}")
+
+
+@dataclass(frozen=True)
+class _Exchange:
+    """A command and what came back with its Q, the final reply last; `stopped` when an
+    emergency stop was sent meanwhile."""
+
+    line: str
+    replies: list[Reply]
+    stopped: bool
+
+    def position_mm(self) -> np.ndarray | None:
+        """The last position (R82) the firmware reported with this command, millimetres."""
+        for reply in reversed(self.replies):
+            if reply.code == "R82" and {"X", "Y", "Z"} <= reply.values.keys():
+                return np.array([reply.values[a] for a in "XYZ"])
+        return None
+
+
+class _Dropped:
+    """Put in the line queue by the reader when the port fails."""
+
+    def __init__(self, detail: str):
+        self.detail = detail
+
+
+class _NoCamera(Camera):
+    """The camera of a bot given none: every call says so."""
+
+    def __init__(self, port: str):
+        self._port = port
+
+    def _missing(self) -> CameraError:
+        return CameraError(f"serial {self._port}: the bot was given no camera; pass camera= "
+                           "(a factory that takes the bot's clock)")
+
+    def intrinsics(self) -> dict[str, float]:
+        raise self._missing()
+
+    def frame(self) -> Frame:
+        raise self._missing()
+
+    def start_recording(self, path: str | Path) -> None:
+        raise self._missing()
+
+    def stop_recording(self) -> Recording:
+        raise self._missing()
+
+
+class FarmduinoBot(Bot):
+    """A FarmBot on its Farmduino over USB serial: see the module docstring.
+
+    port: the serial device (prefer the stable /dev/serial/by-id/... path: it survives a
+        reconnect).
+    camera: makes the camera from the bot's clock (`now`); None gives a camera that raises
+        CameraError.
+    observer: called with an `Activity` after every move, head turn and dwell.
+    info: the bot's limits (default the paper's bot); its motion profile and firmware come
+        from the firmware, its travel is cut to the calibrated axis lengths.
+    clock_scale: bot-clock seconds per wall second: 1 on a real bot, the device's time
+        scale on a virtual one that runs faster.
+    connect_timeout_s: wall seconds to wait for the firmware at connect, and to get the
+        port back after it drops.
+    """
+
+    def __init__(self, port: str, *,
+                 camera: Callable[[Callable[[], float]], Camera] | None = None,
+                 observer: Callable[[Activity], None] | None = None,
+                 info: BotInfo | None = None, clock_scale: float = 1.0,
+                 connect_timeout_s: float = 15.0):
+        if not (math.isfinite(clock_scale) and clock_scale > 0):
+            raise InputError("clock_scale", f"must be a positive number, got {clock_scale!r}")
+        if not (math.isfinite(connect_timeout_s) and connect_timeout_s > 0):
+            raise InputError("connect_timeout_s", f"must be positive, got {connect_timeout_s!r}")
+        self._port = str(port)
+        self._base_info = info or BotInfo.from_geometry(f"serial {self._port}")
+        self._info = self._base_info
+        self._observer = observer
+        self._scale = float(clock_scale)
+        self._connect_timeout_s = float(connect_timeout_s)
+        self._origin = time.monotonic()
+        self._write_lock = threading.Lock()
+        self._state_lock = threading.Lock()
+        self._busy = threading.Lock()
+        self._locked = threading.Event()
+        self._estops = 0
+        self._closed = False
+        self._serial: serial.Serial | None = None
+        self._reader: threading.Thread | None = None
+        self._reader_stop = threading.Event()
+        self._lines: queue.Queue = queue.Queue()
+        self._q = 0
+        self._params: dict[int, float] = {}
+        self._firmware: str | None = None
+        self._xyz = self._info.home
+        self._moving: tuple[float, np.ndarray, np.ndarray, MotionProfile] | None = None
+        self._head = (0.0, 0.0)
+        self._servo: tuple[int, int] | None = None
+        self._homed: set[str] = set()
+        self._recovering = False
+        try:
+            self._connect(first=True, deadline=time.monotonic() + self._connect_timeout_s)
+            self._camera = (camera or (lambda clock: _NoCamera(self._port)))(self.now)
+        except BaseException:
+            self._disconnect()
+            raise
+
+    # --- the interface ----------------------------------------------------------------
+
+    @property
+    def info(self) -> BotInfo:
+        return self._info
+
+    @property
+    def camera(self) -> Camera:
+        return self._camera
+
+    def now(self) -> float:
+        return (time.monotonic() - self._origin) * self._scale
+
+    def position(self) -> np.ndarray:
+        with self._state_lock:
+            if self._moving is None:
+                return self._xyz.copy()
+            t0, start, end, profile = self._moving
+        return move_trajectory([self.now() - t0], start, end, profile)[0]
+
+    def head(self) -> tuple[float, float]:
+        return self._head
+
+    def describe(self) -> dict:
+        """The backend's settings, for scan.json."""
+        return {"backend": "farmduino", "port": self._port, "firmware": self._firmware,
+                "clock_scale": self._scale}
+
+    def move_to(self, xyz, speed_fraction: float = 1.0) -> None:
+        target = check_target(self._info, xyz)
+        profile = self._info.motion.at_speed(speed_fraction)
+        line = move_line(bed_to_farmbot_mm(target), profile.override)
+        x, y, z = target
+        with self._one_command(f"move_to({x:.4f}, {y:.4f}, {z:.4f})") as command:
+            self._move(line, target, profile, "xyz", command, homing=None)
+
+    def home(self, axes: str = "xyz") -> None:
+        order = check_axes(axes)
+        with self._one_command(f"home({axes})"):
+            for name in order:
+                self._home_axis(name)
+
+    def set_head(self, yaw_rad: float, pitch_rad: float) -> None:
+        yaw, pitch = check_head(self._info, yaw_rad, pitch_rad)
+        with self._one_command(f"set_head({yaw:.4f}, {pitch:.4f})") as command:
+            if self._locked.is_set():
+                raise LockedError(command)
+            commands = servo_commands(HeadPose(self._xyz, yaw, pitch))
+            servo = (round(float(commands[0])), round(float(commands[1])))
+            t0, head_start, xyz = self.now(), self._head, self.position()
+            self._send_servos(servo)
+            # The head takes the whole-degree commands, not the angles asked for.
+            pose = from_servo_commands(servo[0], servo[1], xyz)
+            self._head = (float(pose.yaw), float(pose.pitch))
+            stopped = self._locked.wait(HEAD_SETTLE_S / self._scale)
+            self._notify(Activity("head", t0, self.now() - t0, xyz, xyz, head_start,
+                                  self._head))
+            if stopped:
+                raise EmergencyStopError(command, 1)
+
+    def dwell(self, seconds: float) -> None:
+        seconds = max(0.0, float(seconds))
+        with self._one_command(f"dwell({seconds:.3f})") as command:
+            if self._locked.is_set():
+                raise LockedError(command)
+            t0, xyz = self.now(), self.position()
+            stopped = self._locked.wait(seconds / self._scale)
+            self._notify(Activity("dwell", t0, self.now() - t0, xyz, xyz, self._head,
+                                  self._head))
+            if stopped:
+                raise EmergencyStopError(command, 1)
+
+    def emergency_stop(self) -> None:
+        with self._state_lock:
+            if self._closed:
+                return
+            self._estops += 1
+        with self._write_lock:
+            if self._serial is not None:
+                # The link may be gone: then only the bot's own stop button stops it, and
+                # the firmware is locked again as soon as the port is back (_initialise).
+                with contextlib.suppress(serial.SerialException, OSError):
+                    self._serial.write(b"E")
+        self._locked.set()
+
+    def unlock(self) -> None:
+        with self._one_command("unlock"):
+            self._command("F09")
+            self._locked.clear()
+            if self._servo is not None:
+                self._send_servos(self._servo)
+
+    def close(self) -> None:
+        with self._state_lock:
+            if self._closed:
+                return
+            self._closed = True
+            moving = self._moving is not None
+        if moving:
+            # Stop the move the owner thread is waiting for (abort, not lock).
+            with self._write_lock, contextlib.suppress(serial.SerialException, OSError,
+                                                       AttributeError):
+                self._serial.write(b"@")
+        self._disconnect()
+
+    # --- commands ---------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def _one_command(self, command: str) -> Iterator[str]:
+        """Hold the bot for one public command; BotError when closed or busy."""
+        if self._closed:
+            raise BotError(f"{command}: {self._info.name} is closed; open a new bot")
+        if not self._busy.acquire(blocking=False):
+            raise BotError(f"{command}: {self._info.name} is busy with another command; "
+                           "send one command at a time")
+        try:
+            yield command
+        finally:
+            self._busy.release()
+
+    def _notify(self, activity: Activity) -> None:
+        if self._observer is not None:
+            self._observer(activity)
+
+    def _send_servos(self, servo: tuple[int, int]) -> None:
+        self._command(servo_line(YAW_PIN, servo[0]))
+        self._command(servo_line(PITCH_PIN, servo[1]))
+        self._servo = servo
+
+    def _move_timeout(self, axes: str) -> float:
+        """Wall seconds a movement of `axes` may take: every attempt (parameter 5) may run
+        to the slowest axis's firmware timeout (parameters 11-13)."""
+        timeout = max(getattr(self._info.motion, a).timeout_s for a in axes)
+        attempts = max(1, int(self._params.get(5, 1)))
+        return attempts * timeout / self._scale + MOVE_SLACK_S
+
+    def _home_axis(self, name: str) -> None:
+        """F11-F13: one axis to its home, which the firmware's counter then calls 0."""
+        i = "xyz".index(name)
+        target = self.position()
+        target[i] = self._info.home[i]
+        code = {"x": "F11", "y": "F12", "z": "F13"}[name]
+        self._move(code, target, self._info.motion, name, f"home({name})", homing=name)
+        self._homed.add(name)
+
+    def _move(self, line: str, target: np.ndarray, profile: MotionProfile, axes: str,
+              command: str, homing: str | None) -> None:
+        """One movement command to its end, told to the observer; after a dropped link, the
+        link is recovered and the command sent again from where the gantry is."""
+        for attempt in range(_MAX_RECOVERIES + 1):
+            if self._locked.is_set():
+                raise LockedError(command)
+            if homing is None and self._homed != {"x", "y", "z"}:
+                raise PositionLostError(command, f"{self._info.name} has not been homed "
+                                        "since the Farmduino started")
+            start, t0 = self._xyz.copy(), self.now()
+            with self._state_lock:
+                self._moving = (t0, start, target, profile)
+            try:
+                exchange = self._transact(line, self._move_timeout(axes))
+            except _LinkDropped as drop:
+                # The board goes on moving until reopening the port resets it.
+                self._recover(command, drop, attempt, interrupted=functools.partial(
+                    self._moved, t0, start, target, profile, None))
+                continue
+            except _BoardStarted:
+                self._moved(t0, start, target, profile, None)
+                self._restarted(command)
+            except BaseException:
+                self._moved(t0, start, target, profile, None)
+                raise
+            final = exchange.replies[-1] if exchange.replies else None
+            done = final is not None and final.code == "R02" and not exchange.stopped
+            reported = exchange.position_mm()
+            if homing:
+                # A homed axis sits exactly at home; the other counters may still be lost.
+                end = target.copy() if done else None
+            else:
+                end = None if reported is None else farmbot_mm_to_bed(reported)
+            self._moved(t0, start, target, profile, end)
+            self._raise_for(exchange)
+            return
+        raise ConnectionLostError(self._port, f"{command}: the link kept dropping")
+
+    def _moved(self, t0: float, start: np.ndarray, target: np.ndarray,
+               profile: MotionProfile, end: np.ndarray | None) -> None:
+        """A movement that began at bot time t0 ended: the gantry at `end` ((3,) metres, bed
+        frame) or, when None (not reported), where the motion profile puts it by now."""
+        elapsed = self.now() - t0
+        xyz = move_trajectory([elapsed], start, target, profile)[0] if end is None else end
+        with self._state_lock:
+            self._moving = None
+            self._xyz = xyz
+        self._notify(Activity("move", t0, elapsed, start, target, self._head, self._head,
+                              profile))
+
+    def _command(self, body: str, timeout_s: float = REPLY_TIMEOUT_S) -> _Exchange:
+        """A command that does not move, sent again after a recovered link drop."""
+        for attempt in range(_MAX_RECOVERIES + 1):
+            try:
+                exchange = self._transact(body, timeout_s)
+            except _LinkDropped as drop:
+                self._recover(body, drop, attempt)
+                continue
+            except _BoardStarted:
+                self._restarted(body)
+            self._raise_for(exchange)
+            return exchange
+        raise ConnectionLostError(self._port, f"{body}: the link kept dropping")
+
+    def _raise_for(self, exchange: _Exchange) -> None:
+        """The typed error of a command's outcome; nothing when it succeeded."""
+        if exchange.stopped:
+            self._locked.set()
+            raise EmergencyStopError(exchange.line, 1)
+        final = exchange.replies[-1]
+        if final.code == "R02":
+            return
+        if final.code == "R03":
+            code = int(final.values.get("V", 0))
+            if code == 1:
+                self._locked.set()
+            raise error_for_code(code, exchange.line)
+        if final.code == "R87":
+            self._locked.set()
+            raise LockedError(exchange.line)
+        if final.code == "R88":
+            raise NotConfiguredError(exchange.line)
+        raise UnknownCommandError(exchange.line)
+
+    def _transact(self, body: str, timeout_s: float) -> _Exchange:
+        """Send `body` with the next Q and collect the replies with that Q up to the final
+        one. Raises _LinkDropped, _BoardStarted or CommandTimeoutError; an emergency stop
+        sent meanwhile gives `stopped` (waiting ESTOP_GRACE_S at most for the reply)."""
+        self._q = self._q % 999 + 1
+        q = self._q
+        line = checked_line(f"{body} Q{q}")
+        lines = self._lines
+        self._drain(lines)
+        estops = self._estops
+        self._write(line.encode("ascii") + b"\r\n")
+        deadline = time.monotonic() + timeout_s
+        stop_deadline = math.inf
+        replies: list[Reply] = []
+        while True:
+            now = time.monotonic()
+            if self._closed:
+                raise BotError(f"{line}: {self._info.name} was closed")
+            if self._estops != estops and stop_deadline == math.inf:
+                stop_deadline = now + ESTOP_GRACE_S
+            if now >= min(deadline, stop_deadline):
+                if stop_deadline != math.inf:
+                    return _Exchange(line, replies, True)
+                raise CommandTimeoutError(line, timeout_s)
+            try:
+                item = lines.get(timeout=min(min(deadline, stop_deadline) - now, 0.05))
+            except queue.Empty:
+                continue
+            reply = self._reply(item)
+            if reply is None or reply.q != q:
+                continue
+            replies.append(reply)
+            if reply.code in _FINAL:
+                return _Exchange(line, replies, self._estops != estops)
+
+    def _reply(self, item) -> Reply | None:
+        """A queued line as a reply; raises for a dropped link or the startup banner."""
+        if isinstance(item, _Dropped):
+            raise _LinkDropped(self._port, item.detail)
+        reply = parse_reply(item)
+        if reply is not None and reply.code == "R99" and BANNER in reply.text:
+            raise _BoardStarted("Farmduino", "the board restarted (R99 ARDUINO STARTUP "
+                                "COMPLETE)")
+        return reply
+
+    def _drain(self, lines: queue.Queue) -> None:
+        """Read what came in since the last command (reports, noise): a dropped link or a
+        restart shows before anything is sent."""
+        while True:
+            try:
+                self._reply(lines.get_nowait())
+            except queue.Empty:
+                return
+
+    def _write(self, data: bytes) -> None:
+        with self._write_lock:
+            if self._serial is None:
+                raise _LinkDropped(self._port, "the port is not open")
+            try:
+                self._serial.write(data)
+            except (serial.SerialException, OSError) as error:
+                raise _LinkDropped(self._port, str(error)) from None
+
+    # --- the link ---------------------------------------------------------------------
+
+    def _connect(self, first: bool, deadline: float) -> bool:
+        """Open the port and bring the firmware up; returns whether the board (re)started."""
+        try:
+            port = serial.Serial(self._port, BAUD, timeout=0.05, write_timeout=2.0)
+        except (serial.SerialException, OSError, ValueError) as error:
+            number = getattr(error, "errno", None)
+            reason = os.strerror(number) if number else str(error)
+            if first:
+                raise InputError(self._port, f"cannot open the serial port ({reason}); check "
+                                 "the device path (ls /dev/serial/by-id), that FarmBot OS does "
+                                 "not hold it, and that you may open it (the dialout "
+                                 "group)") from None
+            raise _LinkDropped(self._port, reason) from None
+        self._lines, self._reader_stop = queue.Queue(), threading.Event()
+        self._serial = port
+        self._reader = threading.Thread(target=_read_lines,
+                                        args=(port, self._lines, self._reader_stop),
+                                        name=f"farmduino-reader {self._port}", daemon=True)
+        self._reader.start()
+        restarted, approve = self._await_ready(deadline, first)
+        self._initialise(restarted, approve, first)
+        return restarted
+
+    def _await_ready(self, deadline: float, first: bool) -> tuple[bool, bool]:
+        """Wait for the startup banner or an idle report: (whether the board started, whether
+        the firmware asked for its configuration to be approved)."""
+        approve = False
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                what = (f"serial {self._port}: no startup banner (R99 {BANNER}) or idle report "
+                        f"(R00) within {self._connect_timeout_s:g} s; check that it is a "
+                        "Farmduino with FarmBot's firmware at 115200 baud and that FarmBot OS "
+                        "does not hold the port")
+                if first:
+                    raise BotError(what)
+                raise _LinkDropped(self._port, "no banner after reopening")
+            try:
+                item = self._lines.get(timeout=min(remaining, 0.05))
+            except queue.Empty:
+                continue
+            try:
+                reply = self._reply(item)
+            except _BoardStarted:
+                return True, approve
+            if reply is None:
+                continue
+            approve = approve or reply.code == "R88"
+            if reply.code == "R87":
+                self._locked.set()
+            if reply.code in ("R00", "R87", "R88"):
+                return False, approve
+
+    def _initialise(self, restarted: bool, approve: bool, first: bool) -> None:
+        """Version, parameters, approval, lock and servos, position: after every start."""
+        version = self._transact("F83", REPLY_TIMEOUT_S)
+        self._raise_for(version)
+        self._firmware = next((r.text for r in version.replies if r.code == "R83"), None)
+        self._params = self._read_parameters()
+        if approve or self._params.get(2) != 1:
+            self._raise_for(self._transact("F22 P2 V1", REPLY_TIMEOUT_S))
+        self._info = self._limits(MotionProfile.from_firmware(self._params))
+        if restarted:
+            self._homed.clear()
+        if self._locked.is_set():
+            # An emergency stop asked for while the link was down, or before a restart.
+            self._write(b"E")
+        elif self._servo is not None:
+            for pin, value in zip((YAW_PIN, PITCH_PIN), self._servo, strict=True):
+                self._raise_for(self._transact(servo_line(pin, value), REPLY_TIMEOUT_S))
+        where = self._transact("F82", REPLY_TIMEOUT_S)
+        self._raise_for(where)
+        # After a restart the counters say 0 wherever the gantry is: keep our estimate.
+        if (first or not restarted) and where.position_mm() is not None:
+            self._xyz = farmbot_mm_to_bed(where.position_mm())
+
+    def _read_parameters(self) -> dict[int, float]:
+        params: dict[int, float] = {}
+        for pid in READ_PARAMETERS:
+            exchange = self._transact(f"F21 P{pid}", REPLY_TIMEOUT_S)
+            self._raise_for(exchange)
+            value = next((r.values.get("V") for r in exchange.replies
+                          if r.code == "R21" and r.values.get("P") == pid), None)
+            if value is not None:
+                params[pid] = value
+            elif pid in AXIS_LENGTH_PARAMETERS:
+                params[pid] = 0.0  # not calibrated
+            elif pid not in _Z_HOME_FALLBACK:
+                raise BotError(f"serial {self._port}: the firmware does not report parameter "
+                               f"{pid} (F21); is it FarmBot's Farmduino firmware 6.x?")
+        for pid, fallback in _Z_HOME_FALLBACK.items():
+            params.setdefault(pid, params[fallback])
+        return params
+
+    def _limits(self, profile: MotionProfile) -> BotInfo:
+        """The bot's info with the firmware's version and motion, its travel cut to the
+        calibrated axis lengths (parameters 141-143, in steps; 0 is not calibrated)."""
+        base = self._base_info
+        low, high, home = np.array(base.travel_min), np.array(base.travel_max), base.home
+        for i, axis in enumerate((profile.x, profile.y, profile.z)):
+            steps = self._params.get(AXIS_LENGTH_PARAMETERS[i], 0.0)
+            if steps > 0:
+                length = steps / axis.steps_per_m
+                if i < 2:
+                    high[i] = min(high[i], home[i] + length)
+                else:
+                    low[i] = max(low[i], home[i] - length)
+        return replace(base, firmware=self._firmware, motion=profile,
+                       travel_min=tuple(map(float, low)), travel_max=tuple(map(float, high)))
+
+    def _recover(self, command: str, drop: _LinkDropped, attempt: int,
+                 interrupted: Callable[[], None] | None = None) -> None:
+        """Get the link back after it dropped during `command`, and home when reopening
+        restarted the board; ConnectionLostError when that cannot be done. `interrupted`
+        is called once the port is back (or given up on): the end of a cut-off move."""
+        if self._recovering or attempt >= _MAX_RECOVERIES or self._closed:
+            if interrupted is not None:
+                interrupted()
+            raise ConnectionLostError(self._port, f"during {command}: {drop.detail}")
+        self._recovering = True
+        try:
+            try:
+                restarted = self._reconnect(command, drop)
+            finally:
+                if interrupted is not None:
+                    interrupted()
+            if restarted and not self._locked.is_set():
+                for name in "zyx":
+                    self._home_axis(name)
+        finally:
+            self._recovering = False
+
+    def _reconnect(self, command: str, drop: _LinkDropped) -> bool:
+        """Reopen the port with backoff for up to connect_timeout_s; returns whether the
+        board restarted."""
+        self._disconnect()
+        deadline = time.monotonic() + self._connect_timeout_s
+        delay, last = 0.05, drop.detail
+        while True:
+            if self._closed:
+                raise BotError(f"{command}: {self._info.name} was closed")
+            try:
+                return self._connect(first=False, deadline=deadline)
+            except _LinkDropped as error:
+                last = error.detail
+            except CommandTimeoutError as error:
+                last = str(error)
+            self._disconnect()
+            if time.monotonic() + delay > deadline:
+                raise ConnectionLostError(self._port, f"{command}: could not reconnect within "
+                                          f"{self._connect_timeout_s:g} s: {last}")
+            time.sleep(delay)
+            delay = min(2 * delay, 1.0)
+
+    def _restarted(self, command: str) -> None:
+        """The board restarted with the port open: bring the firmware up again, then stop
+        the caller with PositionLostError (a restart of its own wants a person's look)."""
+        self._initialise(restarted=True, approve=True, first=False)
+        raise PositionLostError(command, f"the Farmduino on {self._port} restarted on its "
+                                "own (R99 ARDUINO STARTUP COMPLETE): check its power supply "
+                                "and the gantry")
+
+    def _disconnect(self) -> None:
+        self._reader_stop.set()
+        if self._reader is not None and self._reader is not threading.current_thread():
+            self._reader.join(1.0)
+        self._reader = None
+        with self._write_lock:
+            if self._serial is not None:
+                with contextlib.suppress(serial.SerialException, OSError):
+                    self._serial.close()
+                self._serial = None
+
+
+def _read_lines(port: serial.Serial, lines: queue.Queue, stop: threading.Event) -> None:
+    """The reader thread: received lines into `lines`, then `_Dropped` when the port fails."""
+    buffer = b""
+    while not stop.is_set():
+        try:
+            chunk = port.read(max(1, port.in_waiting))
+        except (serial.SerialException, OSError, TypeError) as error:
+            # TypeError: pyserial's read on a port closed under it.
+            if not stop.is_set():
+                lines.put(_Dropped(str(error)))
+            return
+        if not chunk:
+            continue
+        *complete, buffer = (buffer + chunk).split(b"\n")
+        for raw in complete:
+            text = raw.decode("ascii", "replace").strip()
+            if text:
+                lines.put(text)
+        if len(buffer) > 4096:
+            buffer = b""  # noise without line ends

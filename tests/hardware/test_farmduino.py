@@ -1,0 +1,404 @@
+"""The serial Farmduino backend against the virtual Farmduino over a real pty."""
+
+from __future__ import annotations
+
+import functools
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.bot import KinematicBot, SolidCamera
+from flowerpose.hardware.errors import (
+    BotError,
+    CameraError,
+    ConnectionLostError,
+    EmergencyStopError,
+    LockedError,
+    NotConfiguredError,
+    OutOfRangeError,
+    StallError,
+    UnknownCommandError,
+)
+from flowerpose.hardware.farmduino import (
+    FarmduinoBot,
+    PositionLostError,
+    checked_line,
+    fixed,
+    move_line,
+    parse_reply,
+    servo_line,
+)
+from flowerpose.hardware.geometry import PAPER_BOT, bed_to_farmbot_mm
+from flowerpose.hardware.kinematics import HeadPose, servo_commands
+from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.hardware.virtual_farmduino import VirtualFarmduino
+from flowerpose.jsonio import read_json
+from flowerpose.scanpath import ScanPathConfig
+
+SCALE = 1000.0  # simulated seconds per wall second
+SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,
+                                  dome_polar_deg=(50.0,)))
+CAMERA = functools.partial(SolidCamera, width=32, height=24, fps=2)
+PLAN = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+
+
+@pytest.fixture(autouse=True)
+def _watchdog():
+    """Every test ends within 20 s: a protocol bug fails it instead of hanging the suite."""
+    def expire(signum, frame):
+        raise TimeoutError("the test ran past its 20 s limit")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, 20.0)
+    yield
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.fixture
+def device():
+    with VirtualFarmduino(time_scale=SCALE) as dev:
+        yield dev
+
+
+def _bot(device, scale=SCALE, **kwargs) -> FarmduinoBot:
+    return FarmduinoBot(device.path, camera=CAMERA, clock_scale=scale, **kwargs)
+
+
+def _moves(device) -> list[str]:
+    return [line.rsplit(" Q", 1)[0] for line in device.received if line.startswith("G00")]
+
+
+# --- lines and replies --------------------------------------------------------------
+
+def test_numbers_are_fixed_point_and_lines_never_hold_an_e():
+    assert move_line((1e-7, 123456.789, -0.004)) == "G00 X0.00 Y123456.79 Z0.00"
+    assert move_line((1e21, -2.5e-3, 12.345), (200, 200, 40)) == \
+        "G00 X1000000000000000000000.00 Y0.00 Z12.35 A200 B200 C40"  # 12.345 is 12.3449..
+    assert fixed(-0.001) == "0.00" and fixed(2.675) == "2.67"
+    with pytest.raises(OutOfRangeError, match="finite"):
+        move_line((np.nan, 0, 0))
+    with pytest.raises(BotError, match="emergency stop"):
+        checked_line("F22 P71 V1e3")
+    with pytest.raises(BotError):
+        checked_line("F82 @")
+    assert servo_line(6, 90.4) == "F61 P6 V90"
+    with pytest.raises(OutOfRangeError, match="only pins 4, 5, 6 and 11"):
+        servo_line(7, 90)
+    with pytest.raises(OutOfRangeError, match="0-180"):
+        servo_line(5, 181)
+
+
+def test_replies_are_parsed_through_line_noise():
+    reply = parse_reply("\ufffd\ufffd#R82 X1.20 Y-3.00 Z0.00 Q17")
+    assert (reply.code, reply.q, reply.values) == ("R82", 17, {"X": 1.2, "Y": -3.0, "Z": 0.0})
+    echo = parse_reply("R08 *G00 X1.00 Y2.00 Z3.00 Q5*")
+    assert echo.code == "R08" and echo.q is None  # the echoed Q is the command's
+    version = parse_reply("R83 6.6.23.G.genesisK14 Q3")
+    assert version.text == "6.6.23.G.genesisK14" and version.values == {}
+    assert parse_reply("R03 V31 Q9").values == {"V": 31.0}
+    assert parse_reply("%$#") is None
+
+
+# --- connecting ---------------------------------------------------------------------
+
+def test_connect_reads_the_firmware_and_its_own_parameters():
+    params = {71: 300, 13: 60, 5: 2, 141: 5000}
+    with VirtualFarmduino(time_scale=SCALE, params=params) as tuned:
+        with _bot(tuned) as bot:
+            assert bot.info.firmware == "6.6.23.V.virtual"
+            assert bot.info.motion.x.max_speed == 300 and bot.info.motion.z.timeout_s == 60
+            # 5000 steps at 5 steps/mm: X reaches 1 m from home.
+            assert bot.info.travel_max[0] == pytest.approx(PAPER_BOT.home[0] + 1.0)
+            assert tuned.parameter(2) == 1  # the configuration was approved
+            sent = tuned.received
+            assert {f"F21 P{p}" for p in (5, 11, 12, 13, 141, 142, 143)} <= {
+                line.rsplit(" Q", 1)[0] for line in sent}
+            bot.home()
+            with pytest.raises(OutOfRangeError, match="outside the travel"):
+                bot.move_to(PAPER_BOT.home + [1.2, 0, 0])
+
+
+def test_opening_a_missing_port_is_one_clear_input_error(tmp_path):
+    with pytest.raises(InputError, match="cannot open the serial port"):
+        FarmduinoBot(str(tmp_path / "ttyACM9"))
+
+
+def test_a_bot_given_no_camera_says_so(device):
+    with FarmduinoBot(device.path, clock_scale=SCALE) as bot:
+        with pytest.raises(CameraError, match="no camera"):
+            bot.camera.intrinsics()
+
+
+def test_moves_wait_for_homing_after_the_board_starts(device):
+    with _bot(device) as bot:
+        with pytest.raises(PositionLostError, match="home"):
+            bot.move_to(PAPER_BOT.home)
+        bot.home()
+        assert [line.split()[0] for line in device.received[-3:]] == ["F13", "F12", "F11"]
+        bot.move_to([1.0, 0.5, 0.4])
+        assert _moves(device)[-1] == "G00 X861.10 Y365.00 Z-250.00"  # all three axes
+        np.testing.assert_allclose(bot.position(), [1.0, 0.5, 0.4], atol=2e-4)  # whole steps
+        np.testing.assert_allclose(device.joints()[:3], bot.position() - PAPER_BOT.home,
+                                   atol=1e-9)
+
+
+# --- final replies ------------------------------------------------------------------
+
+def test_every_final_reply_ends_the_command_with_its_error(device):
+    with _bot(device) as bot:
+        bot.home()
+        assert bot._command("F82").replies[-1].code == "R02"
+        with pytest.raises(UnknownCommandError, match="R09"):
+            bot._command("F99")
+        bot._command("F22 P2 V0")
+        with pytest.raises(NotConfiguredError, match="R88"):
+            bot.move_to([1.0, 0.5, 0.4])
+        bot._command("F22 P2 V1")
+        device.stall_next_move("x", 0.5)
+        with pytest.raises(StallError) as stall:
+            bot.move_to([1.0, 0.5, 0.4])
+        assert stall.value.axis == "x" and stall.value.code == 31
+        x_mm = device.firmware_position_mm()[0]
+        assert 0 < x_mm < 861
+        # position() is where the firmware said the gantry stopped.
+        assert bed_to_farmbot_mm(bot.position())[0] == pytest.approx(x_mm, abs=0.01)
+        bot.emergency_stop()
+        with pytest.raises(LockedError, match="R87"):
+            bot._command("F61 P6 V90")
+        with pytest.raises(LockedError):
+            bot.move_to([1.0, 0.5, 0.4])
+
+
+def test_q_numbers_cycle_from_999_to_1(device):
+    with _bot(device) as bot:
+        bot._q = 997
+        for _ in range(3):
+            bot._command("F82")
+    assert [line.rsplit(" ", 1)[1] for line in device.received[-3:]] == ["Q998", "Q999", "Q1"]
+
+
+# --- head, lock and emergency stop -------------------------------------------------
+
+def test_the_head_takes_whole_servo_degrees_on_pins_6_and_5(device):
+    with _bot(device) as bot:
+        bot.home()
+        bot.set_head(0.5, 1.0)
+        yaw, pitch = servo_commands(HeadPose(bot.position(), 0.5, 1.0))
+        assert device.servo(6) == round(float(yaw)) and device.servo(5) == round(float(pitch))
+        assert bot.head() == pytest.approx((0.5, 1.0), abs=np.radians(0.76))
+        np.testing.assert_allclose(device.joints()[3:], bot.head(), atol=1e-9)
+
+
+def test_emergency_stop_from_another_thread_mid_move(device):
+    activities = []
+    with VirtualFarmduino(time_scale=20.0) as slow:  # a 2.5 m X move takes 1.7 s of wall time
+        with _bot(slow, scale=20.0, observer=activities.append) as bot:
+            bot.home()
+            bot.set_head(0.3, 0.8)
+            timer = threading.Timer(0.3, bot.emergency_stop)
+            timer.start()
+            started = time.monotonic()
+            with pytest.raises(EmergencyStopError):
+                bot.move_to([2.8, 0.135, 0.65])
+            assert time.monotonic() - started < 1.0  # stopped, not finished
+            assert slow.locked and slow.servo(6) is None  # E cuts the servo pulses
+            stopped_at = slow.firmware_position_mm()[0]
+            assert 0 < stopped_at < 2000
+            assert activities[-1].kind == "move" and activities[-1].elapsed < 20.0
+            with pytest.raises(LockedError):
+                bot.move_to([1.0, 0.135, 0.65])
+            with pytest.raises(LockedError):
+                bot.dwell(1.0)
+            bot.unlock()
+            assert not slow.locked and slow.servo(6) is not None  # angles sent again
+            bot.move_to([0.5, 0.135, 0.65])
+            assert slow.firmware_position_mm()[0] == pytest.approx(361.1, abs=0.2)
+            # An emergency stop during a pause ends it too.
+            timer = threading.Timer(0.1, bot.emergency_stop)
+            timer.start()
+            with pytest.raises(EmergencyStopError):
+                bot.dwell(100.0)
+            assert activities[-1].kind == "dwell" and activities[-1].elapsed < 50.0
+
+
+def test_close_ends_the_bot(device):
+    bot = _bot(device)
+    bot.close()
+    bot.close()
+    bot.emergency_stop()  # does nothing
+    with pytest.raises(BotError, match="closed"):
+        bot.move_to([1.0, 0.5, 0.4])
+    with pytest.raises(BotError, match="closed"):
+        bot.unlock()
+
+
+# --- scans --------------------------------------------------------------------------
+
+def _scan_moves(activities) -> np.ndarray:
+    return np.array([a.gantry_end for a in activities if a.kind == "move"])
+
+
+def test_a_scan_through_the_farmduino_visits_the_kinematic_bots_waypoints(device, tmp_path):
+    reference = []
+    run_scan(KinematicBot(camera=CAMERA, observer=reference.append), PLAN, tmp_path / "k",
+             source={}, progress=False)
+    activities = []
+    with _bot(device, observer=activities.append) as bot:
+        bot.home()
+        homing = len(activities)
+        manifest = run_scan(bot, PLAN, tmp_path / "f", source=bot.describe(), progress=False)
+    assert manifest["status"] == "complete" and manifest["completed"] == len(PLAN.waypoints)
+    scanned = activities[homing:]
+    assert [a.kind for a in scanned] == [a.kind for a in reference]
+    np.testing.assert_allclose(_scan_moves(scanned), _scan_moves(reference), atol=1e-12)
+    sent = np.array([[float(v[1:]) for v in line.split()[1:4]] for line in _moves(device)])
+    np.testing.assert_allclose(sent, bed_to_farmbot_mm(_scan_moves(reference)), atol=0.005)
+    heads = np.array([a.head_end for a in scanned if a.kind == "head"])
+    planned = np.array([[w.pose.yaw, w.pose.pitch] for w in PLAN.waypoints])
+    np.testing.assert_allclose(heads, planned, atol=np.radians(0.76))  # whole servo degrees
+    assert read_json(tmp_path / "f" / "scan.json")["source"]["backend"] == "farmduino"
+
+
+def _fault_on_move(bot, number: int, fault) -> None:
+    """Make `fault()` (a device fault) land on the bot's `number`-th move_to from now."""
+    calls, move = [0], bot.move_to
+
+    def move_to(xyz, speed_fraction=1.0):
+        calls[0] += 1
+        if calls[0] == number:
+            fault()
+        move(xyz, speed_fraction)
+
+    bot.move_to = move_to
+
+
+def test_a_stall_mid_scan_raises_with_the_recorded_data_intact(device, tmp_path):
+    with _bot(device) as bot:
+        bot.home()
+        _fault_on_move(bot, 4, lambda: device.stall_next_move("y", 0.5))
+        with pytest.raises(StallError) as stall:
+            run_scan(bot, PLAN, tmp_path, source={}, progress=False)
+    assert stall.value.axis == "y"
+    manifest = read_json(tmp_path / "scan.json")
+    assert manifest["status"] == "interrupted" and manifest["completed"] == 3
+    assert "StallError" in manifest["sessions"][0]["error"]
+    assert (tmp_path / "video.mp4").stat().st_size > 0 and (tmp_path / "camera.json").exists()
+    with _bot(device) as bot:
+        bot.home()
+        resumed = run_scan(bot, PLAN, tmp_path, source={}, progress=False)
+    assert resumed["status"] == "complete" and resumed["completed"] == len(PLAN.waypoints)
+    assert [s["started_waypoint"] for s in resumed["sessions"]] == [0, 3]
+
+
+def test_a_dropped_link_mid_scan_is_recovered_and_the_scan_completes(device, tmp_path):
+    activities = []
+    with _bot(device, observer=activities.append) as bot:
+        bot.home()
+        _fault_on_move(bot, 3, lambda: device.drop_next_move(0.5, down_s=0.15))
+        manifest = run_scan(bot, PLAN, tmp_path, source={}, progress=False)
+        assert manifest["status"] == "complete"
+        assert manifest["completed"] == len(PLAN.waypoints)
+        assert device.boots == 2  # reopening the port restarted the board
+        np.testing.assert_allclose(bot.position(), PLAN.waypoints[-1].pose.gantry, atol=2e-4)
+    starts = [a.t0 for a in activities]
+    assert starts == sorted(starts)
+    moves = _moves(device)
+    third = move_line(bed_to_farmbot_mm(PLAN.waypoints[2].pose.gantry))
+    assert moves.count(third) == 2  # the interrupted move, sent again after homing
+    resent = [line.split()[0] for line in device.received]
+    assert resent.count("F13") == 2 and resent.count("F83") == 2
+
+
+def test_a_link_dropped_between_commands_is_recovered_before_the_next(device):
+    activities = []
+    with _bot(device, observer=activities.append) as bot:
+        bot.home()
+        bot.move_to([1.0, 0.5, 0.4])
+        device.drop_connection(down_s=0.1)
+        time.sleep(0.05)
+        bot.move_to([1.2, 0.6, 0.4])  # reconnects, homes (the board restarted), moves
+        assert device.boots == 2
+        np.testing.assert_allclose(bot.position(), [1.2, 0.6, 0.4], atol=2e-4)
+        np.testing.assert_allclose(device.joints()[:3], bot.position() - PAPER_BOT.home,
+                                   atol=1e-9)
+    starts = [a.t0 for a in activities]
+    assert starts == sorted(starts)  # the observer hears of them in order
+
+
+def test_a_link_that_does_not_come_back_is_a_connection_lost_error(device):
+    with _bot(device, connect_timeout_s=0.5) as bot:
+        bot.home()
+        device.drop_next_move(0.2, down_s=60.0)
+        started = time.monotonic()
+        with pytest.raises(ConnectionLostError, match="could not reconnect within 0.5 s"):
+            bot.move_to([2.0, 1.0, 0.4])
+        assert time.monotonic() - started < 3.0
+
+
+def test_garbage_on_the_line_is_ignored(device):
+    with _bot(device) as bot:
+        bot.home()
+        device.inject_garbage(b"\x00\xff\xfe R9 noise\r\n\x13\x37")  # the next reply follows
+        bot.move_to([1.0, 0.5, 0.4])
+        device.inject_garbage(bytes(range(256)))
+        bot.set_head(0.2, 0.9)
+        assert device.servo(6) is not None
+
+
+def test_a_board_reset_mid_move_stops_with_position_lost_until_homed(device):
+    with _bot(device) as bot:
+        bot.home()
+        device.reset_next_move(0.5)
+        with pytest.raises(PositionLostError, match="restarted on its own"):
+            bot.move_to([2.0, 1.0, 0.4])
+        assert device.parameter(2) == 1  # the firmware was brought up again
+        with pytest.raises(PositionLostError, match="not been homed"):
+            bot.move_to([1.0, 0.5, 0.4])
+        bot.home()
+        np.testing.assert_allclose(device.joints()[:3], 0.0)
+        bot.move_to([1.0, 0.5, 0.4])
+        np.testing.assert_allclose(device.joints()[:3], bot.position() - PAPER_BOT.home,
+                                   atol=1e-9)
+
+
+def test_the_simulated_scan_through_the_serial_path(tmp_path):
+    """What `flowerpose scan --sim --via-farmduino` runs, on a small plan at 64 x 48."""
+    signal.setitimer(signal.ITIMER_REAL, 60.0)  # renders in a process pool: allow more
+    from flowerpose.hardware.sim_bot import SimBotConfig, SimCameraConfig
+    from flowerpose.hardware.virtual_farmduino import SimulatedSerialBot
+    from flowerpose.scanio import frame_files, read_trajectory
+    from flowerpose.sim.bundle import make_plant
+
+    plant = tmp_path / "plant"
+    make_plant(0, "easy", points=2000, out_dir=plant)
+    truth = read_json(plant / "plant.json")
+    plan = plan_scan(np.array(truth["plant_center"][:2]), truth["height"], SMALL)
+    config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=0.2, workers=1,
+                                                 visibility_width=32), width=64, height=48)
+    with SimulatedSerialBot([plant], config, time_scale=200.0) as bot:
+        manifest = run_scan(bot, plan, tmp_path / "scan", source=bot.describe(),
+                            progress=False)
+        assert bot.device.firmware_position_mm() == pytest.approx(
+            bed_to_farmbot_mm(plan.waypoints[-1].pose.gantry), abs=0.2)
+    assert manifest["status"] == "complete" and manifest["completed"] == len(plan.waypoints)
+    trajectory = read_trajectory(tmp_path / "scan" / "trajectory.csv")
+    assert len(trajectory) == len(frame_files(tmp_path / "scan")) > len(plan.waypoints)
+    assert manifest["source"]["backend"] == "sim via virtual Farmduino"
+    # The last frame of each pause sees every waypoint from where the firmware stopped
+    # (whole motor steps: within 0.2 mm).
+    waypoints = np.array([w.pose.gantry for w in plan.waypoints])
+    gap = np.linalg.norm(trajectory.gantry[:, None] - waypoints[None], axis=2).min(0)
+    assert gap.max() < 3e-4
+
+
+def test_via_farmduino_needs_the_simulator(capsys):
+    from flowerpose.cli import main
+
+    assert main(["scan", "--via-farmduino", "--out", "x"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
