@@ -13,6 +13,9 @@ from typing import Any
 from flowerpose.errors import InputError
 from flowerpose.hardware.errors import BotError
 
+#: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
+SCAN_PLANTS = 2
+
 
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, metavar="FILE.toml",
@@ -40,7 +43,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     config = eval_config(args.preset, lambda base: _configure(base, args))
     out = args.out or _default_out()
-    report = run_eval(config, source=args.source, plants=args.plants, seed=args.seed,
+    plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
+    report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                       out_dir=out, workers=args.workers)
     from flowerpose.eval.report import summary_lines, table
 
@@ -340,6 +344,21 @@ def cmd_frames(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from flowerpose.pipeline.reconstruct import ReconstructConfig, reconstruct
+
+    config = _configure(ReconstructConfig(dense_poses=args.dense_poses), args)
+    result = reconstruct(args.frames, args.out, config)
+    report = result.report
+    rms = report["alignment_rms_m"]
+    print(f"{report['images_registered']}/{report['images_used']} images registered, "
+          f"camera centres {1000 * rms:.2f} mm RMS from the recorded ones; "
+          f"{report['points']} points in {report['seconds']['total']:.1f} s "
+          f"(sparse {report['seconds']['sparse']:.1f} s, dense {report['seconds']['dense']:.1f} s)"
+          f" -> {report['cloud']}, {args.out / 'reconstruction.json'}")
+    return 0
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_config
     from flowerpose.eval.sweep import parse_grid, run_sweep
@@ -417,10 +436,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="the synthetic benchmark: plants -> clouds -> flowers -> "
                        "scores (the paper's Table I)")
-    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
-                   help="where clouds come from: oracle = the plant's surfaces sampled "
-                   "directly (default)")
-    p.add_argument("--plants", type=POSITIVE, default=10, help="number of seeded plants (10)")
+    p.add_argument("--source", choices=("scan", "oracle", "rgbd"), default="scan",
+                   help="where clouds come from: scan = the simulated bot films each plant "
+                   "and photogrammetry reconstructs it (default); oracle = the plant's "
+                   "surfaces sampled directly; rgbd = a simulated depth camera's views fused")
+    p.add_argument("--plants", type=POSITIVE, default=None,
+                   help=f"number of seeded plants (scan: {SCAN_PLANTS}, oracle and rgbd: 10)")
     p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
     p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
     p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
@@ -494,6 +515,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="subtract |mean V - 105| from the score, as the authors' code did")
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=cmd_frames)
+
+    p = sub.add_parser("reconstruct", help="frames -> sparse poses (pycolmap) -> dense "
+                       "coloured cloud in the bed frame")
+    p.add_argument("frames", type=Path, metavar="FRAMES_DIR",
+                   help="a folder from flowerpose frames (frames.json, frames/, camera.json)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--dense-poses", choices=("refined", "recorded"), default="refined",
+                   help="camera poses for dense stereo: the sparse stage's (default) or the "
+                   "bot's recorded ones")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
     p.add_argument("cloud", type=Path, metavar="CLOUD.ply")

@@ -95,6 +95,8 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
     (`SfmConfig.min_registered`, `min_registered_fraction`) or no stereo pair is usable.
     """
     frames_dir, out_dir = Path(frames_dir), Path(out_dir)
+    if not frames_dir.is_dir():
+        raise InputError(frames_dir, "frames folder not found (make one with flowerpose frames)")
     if not (frames_dir / "camera.json").is_file():
         # Checked first: the sparse stage alone could estimate a distorted camera, but
         # dense stereo needs a calibrated pinhole, and would fail only minutes later.
