@@ -67,6 +67,8 @@ from flowerpose.hardware.errors import (
 )
 from flowerpose.hardware.geometry import (
     PAPER_BOT,
+    PITCH_PIN,
+    YAW_PIN,
     BotGeometry,
     bed_to_farmbot_mm,
     farmbot_mm_to_bed,
@@ -75,8 +77,6 @@ from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_
 from flowerpose.hardware.motion import MotionProfile, move_duration, move_trajectory
 
 DEFAULT_SERVER = "https://my.farm.bot"
-YAW_PIN, PITCH_PIN = 6, 5
-"""Farmduino pins of the head's servos (the paper's wiring)."""
 ENV_TOKEN, ENV_EMAIL, ENV_PASSWORD, ENV_SERVER = ("FARMBOT_TOKEN", "FARMBOT_EMAIL",
                                                   "FARMBOT_PASSWORD", "FARMBOT_SERVER")
 _REPOSITORY = Path(__file__).resolve().parents[1]

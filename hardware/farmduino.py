@@ -85,14 +85,18 @@ from flowerpose.hardware.errors import (
     UnknownCommandError,
     error_for_code,
 )
-from flowerpose.hardware.geometry import bed_to_farmbot_mm, farmbot_mm_to_bed
+from flowerpose.hardware.geometry import (
+    PITCH_PIN,
+    YAW_PIN,
+    bed_to_farmbot_mm,
+    farmbot_mm_to_bed,
+)
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
 
 BAUD = 115200
 SERVO_PINS = (4, 5, 6, 11)
 """The only Farmduino pins that drive servos (F61 on another answers R02 and does nothing)."""
-YAW_PIN, PITCH_PIN = 6, 5
 BANNER = "ARDUINO STARTUP COMPLETE"
 AXIS_LENGTH_PARAMETERS = (141, 142, 143)
 READ_PARAMETERS = (2, 5, 11, 12, 13, 41, 42, 43, 44, 55, 56, 57, 61, 62, 63, 64, 71, 72, 73, 74,

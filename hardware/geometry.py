@@ -41,6 +41,8 @@ from pathlib import Path
 import numpy as np
 
 FARMBOT_ASSETS = Path(str(files("flowerpose.assets") / "farmbot"))
+YAW_PIN, PITCH_PIN = 6, 5
+"""Farmduino pins of the head's yaw and pitch servos (the paper's wiring)."""
 """Folder of the MuJoCo model (`farmbot.xml`, `scene.xml`), whose numbers agree with
 `BotGeometry()` (tests/hardware/test_model.py checks it)."""
 

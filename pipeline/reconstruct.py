@@ -10,7 +10,8 @@
 The sparse stage refines the camera poses and moves them into the bed frame (a robust
 similarity onto the bot's recorded camera centres); the dense stage then runs on those
 refined poses, so a real bot's pose errors (millimetres, fractions of a degree) do not
-smear the cloud.
+smear the cloud. Dense stereo is semi-global matching on the CPU (`dense.py`), or COLMAP's
+PatchMatch where pycolmap has CUDA (`patch_match.py`, out_dir/mvs/).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.dense import DenseConfig, reconstruct_dense
+from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.sfm import (
     MIN_IMAGE_POINTS,
     SfmConfig,
@@ -46,9 +48,13 @@ class ReconstructConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     """The sparse stage (features, matching, poses, alignment to the bed frame)."""
     dense: DenseConfig = field(default_factory=DenseConfig)
-    """The dense stage (pairwise semi-global matching and multi-view fusion)."""
+    """The CPU dense stage (pairwise semi-global matching and multi-view fusion)."""
+    dense_method: Literal["auto", "sgbm", "patch_match"] = "auto"
+    """Dense stereo: "sgbm" (pairwise semi-global matching on the CPU, `dense.py`),
+    "patch_match" (COLMAP's PatchMatch stereo and fusion, which needs pycolmap built with
+    CUDA, `patch_match.py`), or "auto": patch_match where pycolmap has CUDA, else sgbm."""
     dense_poses: Literal["refined", "recorded"] = "refined"
-    """Camera poses the dense stage uses: "refined" (the sparse stage's, in the bed frame;
+    """Camera poses sgbm uses: "refined" (the sparse stage's, in the bed frame;
     frames that did not register are left out) or "recorded" (frames.json's, as the bot
     logged them; every frame)."""
 
@@ -105,10 +111,18 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
     started = time.perf_counter()
     sparse = reconstruct_sparse(frames_dir, out_dir, config.sfm)
     sparse_s = time.perf_counter() - started
-    poses = refined_poses(sparse) if config.dense_poses == "refined" else None
-    cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
-                                            intrinsics=sparse_intrinsics(sparse),
-                                            config=config.dense, progress=progress)
+    method = config.dense_method
+    if method == "auto":
+        method = "patch_match" if cuda_available() else "sgbm"
+    if method == "patch_match":
+        cloud, dense_report = reconstruct_patch_match(frames_dir, out_dir / "sparse",
+                                                      out_dir / "mvs",
+                                                      config.sfm.max_image_size)
+    else:
+        poses = refined_poses(sparse) if config.dense_poses == "refined" else None
+        cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
+                                                intrinsics=sparse_intrinsics(sparse),
+                                                config=config.dense, progress=progress)
     cloud_path = write_cloud(out_dir / "cloud.ply", cloud)
     total_s = time.perf_counter() - started
     sparse_report = {k: v for k, v in sparse.report.items() if k != "config"}
@@ -120,7 +134,8 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
         "images_registered": sparse_report["images_registered"],
         "alignment_rms_m": sparse_report["alignment_rms_m"],
         "alignment": sparse_report["alignment"],
-        "dense_poses": config.dense_poses,
+        "dense_method": method,
+        "dense_poses": config.dense_poses if method == "sgbm" else "refined",
         "seconds": {"sparse": round(sparse_s, 3), "dense": round(total_s - sparse_s, 3),
                     "total": round(total_s, 3)},
         "sparse": sparse_report,

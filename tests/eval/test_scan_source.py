@@ -8,6 +8,7 @@ import pytest
 from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
 from flowerpose.eval.harness import eval_config, run_eval
+from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.reconstruct import reconstruct
 
 SMALL = {"scan.width": 640, "scan.height": 360, "scan.frame_rate_hz": 0.05, "scan.frames": 80}
@@ -39,6 +40,7 @@ def test_the_cloud_is_metric_and_on_the_truth(small_eval):
     written = json.loads((out / "plants" / "seed-0" / "reconstruction" /
                           "reconstruction.json").read_text())
     assert written["points"] == quality["points"] > 20_000
+    assert written["dense_method"] == ("patch_match" if cuda_available() else "sgbm")
 
 
 def test_frames_without_a_camera_file_are_refused_before_any_work(small_eval, tmp_path):
@@ -50,3 +52,12 @@ def test_frames_without_a_camera_file_are_refused_before_any_work(small_eval, tm
     with pytest.raises(InputError, match="camera.json"):
         reconstruct(bare, tmp_path / "recon")
     assert not (tmp_path / "recon").exists()
+
+
+@pytest.mark.skipif(cuda_available(), reason="this pycolmap has CUDA")
+def test_patch_match_without_cuda_says_what_it_needs(small_eval, tmp_path):
+    _, out = small_eval
+    plant = out / "plants" / "seed-0"
+    with pytest.raises(InputError, match="CUDA"):
+        reconstruct_patch_match(plant / "frames", plant / "reconstruction" / "sparse",
+                                tmp_path / "mvs")
