@@ -37,7 +37,7 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
         flowers["flowers"][0])
     assert flowers["timing_s"]["total"] > 0
     assert (out / "views" / "views.png").exists()
-    assert len(list((out / "views").glob("view_*.png"))) == 6
+    assert len(list((out / "views").glob("view_*.png"))) == 14  # the default grid.views
     code, text, _ = _run(capsys, "pose", out / "crops" / "flower_00.ply")
     entry = json.loads(text)
     assert code == 0 and entry["pistil_found"] and len(entry["normals"]["plane"]) == 3
@@ -52,7 +52,8 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
 
 def test_eval_writes_the_report_contract(tmp_path, capsys):
     out = tmp_path / "eval"
-    code, text, _ = _run(capsys, "eval", "--plants", 1, "--seed", 1, "--workers", 1,
+    code, text, _ = _run(capsys, "eval", "--source", "oracle", "--plants", 1, "--seed", 1,
+                         "--workers", 1,
                          "--out", out, "--set", "cluster.eps=0.01")
     assert code == 0
     assert "Superellipsoid" in text and "Total" in text and "Std Dev" in text
@@ -124,16 +125,18 @@ def _grey_cloud(path):
     (["score", "{flowers_nan}", "{badjson}"], ["flower 0: center"]),
     (["score", "{flowers_bool}", "{badjson}"], ["normals.plane"]),
     (["score", "{flowers_nonormals}", "{badjson}"], ["'normals'"]),
-    (["eval", "--source", "scan", "--out", "{tmp}/e"], ["--source"]),
+    (["eval", "--source", "photos", "--out", "{tmp}/e"], ["--source"]),
+    (["eval", "--set", "scan.frames=1", "--out", "{tmp}/e"], ["scan.frames"]),
     (["eval", "--plants", "0", "--out", "{tmp}/e"], ["--plants"]),
     (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
     (["sweep", "--grid", "nope.eps=1,2", "--out", "{tmp}/s"], ["nope"]),
     (["eval", "--plants", "abc"], ["--plants", "whole number"]),
     (["detect"], ["required"]),
     (["frobnicate"], ["invalid choice"]),
-    (["eval", "--plants", "1", "--workers", "1", "--out", "{badjson}"], ["bad.json"]),
+    (["eval", "--source", "oracle", "--plants", "1", "--workers", "1", "--out", "{badjson}"],
+     ["bad.json"]),
     # Raised inside worker processes: the error must cross back intact.
-    (["eval", "--plants", "2", "--workers", "2", "--out", "{tmp}/e",
+    (["eval", "--source", "oracle", "--plants", "2", "--workers", "2", "--out", "{tmp}/e",
       "--set", "grid.pixel_size_m=0.00001"], ["grid.pixel_size_m"]),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
