@@ -47,17 +47,8 @@ CAMERA = functools.partial(SolidCamera, width=32, height=24, fps=2)
 PLAN = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
 
 
-@pytest.fixture(autouse=True)
-def _watchdog():
-    """Every test ends within 20 s: a protocol bug fails it instead of hanging the suite."""
-    def expire(signum, frame):
-        raise TimeoutError("the test ran past its 20 s limit")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, 20.0)
-    yield
-    signal.setitimer(signal.ITIMER_REAL, 0.0)
-    signal.signal(signal.SIGALRM, previous)
+#: Every test runs under the 20 s watchdog (conftest.py).
+pytestmark = pytest.mark.usefixtures("watchdog")
 
 
 @pytest.fixture

@@ -21,17 +21,8 @@ SLOW = 20.0  # for tests that act during a move: 0.7 s of wall time for 1 m, so 
 # machine that stalls a thread for a while still finds the move running
 
 
-@pytest.fixture(autouse=True)
-def _watchdog():
-    """Every test ends within 20 s: a protocol bug fails it instead of hanging the suite."""
-    def expire(signum, frame):
-        raise TimeoutError("the test ran past its 20 s limit")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, 20.0)
-    yield
-    signal.setitimer(signal.ITIMER_REAL, 0.0)
-    signal.signal(signal.SIGALRM, previous)
+#: Every test runs under the 20 s watchdog (conftest.py).
+pytestmark = pytest.mark.usefixtures("watchdog")
 
 
 class Link:
