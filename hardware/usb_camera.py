@@ -277,7 +277,8 @@ class UsbCamera(RecordingCamera):
                     return self._latest
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise CameraError(f"{self.device}: no frame within "
+                    # Worded as the capture thread's own timeout, which may win the race.
+                    raise CameraError(f"{self.device}: no frame for "
                                       f"{self.config.frame_timeout_s:g} s: the camera is "
                                       "busy, stalled or unplugged")
                 self._state.wait(remaining)

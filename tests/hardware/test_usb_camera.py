@@ -64,7 +64,7 @@ def test_a_driver_that_refuses_settings_gives_one_warning_line_each(capsys):
 @pytest.mark.parametrize("capture, words", [
     (FakeCapture(opened=False), "cannot open the camera"),
     (FakeCapture(deliver=(640, 480)), "delivers 640 x 480 frames, not the 64 x 48"),
-    (FakeCapture(frames=0), "no frame within 0.5 s"),
+    (FakeCapture(frames=0), "no frame for 0.5 s"),
 ])
 def test_a_busy_silent_or_wrong_mode_camera_is_one_clear_error(capture, words):
     with pytest.raises(CameraError) as raised:
