@@ -47,17 +47,21 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig) -> dict:
     the scan's visibility plant_dir/scan/plant.json."""
     from flowerpose.eval.quality import reconstruction_quality
     from flowerpose.hardware.scan import run_scan
-    from flowerpose.hardware.scanpath import ScanConfig, plan_scan
-    from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_scan_truth
+    from flowerpose.hardware.sim_bot import (
+        SimBot,
+        SimBotConfig,
+        SimCameraConfig,
+        plan_plant_scan,
+        write_scan_truth,
+    )
     from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
     from flowerpose.pipeline.reconstruct import reconstruct
-    from flowerpose.sim.export import plant_obstacles, read_plant
+    from flowerpose.sim.export import read_plant
 
     seconds: dict[str, float] = {}
     tick = time.perf_counter()
     plant = read_plant(plant_dir)
-    plan = plan_scan(plant.center[:2], plant.height, ScanConfig(),
-                     obstacles=plant_obstacles(plant))
+    plan = plan_plant_scan(plant)
     bot_config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=config.frame_rate_hz,
                                                      workers=config.workers),
                               width=config.width, height=config.height)

@@ -130,12 +130,11 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
     from flowerpose.hardware.scan import run_scan
-    from flowerpose.hardware.scanpath import ScanConfig, plan_scan
-    from flowerpose.sim.export import plant_obstacles, read_plant
+    from flowerpose.hardware.sim_bot import plan_plant_scan
+    from flowerpose.sim.export import read_plant
 
     plant = read_plant(args.plant)
-    plan = plan_scan(plant.center[:2], plant.height, ScanConfig(),
-                     obstacles=plant_obstacles(plant))
+    plan = plan_plant_scan(plant)
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
           f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
           "of bot time; reach and collisions checked")

@@ -42,6 +42,7 @@ from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicB
 from flowerpose.hardware.errors import CameraError
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.hardware.scanpath import ScanConfig, ScanPlan, plan_scan
 from flowerpose.hardware.trajectory import (
     SERVO_SPEED_RAD_S,
     head_turn_time,
@@ -471,6 +472,15 @@ def write_preview(scan_dir: Path, plant_centers: list[np.ndarray], plant_heights
         writer.release()
         renderer.close()
     return path
+
+
+def plan_plant_scan(plant) -> ScanPlan:
+    """The default scan path round a simulated plant (`sim.export.read_plant`), with reach
+    and collisions against its mesh checked."""
+    from flowerpose.sim.export import plant_obstacles
+
+    return plan_scan(plant.center[:2], plant.height, ScanConfig(),
+                     obstacles=plant_obstacles(plant))
 
 
 def write_scan_truth(scan_dir: Path, plant_dir: Path) -> Path:

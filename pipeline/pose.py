@@ -240,15 +240,17 @@ def split_petals_pistil(crop: Cloud, config: PoseConfig) -> tuple[np.ndarray, np
 
 
 def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
-                 config: PoseConfig) -> np.ndarray | None:
+                 plane: np.ndarray | None, config: PoseConfig) -> np.ndarray | None:
     """A vector (metres, crop frame) the normals must agree with, or None if none is known.
 
     With a pistil it points from a reference to the pistil centroid: the pistil sits on the
     side the corolla opens to. "crop" uses the crop centroid (upstream). "petal_base" uses
     the petals nearest the pistil: the receptacle dome protrudes from the petal base along
     the normal whatever the petals do further out, while a cupped corolla lifts the crop
-    centroid above the receptacle and reverses upstream's vector. Without a pistil, the
-    sepals and peduncle lie behind the flower, so the normal points away from them.
+    centroid above the receptacle and reverses upstream's vector. "petal_surface" signs
+    the petals' plane axis `plane` by the side of the petal surface the pistil is on.
+    Without a pistil, the sepals and peduncle lie behind the flower, so the normal points
+    away from them.
     """
     points = crop.points
     if pistil.any():
@@ -256,10 +258,8 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
         pistil_centroid = pistil_points.mean(axis=0)
         if config.direction_reference == "crop" or not petal.any():
             return pistil_centroid - points.mean(axis=0)
-        if config.direction_reference == "petal_surface":
-            reference = _above_petal_surface(points[petal], pistil_centroid, config)
-            if reference is not None:
-                return reference
+        if config.direction_reference == "petal_surface" and plane is not None:
+            return _above_petal_surface(points[petal], pistil_centroid, plane)
         radius = np.percentile(np.linalg.norm(pistil_points - pistil_centroid, axis=1), 90)
         petal_points = points[petal]
         distance = np.linalg.norm(petal_points - pistil_centroid, axis=1)
@@ -276,13 +276,10 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
 
 
 def _above_petal_surface(petal_points: np.ndarray, pistil_centroid: np.ndarray,
-                         config: PoseConfig) -> np.ndarray | None:
+                         axis: np.ndarray) -> np.ndarray:
     """The petals' plane axis, signed towards the pistil's side of the petal surface
     extended to the pistil (a paraboloid h = h0 + k r^2 about the pistil axis, least
-    squares); None with too few petals. metres, crop frame."""
-    axis = fit_plane(petal_points, config.min_fit_points)
-    if axis is None:
-        return None
+    squares). metres, crop frame."""
     offset = petal_points - pistil_centroid
     height = offset @ axis
     radius_sq = np.einsum("ij,ij->i", offset, offset) - height ** 2
@@ -313,9 +310,10 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
         center = crop.points.mean(axis=0)
     petal_points = crop.points[petal]
     normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
-    reference = _orientation(crop, petal, pistil, config)
+    plane = fit_plane(petal_points, config.min_fit_points)
+    reference = _orientation(crop, petal, pistil, plane, config)
     if reference is not None:
-        axes = _fit_axes(petal_points, center if found else None, config)
+        axes = _fit_axes(petal_points, plane, center if found else None, config)
         normals = {m: None if axis is None else (axis if axis @ reference >= 0.0 else -axis)
                    for m, axis in axes.items()}
     return FlowerPose(center=center, normals=normals, pistil_found=found,
@@ -341,9 +339,11 @@ def _corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
     return petal
 
 
-def _fit_axes(petal_points: np.ndarray, pistil_centroid: np.ndarray | None,
+def _fit_axes(petal_points: np.ndarray, plane: np.ndarray | None,
+              pistil_centroid: np.ndarray | None,
               config: PoseConfig) -> dict[str, np.ndarray | None]:
-    """Unoriented unit axes (or None) of the three fits, keyed by METHODS."""
+    """Unoriented unit axes (or None) of the three fits, keyed by METHODS; `plane` is the
+    plane fit's, already made."""
     fit_points = petal_points
     if len(petal_points) > config.max_fit_points:
         rng = np.random.default_rng(config.seed)
@@ -351,7 +351,7 @@ def _fit_axes(petal_points: np.ndarray, pistil_centroid: np.ndarray | None,
                                              replace=False)]
     axis_point = pistil_centroid if config.axis_through_pistil else None
     return {
-        "plane": fit_plane(petal_points, config.min_fit_points),
+        "plane": plane,
         "superellipsoid": fit_superellipsoid(
             fit_points, axis_point=axis_point, init=config.superellipsoid_init,
             size_bounds=config.superellipsoid_size_bounds,

@@ -4,6 +4,7 @@ and exit 2, and a whole cloud scan on fakes that is interrupted and resumed."""
 import dataclasses
 import functools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -84,10 +85,10 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     assert "Traceback" not in err and not (tmp_path / "scan").exists()
 
 
-def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys, monkeypatch):
-    device = FakeDevice(position_mm=(500.0, 300.0, -200.0))
-    monkeypatch.setenv("FARMBOT_TOKEN", json.dumps(make_token()))
-    monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=300.0))
+def _small_field_scan(monkeypatch, tmp_path: Path, fps: float):
+    """A fake camera at tmp_path/video0 delivering `fps` and a short scan path; returns
+    the scan folder to record into and the path's config."""
+    monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=fps))
     monkeypatch.setattr(usb_camera, "UsbCameraConfig", functools.partial(
         usb_camera.UsbCameraConfig, settle_s=0.0))
     small = scanpath.ScanConfig(scanpath.ScanPathConfig(
@@ -95,7 +96,13 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
         dome_polar_deg=(50.0,)), pause_s=0.05)
     monkeypatch.setattr(scanpath, "ScanConfig", lambda: small)
     (tmp_path / "video0").write_text("")
-    scan = tmp_path / "scan"
+    return tmp_path / "scan", small
+
+
+def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys, monkeypatch):
+    device = FakeDevice(position_mm=(500.0, 300.0, -200.0))
+    monkeypatch.setenv("FARMBOT_TOKEN", json.dumps(make_token()))
+    scan, small = _small_field_scan(monkeypatch, tmp_path, fps=300.0)
     argv = ["scan", "--cloud", "--camera", tmp_path / "video0", "--width", 64, "--height", 48,
             "--plant-at", "1.5,0.75", "--plant-height", 0.22, "--out", scan]
 
@@ -143,15 +150,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
 def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, capsys,
                                                                        monkeypatch):
     virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
-    monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=100.0))
-    monkeypatch.setattr(usb_camera, "UsbCameraConfig", functools.partial(
-        usb_camera.UsbCameraConfig, settle_s=0.0))
-    small = scanpath.ScanConfig(scanpath.ScanPathConfig(
-        azimuth_step_deg=120.0, cylinder_bottom_m=0.2, cylinder_step_m=0.1,
-        dome_polar_deg=(50.0,)), pause_s=0.05)
-    monkeypatch.setattr(scanpath, "ScanConfig", lambda: small)
-    (tmp_path / "video0").write_text("")
-    scan = tmp_path / "scan"
+    scan, _ = _small_field_scan(monkeypatch, tmp_path, fps=100.0)
     with virtual.VirtualFarmduino(time_scale=100.0) as device:
         code, out, err = _run(capsys, "scan", "--port", device.path, "--camera",
                               tmp_path / "video0", "--width", 64, "--height", 48, "--plant-at",
