@@ -89,12 +89,13 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
 def cmd_pose(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
-    from flowerpose.pipeline.pose import PoseConfig, estimate_pose
+    from flowerpose.pipeline.flowers import PipelineConfig
+    from flowerpose.pipeline.pose import estimate_pose
     from flowerpose.pipeline.segment import oriented_box
 
-    config = _configure(PoseConfig(), args)
+    config = _configure(PipelineConfig(), args)
     crop = read_cloud(args.crop, units=args.units)
-    entry = {"id": 0, **estimate_pose(crop, config).to_json(),
+    entry = {"id": 0, **estimate_pose(crop, config.pose, config.colour, config.cluster).to_json(),
              "box": oriented_box(crop.points).to_json()}
     print(json.dumps(entry, indent=1))
     return 0

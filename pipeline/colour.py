@@ -1,9 +1,19 @@
-"""Colour conversions, vectorised over points or pixels."""
+"""The colour model: which point and pixel colours are petal, pistil and support.
+
+One model for every stage: detection (white petal pixels around a yellow centre), the
+flower test on clusters, and the per-flower petal / pistil split of the pose stage all
+read the same `ColourConfig`. HSV with hue in degrees [0, 360) and saturation and value
+in [0, 1], the units upstream.md gives every threshold in.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
+
+from flowerpose.config import require
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
@@ -18,3 +28,65 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
     # OpenCV's float conversion: the same definition as colorsys, ~30x faster than NumPy.
     flat = rgb.reshape(-1, 1, 3).astype(np.float32) * np.float32(1 / 255)
     return cv2.cvtColor(flat, cv2.COLOR_RGB2HSV).reshape(rgb.shape)
+
+
+@dataclass(frozen=True)
+class ColourConfig:
+    """Colour bands of petals (white), pistils (yellow) and support (green sepals, stems)."""
+
+    petal_max_saturation: float = 0.39
+    """Petal: saturation at most this (upstream's whitish threshold of the flower filter)."""
+    petal_min_value: float = 0.40
+    """Petal: value at least this. Deviation: upstream's 0.75 suits petals in full light
+    only; in images of a scan most of a petal is seen from its shaded side or edge-on (value
+    0.4-0.7), so photogrammetry clouds were missing half their flowers (README, "Colour
+    thresholds"). Saturation separates white from green and brown."""
+    petal_reject_hue: tuple[float, float] = (40.0, 140.0)
+    """Petal: a point in this hue band (degrees: yellow to green) is no petal once its
+    saturation reaches `petal_reject_saturation` (upstream's petal rule)."""
+    petal_reject_saturation: float = 0.15
+    """Saturation from which a point in `petal_reject_hue` is no petal."""
+    pistil_hue: tuple[float, float] = (40.0, 60.0)
+    """Pistil (yellow receptacle and anthers): hue band, degrees. Upstream: 40-63 (its
+    detector's "yellow" too); shaded yellow-green sepals reach down to 60 and, once darker
+    pistil points count (`pistil_min_value`), pulled a pistil below its petals and flipped
+    a normal. Detection used 63 and pose 60 until both read this one band."""
+    pistil_min_saturation: float = 0.30
+    """Pistil: saturation at least this (upstream)."""
+    pistil_min_value: float = 0.30
+    """Pistil: value at least this (upstream 0.65, which drops a receptacle in shade)."""
+    support_hue: tuple[float, float] = (40.0, 180.0)
+    """Support (sepals and peduncle behind a flower): hue band, degrees."""
+    support_min_saturation: float = 0.15
+    """Support: saturation at least this."""
+
+    def __post_init__(self):
+        for name in ("petal_max_saturation", "petal_min_value", "petal_reject_saturation",
+                     "pistil_min_saturation", "pistil_min_value", "support_min_saturation"):
+            require(0 <= getattr(self, name) <= 1, f"colour.{name}", "must be within 0-1")
+        for name in ("petal_reject_hue", "pistil_hue", "support_hue"):
+            low, high = getattr(self, name)
+            require(0 <= low <= high <= 360, f"colour.{name}", "must be (low, high) degrees")
+
+
+def _in_band(values: np.ndarray, band: tuple[float, float]) -> np.ndarray:
+    return (values >= band[0]) & (values <= band[1])
+
+
+def petal_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
+    """(...,) bool: HSV colours (..., 3) in the petal band."""
+    hue, sat, val = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    return ((sat <= config.petal_max_saturation) & (val >= config.petal_min_value)
+            & ~(_in_band(hue, config.petal_reject_hue) & (sat >= config.petal_reject_saturation)))
+
+
+def pistil_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
+    """(...,) bool: HSV colours (..., 3) in the pistil band."""
+    return (_in_band(hsv[..., 0], config.pistil_hue) & (hsv[..., 1] >= config.pistil_min_saturation)
+            & (hsv[..., 2] >= config.pistil_min_value))
+
+
+def support_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
+    """(...,) bool: HSV colours (..., 3) in the support band (petals excluded by the caller)."""
+    return (_in_band(hsv[..., 0], config.support_hue)
+            & (hsv[..., 1] >= config.support_min_saturation))

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from flowerpose.config import require
-from flowerpose.pipeline.colour import rgb_to_hsv
+from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 
 
 @dataclass(frozen=True)
@@ -27,21 +27,6 @@ class DetectConfig:
     backproject: Literal["mask", "box"] = "mask"
     """What returns to 3D: the detection's pixel mask (the paper's suggested improvement;
     default) or every pixel of its box (the paper)."""
-    white_max_saturation: float = 0.39
-    """Petal pixels: saturation at most this (upstream's whitish threshold), [0, 1]."""
-    white_min_value: float = 0.40
-    """Petal pixels: value at least this, [0, 1]. Deviation: upstream's 0.75 suits petals
-    in full light only; in images of a scan most of a petal is seen from its shaded side or
-    edge-on (value 0.4-0.7), so photogrammetry clouds were missing half their flowers
-    (README, "Colour thresholds"). Saturation separates white from green and brown; the
-    pistil test (`cluster.require_pistil`) rejects what is merely grey."""
-    yellow_hue_deg: tuple[float, float] = (40.0, 63.0)
-    """Flower-centre pixels: hue range, degrees (upstream's pistil rule)."""
-    yellow_min_saturation: float = 0.30
-    """Flower-centre pixels: saturation at least this."""
-    yellow_min_value: float = 0.30
-    """Flower-centre pixels: value at least this (deviation, as for `white_min_value`:
-    upstream 0.65; a shaded receptacle has value 0.4-0.6)."""
     close_radius_px: int = 1
     """Morphological closing radius joining a flower's pixels across small gaps, pixels."""
     min_area_m2: float = 2.0e-5
@@ -53,11 +38,8 @@ class DetectConfig:
     a stem, not a flower."""
 
     def __post_init__(self):
-        for name in ("white_max_saturation", "white_min_value", "yellow_min_saturation",
-                     "yellow_min_value", "min_white_fraction"):
-            require(0 <= getattr(self, name) <= 1, f"detect.{name}", "must be within 0-1")
-        low, high = self.yellow_hue_deg
-        require(0 <= low <= high <= 360, "detect.yellow_hue_deg", "must be (low, high) degrees")
+        require(0 <= self.min_white_fraction <= 1, "detect.min_white_fraction",
+                "must be within 0-1")
         require(self.close_radius_px >= 0, "detect.close_radius_px", "must be 0 or more")
         require(0 < self.min_area_m2 < self.max_area_m2, "detect.min_area_m2",
                 "needs 0 < detect.min_area_m2 < detect.max_area_m2")
@@ -88,17 +70,16 @@ class Detector(Protocol):
 class ColourDetector:
     """White petals and yellow centres grouped into connected components."""
 
-    def __init__(self, config: DetectConfig):
+    def __init__(self, config: DetectConfig, colour: ColourConfig):
         self.config = config
+        self.colour = colour
 
     def __call__(self, image: np.ndarray, occupied: np.ndarray,
                  pixel_size_m: float) -> list[Detection]:
         cfg = self.config
         hsv = rgb_to_hsv(image)
-        hue, sat, val = hsv[..., 0], hsv[..., 1], hsv[..., 2]
-        white = occupied & (sat <= cfg.white_max_saturation) & (val >= cfg.white_min_value)
-        yellow = (occupied & (hue >= cfg.yellow_hue_deg[0]) & (hue <= cfg.yellow_hue_deg[1])
-                  & (sat >= cfg.yellow_min_saturation) & (val >= cfg.yellow_min_value))
+        white = occupied & petal_mask(hsv, self.colour)
+        yellow = occupied & pistil_mask(hsv, self.colour)
         flower = (white | yellow).astype(np.uint8)
         if cfg.close_radius_px > 0:
             size = 2 * cfg.close_radius_px + 1
@@ -123,10 +104,10 @@ class ColourDetector:
         return detections
 
 
-def make_detector(config: DetectConfig) -> Detector:
-    """The detector the config names."""
+def make_detector(config: DetectConfig, colour: ColourConfig) -> Detector:
+    """The detector the config names; `colour` is the colour model it reads."""
     if config.detector == "colour":
-        return ColourDetector(config)
+        return ColourDetector(config, colour)
     raise ValueError(f"unknown detector {config.detector!r}")
 
 

@@ -16,26 +16,18 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
+from flowerpose.pipeline.colour import ColourConfig
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
-from flowerpose.pipeline.pose import (
-    FlowerPose,
-    PoseConfig,
-    estimate_pose,
-    pistil_candidate_mask,
-    pistil_clusters,
-)
+from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
 from flowerpose.pipeline.segment import (
     ClusterConfig,
     GroundConfig,
     OrientedBox,
     OutlierConfig,
+    cluster_flowers,
     crop_flowers,
-    dbscan,
-    is_whitish,
     remove_ground,
-    remove_outliers,
-    split_by_centres,
 )
 
 
@@ -43,6 +35,7 @@ from flowerpose.pipeline.segment import (
 class PipelineConfig:
     """Every setting of the field pipeline, one section per stage."""
 
+    colour: ColourConfig = field(default_factory=ColourConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
     grid: GridConfig = field(default_factory=GridConfig)
     detect: DetectConfig = field(default_factory=DetectConfig)
@@ -105,46 +98,24 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
     timer.lap("ground")
     projections = project_all(plant, config.grid)
     timer.lap("grid")
-    detector = make_detector(config.detect)
+    detector = make_detector(config.detect, config.colour)
     detections = [detector(p.image, p.occupied, p.pixel_size_m) for p in projections]
     timer.lap("detect")
     picked = [backproject(d, p.index, config.detect.backproject)
               for d, p in zip(detections, projections, strict=True)]
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
-    clusters = _cluster(plant, candidates, config)
+    clusters = cluster_flowers(plant, candidates, config.outliers, config.cluster, config.colour)
     boxes, crops = crop_flowers(plant, clusters, config.cluster.crop_margin_m)
     timer.lap("cluster")
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
-        pose = estimate_pose(plant.subset(crop), config.pose)
+        pose = estimate_pose(plant.subset(crop), config.pose, config.colour, config.cluster)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
         flowers.append(Flower(len(flowers), pose, box, above_ground[crop]))
     timer.lap("pose")
     return FlowerResult(flowers, projections, detections, timer.total())
-
-
-def _cluster(plant: Cloud, candidates: np.ndarray, config: PipelineConfig) -> list[np.ndarray]:
-    """Candidate points (indices into `plant`) grouped into one index array per flower."""
-    if len(candidates) == 0:
-        return []
-    kept = candidates[remove_outliers(plant.points[candidates], config.outliers)]
-    labels = dbscan(plant.points[kept], config.cluster.eps, config.cluster.min_points)
-    clusters = []
-    for label in range(labels.max() + 1 if len(labels) else 0):
-        members = kept[labels == label]
-        white = is_whitish(plant.colors[members], config.cluster.white_max_saturation)
-        centre = pistil_candidate_mask(plant.colors[members], config.pose)
-        if ((white | centre).mean() <= config.cluster.min_flower_fraction
-                or white.mean() < config.cluster.min_white_fraction):
-            continue
-        parts = split_by_centres(plant.points[members],
-                                 pistil_clusters(plant.subset(members), config.pose),
-                                 config.cluster.split_min_separation_m,
-                                 config.cluster.split_link_m)
-        clusters.extend(members[parts == k] for k in range(parts.max() + 1))
-    return [c for c in clusters if len(c) >= config.cluster.min_points]
 
 
 def write_flowers(path: Path, result: FlowerResult) -> Path:

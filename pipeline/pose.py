@@ -14,7 +14,13 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
-from flowerpose.pipeline.colour import rgb_to_hsv
+from flowerpose.pipeline.colour import (
+    ColourConfig,
+    petal_mask,
+    pistil_mask,
+    rgb_to_hsv,
+    support_mask,
+)
 from flowerpose.pipeline.fit import (
     EXPONENT_BOUNDS,
     MAX_EVALUATIONS,
@@ -27,7 +33,7 @@ from flowerpose.pipeline.fit import (
     fit_superellipsoid,
     principal_axes,
 )
-from flowerpose.pipeline.segment import dbscan
+from flowerpose.pipeline.segment import ClusterConfig, pistil_clusters
 
 #: Fitting methods, in the order reports list them.
 METHODS = ("plane", "superellipsoid", "paraboloid")
@@ -39,14 +45,6 @@ DirectionReference = Literal["crop", "petal_base", "petal_surface"]
 class PoseConfig:
     """Per-flower pose estimation: colour split, pistil clustering, surface fits, direction."""
 
-    petal_min_value: float = 0.40
-    """Petal points have HSV value above this (0-1). Deviation: upstream's 0.75 keeps only
-    petals in full light (see `DetectConfig.white_min_value`); `petal_max_radius_m` keeps the
-    grey points of stems and neighbours out instead."""
-    petal_reject_hue: tuple[float, float] = (40.0, 140.0)
-    """Hue band (degrees) of yellow and green points excluded from the petals when saturated."""
-    petal_reject_saturation: float = 0.15
-    """Saturation (0-1) from which a point in `petal_reject_hue` is not a petal."""
     petal_max_radius_m: float | None = 0.02
     """Petal points lie within this distance of the pistil centroid, metres (open
     strawberry flowers are 20-35 mm across); None: no limit. Deviation: upstream fitted
@@ -59,20 +57,6 @@ class PoseConfig:
     petal_trim_min_m: float = 0.003
     """The trim never drops points nearer the plane than this, metres (a cupped corolla's
     rim rises up to 6 mm above its base)."""
-    pistil_hue: tuple[float, float] = (40.0, 60.0)
-    """Hue band (degrees) of pistil candidates (yellow receptacle and anthers). Upstream:
-    40-63; shaded yellow-green sepals reach down to 60 and, once darker pistil points count
-    (`pistil_min_value`), pulled a pistil below its petals and flipped a normal."""
-    pistil_min_saturation: float = 0.30
-    """Least saturation (0-1) of a pistil candidate."""
-    pistil_min_value: float = 0.30
-    """Least HSV value (0-1) of a pistil candidate (upstream 0.65, which drops a receptacle
-    in shade)."""
-    pistil_eps: float = 0.005
-    """DBSCAN neighbourhood radius (metres) clustering the pistil candidates."""
-    pistil_min_points: int = 5
-    """DBSCAN least points per core neighbourhood; the candidate cluster nearest the petal
-    centroid is the pistil."""
     direction_reference: DirectionReference = "petal_surface"
     """What the pistil centroid is compared with to orient the normals. "crop" (upstream):
     the centroid of the whole crop, which a cupped corolla lifts above the receptacle and so
@@ -92,11 +76,6 @@ class PoseConfig:
     hard --grid pose.base_radius_factor=2.0,1.5,1.2,1.0 --plants 10`)."""
     base_min_points: int = 10
     """Fewest petal base points: when fewer lie within the radius, the nearest this many."""
-    support_hue: tuple[float, float] = (40.0, 180.0)
-    """Hue band (degrees) of sepal and peduncle points behind the flower, used to orient
-    the normals (away from them) when no pistil is found."""
-    support_min_saturation: float = 0.15
-    """Least saturation (0-1) of a sepal or peduncle point."""
     support_min_points: int = 10
     """Fewest sepal or peduncle points that may orient the normals without a pistil;
     with fewer, every normal is None."""
@@ -131,19 +110,12 @@ class PoseConfig:
     """Most residual evaluations one nonlinear fit may spend."""
 
     def __post_init__(self):
-        for name in ("petal_min_value", "petal_reject_saturation", "pistil_min_saturation",
-                     "pistil_min_value", "support_min_saturation"):
-            require(0 <= getattr(self, name) <= 1, f"pose.{name}", "must be within 0-1")
-        for name in ("petal_reject_hue", "pistil_hue", "support_hue"):
-            low, high = getattr(self, name)
-            require(0 <= low <= high <= 360, f"pose.{name}", "must be (low, high) degrees")
-        require(self.pistil_eps > 0, "pose.pistil_eps", "must be positive (metres)")
         require(self.petal_max_radius_m is None or self.petal_max_radius_m > 0,
                 "pose.petal_max_radius_m", "must be positive (metres) or unset")
         require(self.petal_trim_factor is None or self.petal_trim_factor > 0,
                 "pose.petal_trim_factor", "must be positive or unset")
         require(self.petal_trim_min_m >= 0, "pose.petal_trim_min_m", "must be 0 or more (metres)")
-        for name in ("pistil_min_points", "base_min_points", "support_min_points"):
+        for name in ("base_min_points", "support_min_points"):
             require(getattr(self, name) >= 1, f"pose.{name}", "must be at least 1")
         require(self.base_radius_factor > 0, "pose.base_radius_factor", "must be positive")
         require(3 <= self.min_fit_points <= self.max_fit_points, "pose.max_fit_points",
@@ -180,57 +152,19 @@ class FlowerPose:
         }
 
 
-def _in_band(values: np.ndarray, band: tuple[float, float]) -> np.ndarray:
-    return (values >= band[0]) & (values <= band[1])
-
-
-def _petal_mask(hsv: np.ndarray, config: PoseConfig) -> np.ndarray:
-    hue, sat, val = hsv[:, 0], hsv[:, 1], hsv[:, 2]
-    return (val > config.petal_min_value) & ~(
-        _in_band(hue, config.petal_reject_hue) & (sat >= config.petal_reject_saturation))
-
-
-def pistil_candidate_mask(colors: np.ndarray, config: PoseConfig) -> np.ndarray:
-    """(N,) bool: colours (N, 3) uint8 that pass the pistil colour rule."""
-    return _pistil_candidates(rgb_to_hsv(colors), config)
-
-
-def _pistil_candidates(hsv: np.ndarray, config: PoseConfig) -> np.ndarray:
-    return (_in_band(hsv[:, 0], config.pistil_hue) & (hsv[:, 1] >= config.pistil_min_saturation)
-            & (hsv[:, 2] >= config.pistil_min_value))
-
-
-def _clusters(points: np.ndarray, candidate: np.ndarray, config: PoseConfig) -> list[np.ndarray]:
-    index = np.flatnonzero(candidate)
-    if len(index) < config.pistil_min_points:
-        return []
-    labels = dbscan(points[index], config.pistil_eps, config.pistil_min_points)
-    order = np.argsort(labels, kind="stable")
-    edges = np.searchsorted(labels[order], np.arange(labels.max(initial=-1) + 2))
-    return [index[order[edges[k]:edges[k + 1]]] for k in range(len(edges) - 1)]
-
-
-def pistil_clusters(crop: Cloud, config: PoseConfig) -> list[np.ndarray]:
-    """The pistil candidate clusters of a crop: yellow points grouped by DBSCAN.
-
-    crop: points (N, 3) metres, colors (N, 3) uint8. Returns one index array into the
-    crop per cluster (DBSCAN noise left out); empty when there is none.
-    """
-    return _clusters(crop.points, _pistil_candidates(rgb_to_hsv(crop.colors), config), config)
-
-
-def split_petals_pistil(crop: Cloud, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
+def split_petals_pistil(crop: Cloud, colour: ColourConfig,
+                        cluster: ClusterConfig) -> tuple[np.ndarray, np.ndarray]:
     """Petal and pistil masks of a flower crop by colour; the pistil picked by DBSCAN.
 
-    The pistil is the candidate cluster whose centroid is nearest the petal centroid (the
-    crop centroid when there are no petal points). crop: points (N, 3) metres, colors
-    (N, 3) uint8. Returns (petal_mask, pistil_mask), both (N,) bool; pistil_mask is all
-    False when no candidate cluster exists.
+    The pistil is the candidate cluster (`pistil_clusters`) whose centroid is nearest the
+    petal centroid (the crop centroid when there are no petal points). crop: points (N, 3)
+    metres, colors (N, 3) uint8. Returns (petal_mask, pistil_mask), both (N,) bool;
+    pistil_mask is all False when no candidate cluster exists.
     """
     hsv = rgb_to_hsv(crop.colors)
-    petal = _petal_mask(hsv, config)
+    petal = petal_mask(hsv, colour)
     pistil = np.zeros(len(crop), dtype=bool)
-    clusters = _clusters(crop.points, _pistil_candidates(hsv, config), config)
+    clusters = pistil_clusters(crop.points, pistil_mask(hsv, colour), cluster)
     if not clusters:
         return petal, pistil
     anchor = crop.points[petal].mean(axis=0) if petal.any() else crop.points.mean(axis=0)
@@ -240,7 +174,8 @@ def split_petals_pistil(crop: Cloud, config: PoseConfig) -> tuple[np.ndarray, np
 
 
 def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
-                 plane: np.ndarray | None, config: PoseConfig) -> np.ndarray | None:
+                 plane: np.ndarray | None, config: PoseConfig,
+                 colour: ColourConfig) -> np.ndarray | None:
     """A vector (metres, crop frame) the normals must agree with, or None if none is known.
 
     With a pistil it points from a reference to the pistil centroid: the pistil sits on the
@@ -267,9 +202,7 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
         if base.sum() < config.base_min_points:
             base = np.argsort(distance)[:config.base_min_points]
         return pistil_centroid - petal_points[base].mean(axis=0)
-    hsv = rgb_to_hsv(crop.colors)
-    support = (~petal & _in_band(hsv[:, 0], config.support_hue)
-               & (hsv[:, 1] >= config.support_min_saturation))
+    support = ~petal & support_mask(rgb_to_hsv(crop.colors), colour)
     if support.sum() < config.support_min_points or not petal.any():
         return None
     return points[petal].mean(axis=0) - points[support].mean(axis=0)
@@ -288,7 +221,9 @@ def _above_petal_surface(petal_points: np.ndarray, pistil_centroid: np.ndarray,
     return -surface_at_pistil * axis
 
 
-def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
+def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
+                  colour: ColourConfig | None = None,
+                  cluster: ClusterConfig | None = None) -> FlowerPose:
     """Normals of one flower by the plane, superellipsoid and paraboloid fits.
 
     crop: the cloud points inside one flower's box, points (N, 3) float64 metres in the
@@ -297,9 +232,10 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
     fit, or for all three when nothing orients them (the fits are then skipped).
     """
     config = config or PoseConfig()
+    colour = colour or ColourConfig()
     if len(crop) == 0:
         raise InputError("flower crop", "the crop has no points")
-    petal, pistil = split_petals_pistil(crop, config)
+    petal, pistil = split_petals_pistil(crop, colour, cluster or ClusterConfig())
     found = bool(pistil.any())
     petal = _corolla(crop.points, petal, pistil, config)
     if found:
@@ -311,7 +247,7 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None) -> FlowerPose:
     petal_points = crop.points[petal]
     normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
     plane = fit_plane(petal_points, config.min_fit_points)
-    reference = _orientation(crop, petal, pistil, plane, config)
+    reference = _orientation(crop, petal, pistil, plane, config, colour)
     if reference is not None:
         axes = _fit_axes(petal_points, plane, center if found else None, config)
         normals = {m: None if axis is None else (axis if axis @ reference >= 0.0 else -axis)

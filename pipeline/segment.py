@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
-from flowerpose.pipeline.colour import rgb_to_hsv
+from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.fit import principal_axes
 
 
@@ -84,13 +84,11 @@ class ClusterConfig:
     min_points: int = 20
     """DBSCAN core-point neighbour count (the paper: 20)."""
     min_flower_fraction: float = 0.7
-    """A cluster is a flower when more than this share of its points is whitish or has the
-    pistil's yellow (deviation: upstream counted whitish points alone, which rejects flowers
-    seen face-on, where the yellow centre is a third of the points)."""
+    """A cluster is a flower when more than this share of its points has a petal's or a
+    pistil's colour (`colour`; deviation: upstream counted whitish points alone, which
+    rejects flowers seen face-on, where the yellow centre is a third of the points)."""
     min_white_fraction: float = 0.35
-    """... and at least this share is whitish: a flower has petals."""
-    white_max_saturation: float = 0.39
-    """Whitish: saturation at most this (upstream)."""
+    """... and at least this share has a petal's colour: a flower has petals."""
     require_pistil: bool = True
     """A flower's crop must hold a pistil (a cluster of yellow points), else it is dropped.
     Deviation: upstream's detector was a trained network; with colour detection, leaves
@@ -103,6 +101,12 @@ class ClusterConfig:
     split_link_m: float = 0.004
     """Points closer than this are neighbours on the surface when a cluster is split between
     its flower centres, metres: about twice the point spacing."""
+    pistil_eps: float = 0.005
+    """DBSCAN neighbourhood radius (metres) grouping pistil-coloured points into candidate
+    pistils, which split touching flowers here and orient each flower in the pose stage
+    (upstream: 0.005)."""
+    pistil_min_points: int = 5
+    """DBSCAN least points per core neighbourhood of a candidate pistil (upstream: 5)."""
     crop_margin_m: float = 0.004
     """A flower's crop is every cloud point within this distance of its cluster, metres, so
     the receptacle, sepals and petal parts hidden in every view come along. Deviation: the
@@ -112,9 +116,10 @@ class ClusterConfig:
     def __post_init__(self):
         require(self.eps > 0, "cluster.eps", "must be positive (metres)")
         require(self.min_points >= 1, "cluster.min_points", "must be at least 1")
-        for name in ("min_flower_fraction", "min_white_fraction", "white_max_saturation"):
+        for name in ("min_flower_fraction", "min_white_fraction"):
             require(0 <= getattr(self, name) <= 1, f"cluster.{name}", "must be within 0-1")
-        for name in ("split_min_separation_m", "split_link_m", "crop_margin_m"):
+        require(self.pistil_min_points >= 1, "cluster.pistil_min_points", "must be at least 1")
+        for name in ("split_min_separation_m", "split_link_m", "crop_margin_m", "pistil_eps"):
             require(getattr(self, name) > 0, f"cluster.{name}", "must be positive (metres)")
 
 
@@ -214,9 +219,49 @@ def dbscan(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     return np.asarray(pcd.cluster_dbscan(eps, min_points, print_progress=False), np.int64)
 
 
-def is_whitish(colors: np.ndarray, max_saturation: float) -> np.ndarray:
-    """(N,) bool: colours (N, 3) uint8 with saturation at most `max_saturation`."""
-    return rgb_to_hsv(colors)[:, 1] <= max_saturation
+def pistil_clusters(points: np.ndarray, is_pistil: np.ndarray,
+                    config: ClusterConfig) -> list[np.ndarray]:
+    """Candidate pistils: the pistil-coloured points grouped by DBSCAN.
+
+    points: (N, 3) metres; is_pistil: (N,) bool, the points of pistil colour. Returns one
+    index array into `points` per cluster (DBSCAN noise left out); empty when none.
+    """
+    index = np.flatnonzero(is_pistil)
+    if len(index) < config.pistil_min_points:
+        return []
+    labels = dbscan(points[index], config.pistil_eps, config.pistil_min_points)
+    order = np.argsort(labels, kind="stable")
+    edges = np.searchsorted(labels[order], np.arange(labels.max(initial=-1) + 2))
+    return [index[order[edges[k]:edges[k + 1]]] for k in range(len(edges) - 1)]
+
+
+def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfig,
+                    config: ClusterConfig, colour: ColourConfig) -> list[np.ndarray]:
+    """Candidate points grouped into one index array per flower.
+
+    plant: the cloud (metres); candidates: indices into it of the points taken from the
+    detections (or given as candidates). Outliers are removed, DBSCAN groups the rest, a
+    group is kept when its colours are a flower's (`min_flower_fraction`,
+    `min_white_fraction`), and a group holding several pistils is split between them.
+    """
+    if len(candidates) == 0:
+        return []
+    kept = candidates[remove_outliers(plant.points[candidates], outliers)]
+    labels = dbscan(plant.points[kept], config.eps, config.min_points)
+    clusters = []
+    for label in range(labels.max() + 1 if len(labels) else 0):
+        members = kept[labels == label]
+        hsv = rgb_to_hsv(plant.colors[members])
+        white = petal_mask(hsv, colour)
+        centre = pistil_mask(hsv, colour)
+        if ((white | centre).mean() <= config.min_flower_fraction
+                or white.mean() < config.min_white_fraction):
+            continue
+        points = plant.points[members]
+        parts = split_by_centres(points, pistil_clusters(points, centre, config),
+                                 config.split_min_separation_m, config.split_link_m)
+        clusters.extend(members[parts == k] for k in range(parts.max() + 1))
+    return [c for c in clusters if len(c) >= config.min_points]
 
 
 def split_by_centres(points: np.ndarray, centres: list[np.ndarray], min_separation: float,

@@ -45,7 +45,7 @@ def test_stage_configs_refuse_values_outside_their_range():
 
     for item in ("grid.pixel_size_m=0", "grid.splat_radius_px=-1", "cluster.eps=0",
                  "cluster.min_points=-5", "outliers.radius_m=-1", "pose.max_fit_points=-1",
-                 "detect.min_area_m2=1", "pose.pistil_hue=(70, 40)", "ground.sample_points=0"):
+                 "detect.min_area_m2=1", "colour.pistil_hue=(70, 40)", "ground.sample_points=0"):
         with pytest.raises(InputError, match=item.split("=")[0].split(".")[0]):
             apply_overrides(PipelineConfig(), parse_set_options([item]))
 

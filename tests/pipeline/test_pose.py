@@ -6,13 +6,9 @@ from scipy.spatial.transform import Rotation
 
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
-from flowerpose.pipeline.pose import (
-    METHODS,
-    PoseConfig,
-    estimate_pose,
-    pistil_clusters,
-    split_petals_pistil,
-)
+from flowerpose.pipeline.colour import ColourConfig, pistil_mask, rgb_to_hsv
+from flowerpose.pipeline.pose import METHODS, PoseConfig, estimate_pose, split_petals_pistil
+from flowerpose.pipeline.segment import ClusterConfig, pistil_clusters
 
 RADIUS = 0.015  # corolla radius, metres
 DOME_RADIUS = 0.003  # receptacle radius, metres
@@ -129,12 +125,12 @@ def test_too_few_petal_points_give_no_normals():
 
 def test_split_finds_petals_and_the_central_yellow_cluster():
     crop, _ = flower(11, stem=20)
-    config = PoseConfig()
-    assert len(pistil_clusters(crop, config)) == 2
-    petal, pistil = split_petals_pistil(crop, config)
+    is_pistil = pistil_mask(rgb_to_hsv(crop.colors), ColourConfig())
+    assert len(pistil_clusters(crop.points, is_pistil, ClusterConfig())) == 2
+    petal, pistil = split_petals_pistil(crop, ColourConfig(), ClusterConfig())
     np.testing.assert_array_equal(np.flatnonzero(petal), np.arange(300))
     np.testing.assert_array_equal(np.flatnonzero(pistil), np.arange(300, 360))
-    pose = estimate_pose(crop, config)
+    pose = estimate_pose(crop)
     np.testing.assert_allclose(pose.center, crop.points[300:360].mean(axis=0))
 
 
