@@ -56,6 +56,9 @@ def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return centroid, values, vectors
 
 
+#: Tukey biweight cut-off of the robust plane, in standard deviations (from the MAD).
+ROBUST_SCALE = 4.685
+
 MIN_SPREAD_M = 2e-4
 """Least standard deviation along the second widest principal axis for any fit, metres:
 below it the points are a blob or a line (rounding noise, not a surface) and no normal is
@@ -76,18 +79,34 @@ def _unit_or_none(axis: np.ndarray) -> np.ndarray | None:
     return axis / norm
 
 
-def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS) -> np.ndarray | None:
+def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
+              robust_iterations: int = 0) -> np.ndarray | None:
     """Normal of the least-squares plane: the covariance eigenvector of least spread.
 
-    points: (N, 3) float64, metres. Returns a unit (3,) axis, or None for fewer than
-    `min_points` points or non-finite input.
+    With `robust_iterations`, that many reweighted refits follow (Tukey's biweight on the
+    distance to the plane, scaled by ROBUST_SCALE median absolute deviations), so points
+    off the corolla (a drooping rim, a leaf edge) stop pulling the plane. points: (N, 3)
+    float64, any unit. Returns a unit (3,) axis, or None for fewer than `min_points`
+    points or non-finite input.
     """
     if not _usable(points, min_points):
         return None
-    _, values, vectors = principal_axes(points)
+    centroid, values, vectors = principal_axes(points)
     if not np.isfinite(values).all():
         return None
-    return _unit_or_none(vectors[:, 2])
+    normal = vectors[:, 2]
+    for _ in range(robust_iterations):
+        distance = (points - centroid) @ normal
+        scale = ROBUST_SCALE * 1.4826 * float(np.median(np.abs(distance - np.median(distance))))
+        if not scale > 0:
+            break
+        weight = np.clip(1.0 - (distance / scale) ** 2, 0.0, None) ** 2
+        if np.count_nonzero(weight) < max(min_points, MIN_FIT_POINTS):
+            break
+        centroid = weight @ points / weight.sum()
+        centred = points - centroid
+        normal = np.linalg.eigh((weight[:, None] * centred).T @ centred)[1][:, 0]
+    return _unit_or_none(normal)
 
 
 def _exp_and_right_jacobian(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -105,12 +105,14 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
               for d, p in zip(detections, projections, strict=True)]
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
-    clusters = cluster_flowers(plant, candidates, config.outliers, config.cluster, config.colour)
+    clusters, flower_radius = cluster_flowers(plant, candidates, config.outliers,
+                                              config.cluster, config.colour)
     boxes, crops = crop_flowers(plant, clusters, config.cluster.crop_margin_m)
     timer.lap("cluster")
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
-        pose = estimate_pose(plant.subset(crop), config.pose, config.colour, config.cluster)
+        pose = estimate_pose(plant.subset(crop), config.pose, config.colour, config.cluster,
+                             flower_radius)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
         flowers.append(Flower(len(flowers), pose, box, above_ground[crop]))

@@ -171,7 +171,7 @@ def test_a_pale_stem_under_the_flower_does_not_tilt_the_fits():
     stem = CENTRE + length * direction + np.random.default_rng(5).normal(0, 3e-4, (100, 3))
     crop = Cloud(np.vstack([crop.points, stem]),
                  np.vstack([crop.colors, np.full((100, 3), 150, np.uint8)]))
-    unlimited = estimate_pose(crop, PoseConfig(petal_max_radius_m=None, petal_trim_factor=None))
+    unlimited = estimate_pose(crop, PoseConfig(petal_max_radius=None, petal_trim_factor=None))
     limited = estimate_pose(crop)
     assert angle_deg(unlimited.normals["plane"], normal) > 20.0
     assert max(angle_deg(limited.normals[m], normal) for m in METHODS) < 3.0
