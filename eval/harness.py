@@ -24,7 +24,13 @@ from flowerpose.cloudio import read_cloud
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
-from flowerpose.eval.report import build_report, error_stats, plant_entry, write_report
+from flowerpose.eval.report import (
+    build_report,
+    error_stats,
+    plant_entry,
+    summarise,
+    write_report,
+)
 from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan
 from flowerpose.eval.truth import read_plant_truth, read_sagemaker_truth
@@ -149,26 +155,99 @@ def _describe_entry(k: int, value: tuple[dict, dict]) -> str:
 
 
 #: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
-#: plant's surfaces sampled directly, or a simulated depth camera's frames fused.
-SOURCES = ("scan", "oracle", "rgbd")
+#: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
+#: labelled plants (`real_source.py`).
+SOURCES = ("scan", "oracle", "rgbd", "real")
 
 
 def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: int = 0,
-             out_dir: Path = Path("runs/eval"), workers: int | None = None) -> dict:
-    """The synthetic benchmark: returns report.json's content and writes report.json,
-    report.md and, per plant, its truth, cloud and flowers under out_dir."""
+             out_dir: Path = Path("runs/eval"), workers: int | None = None,
+             folders: Iterable[Path] = (), truth_scale: float | None = None,
+             compare: dict[str, EvalConfig] | None = None) -> dict:
+    """The benchmark: returns report.json's content and writes report.json, report.md and,
+    per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
+
+    source "real" evaluates the labelled plant `folders` (truth scale from each folder's
+    source.json unless `truth_scale` is given); the others generate `plants` seeded plants
+    from `seed`. `compare` runs other configurations (by name) on the same clouds; their
+    summaries and plants go under report["compare"] and their files under out_dir/NAME/.
+    """
     if source not in SOURCES:
         raise InputError("--source", f"'{source}': one of {', '.join(SOURCES)}")
-    if plants < 1:
-        raise InputError("--plants", f"must be at least 1, got {plants}")
     start = time.perf_counter()
+    if source == "real":
+        jobs, timing, extra, described = _real_jobs(list(folders), truth_scale, config)
+        run_config = {"source": source, "folders": described, **to_dict(pipeline_part(config)),
+                      "score": to_dict(config.score)}
+        title = f"flowerpose eval: {len(jobs)} real plants"
+    else:
+        if plants < 1:
+            raise InputError("--plants", f"must be at least 1, got {plants}")
+        jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers)
+        run_config = {"source": source, "plants": plants, "seed": seed, **to_dict(config)}
+        title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
+    entries, stage_timing = _score_jobs(jobs, config, out_dir, workers)
+    timing.update(stage_timing)
+    if compare:
+        extra["compare"] = {}
+        for name, other in compare.items():
+            others, _ = _score_jobs(jobs, other, out_dir / name, workers)
+            extra["compare"][name] = {"summary": summarise(others), "plants": others,
+                                      "config": to_dict(pipeline_part(other))}
+    timing["total"] = round(time.perf_counter() - start, 4)
+    report = build_report(run_config, entries, timing, extra)
+    write_report(out_dir, report, title)
+    return report
+
+
+def _score_jobs(jobs: list[tuple], config: EvalConfig, out_dir: Path,
+                workers: int | None) -> tuple[list[dict], dict[str, float]]:
+    """Every job (function, its input, its output folder's name) run with `config`; the
+    plant entries and summed stage timings."""
+    results = run_jobs(_score_job, [(job, config, out_dir) for job in jobs], workers,
+                       _describe_entry)
+    return [entry for entry, _ in results], sum_timings(t for _, t in results)
+
+
+def _score_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dict[str, float]]:
+    kind, name, *inputs = job
+    if kind == "real":
+        from flowerpose.eval.real_source import evaluate_real_plant
+
+        return evaluate_real_plant(inputs[0], pipeline_part(config), out_dir / name,
+                                   config.score.max_distance_m)
+    cloud_path, truth_path = inputs
+    return evaluate_cloud(cloud_path, truth_path, config, out_dir / "plants" / name, name)
+
+
+def _real_jobs(folders: list[Path], truth_scale: float | None,
+               config: EvalConfig) -> tuple[list[tuple], dict, dict, list[dict]]:
+    from flowerpose.eval.real_source import read_real_plant
+
+    if not folders:
+        raise InputError("--source real", "needs at least one labelled plant folder: "
+                         "flowerpose eval --source real DIR [DIR ...]")
+    plants = [read_real_plant(folder, truth_scale) for folder in folders]
+    names: dict[str, int] = {}
+    jobs = []
+    for plant in plants:
+        names[plant.name] = names.get(plant.name, 0) + 1
+        name = plant.name if names[plant.name] == 1 else f"{plant.name}-{names[plant.name]}"
+        jobs.append(("real", name, plant))
+    return jobs, {}, {}, [p.describe() for p in plants]
+
+
+def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,
+                    workers: int | None) -> tuple[list[tuple], dict, dict]:
+    """Generate the seeded plants (and, for the scan and RGB-D sources, film and
+    reconstruct them); the scoring jobs, timings and reconstruction reports."""
     seeds = list(range(seed, seed + plants))
     plants_dir = out_dir / "plants"
     generation = generate_plants(seeds, config.sim, plants_dir, workers)
     timing = {"plant": round(sum(generation), 4)}
     folders = {s: plants_dir / f"seed-{s}" for s in seeds}
     clouds = {s: (folders[s] / "cloud.ply", folders[s] / "plant.json") for s in seeds}
-    extra = {}
+    extra: dict = {}
     if source == "rgbd":
         captured = run_jobs(capture_rgbd, [(folders[s], config) for s in seeds], workers,
                             lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
@@ -192,15 +271,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
                       folders[s] / "scan" / "plant.json") for s in seeds}
         extra["reconstruction"] = {f"seed-{s}": c["quality"]
                                    for s, c in zip(seeds, captured, strict=True)}
-    jobs = [(*clouds[s], config, folders[s], f"seed-{s}") for s in seeds]
-    results = run_jobs(evaluate_cloud, jobs, workers, _describe_entry)
-    timing.update(sum_timings(t for _, t in results))
-    timing["total"] = round(time.perf_counter() - start, 4)
-    report = build_report({"source": source, "plants": plants, "seed": seed, **to_dict(config)},
-                          [entry for entry, _ in results], timing, extra)
-    write_report(out_dir, report, f"flowerpose eval: {plants} {config.sim.plant.name} plants, "
-                 f"{source} clouds")
-    return report
+    return [("synthetic", f"seed-{s}", *clouds[s]) for s in seeds], timing, extra
 
 
 def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:

@@ -80,6 +80,10 @@ class PlantScore:
     error_deg: dict[str, list[float]] = field(default_factory=dict)
     failed: dict[str, int] = field(default_factory=dict)
     pairs: list[tuple[int, int]] = field(default_factory=list)
+    matches: list[dict[str, Any]] = field(default_factory=list)
+    """Per match: the estimate's index ("detection"), the truth flower's id ("truth"),
+    the centre distance ("distance_m") and, for a visible flower, each method's error
+    in degrees or None for a failed fit ("error_deg")."""
 
 
 def _center(estimate: Estimate) -> np.ndarray:
@@ -105,15 +109,26 @@ def score_plant(estimates: Sequence[Estimate], truth: Sequence[TruthFlower],
     scored = [(i, j) for i, j in pairs if truth[j].visible]
     error_deg: dict[str, list[float]] = {m: [] for m in METHODS}
     failed = dict.fromkeys(METHODS, 0)
-    for i, j in scored:
-        normals = _normals(estimates[i])
-        for method in METHODS:
-            normal = normals.get(method)
-            if normal is None:
-                failed[method] += 1
-            else:
-                error_deg[method].append(angle_error_deg(np.asarray(normal), truth[j].normal))
+    matches = []
+    for i, j in pairs:
+        match: dict[str, Any] = {
+            "detection": i, "truth": truth[j].id,
+            "distance_m": round(float(np.linalg.norm(est_centers[i] - gt_centers[j])), 6)}
+        if truth[j].visible:
+            normals = _normals(estimates[i])
+            errors: dict[str, float | None] = {}
+            for method in METHODS:
+                normal = normals.get(method)
+                if normal is None:
+                    failed[method] += 1
+                    errors[method] = None
+                else:
+                    errors[method] = angle_error_deg(np.asarray(normal), truth[j].normal)
+                    error_deg[method].append(errors[method])
+            match["error_deg"] = errors
+        matches.append(match)
     return PlantScore(
         gt=len(truth), visible=sum(t.visible for t in truth), detections=len(estimates),
         found=len(pairs), found_visible=len(scored), extra=len(pairs) - len(scored),
-        fp=len(estimates) - len(pairs), error_deg=error_deg, failed=failed, pairs=pairs)
+        fp=len(estimates) - len(pairs), error_deg=error_deg, failed=failed, pairs=pairs,
+        matches=matches)

@@ -28,12 +28,16 @@ def error_stats(errors: list[float]) -> dict[str, float | int | None]:
 
 
 def plant_entry(name: str, score: Any) -> dict:
-    """One plant's row of report.json from a PlantScore."""
+    """One plant's row of report.json from a PlantScore; "matches" names the truth flower
+    and the detection behind each error."""
+    matches = [{**m, "error_deg": {k: None if e is None else round(e, 4)
+                                   for k, e in m["error_deg"].items()}}
+               if "error_deg" in m else m for m in score.matches]
     return {"plant": name, "gt": score.gt, "visible": score.visible,
             "detections": score.detections, "found": score.found,
             "found_visible": score.found_visible, "extra": score.extra, "fp": score.fp,
             "error_deg": {m: [round(e, 4) for e in score.error_deg[m]] for m in METHODS},
-            "failed": {m: score.failed[m] for m in METHODS}}
+            "failed": {m: score.failed[m] for m in METHODS}, "matches": matches}
 
 
 def summarise(plants: list[dict]) -> dict:
@@ -92,6 +96,41 @@ def table(report: dict) -> str:
     return "\n".join(body)
 
 
+def _plane_errors(plants: list[dict]) -> dict[tuple[str, Any], float]:
+    """Plane errors keyed by (plant, truth flower id)."""
+    return {(p["plant"], str(m["truth"])): m["error_deg"]["plane"]
+            for p in plants for m in p.get("matches", [])
+            if m.get("error_deg", {}).get("plane") is not None}
+
+
+def comparison_table(report: dict, name: str = "default") -> str:
+    """This run's configuration beside each compared one (report["compare"]) on the same
+    plants: found, false positives, the error means, and the plane error over the flowers
+    every row found (paired, so a profile that finds fewer, easier flowers gains nothing)."""
+    rows = [(name, report["summary"], report["plants"])]
+    rows += [(other, c["summary"], c["plants"]) for other, c in report.get("compare", {}).items()]
+    errors_by_row = [_plane_errors(plants) for _, _, plants in rows]
+    common = sorted(set.intersection(*(set(e) for e in errors_by_row)))
+    header = ["Profile", "Found", "FP", "Plane mean", "Plane median", "Superellipsoid",
+              "Paraboloid", "Plane, flowers all found"]
+    lines = []
+    for (label, summary, _), theirs in zip(rows, errors_by_row, strict=True):
+        paired = (f"{np.mean([theirs[k] for k in common]):.1f}° over {len(common)}"
+                  if common else "-")
+        errors = summary["error_deg"]
+        lines.append([label, f"{summary['found']}/{summary['gt']}", str(summary["fp"]),
+                      _deg(errors["plane"]["mean"]), _deg(errors["plane"]["median"]),
+                      _deg(errors["superellipsoid"]["mean"]), _deg(errors["paraboloid"]["mean"]),
+                      paired])
+    widths = [max(len(r[i]) for r in [header] + lines) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
+
+    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+    return "\n".join([line(header), rule] + [line(r) for r in lines])
+
+
 def summary_lines(report: dict) -> list[str]:
     """Short human summary under the table, with the paper's numbers beside ours."""
     s = report["summary"]
@@ -116,8 +155,10 @@ def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path = out_dir / "report.json"
     json_path.write_text(json.dumps(report, indent=1))
-    md = [f"# {title}", "", table(report), "", *[f"- {line}" for line in summary_lines(report)],
-          "", "## Timing (seconds)", "", "| stage | seconds |", "|---|---|"]
+    md = [f"# {title}", "", table(report), "", *[f"- {line}" for line in summary_lines(report)]]
+    if report.get("compare"):
+        md += ["", "## Compared on the same plants", "", comparison_table(report)]
+    md += ["", "## Timing (seconds)", "", "| stage | seconds |", "|---|---|"]
     md += [f"| {k} | {v:.3f} |" for k, v in report["timing_s"].items()]
     md += ["", "## Configuration", "", "```json", json.dumps(report["config"], indent=1), "```", ""]
     md_path = out_dir / "report.md"

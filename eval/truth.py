@@ -102,6 +102,19 @@ def _cuboid_lists(value: Any) -> list[list[Any]]:
     return found
 
 
+def is_sagemaker(data: Any) -> bool:
+    """Whether a JSON document holds SageMaker Ground Truth cuboids ("boundingCuboids")."""
+    return bool(_cuboid_lists(data))
+
+
+def vector_list(value: Any, source: str | Path, key: str) -> np.ndarray:
+    """A JSON list of 3-vectors as (K, 3) float64; errors name `source` and `key`."""
+    if not isinstance(value, list):
+        raise InputError(source, f'"{key}" must be a list of [x, y, z] points')
+    return np.array([vector3(v, source, f"{key}[{k}]") for k, v in enumerate(value)],
+                    dtype=np.float64).reshape(-1, 3)
+
+
 def sagemaker_normal(roll: float, pitch: float, yaw: float,
                      convention: EulerConvention = "upstream") -> np.ndarray:
     """The unit normal of a labelled cuboid: its local x axis, in the cloud's frame.

@@ -18,6 +18,11 @@ SCAN_PLANTS = 2
 
 
 def _add_config_options(parser: argparse.ArgumentParser) -> None:
+    from flowerpose.config import profile_names
+
+    parser.add_argument("--profile", choices=profile_names(), metavar="NAME",
+                        help="start from a named settings profile: upstream = the published "
+                        "method's settings (assets/configs/NAME.toml)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml",
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -25,10 +30,12 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _configure(base: Any, args: argparse.Namespace) -> Any:
-    """`base` with the --config file, then each --set, applied."""
-    from flowerpose.config import apply_overrides, load_toml, parse_set_options
+    """`base` with the --profile, then the --config file, then each --set, applied."""
+    from flowerpose.config import apply_overrides, load_profile, load_toml, parse_set_options
 
     config = base
+    if args.profile is not None:
+        config = apply_overrides(config, load_profile(args.profile))
     if args.config is not None:
         config = apply_overrides(config, load_toml(args.config))
     return apply_overrides(config, parse_set_options(args.set))
@@ -39,18 +46,28 @@ def _default_out() -> Path:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from flowerpose.config import apply_overrides, load_profile
     from flowerpose.eval.harness import eval_config, run_eval
 
+    if args.folders and args.source != "real":
+        raise InputError(args.folders[0], "plant folders are for --source real")
+    if args.truth_scale is not None and args.source != "real":
+        raise InputError("--truth-scale", "is for --source real")
     config = eval_config(args.preset, lambda base: _configure(base, args))
+    # A compared profile shares the run's settings (scoring, plants) but for its own keys.
+    compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
     out = args.out or _default_out()
     plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
     report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
-                      out_dir=out, workers=args.workers)
-    from flowerpose.eval.report import summary_lines, table
+                      out_dir=out, workers=args.workers, folders=args.folders,
+                      truth_scale=args.truth_scale, compare=compare)
+    from flowerpose.eval.report import comparison_table, summary_lines, table
 
     print(table(report))
     for line in summary_lines(report):
         print(line)
+    if compare:
+        print(comparison_table(report, args.profile or "default"))
     print(f"report: {out / 'report.json'}, {out / 'report.md'}")
     return 0
 
@@ -428,6 +445,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from flowerpose.config import profile_names
+
     parser = _Parser(
         prog="flowerpose",
         description="3D strawberry flower poses from point clouds, scored against exact truth.")
@@ -436,10 +455,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="the synthetic benchmark: plants -> clouds -> flowers -> "
                        "scores (the paper's Table I)")
-    p.add_argument("--source", choices=("scan", "oracle", "rgbd"), default="scan",
+    p.add_argument("--source", choices=("scan", "oracle", "rgbd", "real"), default="scan",
                    help="where clouds come from: scan = the simulated bot films each plant "
                    "and photogrammetry reconstructs it (default); oracle = the plant's "
-                   "surfaces sampled directly; rgbd = a simulated depth camera's views fused")
+                   "surfaces sampled directly; rgbd = a simulated depth camera's views fused; "
+                   "real = labelled real plant folders (DIR ...)")
+    p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
+                   help="--source real: labelled plant folders (labels.json and cloud.ply, "
+                   "candidates/*.ply or crops/*.ply; README, \"Real plants\")")
+    p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
+                   help="--source real: the factor the labelled cloud was scaled by "
+                   "(default: each folder's source.json, else 25 for SageMaker labels)")
+    p.add_argument("--compare", action="append", default=[], metavar="NAME",
+                   choices=profile_names(),
+                   help="also run a named profile on the same plants and print both "
+                   "(e.g. --compare upstream)")
     p.add_argument("--plants", type=POSITIVE, default=None,
                    help=f"number of seeded plants (scan: {SCAN_PLANTS}, oracle and rgbd: 10)")
     p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")

@@ -139,6 +139,25 @@ def parse_set_options(items: list[str]) -> dict[str, str]:
     return out
 
 
+def profile_names() -> list[str]:
+    """The named settings profiles shipped in assets/configs (`--profile NAME`)."""
+    from importlib.resources import files
+
+    folder = files("flowerpose.assets") / "configs"
+    return sorted(p.name.removesuffix(".toml") for p in folder.iterdir()
+                  if p.name.endswith(".toml"))
+
+
+def load_profile(name: str) -> dict[str, Any]:
+    """The settings of a named profile (assets/configs/NAME.toml), as nested dicts."""
+    from importlib.resources import as_file, files
+
+    if name not in profile_names():
+        raise InputError("--profile", f"no profile {name!r} (known: {', '.join(profile_names())})")
+    with as_file(files("flowerpose.assets") / "configs" / f"{name}.toml") as path:
+        return load_toml(path)
+
+
 def load_toml(path: Path) -> dict[str, Any]:
     """Read a TOML config file; errors name the file."""
     try:

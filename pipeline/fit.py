@@ -32,7 +32,7 @@ MAX_FLATNESS = 0.5
 #: a quarter of the iterations and changed no axis error of the test flowers (0.01 degree).
 SUPERELLIPSOID_FTOL = 1e-6
 
-SuperellipsoidInit = Literal["pca", "upstream"]
+FitInit = Literal["pca", "upstream"]
 
 # Upstream's start: half-axes 5 mm, exponents 1, zero Euler angles (the bed axes).
 _UPSTREAM_SIZE = 0.005
@@ -280,7 +280,7 @@ def _frame(points: np.ndarray, axis_point: np.ndarray | None,
 def fit_superellipsoid(
     points: np.ndarray,
     axis_point: np.ndarray | None = None,
-    init: SuperellipsoidInit = "pca",
+    init: FitInit = "pca",
     size_bounds: tuple[float, float] = SIZE_BOUNDS,
     exponent_bounds: tuple[float, float] = EXPONENT_BOUNDS,
     max_flatness: float = MAX_FLATNESS,
@@ -344,6 +344,7 @@ def fit_paraboloid(
     axis_point: np.ndarray | None = None,
     max_evaluations: int = MAX_EVALUATIONS,
     min_points: int = MIN_FIT_POINTS,
+    init: FitInit = "pca",
 ) -> np.ndarray | None:
     """Axis (local +z) of a paraboloid z = k1 x^2 + k2 y^2 fitted to the petals.
 
@@ -354,12 +355,17 @@ def fit_paraboloid(
     centroid, (3,) metres) the axis passes through it and only the vertex's position along
     the axis is free: a sideways shift of the vertex adds the same slope as a tilt, so a
     free vertex leaves the tilt to the weak cubic terms (degrees off on a shallow cup).
+    init="upstream" starts from the frame's own axes (zero Euler angles) at the petal
+    centroid, as the authors' code did, and ignores `axis_point`.
 
     points: (N, 3) float64, metres. Returns a unit (3,) axis or None on failure.
     """
     if not _usable(points, min_points):
         return None
-    frame, _, _ = _frame(points, axis_point)
+    if init == "upstream":
+        frame, _, _ = _frame(points, None, np.eye(3))
+    else:
+        frame, _, _ = _frame(points, axis_point)
     x = _solve(_paraboloid, frame, np.zeros(5 + frame.n_translation), method="lm",
                max_nfev=max_evaluations)
     if x is None:

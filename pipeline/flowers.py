@@ -16,7 +16,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
-from flowerpose.pipeline.colour import ColourConfig
+from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
@@ -26,8 +26,10 @@ from flowerpose.pipeline.segment import (
     OrientedBox,
     OutlierConfig,
     cluster_flowers,
+    corolla,
     crop_flowers,
     remove_ground,
+    typical_radius,
 )
 
 
@@ -91,7 +93,7 @@ class _Timer:
 
 
 def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> FlowerResult:
-    """Flowers and their normals in a coloured cloud (metres, bed frame, z up)."""
+    """Flowers and their normals in a whole plant's coloured cloud (metres, bed frame, z up)."""
     timer = _Timer()
     above_ground = remove_ground(cloud, config.ground)
     plant = cloud.subset(above_ground)
@@ -105,9 +107,28 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
               for d, p in zip(detections, projections, strict=True)]
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
+    flowers = _flowers_among(plant, candidates, above_ground, config, timer)
+    return FlowerResult(flowers, projections, detections, timer.total())
+
+
+def find_flowers_in_candidates(candidates: Cloud,
+                               config: PipelineConfig = PipelineConfig()) -> FlowerResult:
+    """Flowers and their normals among points already taken out of grid views (a
+    detector's crops, merged): outlier removal, clustering and pose, no ground removal,
+    grid or detection. candidates: metres (or the cloud's unit), any frame."""
+    timer = _Timer()
+    every = np.arange(len(candidates))
+    flowers = _flowers_among(candidates, every, every, config, timer)
+    return FlowerResult(flowers, [], [], timer.total())
+
+
+def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
+                   config: PipelineConfig, timer: _Timer) -> list[Flower]:
+    """Clusters, crops and poses of the flowers among `candidates` (indices into `plant`);
+    `original` maps plant indices to those of the caller's cloud."""
     clusters, flower_radius = cluster_flowers(plant, candidates, config.outliers,
                                               config.cluster, config.colour)
-    boxes, crops = crop_flowers(plant, clusters, config.cluster.crop_margin_m)
+    boxes, crops = crop_flowers(plant, clusters, config.cluster)
     timer.lap("cluster")
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
@@ -115,9 +136,29 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
                              flower_radius)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
-        flowers.append(Flower(len(flowers), pose, box, above_ground[crop]))
+        flowers.append(Flower(len(flowers), pose, box, original[crop]))
     timer.lap("pose")
-    return FlowerResult(flowers, projections, detections, timer.total())
+    return flowers
+
+
+def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
+               ) -> tuple[list[FlowerPose], dict[str, float]]:
+    """The pose of each flower crop (one flower a crop, as a detector cut it out), sized by
+    the crops' typical flower (`segment.typical_radius`, their median corolla radius when
+    none passes the coverage test); returns the poses and the stage timings."""
+    timer = _Timer()
+    shapes = []
+    for crop in crops:
+        hsv = rgb_to_hsv(crop.colors)
+        shapes.append(corolla(crop.points, petal_mask(hsv, config.colour),
+                              pistil_mask(hsv, config.colour), config.cluster))
+    radius = typical_radius(shapes, config.cluster)
+    if radius is None and shapes:
+        radius = float(np.median([s.radius for s in shapes]))
+    poses = [estimate_pose(crop, config.pose, config.colour, config.cluster, radius)
+             for crop in crops]
+    timer.lap("pose")
+    return poses, timer.total()
 
 
 def write_flowers(path: Path, result: FlowerResult) -> Path:

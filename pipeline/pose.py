@@ -27,7 +27,7 @@ from flowerpose.pipeline.fit import (
     MAX_FLATNESS,
     MIN_FIT_POINTS,
     SIZE_BOUNDS,
-    SuperellipsoidInit,
+    FitInit,
     fit_paraboloid,
     fit_plane,
     fit_superellipsoid,
@@ -104,10 +104,13 @@ class PoseConfig:
     subsample above this, for speed; the plane always uses all)."""
     seed: int = 0
     """Seed of the petal subsample."""
-    superellipsoid_init: SuperellipsoidInit = "pca"
+    superellipsoid_init: FitInit = "pca"
     """Superellipsoid start: "pca" (deviation: rotation and half-axes from the petals'
     principal axes) or "upstream" (5 mm half-axes along the bed axes, which the paper
     found stuck in local minima)."""
+    paraboloid_init: FitInit = "pca"
+    """Paraboloid start: "pca" (deviation: the petals' principal axes) or "upstream" (the
+    frame's own axes at the petal centroid)."""
     superellipsoid_size_bounds: tuple[float, float] = SIZE_BOUNDS
     """Bounds (metres) of the half-axes a, b, c. Upstream's lower bound is 0, which divides
     by zero; 0.1 m reflects real flowers."""
@@ -350,5 +353,6 @@ def _fit_axes(petal_points: np.ndarray, plane: np.ndarray | None,
             max_evaluations=config.max_evaluations, min_points=config.min_fit_points),
         "paraboloid": fit_paraboloid(fit_points, axis_point=axis_point,
                                      max_evaluations=config.max_evaluations,
-                                     min_points=config.min_fit_points),
+                                     min_points=config.min_fit_points,
+                                     init=config.paraboloid_init),
     }

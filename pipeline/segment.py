@@ -64,7 +64,11 @@ class OutlierConfig:
     radius_points: int = 15
     """Radius outlier removal: neighbours needed within `radius_m` (upstream: 15)."""
     radius_m: float = 0.01
-    """Radius outlier removal: radius, metres (upstream: 0.01)."""
+    """Radius outlier removal: radius, metres (upstream: 0.01; 0.1 in the notebook that
+    matches the paper's DBSCAN)."""
+    order: Literal["statistical_first", "radius_first"] = "statistical_first"
+    """Which removal runs first (upstream's notebooks differ; the one that matches the
+    paper's DBSCAN runs the radius removal first)."""
 
     def __post_init__(self):
         require(self.statistical_neighbours >= 0, "outliers.statistical_neighbours",
@@ -96,6 +100,10 @@ class ClusterConfig:
     rejects flowers seen face-on, where the yellow centre is a third of the points)."""
     min_white_fraction: float = 0.35
     """... and at least this share has a petal's colour: a flower has petals."""
+    white_rule: Literal["petal", "saturation"] = "petal"
+    """What counts as white in these two shares and the corolla test: "petal", the petal
+    band of `colour` (deviation), or "saturation", its saturation limit alone (upstream's
+    whitish rule, which counts pale green leaves in shade as white)."""
     min_coverage: float = 0.35
     """A flower's petals must cover at least this share of the disc they span round its
     pistil (`corolla_coverage`: scale-free, so it holds in any unit and density).
@@ -117,6 +125,9 @@ class ClusterConfig:
     sheened with sky colour and stereo fringe floating in the sky are whitish too, and on
     a reconstructed cloud none of them has a pistil, while a flower's receptacle is seen
     from some view of the scan. It also leaves no flower without a normal."""
+    split_touching: bool = True
+    """Split a cluster that holds several pistils between them (deviation: upstream kept
+    touching flowers as one)."""
     split_min_separation_m: float = 0.012
     """Flower centres (pistil clusters) this far apart inside one cluster split it into one
     flower per centre, metres: touching flowers merge under DBSCAN."""
@@ -129,11 +140,13 @@ class ClusterConfig:
     (upstream: 0.005)."""
     pistil_min_points: int = 5
     """DBSCAN least points per core neighbourhood of a candidate pistil (upstream: 5)."""
+    crop: Literal["near", "box"] = "near"
+    """A flower's crop: "near", every cloud point within `crop_margin_m` of its cluster
+    (deviation), or "box", every cloud point in the cluster's oriented box (upstream), which
+    on tilted or touching flowers takes in a neighbour's petals and the leaves behind."""
     crop_margin_m: float = 0.004
-    """A flower's crop is every cloud point within this distance of its cluster, metres, so
-    the receptacle, sepals and petal parts hidden in every view come along. Deviation: the
-    published code cropped the whole oriented box, which on tilted or touching flowers takes
-    in a neighbour's petals and the leaves behind."""
+    """"near" crops: the margin, metres, so the receptacle, sepals and petal parts hidden
+    in every view come along."""
 
     def __post_init__(self):
         require(self.eps > 0, "cluster.eps", "must be positive (metres)")
@@ -217,19 +230,29 @@ def _soil_plane(points: np.ndarray, config: GroundConfig, seed: int):
 
 
 def remove_outliers(points: np.ndarray, config: OutlierConfig) -> np.ndarray:
-    """Indices of points (N, 3) kept by statistical then radius outlier removal."""
+    """Indices of points (N, 3) kept by statistical and radius outlier removal, in the
+    configured order."""
     import open3d as o3d
 
-    keep = np.arange(len(points))
-    if len(points) > 2 and config.statistical_neighbours > 0:
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        neighbours = min(config.statistical_neighbours, len(points) - 1)
+    def statistical(keep: np.ndarray) -> np.ndarray:
+        if len(keep) <= 2 or config.statistical_neighbours == 0:
+            return keep
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[keep]))
+        neighbours = min(config.statistical_neighbours, len(keep) - 1)
         _, kept = pcd.remove_statistical_outlier(neighbours, config.statistical_std_ratio)
-        keep = keep[np.asarray(kept, dtype=np.int64)]
-    if len(keep) and config.radius_points > 0:
+        return keep[np.asarray(kept, dtype=np.int64)]
+
+    def radius(keep: np.ndarray) -> np.ndarray:
+        if len(keep) == 0 or config.radius_points == 0:
+            return keep
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[keep]))
         _, kept = pcd.remove_radius_outlier(config.radius_points, config.radius_m)
-        keep = keep[np.asarray(kept, dtype=np.int64)]
+        return keep[np.asarray(kept, dtype=np.int64)]
+
+    steps = (statistical, radius) if config.order == "statistical_first" else (radius, statistical)
+    keep = np.arange(len(points))
+    for step in steps:
+        keep = step(keep)
     return keep
 
 
@@ -347,6 +370,8 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     """
     hsv = rgb_to_hsv(plant.colors)
     white, centre = petal_mask(hsv, colour), pistil_mask(hsv, colour)
+    if config.white_rule == "saturation":
+        white = hsv[:, 1] <= colour.petal_max_saturation
     if config.candidates == "flower_colour":
         candidates = candidates[white[candidates] | centre[candidates]]
     if len(candidates) == 0:
@@ -362,8 +387,9 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
                 or white[members].mean() < config.min_white_fraction):
             continue
         points = plant.points[members]
-        split = split_by_centres(points, pistil_clusters(points, centre[members], config),
-                                 config.split_min_separation_m, config.split_link_m)
+        split = (split_by_centres(points, pistil_clusters(points, centre[members], config),
+                                  config.split_min_separation_m, config.split_link_m)
+                 if config.split_touching else np.zeros(len(members), np.int64))
         parts.extend(part for part in (members[split == j] for j in range(split.max() + 1))
                      if len(part) >= config.min_points)
 
@@ -427,16 +453,19 @@ def split_by_centres(points: np.ndarray, centres: list[np.ndarray], min_separati
 
 
 def crop_flowers(cloud: Cloud, clusters: list[np.ndarray],
-                 margin: float) -> tuple[list[OrientedBox], list[np.ndarray]]:
-    """Each cluster's oriented box, and its crop: the cloud points within `margin` metres
-    of the cluster's points.
+                 config: ClusterConfig) -> tuple[list[OrientedBox], list[np.ndarray]]:
+    """Each cluster's oriented box, and its crop (`config.crop`): the cloud points within
+    `crop_margin_m` metres of the cluster's points, or those in its box.
 
-    clusters: per flower, indices into `cloud`. Every point goes to the flower with the
-    nearest cluster point, so touching flowers never share points.
+    clusters: per flower, indices into `cloud`. Near a cluster, every point goes to the
+    flower with the nearest cluster point, so touching flowers never share points.
     """
     if not clusters:
         return [], []
     boxes = [oriented_box(cloud.points[idx]) for idx in clusters]
+    if config.crop == "box":
+        return boxes, [np.flatnonzero(box.contains(cloud.points)) for box in boxes]
+    margin = config.crop_margin_m
     members = np.concatenate(clusters)
     labels = np.repeat(np.arange(len(clusters)), [len(c) for c in clusters])
     low = cloud.points[members].min(axis=0) - margin

@@ -2,6 +2,7 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.pipeline.segment import (
+    ClusterConfig,
     GroundConfig,
     crop_flowers,
     oriented_box,
@@ -68,7 +69,11 @@ def test_crops_of_overlapping_boxes_do_not_share_points():
     b = rng.normal([0.02, 0, 0], 0.005, (300, 3))
     points = np.vstack([a, b])
     cloud = Cloud(points, np.full((600, 3), 250, np.uint8))
-    boxes, crops = crop_flowers(cloud, [np.arange(300), np.arange(300, 600)], margin=0.004)
+    clusters = [np.arange(300), np.arange(300, 600)]
+    boxes, crops = crop_flowers(cloud, clusters, ClusterConfig(crop_margin_m=0.004))
     assert len(boxes) == 2
     assert not set(crops[0]) & set(crops[1])
     assert np.mean(crops[0] < 300) > 0.95 and np.mean(crops[1] >= 300) > 0.95
+    # Upstream's box crops overlap where the boxes do.
+    _, crops = crop_flowers(cloud, clusters, ClusterConfig(crop="box"))
+    assert set(crops[0]) & set(crops[1])

@@ -1,0 +1,215 @@
+"""Real labelled plants: the folder format, its reader, and one folder's evaluation.
+
+A real plant is a folder:
+
+    labels.json        AWS SageMaker Ground Truth 3D cuboid labels (the authors'
+                       outputN.json) or a plant.json as the simulator writes it
+    cloud.ply          a whole plant's cloud: the whole pipeline runs
+ or candidates/*.ply   points already taken out of grid views (a detector's crops, one file
+                       a view): outlier removal, clustering and pose run on them merged
+ or crops/*.ply        one flower a file: the pose stage alone, each crop matched to a label
+    source.json        optional: {"truth_scale": 25, "units": "m", "note": "...",
+                       "unlabelled": [[x, y, z], ...]}
+
+The first of cloud.ply, candidates/, crops/ that is there decides the stage. Coordinates
+are the cloud's own (a Polycam cloud: arbitrary origin and axes, about metres); labels are
+divided by the truth scale (SageMaker labels were drawn on a cloud scaled by it; the
+authors used 25). "unlabelled" lists centres, in label units, of flowers that are there but
+carry no pose label (the paper's "extra" column): a detection on one counts as extra, not as
+a false positive. Every hand label counts as visible.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from flowerpose.cloudio import Cloud, Units, read_cloud
+from flowerpose.errors import InputError
+from flowerpose.eval.match import score_plant
+from flowerpose.eval.report import plant_entry
+from flowerpose.eval.truth import (
+    TruthFlower,
+    is_sagemaker,
+    read_plant_truth,
+    read_sagemaker_truth,
+    vector_list,
+)
+from flowerpose.jsonio import read_json, write_json
+from flowerpose.pipeline.flowers import (
+    PipelineConfig,
+    find_flowers,
+    find_flowers_in_candidates,
+    pose_crops,
+)
+
+Stage = Literal["cloud", "candidates", "crops"]
+
+#: The authors' labelling scale (their clouds were scaled by 25 for SageMaker).
+DEFAULT_TRUTH_SCALE = 25.0
+_SOURCE_KEYS = {"truth_scale", "units", "note", "unlabelled"}
+
+
+@dataclass(frozen=True)
+class RealPlant:
+    """One labelled real plant folder, checked."""
+
+    folder: Path
+    name: str
+    labels: Path
+    label_format: Literal["sagemaker", "plant"]
+    stage: Stage
+    clouds: tuple[Path, ...]
+    """cloud.ply, or the candidates/*.ply or crops/*.ply files, sorted."""
+    truth_scale: float
+    units: Units
+    note: str
+    unlabelled: np.ndarray
+    """(K, 3) centres of flowers without a pose label, label units."""
+
+    def describe(self) -> dict[str, Any]:
+        return {"folder": str(self.folder), "stage": self.stage, "labels": self.label_format,
+                "files": len(self.clouds), "truth_scale": self.truth_scale,
+                "units": self.units, "note": self.note}
+
+
+def _source(folder: Path) -> dict[str, Any]:
+    path = folder / "source.json"
+    if not path.exists():
+        return {}
+    source = read_json(path)
+    unknown = sorted(set(source) - _SOURCE_KEYS)
+    if unknown:
+        raise InputError(path, f"unknown key {unknown[0]!r} (known: "
+                         f"{', '.join(sorted(_SOURCE_KEYS))})")
+    return source
+
+
+def _scale(value: Any, where: str | Path) -> float:
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not math.isfinite(value) or value <= 0):
+        raise InputError(where, f"the truth scale must be a positive number, got {value!r}")
+    return float(value)
+
+
+def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> RealPlant:
+    """Check a real plant folder and say what it holds; `truth_scale` overrides
+    source.json's. Raises InputError naming the folder or file for a missing folder, no
+    labels, labels of another format, no clouds, or a bad source.json."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "no such folder (a real plant is a folder with labels.json "
+                         "and cloud.ply, candidates/ or crops/)")
+    labels = folder / "labels.json"
+    if not labels.is_file():
+        raise InputError(folder, "no labels.json (SageMaker Ground Truth cuboids or a "
+                         "plant.json)")
+    data = read_json(labels)
+    if "flowers" in data:
+        label_format: Literal["sagemaker", "plant"] = "plant"
+    elif is_sagemaker(data):
+        label_format = "sagemaker"
+    else:
+        raise InputError(labels, "neither SageMaker Ground Truth cuboid labels "
+                         '("boundingCuboids") nor a plant.json ("flowers")')
+    stage: Stage | None = None
+    clouds: tuple[Path, ...] = ()
+    if (folder / "cloud.ply").is_file():
+        stage, clouds = "cloud", (folder / "cloud.ply",)
+    else:
+        for name in ("candidates", "crops"):
+            found = tuple(sorted((folder / name).glob("*.ply")))
+            if found:
+                stage, clouds = name, found  # type: ignore[assignment]
+                break
+    if stage is None:
+        raise InputError(folder, "no cloud.ply, candidates/*.ply or crops/*.ply")
+    source = _source(folder)
+    where = folder / "source.json"
+    if truth_scale is not None:
+        scale = _scale(truth_scale, "--truth-scale")
+    elif "truth_scale" in source:
+        scale = _scale(source["truth_scale"], where)
+    else:
+        scale = DEFAULT_TRUTH_SCALE if label_format == "sagemaker" else 1.0
+    units = source.get("units", "auto")
+    if units not in ("auto", "m", "mm"):
+        raise InputError(where, f'"units" must be "m", "mm" or "auto", got {units!r}')
+    note = source.get("note", "")
+    if not isinstance(note, str):
+        raise InputError(where, '"note" must be text')
+    unlabelled = vector_list(source.get("unlabelled", []), where, "unlabelled")
+    return RealPlant(folder, folder.resolve().name, labels, label_format, stage, clouds,
+                     scale, units, note, unlabelled)
+
+
+def real_truth(plant: RealPlant) -> list[TruthFlower]:
+    """The plant's labelled flowers (visible) and its unlabelled ones (not visible), in
+    the cloud's unit: labels divided by the truth scale."""
+    if plant.label_format == "plant":
+        truth = read_plant_truth(plant.labels)
+        for flower in truth:
+            flower.center = flower.center / plant.truth_scale
+            flower.visible = True
+    else:
+        truth = read_sagemaker_truth(plant.labels, plant.truth_scale)
+    extra = [TruthFlower(id=f"unlabelled:{k}", center=c / plant.truth_scale,
+                         normal=np.array([0.0, 0.0, 1.0]), visible=False)
+             for k, c in enumerate(plant.unlabelled)]
+    return truth + extra
+
+
+def _check_scale(plant: RealPlant, truth: list[TruthFlower], points: np.ndarray,
+                 max_distance: float) -> None:
+    """A scale that puts no label near any point is a wrong scale, not a bad pipeline."""
+    nearest = cKDTree(points).query(np.array([t.center for t in truth]))[0]
+    if not (nearest <= max_distance).any():
+        raise InputError(plant.labels, f"no label lies within {max_distance:g} of any point "
+                         f"at truth scale {plant.truth_scale:g} (the nearest is "
+                         f"{nearest.min():.3g} away): is the scale right? (--truth-scale, "
+                         "or truth_scale in source.json)")
+
+
+def _merged(paths: tuple[Path, ...], units: Units) -> Cloud:
+    """The candidate files as one cloud; a point in several views' files counts once."""
+    clouds = [read_cloud(p, units=units) for p in paths]
+    points = np.concatenate([c.points for c in clouds])
+    colors = np.concatenate([c.colors for c in clouds])
+    _, first = np.unique(points, axis=0, return_index=True)
+    first.sort()
+    return Cloud(points[first], colors[first])
+
+
+def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,
+                        max_distance: float) -> tuple[dict, dict[str, float]]:
+    """Run the pipeline from the stage the folder's data allows, write flowers.json to
+    out_dir, and score it against the labels; returns the report's plant entry (with its
+    stage) and the stage timings."""
+    truth = real_truth(plant)
+    if plant.stage == "crops":
+        crops = [read_cloud(p, units=plant.units) for p in plant.clouds]
+        _check_scale(plant, truth, np.concatenate([c.points for c in crops]), max_distance)
+        poses, timing = pose_crops(crops, config)
+        flowers = {"flowers": [{"id": k, "crop": p.name, **pose.to_json()}
+                               for k, (p, pose) in enumerate(zip(plant.clouds, poses,
+                                                                 strict=True))],
+                   "timing_s": timing}
+        write_json(out_dir / "flowers.json", flowers)
+    else:
+        cloud = (read_cloud(plant.clouds[0], units=plant.units) if plant.stage == "cloud"
+                 else _merged(plant.clouds, plant.units))
+        _check_scale(plant, truth, cloud.points, max_distance)
+        result = (find_flowers if plant.stage == "cloud" else find_flowers_in_candidates)(
+            cloud, config)
+        write_json(out_dir / "flowers.json", result.to_json())
+        poses, timing = [f.pose for f in result.flowers], dict(result.timing_s)
+    start = time.perf_counter()
+    entry = plant_entry(plant.name, score_plant(poses, truth, max_distance))
+    timing["score"] = time.perf_counter() - start
+    return {**entry, "stage": plant.stage}, timing
