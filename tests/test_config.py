@@ -67,3 +67,29 @@ def test_bad_toml_names_the_file(tmp_path):
         load_toml(path)
     with pytest.raises(InputError, match="not found"):
         load_toml(tmp_path / "missing.toml")
+
+
+def test_the_upstream_profile_loads_and_sets_what_it_says():
+    from flowerpose.config import load_profile, profile_names
+    from flowerpose.pipeline.flowers import PipelineConfig
+
+    assert "upstream" in profile_names()
+    settings = load_profile("upstream")
+    config = apply_overrides(PipelineConfig(), settings)
+    changed = 0
+    for section, values in settings.items():
+        for key, value in values.items():
+            got = getattr(getattr(config, section), key)
+            expected = None if value == "none" else tuple(value) if isinstance(value, list) \
+                else value
+            assert got == expected, f"{section}.{key}"
+            changed += got != getattr(getattr(PipelineConfig(), section), key)
+    assert changed >= 20  # the profile is mostly deviations, not the defaults restated
+    assert config.pose.direction_reference == "crop" and config.detect.backproject == "box"
+
+
+def test_an_unknown_profile_is_refused():
+    from flowerpose.config import load_profile
+
+    with pytest.raises(InputError, match="no profile 'nope'"):
+        load_profile("nope")

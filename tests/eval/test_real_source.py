@@ -1,0 +1,102 @@
+"""Real labelled plant folders: the reader, the SageMaker labels' convention and scale, each
+stage the folder allows, unlabelled flowers, and bad folders as one line and exit 2."""
+
+import json
+
+import numpy as np
+import pytest
+from realplants import CENTRES, NORMALS, SCALE, cuboids, write_real_plant
+
+from flowerpose.cli import main
+from flowerpose.errors import InputError
+from flowerpose.eval.harness import EvalConfig, run_eval
+from flowerpose.eval.real_source import read_real_plant, real_truth
+from flowerpose.eval.truth import read_sagemaker_truth
+
+
+def test_labels_come_back_in_the_cloud_units_with_the_authors_euler_convention(tmp_path):
+    folder = write_real_plant(tmp_path / "plant", "crops")
+    plant = read_real_plant(folder)
+    assert (plant.stage, plant.label_format, plant.truth_scale) == ("crops", "sagemaker", 25.0)
+    truth = real_truth(plant)
+    np.testing.assert_allclose([t.center for t in truth], CENTRES, atol=1e-12)
+    np.testing.assert_allclose([t.normal for t in truth], NORMALS, atol=1e-9)
+    assert all(t.visible for t in truth)
+    # The cuboids use all three angles, so the other convention reads other normals.
+    other = read_sagemaker_truth(folder / "labels.json", SCALE, convention="sagemaker")
+    assert max(np.degrees(np.arccos(np.clip(t.normal @ n, -1, 1)))
+               for t, n in zip(other, NORMALS, strict=True)) > 20
+
+
+@pytest.mark.parametrize("stage", ["crops", "candidates", "cloud"])
+def test_each_stage_finds_every_labelled_flower_and_its_normal(tmp_path, stage):
+    folder = write_real_plant(tmp_path / stage, stage)
+    report = run_eval(EvalConfig(), source="real", folders=[folder], out_dir=tmp_path / "out",
+                      workers=1)
+    plant = report["plants"][0]
+    assert (plant["stage"], plant["gt"], plant["found"], plant["fp"]) == (stage, 4, 4, 0)
+    assert max(plant["error_deg"]["plane"]) < 2.0
+    assert sorted(m["truth"] for m in plant["matches"]) == [f"Flower:{k}" for k in range(1, 5)]
+    assert (tmp_path / "out" / stage / "flowers.json").exists()
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["config"]["source"] == "real"
+
+
+def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_path):
+    unlisted = write_real_plant(tmp_path / "unlisted", "candidates", labelled=3)
+    listed = write_real_plant(tmp_path / "listed", "candidates", labelled=3,
+                              source={"unlabelled": [list(CENTRES[3] * SCALE)]})
+    report = run_eval(EvalConfig(), source="real", folders=[unlisted, listed],
+                      out_dir=tmp_path / "out", workers=1)
+    first, second = report["plants"]
+    assert (first["found"], first["extra"], first["fp"]) == (3, 0, 1)
+    assert (second["found"], second["visible"], second["extra"], second["fp"]) == (4, 3, 1, 0)
+
+
+def test_the_upstream_profile_runs_beside_the_default(tmp_path):
+    folder = write_real_plant(tmp_path / "plant", "crops")
+    report = run_eval(EvalConfig(), source="real", folders=[folder], out_dir=tmp_path / "out",
+                      workers=1, compare={"upstream": EvalConfig()})
+    assert report["compare"]["upstream"]["summary"]["found"] == 4
+    assert (tmp_path / "out" / "upstream" / "plant" / "flowers.json").exists()
+
+
+def test_a_scale_that_puts_no_label_near_any_point_is_refused(tmp_path):
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    with pytest.raises(InputError, match="is the scale right"):
+        run_eval(EvalConfig(), source="real", folders=[folder], truth_scale=1.0,
+                 out_dir=tmp_path / "out", workers=1)
+
+
+def _bad(tmp_path, make):
+    folder = tmp_path / "bad"
+    make(folder)
+    return folder
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda f: None, "no such folder"),
+    (lambda f: f.mkdir(), "no labels.json"),
+    (lambda f: (f.mkdir(), (f / "labels.json").write_text('{"answers": []}')),
+     "neither SageMaker"),
+    (lambda f: (f.mkdir(), (f / "labels.json").write_text(json.dumps(cuboids(CENTRES, NORMALS)))),
+     "no cloud.ply, candidates"),
+    (lambda f: (write_real_plant(f, "crops"), (f / "source.json").write_text('{"scale": 2}')),
+     "unknown key 'scale'"),
+    (lambda f: (write_real_plant(f, "crops"),
+                (f / "source.json").write_text('{"truth_scale": -1}')), "positive number"),
+    (lambda f: (write_real_plant(f, "crops"), (f / "source.json").write_text('{"units": "ft"}')),
+     '"units" must be'),
+])
+def test_bad_folders_are_one_line_and_exit_2(tmp_path, capsys, make, message):
+    folder = _bad(tmp_path, make)
+    assert main(["eval", "--source", "real", str(folder), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("flowerpose: error:") and message in err[0]
+
+
+def test_folders_need_the_real_source_and_the_real_source_needs_folders(tmp_path, capsys):
+    assert main(["eval", "--source", "oracle", str(tmp_path)]) == 2
+    assert main(["eval", "--source", "real", "--out", str(tmp_path / "o")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert "plant folders are for --source real" in lines[0]
+    assert "needs at least one labelled plant folder" in lines[1]
