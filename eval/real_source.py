@@ -176,7 +176,7 @@ def _check_scale(plant: RealPlant, truth: list[TruthFlower], points: np.ndarray,
                          "or truth_scale in source.json)")
 
 
-def _merged(paths: tuple[Path, ...], units: Units) -> Cloud:
+def merged_candidates(paths: tuple[Path, ...], units: Units) -> Cloud:
     """The candidate files as one cloud; a point in several views' files counts once."""
     clouds = [read_cloud(p, units=units) for p in paths]
     points = np.concatenate([c.points for c in clouds])
@@ -203,7 +203,7 @@ def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,
         write_json(out_dir / "flowers.json", flowers)
     else:
         cloud = (read_cloud(plant.clouds[0], units=plant.units) if plant.stage == "cloud"
-                 else _merged(plant.clouds, plant.units))
+                 else merged_candidates(plant.clouds, plant.units))
         _check_scale(plant, truth, cloud.points, max_distance)
         result = (find_flowers if plant.stage == "cloud" else find_flowers_in_candidates)(
             cloud, config)

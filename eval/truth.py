@@ -65,6 +65,29 @@ def read_plant_truth(path: str | Path) -> list[TruthFlower]:
     return truth
 
 
+def as_labelled(truth: list[TruthFlower], mean_error_deg: float,
+                seed: str) -> list[TruthFlower]:
+    """The truth with each normal tilted as a hand label's: toward a random direction, by
+    an angle with the given mean (Rayleigh, as the angle of an isotropic Gaussian tilt),
+    seeded by `seed` (the plant's name) and the flower's position in the list."""
+    import zlib
+
+    sigma = math.radians(mean_error_deg) / math.sqrt(math.pi / 2)
+    labelled = []
+    for k, flower in enumerate(truth):
+        rng = np.random.default_rng([zlib.crc32(seed.encode()), k])
+        tilt = rng.normal(0.0, sigma, 2)
+        side = np.cross(flower.normal, [1.0, 0.0, 0.0])
+        if np.linalg.norm(side) < 0.1:
+            side = np.cross(flower.normal, [0.0, 1.0, 0.0])
+        side /= np.linalg.norm(side)
+        other = np.cross(flower.normal, side)
+        rotation = Rotation.from_rotvec(tilt[0] * side + tilt[1] * other)
+        labelled.append(TruthFlower(flower.id, flower.center, rotation.apply(flower.normal),
+                                    flower.radius, flower.visible))
+    return labelled
+
+
 def _json_documents(text: str, path: Path) -> list[Any]:
     """One JSON document, or JSON lines (one document a line, as SageMaker manifests)."""
     try:

@@ -388,6 +388,21 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fidelity(args: argparse.Namespace) -> int:
+    from flowerpose.eval.fidelity import run_fidelity, table
+    from flowerpose.eval.harness import EvalConfig, pipeline_part
+
+    config = _configure(EvalConfig(), args)
+    report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
+                          config.score.max_distance_m, args.truth_scale)
+    print(table(report))
+    print(f"{report['holds']} of {report['of']} statistics within tolerance "
+          f"({report['real']['flowers']} real flowers, {report['synthetic']['flowers']} "
+          f"synthetic) -> {args.out / 'fidelity.json'}, {args.out / 'fidelity.md'}, "
+          f"{args.out / 'fidelity.png'}")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from flowerpose.eval.bench import run_bench
 
@@ -431,6 +446,11 @@ def _plant_xy(text: str) -> tuple[float, float]:
     return x, y
 
 
+#: Plant presets (sim/config.py): the README describes each.
+PRESETS = ("easy", "realistic", "hard", "field")
+PRESET_HELP = ("synthetic plants: easy, realistic (the benchmark), hard, or field (calibrated "
+               "on a real scan, with the hand labels' error in the scoring)")
+
 SEED = _at_least(0)
 POSITIVE = _at_least(1)
 
@@ -473,7 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plants", type=POSITIVE, default=None,
                    help=f"number of seeded plants (scan: {SCAN_PLANTS}, oracle and rgbd: 10)")
     p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
-    p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
+    p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
     _add_config_options(p)
@@ -483,7 +503,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=SEED, required=True)
     p.add_argument("--points", type=_at_least(100), default=None,
                    help="oracle cloud points (60000)")
-    p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
+    p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=cmd_plant)
 
@@ -588,11 +608,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a setting and its values; repeat for a grid over several")
     p.add_argument("--plants", type=POSITIVE, default=5)
     p.add_argument("--seed", type=SEED, default=0)
-    p.add_argument("--preset", choices=("easy", "realistic", "hard"), default="realistic")
+    p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--workers", type=POSITIVE, default=None)
     p.add_argument("--out", type=Path, required=True)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("fidelity", help="the same statistics of real and synthetic flowers "
+                       "side by side (size, thickness, cupping, colours), with tolerances")
+    p.add_argument("real", type=Path, metavar="REAL_DIR",
+                   help="a labelled real plant folder (cloud.ply or candidates/)")
+    p.add_argument("synthetic", type=Path, nargs="+", metavar="SYNTH_DIR",
+                   help="plant folders from flowerpose plant, or eval runs (their plants/)")
+    p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
+                   help="the real labels' scale (default: source.json, else 25)")
+    p.add_argument("--out", type=Path, required=True)
+    _add_config_options(p)
+    p.set_defaults(func=cmd_fidelity)
 
     p = sub.add_parser("bench", help="time the pipeline from cloud to flower poses")
     p.add_argument("--points", type=_at_least(1000), nargs="+", default=[125_000, 1_000_000])

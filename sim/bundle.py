@@ -10,8 +10,7 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.scanpath import path_cameras
-from flowerpose.sim.config import PresetName, SimConfig
-from flowerpose.sim.config import preset as plant_preset
+from flowerpose.sim.config import PresetName, SimConfig, sim_preset
 from flowerpose.sim.export import write_plant
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.plant import Plant, generate_plant
@@ -53,7 +52,7 @@ def make_plant(seed: int, preset: PresetName = "realistic", points: int | None =
     `config.oracle.points`; config: the whole sim config (its `plant` field replaces the
     preset). The cloud is seeded from `seed` too, so the bundle is reproducible.
     """
-    config = config or SimConfig(plant=plant_preset(preset))
+    config = config or sim_preset(preset)
     if points is not None:
         config = dataclasses.replace(config,
                                      oracle=dataclasses.replace(config.oracle, points=points))

@@ -15,6 +15,10 @@ wide), the 25 cm soil disc and the colours. They differ in:
   plant axis); 15% of inflorescences start a few centimetres under a leaflet; 15% of second
   and third flowers touch their neighbour at the rim; 0-4 green buds and 0-3 green or red
   fruit as distractors.
+- ``field``: the realistic plant calibrated on a real scan (the authors' plant 3, with
+  `flowerpose fidelity`): 4.2-5.8 cm flowers, corollas from curled down (-0.35) to cupped
+  (+0.2) and uneven, and an oracle cloud like a photogrammetry one: denser, noisier, its
+  foliage paled and yellowed. Its scoring adds the hand labels' error (`score`).
 - ``hard``: a crowded plant. 16-24 leaves; 10-24 flowers; stronger curl (-0.6 to +0.5);
   more flowers sideways and facing down (up to 170 degrees from vertical, 30% beyond 90)
   and a wider azimuth spread; 30% of inflorescences under leaflets; 35% touching; 2-8 buds
@@ -30,7 +34,7 @@ from typing import Literal
 from flowerpose.errors import InputError
 from flowerpose.scanpath import ScanPathConfig
 
-PresetName = Literal["easy", "realistic", "hard"]
+PresetName = Literal["easy", "realistic", "hard", "field"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,8 @@ class PlantConfig:
     """Range of the number of open flowers (the truth)."""
     flower_diameter_m: tuple[float, float] = (0.020, 0.035)
     """Range of open-flower diameters (petal tip to petal tip, projected), metres."""
+    receptacle_radius_m: tuple[float, float] = (0.003, 0.004)
+    """Range of the yellow receptacle's radius, metres (6-8 mm wide)."""
     petal_counts: tuple[int, ...] = (5, 6, 7, 8)
     """Possible numbers of petals per flower."""
     petal_count_weights: tuple[float, ...] = (0.86, 0.08, 0.04, 0.02)
@@ -130,6 +136,18 @@ class OracleCloudConfig:
     this distance of it, metres."""
     max_viewpoints: int = 72
     """Viewpoints used for the visibility test, evenly chosen along the scan path (speed)."""
+    foliage_saturation: float = 1.0
+    """Saturation of leaves, stems, sepals, buds and the crown is multiplied by this: a
+    photogrammetry cloud's texture pales foliage (the authors' plant 3: leaf saturation
+    median 0.39, the generator's 0.63)."""
+    foliage_value: float = 1.0
+    """... their value multiplied by this."""
+    foliage_hue_shift_deg: float = 0.0
+    """... and their hue moved by this many degrees (negative: toward yellow)."""
+    foliage_sheen: float = 0.0
+    """This share of the foliage points is blended toward the sky's pale grey by a uniform
+    random weight: sheen on leaves, which a photogrammetry texture keeps (the authors' plant
+    3: 14% of its leaf points have a petal's colour, the generator's none)."""
 
 
 @dataclass(frozen=True)
@@ -162,4 +180,31 @@ def preset(name: PresetName) -> PlantConfig:
             petal_cup_jitter=0.1, polar_bins_deg=(0.0, 30.0, 60.0, 90.0, 120.0, 170.0),
             polar_bin_weights=(0.2, 0.25, 0.25, 0.17, 0.13), azimuth_spread_deg=70.0,
             hidden_probability=0.3, cluster_probability=0.35, buds=(2, 8), fruit=(2, 6))
-    raise InputError("preset", f"unknown plant preset {name!r} (easy, realistic, hard)")
+    if name == "field":
+        return dataclasses.replace(
+            realistic, name="field", flower_diameter_m=FIELD_FLOWER_DIAMETER_M,
+            receptacle_radius_m=FIELD_RECEPTACLE_RADIUS_M, cup=FIELD_CUP,
+            petal_cup_jitter=FIELD_PETAL_CUP_JITTER)
+    raise InputError("preset", f"unknown plant preset {name!r} (easy, realistic, hard, field)")
+
+
+#: The field preset, calibrated on the authors' plant 3 with `flowerpose fidelity`
+#: (README, "The simulator against the field"): its flowers (artificial ones among them)
+#: are 4-6 cm across, their corollas more often curl down than cup, unevenly.
+FIELD_FLOWER_DIAMETER_M = (0.042, 0.058)
+FIELD_RECEPTACLE_RADIUS_M = (0.006, 0.0075)
+FIELD_CUP = (-0.45, 0.1)
+FIELD_PETAL_CUP_JITTER = 0.1
+#: ... and its cloud: denser, noisier, foliage paled and yellowed by the texture.
+FIELD_ORACLE = {"points": 100_000, "position_noise_m": 0.002, "foliage_saturation": 0.6,
+                "foliage_value": 0.85, "foliage_hue_shift_deg": -17.0, "foliage_sheen": 0.22}
+
+
+def sim_preset(name: PresetName) -> SimConfig:
+    """The whole synthetic world of a named preset: its plants and, for "field", the
+    degraded oracle cloud too."""
+    config = SimConfig(plant=preset(name))
+    if name == "field":
+        config = dataclasses.replace(
+            config, oracle=dataclasses.replace(config.oracle, **FIELD_ORACLE))
+    return config

@@ -69,7 +69,7 @@ def open_flower(rng: np.random.Generator, config: PlantConfig) -> LocalFlower:
     weights = np.asarray(config.petal_count_weights, np.float64)
     n_petals = int(rng.choice(np.asarray(config.petal_counts), p=weights / weights.sum()))
     cup = rng.uniform(*config.cup)
-    rec_radius = rng.uniform(0.003, 0.004)
+    rec_radius = rng.uniform(*config.receptacle_radius_m)
     rec_height = rng.uniform(0.002, 0.003)
     base = 0.7 * rec_radius
     length = radius - base

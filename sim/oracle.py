@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -13,6 +14,26 @@ from flowerpose.sim.raycast import make_scene, seen_from_any
 
 #: First draw is this many times the requested count (hidden points are dropped).
 OVERSAMPLE = 1.5
+
+
+#: Parts whose colours the photogrammetry texture pales (`OracleCloudConfig.foliage_*`).
+FOLIAGE = (Part.LEAF, Part.PETIOLE, Part.PEDUNCLE, Part.SEPAL, Part.BUD, Part.CROWN)
+
+
+#: The sky's pale grey that sheen on leaves blends toward, 8-bit RGB.
+SHEEN_RGB = np.array([205.0, 210.0, 218.0])
+
+
+def _pale(colors: np.ndarray, config: OracleCloudConfig) -> np.ndarray:
+    """(N, 3) uint8 colours with their saturation and value scaled and hue shifted."""
+    from flowerpose.sim.colours import hsv_to_rgb
+
+    hsv = cv2.cvtColor(colors.reshape(-1, 1, 3).astype(np.float32) / 255.0,
+                       cv2.COLOR_RGB2HSV).reshape(-1, 3).astype(np.float64)
+    hsv[:, 0] += config.foliage_hue_shift_deg
+    hsv[:, 1] = np.clip(hsv[:, 1] * config.foliage_saturation, 0.0, 1.0)
+    hsv[:, 2] = np.clip(hsv[:, 2] * config.foliage_value, 0.0, 1.0)
+    return np.clip(np.rint(hsv_to_rgb(hsv) * 255.0), 0, 255).astype(np.uint8)
 
 
 def spread_subset(viewpoints: np.ndarray, count: int) -> np.ndarray:
@@ -68,6 +89,15 @@ def sample_oracle_cloud(plant: Plant, config: OracleCloudConfig, viewpoints: np.
     rgb = rgb * (1.0 - config.shading * (1.0 - facing))[:, None]
     rgb = rgb + rng.normal(0.0, config.color_jitter, rgb.shape)
     colors = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
+    foliage = np.isin(plant.face_part[faces], FOLIAGE)
+    if foliage.any() and (config.foliage_saturation, config.foliage_value,
+                          config.foliage_hue_shift_deg) != (1.0, 1.0, 0.0):
+        colors[foliage] = _pale(colors[foliage], config)
+    if config.foliage_sheen > 0:
+        sheened = foliage & (rng.random(len(colors)) < config.foliage_sheen)
+        weight = rng.random(int(sheened.sum()))[:, None]
+        colors[sheened] = np.rint((1.0 - weight) * colors[sheened] + weight * SHEEN_RGB
+                                  ).astype(np.uint8)
     if config.position_noise_m > 0:
         points = points + rng.normal(0.0, config.position_noise_m, points.shape)
     return Cloud(points, colors), plant.face_part[faces].copy(), plant.face_flower[faces].copy()

@@ -1,0 +1,316 @@
+"""How closely synthetic flowers resemble real ones: the same statistics on both.
+
+For each labelled flower the pipeline finds, its crop is described in the frame of the
+true normal round the pipeline's centre (the pistil): r is the distance from the axis, h the
+height along it, R the corolla radius (`segment.corolla`). The corolla is the ring
+0.3 R <= r <= R within 0.3 R of the petal surface (h = a + b r^2 fitted to the ring); the
+centre is r < 0.3 R, from just behind the petal base to 0.3 R in front of it; leaves are
+the points farther than 1.5 typical radii from every flower. Statistics per flower:
+points, diameter 2R, petal thickness (RMS distance of the corolla to its plane), cupping
+b R (rim rise over radius, positive cupped up), the share of corolla points that fail the
+petal colour test and the share of the crop that is neither corolla nor centre (leaves
+and stems inside the crop); per point class, the HSV distribution. Geometry, not colour,
+decides the classes, so the colour tests can be judged by them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flowerpose.cloudio import Cloud, read_cloud
+from flowerpose.errors import InputError
+from flowerpose.eval.match import match_flowers
+from flowerpose.eval.real_source import RealPlant, merged_candidates, read_real_plant, real_truth
+from flowerpose.eval.truth import TruthFlower, read_plant_truth
+from flowerpose.jsonio import write_json
+from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
+from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, find_flowers_in_candidates
+from flowerpose.pipeline.segment import corolla, remove_ground
+
+#: Percentiles every distribution is summarised by.
+PERCENTILES = (5, 25, 50, 75, 95)
+#: Inner edge of the corolla ring and the half-width of its slab, in corolla radii.
+RING_INNER = 0.3
+SLAB = 0.3
+#: The centre reaches this many corolla radii behind the petal base (the receptacle's foot).
+BASE_DEPTH = 0.05
+#: Leaves: points farther than this many typical radii from every flower.
+LEAF_DISTANCE = 1.5
+
+#: Statistic -> (what is compared, tolerance, why). "ratio" tolerances bound real/synthetic.
+TOLERANCES: dict[str, tuple[str, float, str]] = {
+    "points_per_flower": ("ratio", 2.0, "density moves DBSCAN and the corolla test only "
+                          "through counts; a factor 2 keeps both in their measured range"),
+    "diameter": ("ratio", 1.2, "the radius limits are in flower radii, but the fixed ones "
+                 "(DBSCAN eps, the split distance) are not"),
+    "thickness": ("ratio", 1.3, "petal thickness against diameter is the plane fit's noise"),
+    "cupping": ("difference", 0.05, "the median rim rise per radius decides the curved fits"),
+    "petal_colour_fail": ("difference", 0.05, "a petal point lost to colour is lost to the fit"),
+    "leaf_in_crop": ("difference", 0.10, "leaves in a crop pull the crop-centroid offset"),
+    "leaf_petal_colour": ("difference", 0.05, "leaf points of petal colour are what the "
+                          "flower test and the corolla coverage must reject"),
+    "hue": ("difference", 10.0, "degrees: the colour bands are 15-20 degrees wide"),
+    "saturation": ("difference", 0.05, "the petal band ends at 0.39, the pistil's at 0.30"),
+    "value": ("difference", 0.05, "the petal band starts at 0.40"),
+}
+
+
+@dataclass
+class Sample:
+    """One plant's data for the statistics: the cloud, its truth, the crops the pipeline
+    found for labelled flowers (truth index -> cloud indices) and their centres."""
+
+    name: str
+    cloud: Cloud
+    truth: list[TruthFlower]
+    crops: dict[int, np.ndarray]
+    centres: dict[int, np.ndarray]
+    background: np.ndarray
+    """Indices of points that may be leaves (above the soil)."""
+
+
+def _matched(name: str, cloud: Cloud, truth: list[TruthFlower], flowers: list,
+             background: np.ndarray, max_distance: float) -> Sample:
+    centres = np.array([f.pose.center for f in flowers]).reshape(-1, 3)
+    pairs = match_flowers(centres, np.array([t.center for t in truth]).reshape(-1, 3),
+                          max_distance)
+    visible = [(i, j) for i, j in pairs if truth[j].visible]
+    return Sample(name, cloud, truth, {j: flowers[i].crop for i, j in visible},
+                  {j: flowers[i].pose.center for i, j in visible}, background)
+
+
+def real_sample(plant: RealPlant, config: PipelineConfig, max_distance: float) -> Sample:
+    """A real plant folder's sample (cloud or candidates; crops are one flower each)."""
+    truth = real_truth(plant)
+    if plant.stage == "crops":
+        raise InputError(plant.folder, "fidelity needs cloud.ply or candidates/: crops hold "
+                         "no leaves to compare")
+    if plant.stage == "cloud":
+        cloud = read_cloud(plant.clouds[0], units=plant.units)
+        result = find_flowers(cloud, config)
+        background = remove_ground(cloud, config.ground)
+    else:
+        cloud = merged_candidates(plant.clouds, plant.units)
+        result = find_flowers_in_candidates(cloud, config)
+        background = np.arange(len(cloud))
+    return _matched(plant.name, cloud, truth, result.flowers, background, max_distance)
+
+
+def synthetic_sample(folder: Path, config: PipelineConfig, max_distance: float) -> Sample:
+    """A generated plant's sample: plant.json and its cloud.ply (oracle)."""
+    truth = read_plant_truth(folder / "plant.json")
+    cloud = read_cloud(folder / "cloud.ply")
+    result = find_flowers(cloud, config)
+    return _matched(folder.name, cloud, truth, result.flowers,
+                    remove_ground(cloud, config.ground), max_distance)
+
+
+def synthetic_folders(paths: list[Path]) -> list[Path]:
+    """Plant folders (plant.json and cloud.ply) given directly or inside an eval run's
+    plants/ folder."""
+    folders = []
+    for path in paths:
+        if (path / "plant.json").is_file() and (path / "cloud.ply").is_file():
+            folders.append(path)
+        elif found := sorted(p for p in (path / "plants").glob("seed-*")
+                             if (p / "plant.json").is_file() and (p / "cloud.ply").is_file()):
+            folders.extend(found)
+        else:
+            raise InputError(path, "neither a plant folder (plant.json and cloud.ply, from "
+                             "flowerpose plant) nor an eval run with plants/seed-*/")
+    return folders
+
+
+def _flower_stats(sample: Sample, j: int, config: PipelineConfig) -> dict[str, Any] | None:
+    crop_index = sample.crops[j]
+    points, colors = sample.cloud.points[crop_index], sample.cloud.colors[crop_index]
+    hsv = rgb_to_hsv(colors)
+    shape = corolla(points, petal_mask(hsv, config.colour), pistil_mask(hsv, config.colour),
+                    config.cluster)
+    radius = shape.radius
+    if radius <= 0:
+        return None
+    normal = sample.truth[j].normal
+    offset = points - sample.centres[j]
+    height = offset @ normal
+    across = np.linalg.norm(offset - np.outer(height, normal), axis=1)
+    ring = (across >= RING_INNER * radius) & (across <= radius)
+    if ring.sum() < 10:
+        return None
+    design = np.column_stack([np.ones(ring.sum()), across[ring] ** 2])
+    (base, curve), *_ = np.linalg.lstsq(design, height[ring], rcond=None)
+    surface = base + curve * across ** 2
+    petals = ring & (np.abs(height - surface) <= SLAB * radius)
+    # The pistil stands in front of the petal base; the sepals behind it are not centre.
+    lift = height - base
+    centre = (across < RING_INNER * radius) & (lift >= -BASE_DEPTH * radius) & (
+        lift <= SLAB * radius)
+    if petals.sum() < 10:
+        return None
+    corolla_points = points[petals] - points[petals].mean(axis=0)
+    plane = np.linalg.eigh(corolla_points.T @ corolla_points)[1][:, 0]
+    return {
+        "points": len(points), "diameter": 2 * radius,
+        "thickness": float(np.sqrt(np.mean((corolla_points @ plane) ** 2))),
+        "cupping": float(curve * radius),
+        "petal_colour_fail": float(1.0 - petal_mask(hsv[petals], config.colour).mean()),
+        "leaf_in_crop": float(1.0 - (petals | centre).mean()),
+        "hsv": {"petal": hsv[petals], "centre": hsv[centre]},
+    }
+
+
+def _leaf_hsv(sample: Sample, typical: float) -> np.ndarray:
+    candidates = sample.background
+    centres = np.array([t.center for t in sample.truth]).reshape(-1, 3)
+    if len(centres):
+        from scipy.spatial import cKDTree
+
+        nearest = cKDTree(centres).query(sample.cloud.points[candidates])[0]
+        candidates = candidates[nearest > LEAF_DISTANCE * typical]
+    return rgb_to_hsv(sample.cloud.colors[candidates])
+
+
+def _summary(values: np.ndarray) -> dict[str, float]:
+    if len(values) == 0:
+        return {f"p{q}": None for q in PERCENTILES}
+    return {f"p{q}": round(float(v), 4) for q, v in
+            zip(PERCENTILES, np.percentile(values, PERCENTILES), strict=True)}
+
+
+def statistics(samples: list[Sample], config: PipelineConfig) -> dict[str, Any]:
+    """The statistics of one side (real or synthetic), over its plants' flowers; raw
+    values for the plots under "_raw"."""
+    flowers = [s for sample in samples for j in sample.crops
+               if (s := _flower_stats(sample, j, config)) is not None]
+    if not flowers:
+        raise InputError(samples[0].name if samples else "fidelity",
+                         "no labelled flower was found, so there is nothing to describe")
+    typical = float(np.median([f["diameter"] for f in flowers])) / 2
+    raw = {key: np.array([f[key] for f in flowers], np.float64)
+           for key in ("points", "diameter", "thickness", "cupping", "petal_colour_fail",
+                       "leaf_in_crop")}
+    hsv = {"petal": np.concatenate([f["hsv"]["petal"] for f in flowers]),
+           "centre": np.concatenate([f["hsv"]["centre"] for f in flowers]),
+           "leaf": np.concatenate([_leaf_hsv(s, typical) for s in samples])}
+    out: dict[str, Any] = {"plants": [s.name for s in samples], "flowers": len(flowers)}
+    out.update({key: _summary(values) for key, values in raw.items()})
+    out["hsv"] = {part: {channel: _summary(values[:, k]) for k, channel in
+                         enumerate(("hue", "saturation", "value"))}
+                  for part, values in hsv.items()}
+    out["leaf_petal_colour"] = round(float(petal_mask(hsv["leaf"], config.colour).mean()), 4) \
+        if len(hsv["leaf"]) else None
+    out["_raw"] = {**raw, **{f"hsv_{part}": values for part, values in hsv.items()}}
+    return out
+
+
+def compare(real: dict[str, Any], synthetic: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each statistic's medians side by side, its tolerance and whether it holds."""
+    rows = []
+
+    def row(name: str, key: str, real_value: float | None, synth_value: float | None) -> None:
+        kind, tolerance, why = TOLERANCES[key]
+        if real_value is None or synth_value is None:
+            holds, gap = False, None
+        elif kind == "ratio":
+            gap = (max(real_value, synth_value) / min(real_value, synth_value)
+                   if min(real_value, synth_value) > 0 else math.inf)
+            holds = gap <= tolerance
+        else:
+            gap = abs(real_value - synth_value)
+            holds = gap <= tolerance
+        rows.append({"statistic": name, "real": real_value, "synthetic": synth_value,
+                     "compared": kind, "gap": None if gap is None else round(gap, 4),
+                     "tolerance": tolerance, "holds": bool(holds), "why": why})
+
+    mapping = {"points": "points_per_flower", "diameter": "diameter", "thickness": "thickness",
+               "cupping": "cupping", "petal_colour_fail": "petal_colour_fail",
+               "leaf_in_crop": "leaf_in_crop"}
+    for key, tolerance_key in mapping.items():
+        row(f"{key} (median)", tolerance_key, real[key]["p50"], synthetic[key]["p50"])
+    row("leaf points of petal colour", "leaf_petal_colour", real["leaf_petal_colour"],
+        synthetic["leaf_petal_colour"])
+    for part in ("petal", "centre", "leaf"):
+        # The hue of a white is noise (its saturation is near 0): petals are judged by
+        # saturation and value only.
+        for channel in ("saturation", "value") if part == "petal" else ("hue", "saturation",
+                                                                          "value"):
+            row(f"{part} {channel} (median)", channel, real["hsv"][part][channel]["p50"],
+                synthetic["hsv"][part][channel]["p50"])
+    return rows
+
+
+def _plot(path: Path, real: dict[str, Any], synthetic: dict[str, Any], names: tuple[str, str]
+          ) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("points", "points per flower", None), ("diameter", "diameter", None),
+              ("thickness", "petal thickness (RMS to plane)", None),
+              ("cupping", "cupping (rim rise / radius)", None)]
+    for part in ("petal", "centre", "leaf"):
+        for k, channel in enumerate(("hue (degrees)", "saturation", "value")):
+            panels.append((f"hsv_{part}", f"{part} {channel}", k))
+    fig, axes = plt.subplots(4, 4, figsize=(16, 12))
+    for ax, (key, title, channel) in zip(axes.ravel(), panels, strict=False):
+        for side, colour, label in ((real, "tab:red", names[0]), (synthetic, "tab:blue",
+                                                                   names[1])):
+            values = side["_raw"][key]
+            values = values[:, channel] if channel is not None else values
+            if len(values):
+                ax.hist(values, bins=30, density=True, alpha=0.5, color=colour, label=label)
+        ax.set_title(title, fontsize=9)
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("flowerpose fidelity: real (red) and synthetic (blue) flowers")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def table(report: dict[str, Any]) -> str:
+    """The comparison as a Markdown table."""
+    header = "| statistic | real | synthetic | gap | tolerance | holds |"
+    lines = [header, "|---|---|---|---|---|---|"]
+    for row in report["comparison"]:
+        def show(value: float | None) -> str:
+            return "-" if value is None else f"{value:.4g}"
+        tolerance = (f"x{row['tolerance']:g}" if row["compared"] == "ratio"
+                     else f"±{row['tolerance']:g}")
+        gap = "-" if row["gap"] is None else (f"x{row['gap']:.3g}" if row["compared"] == "ratio"
+                                              else f"{row['gap']:.3g}")
+        lines.append(f"| {row['statistic']} | {show(row['real'])} | {show(row['synthetic'])} | "
+                     f"{gap} | {tolerance} | {'yes' if row['holds'] else 'no'} |")
+    return "\n".join(lines)
+
+
+def run_fidelity(real_dir: Path, synthetic_dirs: list[Path], out_dir: Path,
+                 config: PipelineConfig, max_distance: float,
+                 truth_scale: float | None = None) -> dict[str, Any]:
+    """Statistics of a real plant folder and of synthetic plants, compared; writes
+    fidelity.json and fidelity.png to out_dir and returns the comparison."""
+    real_plant = read_real_plant(real_dir, truth_scale)
+    folders = synthetic_folders(synthetic_dirs)
+    real = statistics([real_sample(real_plant, config, max_distance)], config)
+    synthetic = statistics([synthetic_sample(f, config, max_distance) for f in folders], config)
+    rows = compare(real, synthetic)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _plot(out_dir / "fidelity.png", real, synthetic, (real_plant.name, "synthetic"))
+    report = {"real": {k: v for k, v in real.items() if k != "_raw"},
+              "synthetic": {k: v for k, v in synthetic.items() if k != "_raw"},
+              "comparison": rows, "holds": sum(r["holds"] for r in rows), "of": len(rows)}
+    write_json(out_dir / "fidelity.json", json.loads(json.dumps(report)))
+    (out_dir / "fidelity.md").write_text(
+        f"# flowerpose fidelity: {real_plant.name} against {len(folders)} synthetic plants\n\n"
+        f"{table(report)}\n\nTolerances and why:\n\n"
+        + "".join(f"- {key}: {kind} within {tolerance:g}: {why}\n"
+                  for key, (kind, tolerance, why) in TOLERANCES.items()))
+    return report
