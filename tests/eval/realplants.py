@@ -80,11 +80,16 @@ def write_real_plant(folder: Path, stage: str, seed: int = 0, labelled: int | No
         for k, f in enumerate(flowers):
             write_cloud(folder / "crops" / f"flower_{k}.ply", f)
     elif stage == "candidates":
-        # Two views' detections, each with two of the flowers and one flower in both.
+        # Two views' detections, each with some of the flowers (one flower in both), and a
+        # leaf the first view's detector took for a flower.
+        leaf = Cloud(np.column_stack([rng.uniform(0.12, 0.18, (800, 2)),
+                                      rng.normal(0.2, 0.001, 800)]),
+                     np.tile(np.array(LEAF, np.uint8), (800, 1)))
         for view, picked in enumerate(([0, 1, 2], [2, 3])):
+            parts = [flowers[k] for k in picked] + ([leaf] if view == 0 else [])
             write_cloud(folder / "candidates" / f"pcd_{view}.ply",
-                        Cloud(np.vstack([flowers[k].points for k in picked]),
-                              np.vstack([flowers[k].colors for k in picked])))
+                        Cloud(np.vstack([p.points for p in parts]),
+                              np.vstack([p.colors for p in parts])))
     else:
         soil = np.column_stack([rng.uniform(-0.2, 0.2, (6000, 2)), rng.normal(0, 0.001, 6000)])
         write_cloud(folder / "cloud.ply",

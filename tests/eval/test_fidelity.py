@@ -1,0 +1,66 @@
+"""Fidelity statistics on flowers of known shape, the CLI on a real folder and a seeded
+plant, and the field preset's plants and cloud."""
+
+import json
+
+import numpy as np
+import pytest
+from realplants import write_real_plant
+
+from flowerpose.cli import main
+from flowerpose.eval.fidelity import compare, real_sample, statistics
+from flowerpose.eval.real_source import read_real_plant
+from flowerpose.pipeline.colour import petal_mask, rgb_to_hsv
+from flowerpose.pipeline.flowers import PipelineConfig
+from flowerpose.sim.bundle import make_plant
+from flowerpose.sim.config import sim_preset
+from flowerpose.sim.pieces import Part
+
+
+def test_statistics_of_flowers_of_known_size_cupping_and_colour(tmp_path):
+    plant = read_real_plant(write_real_plant(tmp_path / "plant", "candidates"))
+    stats = statistics([real_sample(plant, PipelineConfig(), 0.02)], PipelineConfig())
+    assert stats["flowers"] == 4
+    # Corollas of radius 20 mm whose rim rises a tenth of the radius, 0.2 mm of noise.
+    assert stats["diameter"]["p50"] == pytest.approx(0.04, rel=0.1)
+    assert stats["cupping"]["p50"] == pytest.approx(0.1, abs=0.03)
+    assert stats["thickness"]["p50"] < 0.001
+    assert stats["petal_colour_fail"]["p50"] < 0.02
+    assert stats["leaf_petal_colour"] == 0.0
+    rows = compare(stats, stats)
+    assert all(row["holds"] for row in rows) and len(rows) == 15
+
+
+def test_the_command_compares_a_real_folder_with_a_seeded_plant(tmp_path, plant0, capsys):
+    real = write_real_plant(tmp_path / "real", "candidates")
+    assert main(["fidelity", str(real), str(plant0[1]), "--out", str(tmp_path / "f")]) == 0
+    report = json.loads((tmp_path / "f" / "fidelity.json").read_text())
+    assert report["of"] == 15 and report["synthetic"]["plants"] == [plant0[1].name]
+    # Generated flowers are 2-3.5 cm across; these test flowers 4 cm.
+    sizes = {r["statistic"]: r for r in report["comparison"]}
+    assert not sizes["diameter (median)"]["holds"]
+    assert (tmp_path / "f" / "fidelity.png").stat().st_size > 0
+    assert "statistics within tolerance" in capsys.readouterr().out
+
+
+def test_crops_cannot_be_described_and_say_so(tmp_path, plant0, capsys):
+    real = write_real_plant(tmp_path / "real", "crops")
+    assert main(["fidelity", str(real), str(plant0[1]), "--out", str(tmp_path / "f")]) == 2
+    assert "fidelity needs cloud.ply or candidates/" in capsys.readouterr().err
+
+
+def test_the_field_preset_makes_large_flowers_and_a_paled_sheened_cloud():
+    field = make_plant(1, preset="field")
+    realistic = make_plant(1, preset="realistic")
+    assert sim_preset("field").plant.name == "field"
+    diameters = [2 * f.radius for f in field.plant.flowers]
+    assert min(diameters) >= 0.04 and max(diameters) <= 0.06
+    assert len(field.cloud) == 100_000
+
+    def leaves(bundle):
+        return rgb_to_hsv(bundle.cloud.colors[bundle.point_part == Part.LEAF])
+
+    assert np.median(leaves(field)[:, 1]) < 0.8 * np.median(leaves(realistic)[:, 1])
+    # Sheen gives some leaf points a petal's colour, as on a real photogrammetry cloud.
+    assert 0.05 < petal_mask(leaves(field), PipelineConfig().colour).mean() < 0.3
+    assert petal_mask(leaves(realistic), PipelineConfig().colour).mean() < 0.01
