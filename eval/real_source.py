@@ -177,13 +177,11 @@ def _check_scale(plant: RealPlant, truth: list[TruthFlower], points: np.ndarray,
 
 
 def merged_candidates(paths: tuple[Path, ...], units: Units) -> Cloud:
-    """The candidate files as one cloud; a point in several views' files counts once."""
+    """The candidate files as one cloud (a point several views took is there several
+    times; the candidates stage counts it once)."""
     clouds = [read_cloud(p, units=units) for p in paths]
-    points = np.concatenate([c.points for c in clouds])
-    colors = np.concatenate([c.colors for c in clouds])
-    _, first = np.unique(points, axis=0, return_index=True)
-    first.sort()
-    return Cloud(points[first], colors[first])
+    return Cloud(np.concatenate([c.points for c in clouds]),
+                 np.concatenate([c.colors for c in clouds]))
 
 
 def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,

@@ -85,22 +85,28 @@ def cmd_plant(args: argparse.Namespace) -> int:
 def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud, write_cloud
     from flowerpose.config import to_dict
-    from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, write_flowers
+    from flowerpose.pipeline.flowers import (
+        PipelineConfig,
+        find_flowers,
+        find_flowers_in_candidates,
+        write_flowers,
+    )
     from flowerpose.pipeline.views import write_views
 
     config = _configure(PipelineConfig(), args)
     cloud = read_cloud(args.cloud, units=args.units)
-    result = find_flowers(cloud, config)
+    result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
     out: Path = args.out
     write_flowers(out / "flowers.json", result)
     (out / "config.json").write_text(json.dumps(to_dict(config), indent=1))
-    write_views(out / "views", result.projections, result.detections)
+    if result.projections:
+        write_views(out / "views", result.projections, result.detections)
     for flower in result.flowers:
         write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply", cloud.subset(flower.crop))
     found = sum(f.pose.normals["plane"] is not None for f in result.flowers)
+    views = f", {out / 'views' / 'views.png'}" if result.projections else ""
     print(f"{len(result.flowers)} flowers ({found} with a normal) in "
-          f"{result.timing_s['total']:.2f} s -> {out / 'flowers.json'}, "
-          f"{out / 'views' / 'views.png'}")
+          f"{result.timing_s['total']:.2f} s -> {out / 'flowers.json'}{views}")
     return 0
 
 
@@ -582,6 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
                    help="the cloud's unit (auto: decided from its extent)")
+    p.add_argument("--candidates", action="store_true",
+                   help="CLOUD.ply holds points a detector already took out of views (its "
+                   "crops, merged): skip ground removal, the grid and detection")
     _add_config_options(p)
     p.set_defaults(func=cmd_detect)
 

@@ -115,10 +115,13 @@ def find_flowers_in_candidates(candidates: Cloud,
                                config: PipelineConfig = PipelineConfig()) -> FlowerResult:
     """Flowers and their normals among points already taken out of grid views (a
     detector's crops, merged): outlier removal, clustering and pose, no ground removal,
-    grid or detection. candidates: metres (or the cloud's unit), any frame."""
+    grid or detection. candidates: metres (or the cloud's unit), any frame; a point that
+    several views took counts once (crops index the first copy)."""
     timer = _Timer()
-    every = np.arange(len(candidates))
-    flowers = _flowers_among(candidates, every, every, config, timer)
+    _, first = np.unique(candidates.points, axis=0, return_index=True)
+    first.sort()
+    points = candidates.subset(first)
+    flowers = _flowers_among(points, np.arange(len(points)), first, config, timer)
     return FlowerResult(flowers, [], [], timer.total())
 
 

@@ -100,3 +100,17 @@ def test_folders_need_the_real_source_and_the_real_source_needs_folders(tmp_path
     lines = capsys.readouterr().err.strip().splitlines()
     assert "plant folders are for --source real" in lines[0]
     assert "needs at least one labelled plant folder" in lines[1]
+
+
+def test_detect_takes_a_detectors_candidates_and_counts_a_point_once(tmp_path, capsys):
+    from flowerpose.cloudio import Cloud, read_cloud, write_cloud
+
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    views = [read_cloud(p) for p in sorted((folder / "candidates").glob("*.ply"))]
+    merged = tmp_path / "merged.ply"
+    write_cloud(merged, Cloud(np.vstack([v.points for v in views]),
+                              np.vstack([v.colors for v in views])))
+    assert main(["detect", str(merged), "--candidates", "--out", str(tmp_path / "d")]) == 0
+    flowers = json.loads((tmp_path / "d" / "flowers.json").read_text())["flowers"]
+    assert len(flowers) == 4 and not (tmp_path / "d" / "views").exists()
+    assert "4 flowers (4 with a normal)" in capsys.readouterr().out
