@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import sys
 from pathlib import Path
 
 from flowerpose.config import to_dict
+from flowerpose.jsonio import write_json
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
 from flowerpose.sim.bundle import make_plant
 
@@ -44,7 +44,6 @@ def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
     report = {"results": results, "repeat": repeat, "seed": seed, "cpu_count": os.cpu_count(),
               "config": to_dict(config)}
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "bench.json").write_text(json.dumps(report, indent=1))
+        write_json(out / "bench.json", report)
         print(f"bench: {out / 'bench.json'}")
     return report

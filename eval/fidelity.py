@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from flowerpose.atomic import write_figure, write_text
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.match import match_flowers
@@ -274,7 +275,7 @@ def _plot(path: Path, real: dict[str, Any], synthetic: dict[str, Any], names: tu
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("flowerpose fidelity: real (red) and synthetic (blue) flowers")
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    write_figure(path, fig, dpi=80)
     plt.close(fig)
 
 
@@ -310,7 +311,7 @@ def run_fidelity(real_dir: Path, synthetic_dirs: list[Path], out_dir: Path,
               "synthetic": {k: v for k, v in synthetic.items() if k != "_raw"},
               "comparison": rows, "holds": sum(r["holds"] for r in rows), "of": len(rows)}
     write_json(out_dir / "fidelity.json", json.loads(json.dumps(report)))
-    (out_dir / "fidelity.md").write_text(
+    write_text(out_dir / "fidelity.md",
         f"# flowerpose fidelity: {real_plant.name} against {len(folders)} synthetic plants\n\n"
         f"{table(report)}\n\nTolerances and why:\n\n"
         + "".join(f"- {key}: {kind} within {tolerance:g}: {why}\n"

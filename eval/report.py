@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from flowerpose.atomic import write_text
+from flowerpose.jsonio import write_json
 from flowerpose.pipeline.pose import METHODS
 
 #: The paper's Table I column order, with its published numbers for comparison.
@@ -152,15 +154,12 @@ def summary_lines(report: dict) -> list[str]:
 
 def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
     """Write report.json and report.md into out_dir."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    json_path = out_dir / "report.json"
-    json_path.write_text(json.dumps(report, indent=1))
+    json_path = write_json(out_dir / "report.json", report)
     md = [f"# {title}", "", table(report), "", *[f"- {line}" for line in summary_lines(report)]]
     if report.get("compare"):
         md += ["", "## Compared on the same plants", "", comparison_table(report)]
     md += ["", "## Timing (seconds)", "", "| stage | seconds |", "|---|---|"]
     md += [f"| {k} | {v:.3f} |" for k, v in report["timing_s"].items()]
     md += ["", "## Configuration", "", "```json", json.dumps(report["config"], indent=1), "```", ""]
-    md_path = out_dir / "report.md"
-    md_path.write_text("\n".join(md))
+    md_path = write_text(out_dir / "report.md", "\n".join(md))
     return json_path, md_path

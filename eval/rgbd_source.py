@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from flowerpose.atomic import write_image, write_text
 from flowerpose.config import require
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
@@ -72,9 +74,9 @@ def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig) -> dict
         rng = np.random.default_rng([config.seed, k])
         colour, _ = apply_sensor(out.rgb, np.zeros(2), 3.0, SensorConfig(), rng)
         depth = apply_depth_sensor(out.depth, config.depth, rng)
-        cv2.imwrite(str(out_dir / "frames" / FRAME_PATTERN.format(k)),
-                    cv2.cvtColor(colour, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
-        cv2.imwrite(str(out_dir / "depth" / DEPTH_PATTERN.format(k)),
+        write_image(out_dir / "frames" / FRAME_PATTERN.format(k), colour,
+                    [cv2.IMWRITE_JPEG_QUALITY, 95])
+        write_image(out_dir / "depth" / DEPTH_PATTERN.format(k),
                     np.round(depth / unit).astype(np.uint16))
         for flower, share in seen_in_render(out.instance, out.depth, pose, intrinsics,
                                             petals).items():
@@ -83,8 +85,9 @@ def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig) -> dict
                                    float(waypoint.pose.yaw), float(waypoint.pose.pitch),
                                    pose[:3, 3], pose[:3, :3]))
     renderer.close()
-    with open(out_dir / "trajectory.csv", "w", newline="") as handle:
-        csv.writer(handle).writerows([TRAJECTORY_COLUMNS, *rows])
+    table = io.StringIO()
+    csv.writer(table).writerows([TRAJECTORY_COLUMNS, *rows])
+    write_text(out_dir / "trajectory.csv", table.getvalue())
     write_json(out_dir / "camera.json", {**intrinsics.to_json(), "depth_unit_m": unit})
     truth = read_json(plant_dir / "plant.json")
     for flower in truth["flowers"]:

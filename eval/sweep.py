@@ -8,15 +8,17 @@ then every (setting, plant) pair runs in one process pool. Writes `sweep.csv`, `
 from __future__ import annotations
 
 import csv
+import io
 import itertools
-import json
 import time
 from pathlib import Path
 
+from flowerpose.atomic import write_figure, write_text
 from flowerpose.config import apply_overrides, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.harness import EvalConfig, evaluate_cloud, generate_plants, run_jobs
 from flowerpose.eval.report import summarise
+from flowerpose.jsonio import write_json
 
 METRICS = ("recall", "recall_visible", "fp_rate", "plane_mean_deg", "superellipsoid_mean_deg",
            "paraboloid_mean_deg", "seconds_per_plant")
@@ -76,7 +78,7 @@ def _plot(path: Path, rows: list[dict], keys: list[str]) -> None:
     axes[-1].set_xticks(range(len(rows)), labels, rotation=45, ha="right", fontsize=8)
     fig.suptitle("flowerpose sweep")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(path, fig)
     plt.close(fig)
 
 
@@ -109,16 +111,16 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     for k, setting in enumerate(settings):
         chunk = results[k * len(seeds):(k + 1) * len(seeds)]
         rows.append(_row(setting, [e for e, _ in chunk], [t["total"] for _, t in chunk]))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with open(out_dir / "sweep.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    table = io.StringIO()
+    writer = csv.DictWriter(table, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(out_dir / "sweep.csv", table.getvalue())
     _plot(out_dir / "sweep.png", rows, keys)
     best = best_row(rows)
-    (out_dir / "best.json").write_text(json.dumps(
-        {"best": best, "rows": rows, "plants": plants, "seed": seed,
-         "config": to_dict(config), "seconds": round(time.perf_counter() - start, 2)}, indent=1))
+    write_json(out_dir / "best.json",
+               {"best": best, "rows": rows, "plants": plants, "seed": seed,
+                "config": to_dict(config), "seconds": round(time.perf_counter() - start, 2)})
     for row in rows:
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "
               f"{row['recall_visible']}, fp_rate {row['fp_rate']}, plane "

@@ -85,6 +85,7 @@ def cmd_plant(args: argparse.Namespace) -> int:
 def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud, write_cloud
     from flowerpose.config import to_dict
+    from flowerpose.jsonio import write_json
     from flowerpose.pipeline.flowers import (
         PipelineConfig,
         find_flowers,
@@ -98,7 +99,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
     out: Path = args.out
     write_flowers(out / "flowers.json", result)
-    (out / "config.json").write_text(json.dumps(to_dict(config), indent=1))
+    write_json(out / "config.json", to_dict(config))
     if result.projections:
         write_views(out / "views", result.projections, result.detections)
     for flower in result.flowers:

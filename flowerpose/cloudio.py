@@ -9,6 +9,7 @@ from typing import Literal
 
 import numpy as np
 
+from flowerpose.atomic import write_file
 from flowerpose.errors import InputError
 
 #: Largest extent (metres) a single-plant scan in metres can plausibly have.
@@ -101,12 +102,9 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
 
 
 def write_cloud(path: str | Path, cloud: Cloud) -> Path:
-    """Write a binary PLY (float64 xyz, uint8 rgb as Open3D stores it)."""
+    """Write a binary PLY (float64 xyz, uint8 rgb as Open3D stores it), whole."""
     o3d = _o3d()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(cloud.points, np.float64)))
     pcd.colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors, np.float64) / 255.0)
-    if not o3d.io.write_point_cloud(str(path), pcd, write_ascii=False):
-        raise InputError(path, "cannot write the point cloud")
-    return path
+    return write_file(path, lambda tmp: o3d.io.write_point_cloud(str(tmp), pcd,
+                                                                 write_ascii=False))

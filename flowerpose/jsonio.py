@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from flowerpose.atomic import write_text
 from flowerpose.errors import InputError
 
 
@@ -40,14 +41,9 @@ def read_json(path: str | Path) -> dict:
 
 
 def write_json(path: str | Path, data: dict) -> Path:
-    """Write JSON atomically (a crash never leaves half a file); NaN is refused, since strict
-    JSON readers reject it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(path.suffix + ".tmp")
-    temporary.write_text(json.dumps(data, indent=1, allow_nan=False))
-    temporary.replace(path)
-    return path
+    """Write JSON whole (`atomic.write_text`); NaN is refused, since strict JSON readers
+    reject it."""
+    return write_text(path, json.dumps(data, indent=1, allow_nan=False))
 
 
 def vector3(value: Any, source: str | Path, where: str) -> np.ndarray:

@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flowerpose.atomic import write_image
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
@@ -140,8 +141,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         if index in sources:
             shutil.copyfile(sources[index], images_dir / name)  # the recorded bytes, as is
         else:
-            cv2.imwrite(str(images_dir / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
-                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+            write_image(images_dir / name, image, [cv2.IMWRITE_JPEG_QUALITY, 95])
         chosen.append({
             "index": index, "file": f"frames/{name}", "bin": b, "score": round(score, 4),
             "sharpness": round(sharpness, 4), "brightness": round(brightness, 2),

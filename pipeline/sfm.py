@@ -37,6 +37,7 @@ from typing import Literal
 import numpy as np
 import pycolmap
 
+from flowerpose.atomic import write_text
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, write_json
@@ -273,8 +274,7 @@ def _extract(database: Path, frames_dir: Path, names: list[str],
 
 
 def _write_pairs(path: Path, names: list[str], pairs: list[tuple[int, int]]) -> Path:
-    path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
-    return path
+    return write_text(path, "".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
 
 
 def _match_ransac(database: Path, work_dir: Path, names: list[str],

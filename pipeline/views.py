@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flowerpose.atomic import write_image
 from flowerpose.pipeline.detect import Detection
 from flowerpose.pipeline.grid import Projection
 
@@ -59,8 +60,8 @@ def write_views(out_dir: Path, projections: list[Projection],
     paths = []
     for name, image in drawn.items():
         path = out_dir / f"view_{name}.png"
-        cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        write_image(path, image)
         paths.append(path)
     path = out_dir / "views.png"
-    cv2.imwrite(str(path), cv2.cvtColor(montage(drawn), cv2.COLOR_RGB2BGR))
+    write_image(path, montage(drawn))
     return paths + [path]

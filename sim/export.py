@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from flowerpose.atomic import write_file, write_text
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
@@ -48,9 +49,10 @@ def write_plant(plant: Plant, out_dir: str | Path, cloud: Cloud | None = None,
     out.mkdir(parents=True, exist_ok=True)
     paths = {"truth": out / "plant.json", "mesh": out / "plant.ply",
              "labels": out / "plant_labels.npz"}
-    paths["truth"].write_text(json.dumps(truth_dict(plant, visible, fraction), indent=1) + "\n")
-    plant.mesh.export(paths["mesh"])
-    np.savez_compressed(paths["labels"], face_part=plant.face_part, face_flower=plant.face_flower)
+    write_text(paths["truth"], json.dumps(truth_dict(plant, visible, fraction), indent=1) + "\n")
+    write_file(paths["mesh"], lambda tmp: plant.mesh.export(tmp))
+    write_file(paths["labels"], lambda tmp: np.savez_compressed(
+        tmp, face_part=plant.face_part, face_flower=plant.face_flower))
     if cloud is not None:
         paths["cloud"] = write_cloud(out / "cloud.ply", cloud)
     return paths
