@@ -36,6 +36,7 @@ from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, read_flowers, write_flowers
 from flowerpose.pipeline.rgbd import FusionConfig
+from flowerpose.processes import die_with_parent
 from flowerpose.sim.config import PresetName, SimConfig, sim_preset
 
 #: The paper's estimate of its hand labels' error, degrees (the field preset's).
@@ -114,7 +115,8 @@ def _pool(workers: int | None) -> ProcessPoolExecutor | None:
     if workers <= 1:
         return None
     # Spawned workers: forking a process that already runs Open3D's threads is unsafe.
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=die_with_parent)
 
 
 def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,

@@ -647,7 +647,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from flowerpose.processes import Terminated, terminate_cleanly
+
     args = build_parser().parse_args(argv)
+    terminate_cleanly()
     try:
         return args.func(args)
     except (InputError, BotError) as err:
@@ -667,6 +670,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("flowerpose: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("flowerpose: terminated", file=sys.stderr)
+        return 143
 
 
 if __name__ == "__main__":

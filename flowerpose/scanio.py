@@ -15,6 +15,7 @@ as a position and a unit quaternion (w, x, y, z).
 from __future__ import annotations
 
 import csv
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,10 +139,49 @@ def read_trajectory(path: Path) -> Trajectory:
     if not np.isfinite(table).all():
         raise InputError(path, "NaN or infinite values")
     frame = table[:, 0].astype(np.int64)
+    table, frame = _without_repeats(path, table, frame)
     if len(frame) and np.any(np.diff(frame) <= 0):
-        raise InputError(path, "frame indices must increase")
+        raise InputError(path, "frame indices must increase: the table is damaged; record "
+                         "the scan again into a new folder")
     return Trajectory(frame, table[:, 1], table[:, 2:5], table[:, 5:7], table[:, 7:10],
                       quaternion_to_matrix(table[:, 10:14]))
+
+
+def open_rows(path: Path, header: tuple[str, ...]):
+    """(file, csv writer) appending to a scan folder's CSV table: a row cut off by an
+    interruption is dropped first, so the table stays readable, and a new table gets its
+    header. Write a row only after what it describes is on disk, and flush after each."""
+    path = Path(path)
+    new = not path.exists() or path.stat().st_size == 0
+    if not new:
+        text = path.read_bytes()
+        if not text.endswith(b"\n"):
+            with open(path, "r+b") as handle:
+                handle.truncate(text.rfind(b"\n") + 1)
+    handle = open(path, "a", newline="")  # noqa: SIM115 - the caller closes it
+    writer = csv.writer(handle)
+    if new:
+        writer.writerow(header)
+        handle.flush()
+    return handle, writer
+
+
+def _without_repeats(path: Path, table: np.ndarray,
+                     frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The table without rows that repeat an earlier row exactly (a batch written twice by
+    an interruption, in scans recorded before that was fixed), with a note on stderr; a
+    frame index repeated with other values is a damaged table."""
+    _, first, inverse = np.unique(frame, return_index=True, return_inverse=True)
+    if len(first) == len(frame):
+        return table, frame
+    if not np.array_equal(table, table[first[inverse]]):
+        raise InputError(path, "a frame index appears twice with different values: the "
+                         "table is damaged; record the scan again into a new folder")
+    keep = np.zeros(len(frame), bool)
+    keep[first] = True
+    print(f"note: {path}: {len(frame) - len(first)} repeated rows (a batch written twice by "
+          "an interruption) ignored", file=sys.stderr)
+    return table[keep], frame[keep]
 
 
 def trajectory_row(frame: int, t: float, gantry: np.ndarray, yaw: float, pitch: float,

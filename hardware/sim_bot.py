@@ -24,10 +24,10 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-import csv  # noqa: E402
-import functools
+import functools  # noqa: E402
 import math
 import multiprocessing
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowerpose.atomic import write_bytes
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicBot, Recording
 from flowerpose.hardware.errors import CameraError
@@ -50,10 +51,12 @@ from flowerpose.hardware.trajectory import (
     pose_at,
 )
 from flowerpose.jsonio import read_json, write_json
+from flowerpose.processes import die_with_parent
 from flowerpose.scanio import (
     FRAME_PATTERN,
     TRAJECTORY_COLUMNS,
     Intrinsics,
+    open_rows,
     trajectory_row,
 )
 from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
@@ -150,6 +153,10 @@ def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
     from flowerpose.sim.export import read_plant
     from flowerpose.sim.render import PlantRenderer
 
+    # Ctrl-C reaches the whole process group: the scan's own process stops the scan, and
+    # the renderers finish the frames it still asks for instead of dying mid-batch.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    die_with_parent()
     plants = [read_plant(d) for d in plant_dirs]
     _worker["renderer"] = PlantRenderer(plants)
     _worker["intrinsics"] = Intrinsics(**{k: intrinsics[k] for k in
@@ -176,10 +183,7 @@ def _render_frame(task: FrameTask, frames_dir: str, sensor_seed: int) -> dict:
                             [cv2.IMWRITE_JPEG_QUALITY, int(sensor.jpeg_quality or 95)])
     if not ok:
         raise CameraError(f"frame {task.index}: JPEG encoding failed")
-    path = Path(frames_dir) / FRAME_PATTERN.format(task.index)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_bytes(jpeg.tobytes())
-    temporary.replace(path)
+    write_bytes(Path(frames_dir) / FRAME_PATTERN.format(task.index), jpeg.tobytes())
     return {"motion_blur_px": record.motion_blur_px, "defocus_px": record.defocus_px,
             "noise_sigma": record.noise_sigma_dn, "sharpness": record.sharpness}
 
@@ -314,15 +318,12 @@ class _FrameWriter:
         self._pool = ProcessPoolExecutor(config.workers or os.cpu_count() or 1,
                                          mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_init_worker, initargs=init)
-        trajectory_path, truth_path = scan_dir / "trajectory.csv", scan_dir / "frames_truth.csv"
-        new = not trajectory_path.exists()
-        self._trajectory_file = open(trajectory_path, "a", newline="")  # noqa: SIM115
-        self._truth_file = open(truth_path, "a", newline="")  # noqa: SIM115
-        self._trajectory = csv.writer(self._trajectory_file)
-        self._truth = csv.writer(self._truth_file)
-        if new:
-            self._trajectory.writerow(TRAJECTORY_COLUMNS)
-            self._truth.writerow(TRUTH_COLUMNS)
+        self._trajectory_file, self._trajectory = open_rows(scan_dir / "trajectory.csv",
+                                                            TRAJECTORY_COLUMNS)
+        self._truth_file, self._truth = open_rows(scan_dir / "frames_truth.csv", TRUTH_COLUMNS)
+        # Frames below this index have their rows: a batch an interruption cut short is
+        # offered again when the recording stops, and its written part is skipped.
+        self._next_row = last_recorded(scan_dir)[0]
         self._render = functools.partial(_render_frame, frames_dir=str(scan_dir / "frames"),
                                          sensor_seed=config.seed)
         self._started, self._count = time.perf_counter(), 0
@@ -332,6 +333,7 @@ class _FrameWriter:
         into visibility.json. Returns the number of frames written."""
         visibility = self._pool.submit(_visible_fractions, settled) if settled is not None \
             else None
+        tasks = [task for task in tasks if task.index >= self._next_row]
         for task, record in zip(tasks, self._pool.map(self._render, tasks), strict=True):
             self._trajectory.writerow(trajectory_row(task.index, task.t, task.gantry, task.yaw,
                                                      task.pitch, task.camera_to_bed[:3, 3],
@@ -341,13 +343,14 @@ class _FrameWriter:
                                   f"{task.since_stop_s:.6f}", f"{record['motion_blur_px']:.4f}",
                                   f"{record['defocus_px']:.4f}", f"{record['noise_sigma']:.4f}",
                                   f"{record['sharpness']:.6f}"])
+            self._trajectory_file.flush()
+            self._truth_file.flush()
+            self._next_row = task.index + 1
             self._count += 1
             if self._count % 100 == 0:
                 print(f"scan: rendered {self._count} frames "
                       f"({time.perf_counter() - self._started:.0f} s)", file=sys.stderr,
                       flush=True)
-        self._trajectory_file.flush()
-        self._truth_file.flush()
         if visibility is not None:
             _merge_visibility(self.scan_dir / "visibility.json", [visibility.result()])
         return len(tasks)

@@ -19,7 +19,6 @@ Frames and units: bed frame, metres, radians, seconds on the bot's clock (trajec
 
 from __future__ import annotations
 
-import csv
 import math
 import threading
 from abc import abstractmethod
@@ -32,7 +31,7 @@ from flowerpose.hardware.bot import Activity, Camera, Frame, Recording
 from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry
 from flowerpose.hardware.kinematics import HeadPose, forward, joint_positions
 from flowerpose.hardware.motion import move_trajectory
-from flowerpose.scanio import TRAJECTORY_COLUMNS, trajectory_row
+from flowerpose.scanio import TRAJECTORY_COLUMNS, open_rows, trajectory_row
 
 SERVO_SPEED_RAD_S = 6.0
 """Head turning speed, radians per second (35 kg servos: about 0.17 s per 60 degrees)."""
@@ -163,17 +162,7 @@ class TrajectoryWriter:
     def __init__(self, path: Path, geometry: BotGeometry = PAPER_BOT):
         self.path = Path(path)
         self._geometry = geometry
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        if not new:
-            text = self.path.read_bytes()
-            if not text.endswith(b"\n"):
-                with open(self.path, "r+b") as handle:
-                    handle.truncate(text.rfind(b"\n") + 1)
-        self._file = open(self.path, "a", newline="")  # noqa: SIM115
-        self._csv = csv.writer(self._file)
-        if new:
-            self._csv.writerow(TRAJECTORY_COLUMNS)
-            self._file.flush()
+        self._file, self._csv = open_rows(self.path, TRAJECTORY_COLUMNS)
 
     def write(self, frames, t, gantry, yaw, pitch) -> int:
         """Append one row per frame whose pose is known (finite); returns the rows written.

@@ -218,3 +218,23 @@ def test_the_recorder_is_usable_only_once_bound():
     recorder = TrajectoryRecorder(functools.partial(_GridCamera, fps=2.0))
     with pytest.raises(RuntimeError, match="bind"):
         recorder.intrinsics()
+
+
+def test_a_batch_written_twice_is_read_once_and_a_conflicting_row_is_refused(tmp_path, capsys):
+    from flowerpose.errors import InputError
+    from flowerpose.scanio import TRAJECTORY_COLUMNS, trajectory_row
+
+    rows = [trajectory_row(k, 0.5 * k, np.array([1.0, 0.5, 0.3]), 0.1, 0.2,
+                           np.array([1.0, 0.5, 0.2]), np.eye(3)) for k in range(6)]
+    path = tmp_path / "trajectory.csv"
+    # An interruption before the fix wrote rows 3-4 a second time.
+    lines = [TRAJECTORY_COLUMNS, *rows[:5], *rows[3:5], rows[5]]
+    path.write_text("".join(",".join(r) + "\n" for r in lines))
+    trajectory = read_trajectory(path)
+    np.testing.assert_array_equal(trajectory.frame, np.arange(6))
+    assert "2 repeated rows" in capsys.readouterr().err
+    changed = list(rows[3])
+    changed[1] = "9.0"
+    path.write_text("".join(",".join(r) + "\n" for r in [TRAJECTORY_COLUMNS, *rows, changed]))
+    with pytest.raises(InputError, match="appears twice with different values"):
+        read_trajectory(path)

@@ -1,0 +1,108 @@
+"""A real simulated scan in a subprocess, stopped by SIGINT, SIGTERM and SIGKILL: the scan
+folder stays consistent every time (rows once each, after their frames), no renderer
+outlives it, and the scan resumes to completion."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flowerpose.jsonio import read_json
+from flowerpose.scanio import frame_files, read_trajectory
+from flowerpose.sim.bundle import make_plant
+
+TIME_LIMIT_S = 240
+
+
+@pytest.fixture(scope="module")
+def plant_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("plant")
+    make_plant(0, "easy", points=2000, out_dir=out)
+    return out
+
+
+def _scan(plant_dir: Path, out: Path) -> subprocess.Popen:
+    command = [sys.executable, "-m", "flowerpose.cli", "scan", "--sim", "--plant",
+               str(plant_dir), "--out", str(out), "--width", "96", "--height", "54",
+               "--frame-rate", "0.2", "--workers", "1", "--no-preview"]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _rows(out: Path) -> int:
+    try:
+        return max(0, len((out / "trajectory.csv").read_text().splitlines()) - 1)
+    except FileNotFoundError:
+        return 0
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        text = (task / "children").read_text().split() if (task / "children").exists() else []
+        found += [int(c) for c in text]
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "State:\tZ" not in status
+
+
+def _consistent(out: Path) -> int:
+    trajectory = read_trajectory(out / "trajectory.csv")
+    assert np.all(np.diff(trajectory.frame) > 0), "each frame's row once, in order"
+    on_disk = {int(p.stem.split("_")[-1]) for p in frame_files(out)}
+    assert set(trajectory.frame) <= on_disk, "a row only after its frame"
+    manifest = read_json(out / "scan.json")
+    assert manifest["completed"] <= manifest["waypoints"]
+    return len(trajectory)
+
+
+def _stop(process: subprocess.Popen, out: Path, how: signal.Signals, after_rows: int,
+          deadline: float) -> tuple[int, str, list[int]]:
+    while _rows(out) < after_rows:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the scan recorded too slowly"
+        time.sleep(0.2)
+    workers = _children(process.pid)
+    process.send_signal(how)
+    _, err = process.communicate(timeout=max(5.0, deadline - time.monotonic()))
+    return process.returncode, err, workers
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
+def test_signals_leave_a_consistent_scan_that_resumes(plant_dir, tmp_path):
+    deadline = time.monotonic() + TIME_LIMIT_S
+    out = tmp_path / "scan"
+    code, err, _ = _stop(_scan(plant_dir, out), out, signal.SIGINT, 15, deadline)
+    assert code == 130 and err.strip().splitlines()[-1] == "flowerpose: interrupted"
+    first = _consistent(out)
+    assert read_json(out / "scan.json")["status"] == "interrupted"
+
+    code, err, _ = _stop(_scan(plant_dir, out), out, signal.SIGTERM, first + 10, deadline)
+    assert code == 143 and err.strip().splitlines()[-1] == "flowerpose: terminated"
+    second = _consistent(out)
+    assert second > first
+
+    code, _, workers = _stop(_scan(plant_dir, out), out, signal.SIGKILL, second + 10, deadline)
+    assert code == -signal.SIGKILL and workers
+    while any(_alive(w) for w in workers):  # the renderers die with the scan
+        assert time.monotonic() < deadline, "a renderer outlived the killed scan"
+        time.sleep(0.1)
+    third = _consistent(out)
+    assert third > second
+
+    finish = _scan(plant_dir, out)
+    _, err = finish.communicate(timeout=max(5.0, deadline - time.monotonic()))
+    assert finish.returncode == 0, err
+    assert read_json(out / "scan.json")["status"] == "complete"
+    assert _consistent(out) > third
