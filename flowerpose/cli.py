@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -27,6 +28,23 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting by its dotted key, e.g. cluster.eps=0.008")
+
+
+@contextlib.contextmanager
+def _owned(folder: Path, stage: str, overwrite: bool):
+    """The command's output folder, refused when it holds files the command did not
+    write (`outputs`), and marked whole when the command succeeds."""
+    from flowerpose.outputs import OutputFolder
+
+    output = OutputFolder(folder, stage, overwrite)
+    yield output
+    output.finish()
+
+
+def _add_overwrite(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder that holds files this command did not "
+                        "write (they are kept; only its own earlier output is replaced)")
 
 
 def _configure(base: Any, args: argparse.Namespace) -> Any:
@@ -58,9 +76,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
     out = args.out or _default_out()
     plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
-    report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
-                      out_dir=out, workers=args.workers, folders=args.folders,
-                      truth_scale=args.truth_scale, compare=compare)
+    with _owned(out, "eval", args.overwrite):
+        report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
+                          out_dir=out, workers=args.workers, folders=args.folders,
+                          truth_scale=args.truth_scale, compare=compare)
     from flowerpose.eval.report import comparison_table, summary_lines, table
 
     print(table(report))
@@ -75,7 +94,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_plant(args: argparse.Namespace) -> int:
     from flowerpose.sim.bundle import make_plant
 
-    bundle = make_plant(args.seed, preset=args.preset, points=args.points, out_dir=args.out)
+    with _owned(args.out, "plant", args.overwrite):
+        bundle = make_plant(args.seed, preset=args.preset, points=args.points, out_dir=args.out)
     visible = int(sum(bundle.visible))
     print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
           f"{visible} visible, {len(bundle.cloud)} cloud points -> {args.out}")
@@ -86,6 +106,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud, write_cloud
     from flowerpose.config import to_dict
     from flowerpose.jsonio import write_json
+    from flowerpose.outputs import OutputFolder, check_output
     from flowerpose.pipeline.flowers import (
         PipelineConfig,
         find_flowers,
@@ -95,15 +116,19 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.views import write_views
 
     config = _configure(PipelineConfig(), args)
+    out: Path = args.out
+    check_output(out, "detect", args.overwrite)
     cloud = read_cloud(args.cloud, units=args.units)
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
-    out: Path = args.out
-    write_flowers(out / "flowers.json", result)
-    write_json(out / "config.json", to_dict(config))
+    # An earlier detection's files (crops of flowers this one may not have) go first.
+    output = OutputFolder(out, "detect", args.overwrite)
+    output.record(write_flowers(out / "flowers.json", result),
+                  write_json(out / "config.json", to_dict(config)))
     if result.projections:
-        write_views(out / "views", result.projections, result.detections)
-    for flower in result.flowers:
-        write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply", cloud.subset(flower.crop))
+        output.record(*write_views(out / "views", result.projections, result.detections))
+    output.record(*(write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply",
+                                cloud.subset(flower.crop)) for flower in result.flowers))
+    output.finish()
     found = sum(f.pose.normals["plane"] is not None for f in result.flowers)
     views = f", {out / 'views' / 'views.png'}" if result.projections else ""
     print(f"{len(result.flowers)} flowers ({found} with a normal) in "
@@ -136,7 +161,8 @@ def cmd_score(args: argparse.Namespace) -> int:
     for line in summary_lines(report):
         print(line)
     if args.out:
-        paths = write_report(args.out, report, f"flowerpose score: {args.flowers.name}")
+        with _owned(args.out, "score", args.overwrite):
+            paths = write_report(args.out, report, f"flowerpose score: {args.flowers.name}")
         print(f"report: {paths[0]}, {paths[1]}")
     return 0
 
@@ -360,7 +386,7 @@ def cmd_frames(args: argparse.Namespace) -> int:
 
     config = FrameSelectConfig(count=args.count, crop_px=args.crop,
                                brightness_penalty=args.brightness_penalty)
-    result = select_frames(args.scan, args.out, config)
+    result = select_frames(args.scan, args.out, config, overwrite=args.overwrite)
     sharp = [f["sharpness"] for f in result["frames"]]
     print(f"{len(result['frames'])} of {result['recorded']} frames chosen in "
           f"{result['seconds']:.1f} s (sharpness median {sorted(sharp)[len(sharp) // 2]:.1f}) "
@@ -372,7 +398,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.reconstruct import ReconstructConfig, reconstruct
 
     config = _configure(ReconstructConfig(dense_poses=args.dense_poses), args)
-    result = reconstruct(args.frames, args.out, config)
+    result = reconstruct(args.frames, args.out, config, overwrite=args.overwrite)
     report = result.report
     rms = report["alignment_rms_m"]
     print(f"{report['images_registered']}/{report['images_used']} images registered, "
@@ -389,8 +415,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     config = eval_config(args.preset, lambda base: _configure(base, args))
     grid = parse_grid(args.grid, config)
-    best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
-                     workers=args.workers)
+    with _owned(args.out, "sweep", args.overwrite):
+        best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
+                         workers=args.workers)
     print(f"best: {best}")
     return 0
 
@@ -400,8 +427,9 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import EvalConfig, pipeline_part
 
     config = _configure(EvalConfig(), args)
-    report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
-                          config.score.max_distance_m, args.truth_scale)
+    with _owned(args.out, "fidelity", args.overwrite):
+        report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
+                              config.score.max_distance_m, args.truth_scale)
     print(table(report))
     print(f"{report['holds']} of {report['of']} statistics within tolerance "
           f"({report['real']['flowers']} real flowers, {report['synthetic']['flowers']} "
@@ -503,6 +531,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
+    _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_eval)
 
@@ -512,6 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="oracle cloud points (60000)")
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--out", type=Path, required=True)
+    _add_overwrite(p)
     p.set_defaults(func=cmd_plant)
 
     p = sub.add_parser("scan", help="scan a plant along the cylinder and dome: --sim films a "
@@ -571,6 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--brightness-penalty", action="store_true",
                    help="subtract |mean V - 105| from the score, as the authors' code did")
     p.add_argument("--out", type=Path, required=True)
+    _add_overwrite(p)
     p.set_defaults(func=cmd_frames)
 
     p = sub.add_parser("reconstruct", help="frames -> sparse poses (pycolmap) -> dense "
@@ -578,6 +609,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("frames", type=Path, metavar="FRAMES_DIR",
                    help="a folder from flowerpose frames (frames.json, frames/, camera.json)")
     p.add_argument("--out", type=Path, required=True)
+    _add_overwrite(p)
     p.add_argument("--dense-poses", choices=("refined", "recorded"), default="refined",
                    help="camera poses for dense stereo: the sparse stage's (default) or the "
                    "bot's recorded ones")
@@ -587,6 +619,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
     p.add_argument("cloud", type=Path, metavar="CLOUD.ply")
     p.add_argument("--out", type=Path, required=True)
+    _add_overwrite(p)
     p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
                    help="the cloud's unit (auto: decided from its extent)")
     p.add_argument("--candidates", action="store_true",
@@ -611,6 +644,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-distance", type=float, default=0.02,
                    help="largest centre distance of a match, metres (0.02)")
     p.add_argument("--out", type=Path, help="also write report.json and report.md here")
+    _add_overwrite(p)
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser("sweep", help="evaluate a grid of settings over seeded plants")
@@ -621,6 +655,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--workers", type=POSITIVE, default=None)
     p.add_argument("--out", type=Path, required=True)
+    _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
 
@@ -633,6 +668,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
                    help="the real labels' scale (default: source.json, else 25)")
     p.add_argument("--out", type=Path, required=True)
+    _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_fidelity)
 

@@ -23,6 +23,7 @@ from flowerpose.atomic import write_image
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
+from flowerpose.outputs import OutputFolder, check_output
 from flowerpose.scanio import (
     FRAME_PATTERN,
     frame_files,
@@ -79,12 +80,17 @@ def bin_edges(frame_count: int, bins: int) -> np.ndarray:
 
 
 def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
-                  progress: bool = True) -> dict:
+                  progress: bool = True, overwrite: bool = False) -> dict:
     """Choose the sharpest frame of each bin; write them to out_dir/frames/ with
-    out_dir/frames.json (index, score, pose) and camera.json. Returns frames.json's content."""
+    out_dir/frames.json (index, score, pose) and camera.json. Returns frames.json's content.
+    out_dir must be new, empty or an earlier frame selection (`outputs`), unless
+    `overwrite`; an earlier selection's files are removed first."""
     scan_dir, out_dir = Path(scan_dir), Path(out_dir)
     if not scan_dir.is_dir():
         raise InputError(scan_dir, "scan folder not found")
+    if out_dir.resolve() == scan_dir.resolve():
+        raise InputError("--out", "must not be the scan folder itself")
+    check_output(out_dir, "frames", overwrite)
     trajectory = read_trajectory(scan_dir / "trajectory.csv")
     intrinsics = read_intrinsics(scan_dir / "camera.json")
     total = len(trajectory)
@@ -127,12 +133,10 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     if len(best) < config.count:
         raise InputError(scan_dir, f"frames for only {len(best)} of {config.count} bins: the "
                          "video or frames/ holds fewer frames than trajectory.csv")
+    output = OutputFolder(out_dir, "frames", overwrite)
     images_dir = out_dir / "frames"
-    if images_dir.resolve() == (scan_dir / "frames").resolve():
-        raise InputError("--out", "must not be the scan folder itself")
     images_dir.mkdir(parents=True, exist_ok=True)
-    for stale in images_dir.glob("frame_*.jpg"):  # an earlier selection's, not this one's
-        stale.unlink()
+    output.record(images_dir)
     chosen = []
     for b in range(config.count):
         score, sharpness, brightness, row, image = best[b]
@@ -149,11 +153,12 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
             "pose": {"position": trajectory.camera_position[row].tolist(),
                      "rotation": trajectory.camera_rotation[row].tolist()},
             "gantry": trajectory.gantry[row].tolist(), "head": trajectory.head[row].tolist()})
-    write_json(out_dir / "camera.json", intrinsics.to_json())
+    output.record(write_json(out_dir / "camera.json", intrinsics.to_json()))
     result = {"scan": str(scan_dir), "bins": config.count, "recorded": total,
               "config": {"count": config.count, "crop_px": config.crop_px,
                          "brightness_penalty": config.brightness_penalty,
                          "brightness_target": config.brightness_target},
               "seconds": round(time.perf_counter() - start, 3), "frames": chosen}
-    write_json(out_dir / "frames.json", result)
+    output.record(write_json(out_dir / "frames.json", result))
+    output.finish()
     return result

@@ -20,6 +20,7 @@ from __future__ import annotations
 import cv2  # noqa: F401  # isort: skip
 
 import dataclasses
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
+from flowerpose.outputs import check_output, publish, staging_folder
 from flowerpose.pipeline.dense import DenseConfig, reconstruct_dense
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.sfm import (
@@ -94,7 +96,7 @@ def sparse_intrinsics(sparse: SparseResult) -> Intrinsics:
 
 def reconstruct(frames_dir: str | Path, out_dir: str | Path,
                 config: ReconstructConfig = ReconstructConfig(),
-                progress: bool = True) -> Reconstruction:
+                progress: bool = True, overwrite: bool = False) -> Reconstruction:
     """Dense cloud of a frames folder in the bed frame; writes out_dir (see the module).
 
     Raises InputError naming the frames folder when too few images register
@@ -108,27 +110,43 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
         # dense stereo needs a calibrated pinhole, and would fail only minutes later.
         raise InputError(frames_dir / "camera.json", "not found: dense reconstruction needs "
                          "the camera's intrinsics (flowerpose frames copies the scan's)")
+    # The work happens beside out_dir and moves in only when whole: a run that fails
+    # leaves an earlier reconstruction in out_dir as it was (`outputs.publish`).
+    check_output(out_dir, "reconstruct", overwrite)
+    staging = staging_folder(out_dir)
+    try:
+        result = _reconstruct(frames_dir, staging, out_dir, config, progress)
+        publish(staging, out_dir, "reconstruct", overwrite)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+    return result
+
+
+def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: ReconstructConfig,
+                 progress: bool) -> Reconstruction:
+    """`reconstruct`'s work in work_dir, its report naming where the files will be."""
     started = time.perf_counter()
-    sparse = reconstruct_sparse(frames_dir, out_dir, config.sfm)
+    sparse = reconstruct_sparse(frames_dir, work_dir, config.sfm)
     sparse_s = time.perf_counter() - started
     method = config.dense_method
     if method == "auto":
         method = "patch_match" if cuda_available() else "sgbm"
     if method == "patch_match":
-        cloud, dense_report = reconstruct_patch_match(frames_dir, out_dir / "sparse",
-                                                      out_dir / "mvs",
+        cloud, dense_report = reconstruct_patch_match(frames_dir, work_dir / "sparse",
+                                                      work_dir / "mvs",
                                                       config.sfm.max_image_size)
     else:
         poses = refined_poses(sparse) if config.dense_poses == "refined" else None
         cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
                                                 intrinsics=sparse_intrinsics(sparse),
                                                 config=config.dense, progress=progress)
-    cloud_path = write_cloud(out_dir / "cloud.ply", cloud)
+    write_cloud(work_dir / "cloud.ply", cloud)
     total_s = time.perf_counter() - started
     sparse_report = {k: v for k, v in sparse.report.items() if k != "config"}
     report = {
         "frames": str(frames_dir),
-        "cloud": str(cloud_path),
+        "cloud": str(out_dir / "cloud.ply"),
         "points": len(cloud),
         "images_used": sparse_report["images_used"],
         "images_registered": sparse_report["images_registered"],
@@ -142,5 +160,5 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
         "dense": {k: v for k, v in dense_report.items() if k != "config"},
         "config": dataclasses.asdict(config),
     }
-    write_json(out_dir / "reconstruction.json", report)
+    write_json(work_dir / "reconstruction.json", report)
     return Reconstruction(cloud, sparse, report)

@@ -1,0 +1,92 @@
+"""Output folders: a command deletes only what it wrote, refuses other folders unless told,
+and a failed reconstruction leaves the earlier one."""
+
+import json
+
+import numpy as np
+import pytest
+
+from flowerpose.cli import main
+from flowerpose.cloudio import Cloud, write_cloud
+from flowerpose.errors import InputError
+from flowerpose.outputs import MARKER, OutputFolder, check_output
+
+
+def test_a_stage_replaces_its_own_output_and_refuses_anything_else(tmp_path):
+    out = tmp_path / "out"
+    first = OutputFolder(out, "detect")
+    (out / "crops").mkdir()
+    for name in ("crops/flower_00.ply", "crops/flower_01.ply", "flowers.json"):
+        (out / name).write_text("old")
+        first.record(out / name)
+    first.finish()
+    second = OutputFolder(out, "detect")  # the earlier output is stale: removed first
+    assert not any((out / name).exists() for name in (
+        "crops/flower_00.ply", "crops/flower_01.ply", "flowers.json"))
+    second.finish()
+    with pytest.raises(InputError, match="holds the output of flowerpose detect"):
+        check_output(out, "frames")
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    with pytest.raises(InputError, match=r"did not write \(notes.txt\).*--overwrite"):
+        OutputFolder(foreign, "detect")
+    OutputFolder(foreign, "detect", overwrite=True).finish()
+    assert (foreign / "notes.txt").read_text() == "keep me"
+
+
+def test_detect_removes_its_earlier_crops_and_keeps_foreign_files(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    cloud = tmp_path / "cloud.ply"
+    write_cloud(cloud, Cloud(rng.uniform(-0.1, 0.1, (2000, 3)) + [1.5, 0.75, 0.2],
+                             np.tile(np.array([60, 120, 40], np.uint8), (2000, 1))))
+    out = tmp_path / "detect"
+    assert main(["detect", str(cloud), "--out", str(out)]) == 0
+    stale = out / "crops" / "flower_07.ply"  # as an earlier, bigger detection left it
+    stale.parent.mkdir(exist_ok=True)
+    stale.write_text("stale")
+    marker = json.loads((out / MARKER).read_text())
+    marker["files"].append("crops/flower_07.ply")
+    (out / MARKER).write_text(json.dumps(marker))
+    assert main(["detect", str(cloud), "--out", str(out)]) == 0
+    assert not stale.exists() and json.loads((out / "flowers.json").read_text())["flowers"] == []
+    scan = tmp_path / "scan"
+    scan.mkdir()
+    (scan / "scan.json").write_text("{}")
+    assert main(["detect", str(cloud), "--out", str(scan)]) == 2
+    assert "did not write (scan.json)" in capsys.readouterr().err
+    assert (scan / "scan.json").read_text() == "{}"
+
+
+def test_frames_refuses_another_scan_folder(tmp_path, capsys):
+    other = tmp_path / "other_scan"
+    (other / "frames").mkdir(parents=True)
+    (other / "frames" / "frame_000000.jpg").write_bytes(b"a recorded frame")
+    (other / "camera.json").write_text("{}")
+    scan = tmp_path / "scan"
+    scan.mkdir()
+    assert main(["frames", str(scan), "--count", "2", "--out", str(other)]) == 2
+    assert (other / "frames" / "frame_000000.jpg").read_bytes() == b"a recorded frame"
+    assert (other / "camera.json").read_text() == "{}"
+
+
+def test_a_failed_reconstruction_keeps_the_earlier_one(tmp_path, monkeypatch):
+    from flowerpose.pipeline import reconstruct as stage
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "camera.json").write_text("{}")
+    out = tmp_path / "recon"
+    earlier = OutputFolder(out, "reconstruct")
+    (out / "cloud.ply").write_text("the earlier cloud")
+    earlier.record(out / "cloud.ply")
+    earlier.finish()
+
+    def fails(*args, **kwargs):
+        raise InputError(frames, "only 3 of 200 images registered")
+
+    monkeypatch.setattr(stage, "_reconstruct", fails)
+    with pytest.raises(InputError, match="registered"):
+        stage.reconstruct(frames, out)
+    assert (out / "cloud.ply").read_text() == "the earlier cloud"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "recon"]
