@@ -65,8 +65,11 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
             head = handle.read(4)
     except OSError as err:
         raise InputError(path, f"cannot read ({err.strerror})") from None
-    if path.suffix.lower() == ".ply" and head[:3] != b"ply":
-        raise InputError(path, "not a PLY file (no 'ply' header)")
+    header = None
+    if path.suffix.lower() == ".ply":
+        if head[:3] != b"ply":
+            raise InputError(path, "not a PLY file (no 'ply' header)")
+        header = ply_header(path)
     cloud = _o3d().io.read_point_cloud(str(path))
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
@@ -79,17 +82,28 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
     if bad.any():
         raise InputError(path, f"{int(bad.sum())} of {len(points)} points have NaN or infinite "
                          "coordinates; clean the cloud first")
-    colors = np.clip(np.asarray(cloud.colors) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    colors = np.asarray(cloud.colors) * 255.0
+    if header is not None and header.float_colours and colors.max(initial=0.0) <= 1.0 + 1e-6:
+        # Open3D divides every colour by 255; colours stored as floats in 0-1 were not bytes.
+        colors = colors * 255.0
+    colors = np.clip(colors + 0.5, 0, 255).astype(np.uint8)
     return Cloud(to_metres(points, units, path), colors)
 
 
 def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarray:
-    """Points in metres, deciding the file's unit from its extent when units="auto"."""
+    """Points in metres, deciding the file's unit from its extent when units="auto"; a unit
+    the extent contradicts (a metre cloud said to be in millimetres) is refused."""
+    extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
     if units == "m":
+        if extent > MM_EXTENT_RANGE[0]:
+            raise InputError(source, f"extent {extent:.3g} units is {extent:.3g} m in metres: "
+                             "not a plant; is it in millimetres (--units mm or auto)?")
         return points
     if units == "mm":
+        if len(points) > 1 and extent < MAX_METRIC_EXTENT_M:
+            raise InputError(source, f"extent {extent:.3g} units is {extent:.3g} mm in "
+                             "millimetres: not a plant; is it in metres (--units m or auto)?")
         return points * 1e-3
-    extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
     if extent <= MAX_METRIC_EXTENT_M:
         return points
     if MM_EXTENT_RANGE[0] <= extent <= MM_EXTENT_RANGE[1]:
@@ -99,6 +113,72 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
     raise InputError(source, f"extent {extent:.3g} units fits neither metres (<= "
                      f"{MAX_METRIC_EXTENT_M:g}) nor millimetres ({MM_EXTENT_RANGE[0]:g}-"
                      f"{MM_EXTENT_RANGE[1]:g}); rescale the cloud to metres")
+
+
+#: Bytes of each PLY scalar type.
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
+              "int16": 2, "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4,
+              "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+@dataclass(frozen=True)
+class PlyHeader:
+    """What a PLY file's header promises."""
+
+    format: str
+    vertices: int
+    float_colours: bool
+    """The vertex colours are stored as floats (0-1), not bytes."""
+    expected_bytes: int | None
+    """The file's size if every element is there (binary files of fixed-size rows)."""
+
+
+def ply_header(path: Path) -> PlyHeader:
+    """The header of a PLY file, and the size its data must have; a binary file shorter
+    than that is truncated (Open3D reads the missing points as zeros without a word)."""
+    try:
+        with open(path, "rb") as handle:
+            lines = []
+            while (line := handle.readline()) and len(lines) < 10_000:
+                lines.append(line.decode("ascii", "replace").strip())
+                if lines[-1] == "end_header":
+                    break
+            header_bytes = handle.tell()
+        size = path.stat().st_size
+    except OSError as err:
+        raise InputError(path, f"cannot read ({err.strerror})") from None
+    if not lines or lines[-1] != "end_header":
+        raise InputError(path, "not a PLY file (its header never ends)")
+    fmt, vertices, row_bytes, fixed, element = "ascii", 0, {}, True, None
+    colour_types = {}
+    for words in (line.split() for line in lines):
+        if words[:1] == ["format"] and len(words) > 1:
+            fmt = words[1]
+        elif words[:1] == ["element"] and len(words) == 3:
+            element = words[1]
+            try:
+                row_bytes[element] = [int(words[2]), 0]
+            except ValueError:
+                raise InputError(path, f"bad PLY header line {' '.join(words)!r}") from None
+            if element == "vertex":
+                vertices = int(words[2])
+        elif words[:1] == ["property"] and element is not None:
+            if words[1] == "list" or words[1] not in _PLY_SIZES:
+                fixed = False
+                continue
+            row_bytes[element][1] += _PLY_SIZES[words[1]]
+            if element == "vertex" and words[-1] in ("red", "green", "blue"):
+                colour_types[words[-1]] = words[1]
+    expected = None
+    if fmt.startswith("binary") and fixed:
+        expected = header_bytes + sum(count * width for count, width in row_bytes.values())
+        if size < expected:
+            width = row_bytes.get("vertex", [0, 1])[1] or 1
+            held = max(0, (size - header_bytes) // width)
+            raise InputError(path, f"truncated: the header declares {vertices} points, the "
+                             f"file holds {min(held, vertices)}")
+    float_colours = any(t.startswith(("float", "double")) for t in colour_types.values())
+    return PlyHeader(fmt, vertices, float_colours, expected)
 
 
 def write_cloud(path: str | Path, cloud: Cloud) -> Path:

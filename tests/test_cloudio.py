@@ -54,3 +54,37 @@ def test_empty_cloud(tmp_path):
     with pytest.raises(InputError, match="no points"):
         read_cloud(path)
     assert len(read_cloud(path, allow_empty=True)) == 0
+
+
+def test_a_truncated_ply_is_refused_not_padded_with_zeros(tmp_path):
+    path = write_cloud(tmp_path / "c.ply", Cloud(RNG.random((500, 3)), np.full((500, 3), 200,
+                                                                               np.uint8)))
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) - 27 * 200])
+    with pytest.raises(InputError, match="truncated: the header declares 500 points, the "
+                                         "file holds 300"):
+        read_cloud(path)
+
+
+def test_colours_stored_as_floats_are_read_as_colours(tmp_path):
+    colours = RNG.random((20, 3)).astype(np.float32)
+    rows = np.zeros(20, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "<f4"),
+                               ("green", "<f4"), ("blue", "<f4")])
+    rows["x"], rows["y"], rows["z"] = RNG.random((20, 3)).T
+    rows["red"], rows["green"], rows["blue"] = colours.T
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 20\n"
+              + "".join(f"property {t} {n}\n" for t, n in (
+                  ("double", "x"), ("double", "y"), ("double", "z"), ("float", "red"),
+                  ("float", "green"), ("float", "blue"))) + "end_header\n")
+    path = tmp_path / "float.ply"
+    path.write_bytes(header.encode() + rows.tobytes())
+    np.testing.assert_allclose(read_cloud(path).colors, np.round(colours * 255), atol=1)
+
+
+def test_a_unit_the_extent_contradicts_is_refused(tmp_path):
+    metres = _write(tmp_path / "m.ply", RNG.random((50, 3)) * 0.4)
+    with pytest.raises(InputError, match="mm in millimetres: not a plant"):
+        read_cloud(metres, units="mm")
+    millimetres = _write(tmp_path / "mm.ply", RNG.random((50, 3)) * 400.0)
+    with pytest.raises(InputError, match="in metres: not a plant"):
+        read_cloud(millimetres, units="m")
