@@ -33,6 +33,9 @@ def parse_grid(items: list[str], config: EvalConfig) -> list[tuple[str, list[str
         choices = [v.strip() for v in values.split(",") if v.strip()]
         if not sep or not key.strip() or not choices:
             raise InputError("--grid", f"expected key=v1,v2,..., got {item!r}")
+        if key.strip() in (k for k, _ in grid):
+            raise InputError("--grid", f"{key.strip()} is given twice; put all its values in "
+                             "one --grid")
         for value in choices:
             apply_overrides(config, {key.strip(): value})
         grid.append((key.strip(), choices))

@@ -445,8 +445,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _at_least(minimum: int):
-    """An argparse type: a whole number no smaller than `minimum`."""
+def _at_least(minimum: int, maximum: int | None = None, why: str = ""):
+    """An argparse type: a whole number no smaller than `minimum` (nor larger than
+    `maximum`, refused before anything is allocated)."""
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -454,6 +455,9 @@ def _at_least(minimum: int):
             raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
         if value < minimum:
             raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum:,} ({why}), got "
+                                             f"{value:,}")
         return value
     return parse
 
@@ -488,6 +492,11 @@ PRESET_HELP = ("synthetic plants: easy, realistic (the benchmark), hard, or fiel
 
 SEED = _at_least(0)
 POSITIVE = _at_least(1)
+#: Largest synthetic cloud: about 1 kB a point while it is sampled, so 20 million is 20 GB.
+CLOUD_POINTS_MAX = 20_000_000
+CLOUD_POINTS = _at_least(100, CLOUD_POINTS_MAX, "more does not fit in memory")
+#: Most seeded plants a run takes: about 10 MB of files each, and hours of work per 1,000.
+PLANTS = _at_least(1, 10_000, "a larger benchmark is several runs")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -525,7 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
                    choices=profile_names(),
                    help="also run a named profile on the same plants and print both "
                    "(e.g. --compare upstream)")
-    p.add_argument("--plants", type=POSITIVE, default=None,
+    p.add_argument("--plants", type=PLANTS, default=None,
                    help=f"number of seeded plants (scan: {SCAN_PLANTS}, oracle and rgbd: 10)")
     p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
@@ -537,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("plant", help="generate one plant: plant.json (truth), mesh, oracle cloud")
     p.add_argument("--seed", type=SEED, required=True)
-    p.add_argument("--points", type=_at_least(100), default=None,
+    p.add_argument("--points", type=CLOUD_POINTS, default=None,
                    help="oracle cloud points (60000)")
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--out", type=Path, required=True)
@@ -650,7 +659,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sweep", help="evaluate a grid of settings over seeded plants")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting and its values; repeat for a grid over several")
-    p.add_argument("--plants", type=POSITIVE, default=5)
+    p.add_argument("--plants", type=PLANTS, default=5)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--workers", type=POSITIVE, default=None)
@@ -673,7 +682,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_fidelity)
 
     p = sub.add_parser("bench", help="time the pipeline from cloud to flower poses")
-    p.add_argument("--points", type=_at_least(1000), nargs="+", default=[125_000, 1_000_000])
+    p.add_argument("--points", type=_at_least(1000, CLOUD_POINTS_MAX, "more does not fit in "
+                                               "memory"), nargs="+",
+                   default=[125_000, 1_000_000])
     p.add_argument("--repeat", type=POSITIVE, default=3)
     p.add_argument("--seed", type=SEED, default=3,
                    help="plant seed (3: a realistic plant with 18 open flowers)")

@@ -167,5 +167,7 @@ def load_toml(path: Path) -> dict[str, Any]:
         raise InputError(path, "config file not found") from None
     except tomllib.TOMLDecodeError as err:
         raise InputError(path, f"not valid TOML ({err})") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "not a UTF-8 text file (TOML is UTF-8)") from None
     except OSError as err:
         raise InputError(path, f"cannot read ({err.strerror})") from None

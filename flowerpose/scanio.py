@@ -138,6 +138,10 @@ def read_trajectory(path: Path) -> Trajectory:
         raise InputError(path, "every value must be a number") from None
     if not np.isfinite(table).all():
         raise InputError(path, "NaN or infinite values")
+    still = np.flatnonzero(np.linalg.norm(table[:, 10:14], axis=1) < 0.5)
+    if len(still):
+        raise InputError(path, f"row {still[0] + 1} (frame {int(table[still[0], 0])}): the camera "
+                         "rotation's quaternion is not a unit quaternion (it is near zero)")
     frame = table[:, 0].astype(np.int64)
     table, frame = _without_repeats(path, table, frame)
     if len(frame) and np.any(np.diff(frame) <= 0):

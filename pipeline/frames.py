@@ -120,6 +120,10 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         # Recorded images: score them on every core (decoding releases the GIL) and copy the
         # winners' files as they are, so no image needs keeping.
         indices = [i for i in sorted(sources) if i in row_of]
+        if len(indices) < len(sources):
+            print(f"note: {scan_dir}: {len(sources) - len(indices)} recorded frames have no "
+                  "trajectory.csv row (their poses are unknown) and are left out",
+                  file=sys.stderr)
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             scores = pool.map(lambda i: _score_file(sources[i], config), indices)
             for seen, (index, scored) in enumerate(zip(indices, scores, strict=True), 1):

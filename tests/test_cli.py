@@ -164,3 +164,28 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     except SystemExit as exit_:
         code, err = exit_.code, capsys.readouterr().err
     _assert_one_line_error(code, err, *words)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["plant", "--seed", "0", "--points", "100000000000", "--out", "x"],
+     "must be at most 20,000,000 (more does not fit in memory)"),
+    (["eval", "--source", "oracle", "--plants", "1000000000"], "must be at most 10,000"),
+    (["sweep", "--grid", "cluster.eps=0.01", "--grid", "cluster.eps=0.02", "--out", "x"],
+     "cluster.eps is given twice"),
+])
+def test_sizes_and_repeated_keys_are_refused_before_any_work(argv, message, capsys):
+    try:
+        code = main(argv)
+    except SystemExit as exit:  # argparse's own refusals
+        code = exit.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_a_toml_file_that_is_not_utf8_is_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_bytes(b"[cluster]\neps = 0.01 # \xff\xfe\n")
+    assert main(["detect", str(tmp_path / "none.ply"), "--out", str(tmp_path / "o"),
+                 "--config", str(bad)]) == 2
+    assert "not a UTF-8 text file" in capsys.readouterr().err

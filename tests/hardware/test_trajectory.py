@@ -238,3 +238,16 @@ def test_a_batch_written_twice_is_read_once_and_a_conflicting_row_is_refused(tmp
     path.write_text("".join(",".join(r) + "\n" for r in [TRAJECTORY_COLUMNS, *rows, changed]))
     with pytest.raises(InputError, match="appears twice with different values"):
         read_trajectory(path)
+
+
+def test_a_zero_quaternion_is_one_line_naming_its_row(tmp_path):
+    from flowerpose.errors import InputError
+    from flowerpose.scanio import TRAJECTORY_COLUMNS, trajectory_row
+
+    rows = [trajectory_row(k, 0.5 * k, np.array([1.0, 0.5, 0.3]), 0.1, 0.2,
+                           np.array([1.0, 0.5, 0.2]), np.eye(3)) for k in range(3)]
+    rows[2][-4:] = ["0", "0", "0", "0"]
+    path = tmp_path / "trajectory.csv"
+    path.write_text("".join(",".join(r) + "\n" for r in [TRAJECTORY_COLUMNS, *rows]))
+    with pytest.raises(InputError, match="row 3 \\(frame 2\\).*not a unit quaternion"):
+        read_trajectory(path)
