@@ -35,7 +35,6 @@ import json
 import math
 import os
 import stat
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -142,7 +141,7 @@ class CloudCredentials:
         https://my.farm.bot). A token is the JSON that FarmBot's /api/tokens returns or its
         encoded part (a JWT). InputError, one line and no secret, when none is usable."""
         environ = os.environ if environ is None else environ
-        server = environ.get(ENV_SERVER) or DEFAULT_SERVER
+        server = _checked_server(environ.get(ENV_SERVER) or DEFAULT_SERVER)
         if token_file is not None:
             return cls(token=_read_token_file(Path(token_file)), server=server)
         if environ.get(ENV_TOKEN):
@@ -197,22 +196,40 @@ def git_work_tree(path: Path) -> Path | None:
 
 def _read_token_file(path: Path) -> dict:
     """The token in `path`, which must lie outside any git work tree, so it can never be
-    committed; a file others may read gets a one-line warning."""
+    committed, and be readable by its owner alone: a file others may read is refused
+    before it is read."""
     tree = git_work_tree(path)
     if tree is not None:
         raise InputError(path, f"a token file must lie outside the git work tree {tree}, so "
                          "it can never be committed; move it (e.g. to ~/.config/farmbot/)")
     try:
-        text = path.read_text()
         mode = path.stat().st_mode
+        if mode & (stat.S_IRWXG | stat.S_IRWXO):
+            raise InputError(path, "other users may read this token file; chmod 600 it, then "
+                             "run again")
+        text = path.read_text()
     except FileNotFoundError:
         raise InputError(path, "token file not found") from None
     except OSError as err:
         raise InputError(path, f"cannot read the token file ({err.strerror})") from None
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        print(f"warning: {path}: other users may read this token file; chmod 600 it",
-              file=sys.stderr, flush=True)
     return parse_token(text, str(path))
+
+
+#: Hosts an http:// server may be on: this machine (a self-hosted server for development).
+_LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
+
+
+def _checked_server(server: str) -> str:
+    """FARMBOT_SERVER, refused when it would send a password or token unencrypted."""
+    from urllib.parse import urlparse
+
+    address = urlparse(server)
+    if address.scheme not in ("https", "http") or not address.hostname:
+        raise InputError(ENV_SERVER, f"expected https://host, got {server!r}")
+    if address.scheme == "http" and address.hostname not in _LOCAL_HOSTS:
+        raise InputError(ENV_SERVER, f"{server} is http://: the login would cross the network "
+                         "unencrypted; use https:// (http:// only for a server on this machine)")
+    return server
 
 
 def motion_from_status(mcu_params: Mapping[str, Any] | None) -> MotionProfile:

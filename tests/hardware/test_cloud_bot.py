@@ -230,8 +230,10 @@ def test_token_files_outside_the_repository_only(tmp_path, capsys):
     outside = tmp_path / "token.jwt"
     outside.write_text(make_token()["token"]["encoded"] + "\n")  # the bare JWT
     outside.chmod(0o644)
+    with pytest.raises(InputError, match="other users may read this token file; chmod 600"):
+        CloudCredentials.from_environment({}, token_file=outside)
+    outside.chmod(0o600)
     credentials = CloudCredentials.from_environment({}, token_file=outside)
-    assert "chmod 600" in capsys.readouterr().err
     assert credentials._token == make_token()
     with pytest.raises(InputError, match="not found"):
         CloudCredentials.from_environment({}, token_file=tmp_path / "none")
@@ -370,3 +372,13 @@ def test_the_real_client_drives_the_bot_over_a_fake_broker(monkeypatch, capsys):
     assert any(getattr(c, "disconnected", False) for c in clients)
     out, err = capsys.readouterr()
     assert out == "" and err == ""  # the client printed nothing, no credential
+
+
+def test_a_server_that_would_take_the_login_unencrypted_is_refused():
+    login = {"FARMBOT_EMAIL": "grower@example.org", "FARMBOT_PASSWORD": "x"}
+    with pytest.raises(InputError, match="is http://: the login would cross the network"):
+        CloudCredentials.from_environment({**login, "FARMBOT_SERVER": "http://farm.example.org"})
+    local = CloudCredentials.from_environment({**login, "FARMBOT_SERVER": "http://localhost:3000"})
+    assert local.server == "http://localhost:3000"
+    with pytest.raises(InputError, match="expected https://host"):
+        CloudCredentials.from_environment({**login, "FARMBOT_SERVER": "farm.example.org"})
