@@ -36,7 +36,7 @@ from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, read_flowers, write_flowers
 from flowerpose.pipeline.rgbd import FusionConfig
-from flowerpose.processes import die_with_parent
+from flowerpose.processes import quiet_worker
 from flowerpose.sim.config import PresetName, SimConfig, sim_preset
 
 #: The paper's estimate of its hand labels' error, degrees (the field preset's).
@@ -116,7 +116,7 @@ def _pool(workers: int | None) -> ProcessPoolExecutor | None:
         return None
     # Spawned workers: forking a process that already runs Open3D's threads is unsafe.
     return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=die_with_parent)
+                               initializer=quiet_worker)
 
 
 def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
@@ -135,14 +135,20 @@ def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
             results[k] = function(*job)
             report(k, results[k], k + 1)
         return results
-    with pool:
-        futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
-        from concurrent.futures import as_completed
+    from concurrent.futures import as_completed
 
+    try:
+        futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
         for done, future in enumerate(as_completed(futures), start=1):
             k = futures[future]
             results[k] = future.result()
             report(k, results[k], done)
+    except BaseException:
+        # Ctrl-C, SIGTERM or a failed job: no new job starts, and the workers, which ignore
+        # Ctrl-C, end with this process (`processes.die_with_parent`).
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
     return results
 
 

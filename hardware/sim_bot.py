@@ -27,7 +27,6 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import functools  # noqa: E402
 import math
 import multiprocessing
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -51,7 +50,7 @@ from flowerpose.hardware.trajectory import (
     pose_at,
 )
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.processes import die_with_parent
+from flowerpose.processes import quiet_worker
 from flowerpose.scanio import (
     FRAME_PATTERN,
     TRAJECTORY_COLUMNS,
@@ -155,8 +154,7 @@ def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
 
     # Ctrl-C reaches the whole process group: the scan's own process stops the scan, and
     # the renderers finish the frames it still asks for instead of dying mid-batch.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    die_with_parent()
+    quiet_worker()
     plants = [read_plant(d) for d in plant_dirs]
     _worker["renderer"] = PlantRenderer(plants)
     _worker["intrinsics"] = Intrinsics(**{k: intrinsics[k] for k in

@@ -21,6 +21,10 @@ import pycolmap
 
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
+from flowerpose.processes import reclaim_sigterm
+
+# Importing pycolmap gave SIGTERM to glog, which prints a C stack dump and kills the process.
+reclaim_sigterm()
 
 
 def cuda_available() -> bool:

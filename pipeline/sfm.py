@@ -42,7 +42,11 @@ from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, write_json
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
+from flowerpose.processes import reclaim_sigterm
 from flowerpose.scanio import Intrinsics, read_intrinsics
+
+# Importing pycolmap gave SIGTERM to glog, which prints a C stack dump and kills the process.
+reclaim_sigterm()
 
 #: An image that sees fewer triangulated points than this counts as not registered (the
 #: inliers COLMAP's mapper asks of a new image's pose, abs_pose_min_num_inliers).

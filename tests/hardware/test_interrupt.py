@@ -106,3 +106,26 @@ def test_signals_leave_a_consistent_scan_that_resumes(plant_dir, tmp_path):
     assert finish.returncode == 0, err
     assert read_json(out / "scan.json")["status"] == "complete"
     assert _consistent(out) > third
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
+@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGTERM])
+def test_an_eval_stopped_from_the_terminal_says_one_line_and_leaves_no_worker(tmp_path, how):
+    deadline = time.monotonic() + 120
+    # The whole process group gets the signal, as from a terminal's Ctrl-C.
+    process = subprocess.Popen(
+        [sys.executable, "-m", "flowerpose.cli", "eval", "--source", "oracle", "--plants", "6",
+         "--workers", "2", "--out", str(tmp_path / "run")], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, start_new_session=True)
+    while not list((tmp_path / "run" / "plants").glob("seed-*/cloud.ply")):
+        assert process.poll() is None and time.monotonic() < deadline
+        time.sleep(0.1)
+    workers = _children(process.pid)
+    os.killpg(process.pid, how)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143}[how]
+    assert err.strip().splitlines()[-1] in ("flowerpose: interrupted", "flowerpose: terminated")
+    assert "Traceback" not in err
+    while any(_alive(w) for w in workers):
+        assert time.monotonic() < deadline, "a worker outlived the stopped eval"
+        time.sleep(0.1)
