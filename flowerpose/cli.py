@@ -168,6 +168,8 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    from flowerpose.scanio import frame_files
+
     if args.via_farmduino and not args.sim:
         raise InputError("scan --via-farmduino", "is for the simulated bot: add --sim")
     bots = [name for name, chosen in (("--sim", args.sim), ("--port", args.port),
@@ -212,7 +214,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     with bot:
         manifest = run_scan(bot, plan, args.out,
                             source={**bot.describe(), "plants": [str(args.plant.resolve())]})
-    frames = sum(s.get("frames", 0) for s in manifest["sessions"])
+    frames = len(frame_files(args.out))  # on disk: a killed session never counted its own
     truth = write_scan_truth(args.out, args.plant)
     print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
           f"waypoints, {frames} frames -> {args.out} (truth with the scan's visibility: "
@@ -262,6 +264,7 @@ def _scan_field(args: argparse.Namespace) -> int:
     from flowerpose.hardware.geometry import PAPER_BOT
     from flowerpose.hardware.scan import run_scan
     from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+    from flowerpose.scanio import frame_files
 
     if args.plant_at is None:
         raise InputError("--plant-at", "needed with --port and --cloud: where the plant's stem "
@@ -329,7 +332,7 @@ def _scan_field(args: argparse.Namespace) -> int:
                 **source, "bot": bot.info.name, "firmware": bot.info.firmware})
     finally:
         recorder.close()
-    frames = sum(s.get("frames", 0) for s in manifest["sessions"])
+    frames = len(frame_files(args.out))  # on disk: a killed session never counted its own
     print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
           f"waypoints, {frames} frames ({recorder.rows} of this session's with a pose) -> "
           f"{args.out}")
