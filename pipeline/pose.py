@@ -33,7 +33,7 @@ from flowerpose.pipeline.fit import (
     fit_superellipsoid,
     principal_axes,
 )
-from flowerpose.pipeline.segment import ClusterConfig, corolla, pistil_clusters
+from flowerpose.pipeline.segment import ClusterConfig, corolla, the_pistil
 
 #: Fitting methods, in the order reports list them.
 METHODS = ("plane", "superellipsoid", "paraboloid")
@@ -51,9 +51,10 @@ class PoseConfig:
     radius over the cloud's flowers, or the crop's own), never from a flower size assumed
     in metres. Deviation: upstream fitted every petal-coloured point of the crop, so the
     pale peduncle under a flower and the petals of a touching neighbour tilted the fits.
-    This was 20 mm, which cut the rims of the authors' 40-48 mm flowers: plane error on
-    their plant 3, 9.3 degrees at 20 mm, 7.6 at 1.6 radii (about 36 mm there, 19 mm on
-    the synthetic plants, which kept their 1.89)."""
+    This was 20 mm, which cut the rims of the authors' 40-50 mm flowers: plane error on
+    their plant 3, 9.3 degrees at 20 mm, 7.8 at 1.6 radii, 7.7 at 1.2-1.4 (measured before
+    the robust plane; 1.5 radii is about 34 mm there and 19 mm on the realistic synthetic
+    plants, whose oracle error stayed at 1.86-1.90)."""
     petal_trim_factor: float | None = 3.0
     """Petal points farther from the petals' least-squares plane than this many times their
     median distance (and than `petal_trim_min`) are dropped, twice: what is left of a
@@ -72,10 +73,10 @@ class PoseConfig:
     photogrammetry the receptacle often does not protrude from the petals, so the petal
     surface alone flipped 3 of the 11 flowers of the authors' plant 3; the crop centroid
     flipped cupped flowers (3 of 150 on the hard preset); sepals are often missing. Signs
-    right, with the three alone and combined (plant 3's merged candidates; 10 realistic
-    and 10 hard oracle plants; 3 photogrammetry plants): petal surface 8/11, 134/134,
-    150/150, 34/36; crop 11/11, 134/134, 147/150, 30/36; combined 11/11, 134/134, 150/150,
-    35/36."""
+    right, with the three alone and combined, when the rule was chosen (plant 3's merged
+    candidates; 10 realistic and 10 hard oracle plants; 3 photogrammetry plants): petal
+    surface 8/11, 134/134, 150/150, 34/36; crop 11/11, 134/134, 147/150, 30/36; combined
+    11/11, 134/134, 150/150, 35/36."""
     base_radius_factor: float = 1.5
     """Petal points within this many pistil radii of the pistil centroid form the petal
     base ("petal_base" reference, and "petal_surface" where too few petals are left); the
@@ -188,12 +189,9 @@ def split_petals_pistil(crop: Cloud, colour: ColourConfig,
     hsv = rgb_to_hsv(crop.colors)
     petal = petal_mask(hsv, colour)
     pistil = np.zeros(len(crop), dtype=bool)
-    clusters = pistil_clusters(crop.points, pistil_mask(hsv, colour), cluster)
-    if not clusters:
-        return petal, pistil
-    anchor = crop.points[petal].mean(axis=0) if petal.any() else crop.points.mean(axis=0)
-    centroids = np.array([crop.points[c].mean(axis=0) for c in clusters])
-    pistil[clusters[int(np.argmin(np.linalg.norm(centroids - anchor, axis=1)))]] = True
+    chosen = the_pistil(crop.points, petal, pistil_mask(hsv, colour), cluster)
+    if chosen is not None:
+        pistil[chosen] = True
     return petal, pistil
 
 

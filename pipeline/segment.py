@@ -282,6 +282,19 @@ def pistil_clusters(points: np.ndarray, is_pistil: np.ndarray,
     return [index[order[edges[k]:edges[k + 1]]] for k in range(len(edges) - 1)]
 
 
+def the_pistil(points: np.ndarray, petal: np.ndarray, is_pistil: np.ndarray,
+               config: ClusterConfig) -> np.ndarray | None:
+    """The candidate pistil (`pistil_clusters`) nearest the petal centroid (the centroid of
+    all the points when there are no petals), as indices into points (N, 3); None when
+    there is no candidate. petal, is_pistil: (N,) bool colour masks."""
+    pistils = pistil_clusters(points, is_pistil, config)
+    if not pistils:
+        return None
+    anchor = points[petal].mean(axis=0) if petal.any() else points.mean(axis=0)
+    centroids = np.array([points[c].mean(axis=0) for c in pistils])
+    return pistils[int(np.argmin(np.linalg.norm(centroids - anchor, axis=1)))]
+
+
 @dataclass(frozen=True)
 class Corolla:
     """A flower's petal disc round its centre, in the unit of the cloud."""
@@ -329,20 +342,20 @@ def corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
     """The corolla of one flower's points (N, 3), any unit; petal, pistil: (N,) bool colour
     masks. A flower without three petal points has radius and coverage 0."""
     petal_points = points[petal]
-    anchor = petal_points.mean(axis=0) if len(petal_points) else points.mean(axis=0)
-    pistils = pistil_clusters(points, pistil, config)
-    if pistils:
-        centroids = np.array([points[c].mean(axis=0) for c in pistils])
-        anchor = centroids[int(np.argmin(np.linalg.norm(centroids - anchor, axis=1)))]
+    chosen = the_pistil(points, petal, pistil, config)
+    if chosen is not None:
+        anchor = points[chosen].mean(axis=0)
+    else:
+        anchor = petal_points.mean(axis=0) if len(petal_points) else points.mean(axis=0)
     if len(petal_points) < 3:
-        return Corolla(anchor, bool(pistils), 0.0, 0.0)
+        return Corolla(anchor, chosen is not None, 0.0, 0.0)
     distance = np.linalg.norm(petal_points - anchor, axis=1)
     spanned = float(np.percentile(distance, 90))
     neighbours = min(COVERAGE_NEIGHBOURS, len(points) - 1)
     reach = cKDTree(points).query(points, k=neighbours + 1)[0][:, -1]
     area_per_point = float(np.median(np.pi * reach ** 2 / neighbours))
     coverage = len(petal_points) * area_per_point / (np.pi * spanned ** 2) if spanned > 0 else 0.0
-    return Corolla(anchor, bool(pistils), disc_radius(distance), coverage)
+    return Corolla(anchor, chosen is not None, disc_radius(distance), coverage)
 
 
 def typical_radius(corollas: list[Corolla], config: ClusterConfig) -> float | None:
