@@ -35,6 +35,7 @@ import json
 import math
 import os
 import stat
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -251,6 +252,58 @@ def _farmbot_client() -> Any:
     return Farmbot()
 
 
+#: MQTT over TLS (the broker's standard port for it); plain MQTT is 1883.
+MQTT_TLS_PORT = 8883
+MQTT_PLAIN_PORT = 1883
+
+
+def _connect_broker(self) -> None:
+    """farmbot 2.x's BrokerConnect.connect with TLS: its own connects on port 1883 in the
+    clear, with the bot's token as the MQTT password. TLS on 8883 first, with the system's
+    certificate authorities; a broker that offers none gets plain MQTT and a warning."""
+    import ssl
+
+    import paho.mqtt.client as mqtt
+
+    self.state.check_token()
+    token = self.state.token["token"]
+    host = token["unencoded"]["mqtt"]
+
+    def on_connect(_client, _obj, _flags, reason_code):
+        status = mqtt.connack_string(reason_code)
+        self.state.print_status(description=status)
+        self.state.error = status if reason_code != 0 else None
+
+    def client() -> Any:
+        made = mqtt.Client()
+        made.username_pw_set(username=token["unencoded"]["bot"], password=token["encoded"])
+        made.on_connect = on_connect
+        return made
+
+    self.client = client()
+    try:
+        self.client.tls_set(cert_reqs=ssl.CERT_REQUIRED)
+        self.client.connect(host, port=MQTT_TLS_PORT, keepalive=60)
+    except (OSError, ssl.SSLError, ValueError) as err:
+        print(f"warning: MQTT broker {host}: no TLS on port {MQTT_TLS_PORT} ({type(err).__name__}"
+              f"); connecting in the clear on {MQTT_PLAIN_PORT}, so the token crosses the "
+              "network unencrypted", file=sys.stderr, flush=True)
+        self.client = client()
+        self.client.connect(host, port=MQTT_PLAIN_PORT, keepalive=60)
+    self.client.loop_start()
+    self.state.print_status(description="Connected to message broker.")
+
+
+def _secure_broker() -> None:
+    """Make every farmbot 2.x broker connection in this process try TLS first
+    (`_connect_broker`): the client opens one per command group, all through this class."""
+    try:
+        from farmbot.functions.broker import BrokerConnect
+    except ImportError:
+        return
+    BrokerConnect.connect = _connect_broker
+
+
 def _disconnect(client: Any) -> None:
     """Close the MQTT connections a client opened: farmbot 2.x opens one per command group
     (basic, movements, peripherals, information, ...) on its first use."""
@@ -318,6 +371,7 @@ class FarmbotCloudBot(Bot):
         self._camera: Camera | None = None
         self._link = f"FarmBot cloud ({self._credentials.server})"
         factory = client_factory or _farmbot_client
+        _secure_broker()
         self._client = self._estop_client = None
         try:
             self._client, self._estop_client = factory(), factory()

@@ -287,8 +287,13 @@ def test_the_real_client_drives_the_bot_over_a_fake_broker(monkeypatch, capsys):
         def username_pw_set(self, username, password):
             assert username == "device_7" and password == make_token()["token"]["encoded"]
 
+        def tls_set(self, **kwargs):
+            self.tls = True
+
         def connect(self, host, port=1883, keepalive=60):
             assert host == "mqtt.example.org"
+            # The token is the MQTT password: only ever over TLS, on the broker's TLS port.
+            assert getattr(self, "tls", False) and port == 8883
 
         def loop_start(self):
             pass
@@ -382,3 +387,39 @@ def test_a_server_that_would_take_the_login_unencrypted_is_refused():
     assert local.server == "http://localhost:3000"
     with pytest.raises(InputError, match="expected https://host"):
         CloudCredentials.from_environment({**login, "FARMBOT_SERVER": "farm.example.org"})
+
+
+def test_a_broker_without_tls_gets_plain_mqtt_and_a_warning(monkeypatch, capsys):
+    import paho.mqtt.client as mqtt
+
+    from flowerpose.hardware import cloud_bot
+
+    ports = []
+
+    class Mqtt:
+        def __init__(self, *args, **kwargs):
+            self.tls = False
+
+        def username_pw_set(self, username, password):
+            pass
+
+        def tls_set(self, **kwargs):
+            self.tls = True
+
+        def connect(self, host, port=1883, keepalive=60):
+            ports.append((port, self.tls))
+            if port == 8883:
+                raise ConnectionRefusedError(111, "Connection refused")
+
+        def loop_start(self):
+            pass
+
+    monkeypatch.setattr(mqtt, "Client", Mqtt)
+    state = SimpleNamespace(token=make_token(), check_token=lambda: None,
+                            print_status=lambda **kw: None, error=None)
+    holder = SimpleNamespace(state=state, client=None)
+    cloud_bot._connect_broker(holder)
+    assert ports == [(8883, True), (1883, False)]
+    err = capsys.readouterr().err
+    assert "no TLS on port 8883" in err and "unencrypted" in err
+    assert make_token()["token"]["encoded"] not in err
