@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flowerpose.atomic import write_bytes
+from flowerpose.atomic import write_bytes, write_file
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicBot, Recording
 from flowerpose.hardware.errors import CameraError
@@ -457,22 +457,31 @@ def write_preview(scan_dir: Path, plant_centers: list[np.ndarray], plant_heights
     view = mujoco.MjvCamera()
     view.lookat[:] = [*plant_centers[0][:2], 0.3]
     view.distance, view.azimuth, view.elevation = 1.8, 235.0, -22.0
-    path = scan_dir / "preview.mp4"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+    qpos = joint_positions(HeadPose(trajectory.gantry, trajectory.head[:, 0],
+                                    trajectory.head[:, 1]))
+
+    def film(path: Path) -> bool:
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                 (width, height))
+        if not writer.isOpened():
+            return False
+        try:
+            for k in np.unique(np.linspace(0, len(trajectory) - 1,
+                                           max_frames).round().astype(int)):
+                data.qpos[:] = qpos[k]
+                mujoco.mj_kinematics(model, data)
+                renderer.update_scene(data, camera=view, scene_option=options)
+                renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+                renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+                writer.write(np.ascontiguousarray(renderer.render()[:, :, ::-1]))
+        finally:
+            writer.release()
+        return True
+
     try:
-        qpos = joint_positions(HeadPose(trajectory.gantry, trajectory.head[:, 0],
-                                        trajectory.head[:, 1]))
-        for k in np.unique(np.linspace(0, len(trajectory) - 1, max_frames).round().astype(int)):
-            data.qpos[:] = qpos[k]
-            mujoco.mj_kinematics(model, data)
-            renderer.update_scene(data, camera=view, scene_option=options)
-            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
-            writer.write(np.ascontiguousarray(renderer.render()[:, :, ::-1]))
+        return write_file(scan_dir / "preview.mp4", film)
     finally:
-        writer.release()
         renderer.close()
-    return path
 
 
 def plan_plant_scan(plant) -> ScanPlan:
