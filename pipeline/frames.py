@@ -9,7 +9,6 @@ scan fits.
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -19,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flowerpose.atomic import write_image
+from flowerpose.atomic import write_bytes, write_image
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
@@ -147,7 +146,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         index = int(trajectory.frame[row])
         name = FRAME_PATTERN.format(index)
         if index in sources:
-            shutil.copyfile(sources[index], images_dir / name)  # the recorded bytes, as is
+            write_bytes(images_dir / name, sources[index].read_bytes())  # the recorded bytes
         else:
             write_image(images_dir / name, image, [cv2.IMWRITE_JPEG_QUALITY, 95])
         chosen.append({
