@@ -59,3 +59,48 @@ def test_writers_that_go_by_the_suffix_get_the_right_one(tmp_path):
     atomic.write_image(tmp_path / "view.png", image)
     np.testing.assert_array_equal(cv2.imread(str(tmp_path / "view.png"))[..., ::-1], image)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["crop.ply", "view.png"]
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1 MB file system, where this machine lets the test make one (root, tmpfs)."""
+    import shutil
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
+                          capture_output=True) if shutil.which("mount") else None
+    if made is None or made.returncode != 0:
+        pytest.skip("cannot make a small file system here (the injected failures cover it)")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def test_a_full_disk_is_one_line_and_keeps_what_was_there(small_disk, tmp_path, capsys):
+    from flowerpose.cli import main
+
+    rng = np.random.default_rng(1)
+    cloud = write_cloud(tmp_path / "cloud.ply", Cloud(
+        rng.uniform(-0.15, 0.15, (20000, 3)) + [1.5, 0.75, 0.2],
+        rng.integers(0, 256, (20000, 3)).astype(np.uint8)))
+    out = small_disk / "detect"
+    assert main(["detect", str(cloud), "--out", str(out), "--set", "grid.pixel_size_m=0.0005"]) \
+        == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out) in err[0] and "cannot write" in err[0]
+    assert not list(out.rglob("*.tmp*"))  # no half-written file left to trust
+    report = small_disk / "report.json"
+    write_json(report, {"kept": True})
+    with open(small_disk / "fill", "wb") as handle:  # fill what is left
+        try:
+            while True:
+                handle.write(b"\0" * 65536)
+                handle.flush()
+        except OSError:
+            pass
+    with pytest.raises(InputError, match="cannot write"):
+        write_json(report, {"kept": False, "padding": "x" * 200_000})
+    assert report.read_text() == '{\n "kept": true\n}'
