@@ -26,12 +26,19 @@ def plant_dir(tmp_path_factory):
     return out
 
 
+def _interruptible() -> None:
+    """Ctrl-C as a terminal gives it: a shell's background job starts with SIGINT ignored,
+    and Python keeps that, so the signal the test sends would never arrive."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _scan(plant_dir: Path, out: Path) -> subprocess.Popen:
     command = [sys.executable, "-m", "flowerpose.cli", "scan", "--sim", "--plant",
                str(plant_dir), "--out", str(out), "--width", "96", "--height", "54",
                "--frame-rate", "0.2", "--workers", "1", "--no-preview"]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            preexec_fn=_interruptible)
 
 
 def _rows(out: Path) -> int:
@@ -116,7 +123,7 @@ def test_an_eval_stopped_from_the_terminal_says_one_line_and_leaves_no_worker(tm
     process = subprocess.Popen(
         [sys.executable, "-m", "flowerpose.cli", "eval", "--source", "oracle", "--plants", "6",
          "--workers", "2", "--out", str(tmp_path / "run")], stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True, start_new_session=True)
+        stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_interruptible)
     while not list((tmp_path / "run" / "plants").glob("seed-*/cloud.ply")):
         assert process.poll() is None and time.monotonic() < deadline
         time.sleep(0.1)

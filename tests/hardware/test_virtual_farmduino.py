@@ -278,7 +278,9 @@ def test_command_line_serves_until_ctrl_c():
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen([sys.executable, "-m", "flowerpose.cli", "farmduino", "--virtual",
                                 "--time-scale", "50"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, env=env)
+                               stderr=subprocess.PIPE, text=True, env=env,
+                               # as from a terminal, even where this runs as a background job
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         path = process.stdout.readline().strip()
         host = Link(path)
