@@ -51,10 +51,11 @@ class PoseConfig:
     radius over the cloud's flowers, or the crop's own), never from a flower size assumed
     in metres. Deviation: upstream fitted every petal-coloured point of the crop, so the
     pale peduncle under a flower and the petals of a touching neighbour tilted the fits.
-    This was 20 mm, which cut the rims of the authors' 40-50 mm flowers: plane error on
-    their plant 3, 9.3 degrees at 20 mm, 7.8 at 1.6 radii, 7.7 at 1.2-1.4 (measured before
-    the robust plane; 1.5 radii is about 34 mm there and 19 mm on the realistic synthetic
-    plants, whose oracle error stayed at 1.86-1.90)."""
+    This was 20 mm, which cut the rims of the authors' 40-50 mm flowers (1.5 radii is
+    about 34 mm there, 19 mm on the realistic synthetic plants). It matters where a crop
+    holds leaves: crops boxed round plant 3's labels from its candidates, 7.49 degrees
+    with the limit, 12.82 without (`--set pose.petal_max_radius=none`); after clustering
+    the candidates or a synthetic cloud it changes nothing measurable (README)."""
     petal_trim_factor: float | None = 3.0
     """Petal points farther from the petals' least-squares plane than this many times their
     median distance (and than `petal_trim_min`) are dropped, twice: what is left of a
@@ -71,12 +72,11 @@ class PoseConfig:
     (default): the sum of the petal-surface offset, the crop-centroid offset and the offset
     of the petals above the sepals and stems behind them. Each fails somewhere: on real
     photogrammetry the receptacle often does not protrude from the petals, so the petal
-    surface alone flipped 3 of the 11 flowers of the authors' plant 3; the crop centroid
-    flipped cupped flowers (3 of 150 on the hard preset); sepals are often missing. Signs
-    right, with the three alone and combined, when the rule was chosen (plant 3's merged
-    candidates; 10 realistic and 10 hard oracle plants; 3 photogrammetry plants): petal
-    surface 8/11, 134/134, 150/150, 34/36; crop 11/11, 134/134, 147/150, 30/36; combined
-    11/11, 134/134, 150/150, 35/36."""
+    surface alone flips normals of the authors' plant 3; the crop centroid flips cupped
+    flowers; sepals are often missing. Plane error, petal surface / crop / combined
+    (`flowerpose eval --source real ../shared/real/paper-plant-3 --set
+    pose.direction_reference=...`): 36.3 / 21.3 / 7.47 degrees (two and one flipped
+    normals); hard oracle preset, 10 plants: 2.58 / 5.99 / 2.58; realistic: 1.93 all."""
     base_radius_factor: float = 1.5
     """Petal points within this many pistil radii of the pistil centroid form the petal
     base ("petal_base" reference, and "petal_surface" where too few petals are left); the
