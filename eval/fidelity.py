@@ -98,8 +98,7 @@ def real_sample(plant: RealPlant, config: PipelineConfig, max_distance: float) -
         background = remove_ground(cloud, config.ground)
     else:
         merged = merged_candidates(plant.clouds, plant.units)
-        _, first = np.unique(merged.points, axis=0, return_index=True)
-        cloud = merged.subset(np.sort(first))
+        cloud = merged.subset(merged.first_copies())
         result = find_flowers_in_candidates(cloud, config)
         background = np.arange(len(cloud))
     return _matched(plant.name, cloud, truth, result.flowers, background, max_distance)

@@ -199,7 +199,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         raise InputError("--source", f"'{source}': one of {', '.join(SOURCES)}")
     start = time.perf_counter()
     if source == "real":
-        jobs, timing, extra, described = _real_jobs(list(folders), truth_scale, config)
+        jobs, described = _real_jobs(list(folders), truth_scale)
+        timing, extra = {}, {}
         run_config = {"source": source, "folders": described, **to_dict(pipeline_part(config)),
                       "score": to_dict(config.score)}
         title = f"flowerpose eval: {len(jobs)} real plants"
@@ -243,8 +244,10 @@ def _score_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dic
     return evaluate_cloud(cloud_path, truth_path, config, out_dir / "plants" / name, name)
 
 
-def _real_jobs(folders: list[Path], truth_scale: float | None,
-               config: EvalConfig) -> tuple[list[tuple], dict, dict, list[dict]]:
+def _real_jobs(folders: list[Path],
+               truth_scale: float | None) -> tuple[list[tuple], list[dict]]:
+    """A scoring job per real plant folder (checked first, named uniquely), and what each
+    folder holds for the report's config."""
     from flowerpose.eval.real_source import read_real_plant
 
     if not folders:
@@ -257,7 +260,7 @@ def _real_jobs(folders: list[Path], truth_scale: float | None,
         names[plant.name] = names.get(plant.name, 0) + 1
         name = plant.name if names[plant.name] == 1 else f"{plant.name}-{names[plant.name]}"
         jobs.append(("real", name, plant))
-    return jobs, {}, {}, [p.describe() for p in plants]
+    return jobs, [p.describe() for p in plants]
 
 
 def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,

@@ -70,6 +70,24 @@ def _deg(value: float | None) -> str:
         else f"{value:.1f}°"
 
 
+def aligned_table(header: list[str], rows: list[list[str]],
+                  rules_before: list[int] = ()) -> str:
+    """A Markdown table with padded columns; a rule under the header and before each row
+    index in `rules_before` (the paper's Table I separates its totals)."""
+    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
+
+    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+    body = [line(header), rule]
+    for k, row in enumerate(rows):
+        if k in rules_before:
+            body.append(rule)
+        body.append(line(row))
+    return "\n".join(body)
+
+
 def table(report: dict) -> str:
     """The paper's Table I for a report: per plant, then total, mean, median, std."""
     header = ["Plant", "GT", "Visible", "Found (%)", "Extra", "FP",
@@ -87,15 +105,7 @@ def table(report: dict) -> str:
     for stat, label in (("mean", "Mean"), ("median", "Median"), ("std", "Std Dev")):
         rows.append([label, "-", "-", "-", "-", "-"]
                     + [_deg(s["error_deg"][m][stat]) for m in TABLE_METHODS])
-    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
-
-    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-    body = [line(header), rule] + [line(r) for r in rows[:-4]] + [rule] + \
-        [line(r) for r in rows[-4:]]
-    return "\n".join(body)
+    return aligned_table(header, rows, rules_before=[len(rows) - 4])
 
 
 def _plane_errors(plants: list[dict]) -> dict[tuple[str, Any], float]:
@@ -124,13 +134,7 @@ def comparison_table(report: dict, name: str = "default") -> str:
                       _deg(errors["plane"]["mean"]), _deg(errors["plane"]["median"]),
                       _deg(errors["superellipsoid"]["mean"]), _deg(errors["paraboloid"]["mean"]),
                       paired])
-    widths = [max(len(r[i]) for r in [header] + lines) for i in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
-
-    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-    return "\n".join([line(header), rule] + [line(r) for r in lines])
+    return aligned_table(header, lines)
 
 
 def summary_lines(report: dict) -> list[str]:

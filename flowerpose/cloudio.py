@@ -37,6 +37,11 @@ class Cloud:
     def subset(self, index: np.ndarray) -> Cloud:
         return Cloud(self.points[index], self.colors[index])
 
+    def first_copies(self) -> np.ndarray:
+        """Sorted indices of the first copy of every distinct point (a point that several
+        views' files hold is there once)."""
+        return np.sort(np.unique(self.points, axis=0, return_index=True)[1])
+
 
 def _o3d():
     import open3d as o3d

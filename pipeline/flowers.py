@@ -118,8 +118,7 @@ def find_flowers_in_candidates(candidates: Cloud,
     grid or detection. candidates: metres (or the cloud's unit), any frame; a point that
     several views took counts once (crops index the first copy)."""
     timer = _Timer()
-    _, first = np.unique(candidates.points, axis=0, return_index=True)
-    first.sort()
+    first = candidates.first_copies()
     points = candidates.subset(first)
     flowers = _flowers_among(points, np.arange(len(points)), first, config, timer)
     return FlowerResult(flowers, [], [], timer.total())

@@ -177,6 +177,30 @@ class FlowerPose:
         }
 
 
+@dataclass(frozen=True)
+class CropColours:
+    """A crop's colour classes by the colour model, each (N,) bool, found once per crop."""
+
+    petal: np.ndarray
+    pistil: np.ndarray
+    """Pistil-coloured points (candidates; `the_pistil` picks the pistil among them)."""
+    support: np.ndarray
+
+    @classmethod
+    def of(cls, crop: Cloud, colour: ColourConfig) -> CropColours:
+        hsv = rgb_to_hsv(crop.colors)
+        return cls(petal_mask(hsv, colour), pistil_mask(hsv, colour), support_mask(hsv, colour))
+
+
+def _split(points: np.ndarray, colours: CropColours,
+           cluster: ClusterConfig) -> tuple[np.ndarray, np.ndarray]:
+    pistil = np.zeros(len(points), dtype=bool)
+    chosen = the_pistil(points, colours.petal, colours.pistil, cluster)
+    if chosen is not None:
+        pistil[chosen] = True
+    return colours.petal, pistil
+
+
 def split_petals_pistil(crop: Cloud, colour: ColourConfig,
                         cluster: ClusterConfig) -> tuple[np.ndarray, np.ndarray]:
     """Petal and pistil masks of a flower crop by colour; the pistil picked by DBSCAN.
@@ -186,18 +210,12 @@ def split_petals_pistil(crop: Cloud, colour: ColourConfig,
     metres, colors (N, 3) uint8. Returns (petal_mask, pistil_mask), both (N,) bool;
     pistil_mask is all False when no candidate cluster exists.
     """
-    hsv = rgb_to_hsv(crop.colors)
-    petal = petal_mask(hsv, colour)
-    pistil = np.zeros(len(crop), dtype=bool)
-    chosen = the_pistil(crop.points, petal, pistil_mask(hsv, colour), cluster)
-    if chosen is not None:
-        pistil[chosen] = True
-    return petal, pistil
+    return _split(crop.points, CropColours.of(crop, colour), cluster)
 
 
 def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
                  plane: np.ndarray | None, config: PoseConfig,
-                 colour: ColourConfig) -> np.ndarray | None:
+                 colours: CropColours) -> np.ndarray | None:
     """A vector (metres, crop frame) the normals must agree with, or None if none is known.
 
     With a pistil it points from a reference to the pistil centroid: the pistil sits on the
@@ -218,7 +236,7 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
         if config.direction_reference == "petal_surface" and plane is not None:
             return _above_petal_surface(points[petal], pistil_centroid, plane)
         if config.direction_reference == "combined" and plane is not None:
-            return _combined(crop, petal, pistil, plane, config, colour)
+            return _combined(crop, petal, pistil, plane, config, colours)
         radius = np.percentile(np.linalg.norm(pistil_points - pistil_centroid, axis=1), 90)
         petal_points = points[petal]
         distance = np.linalg.norm(petal_points - pistil_centroid, axis=1)
@@ -226,14 +244,14 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
         if base.sum() < config.base_min_points:
             base = np.argsort(distance)[:config.base_min_points]
         return pistil_centroid - petal_points[base].mean(axis=0)
-    support = ~petal & support_mask(rgb_to_hsv(crop.colors), colour)
+    support = ~petal & colours.support
     if support.sum() < config.support_min_points or not petal.any():
         return None
     return points[petal].mean(axis=0) - points[support].mean(axis=0)
 
 
 def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndarray,
-              config: PoseConfig, colour: ColourConfig) -> np.ndarray:
+              config: PoseConfig, colours: CropColours) -> np.ndarray:
     """The plane axis signed by the sum of three offsets along it (the cloud's unit): the
     pistil above the petal surface extended to it, the pistil above the crop's centroid,
     and the petals above the sepals and stems near the flower (support colours within
@@ -246,8 +264,7 @@ def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndar
     height = offset @ plane
     across = np.linalg.norm(offset - np.outer(height, plane), axis=1)
     radius = float(np.percentile(np.linalg.norm(petal_points - pistil_centroid, axis=1), 90))
-    hsv = rgb_to_hsv(crop.colors)
-    support = (support_mask(hsv, colour) & ~petal_mask(hsv, colour) & ~pistil
+    support = (colours.support & ~colours.petal & ~pistil
                & (across <= radius) & (np.abs(height) <= config.support_reach * radius))
     evidence = (float(_above_petal_surface(petal_points, pistil_centroid, plane) @ plane)
                 + float((pistil_centroid - points.mean(axis=0)) @ plane))
@@ -286,11 +303,11 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
     cluster = cluster or ClusterConfig()
     if len(crop) == 0:
         raise InputError("flower crop", "the crop has no points")
-    petal, pistil = split_petals_pistil(crop, colour, cluster)
+    colours = CropColours.of(crop, colour)
+    petal, pistil = _split(crop.points, colours, cluster)
     found = bool(pistil.any())
     if flower_radius is None:
-        hsv = rgb_to_hsv(crop.colors)
-        flower_radius = corolla(crop.points, petal, pistil_mask(hsv, colour), cluster).radius
+        flower_radius = corolla(crop.points, petal, colours.pistil, cluster).radius
     petal = _corolla(crop.points, petal, pistil, config, flower_radius)
     if found:
         center = crop.points[pistil].mean(axis=0)
@@ -301,7 +318,7 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
     petal_points = crop.points[petal]
     normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
     plane = fit_plane(petal_points, config.min_fit_points, config.plane_robust_iterations)
-    reference = _orientation(crop, petal, pistil, plane, config, colour)
+    reference = _orientation(crop, petal, pistil, plane, config, colours)
     if reference is not None:
         axes = _fit_axes(petal_points, plane, center if found else None, config)
         normals = {m: None if axis is None else (axis if axis @ reference >= 0.0 else -axis)

@@ -381,10 +381,13 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     sheened leaves of petal colour) keeps what lies within `reach_ratio` typical radii of
     its pistil.
     """
-    hsv = rgb_to_hsv(plant.colors)
-    white, centre = petal_mask(hsv, colour), pistil_mask(hsv, colour)
-    if config.white_rule == "saturation":
-        white = hsv[:, 1] <= colour.petal_max_saturation
+    # Colour classes of the candidates only (the rest of the cloud is never clustered),
+    # held in cloud-sized masks so every later step indexes them by cloud index.
+    hsv = rgb_to_hsv(plant.colors[candidates])
+    white, centre = np.zeros(len(plant), bool), np.zeros(len(plant), bool)
+    white[candidates] = (hsv[:, 1] <= colour.petal_max_saturation
+                         if config.white_rule == "saturation" else petal_mask(hsv, colour))
+    centre[candidates] = pistil_mask(hsv, colour)
     if config.candidates == "flower_colour":
         candidates = candidates[white[candidates] | centre[candidates]]
     if len(candidates) == 0:
