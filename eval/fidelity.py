@@ -104,24 +104,45 @@ def real_sample(plant: RealPlant, config: PipelineConfig, max_distance: float) -
     return _matched(plant.name, cloud, truth, result.flowers, background, max_distance)
 
 
+#: Where a synthetic plant folder keeps the cloud a source made and the truth it saw, most
+#: realistic first: the scan source's reconstruction, the RGB-D source's fusion, the oracle.
+SYNTHETIC_CLOUDS = (("reconstruction/cloud.ply", "scan/plant.json"),
+                    ("rgbd/cloud.ply", "rgbd/plant.json"),
+                    ("cloud.ply", "plant.json"))
+
+
+def synthetic_cloud(folder: Path) -> tuple[Path, Path] | None:
+    """The (cloud, truth) a plant folder holds, the first of SYNTHETIC_CLOUDS it has: an
+    eval run's scan or RGB-D plant is described by what its source reconstructed, not by
+    the oracle cloud every plant folder also keeps."""
+    for cloud, truth in SYNTHETIC_CLOUDS:
+        if (folder / cloud).is_file() and (folder / truth).is_file():
+            return folder / cloud, folder / truth
+    return None
+
+
 def synthetic_sample(folder: Path, config: PipelineConfig, max_distance: float) -> Sample:
-    """A generated plant's sample: plant.json and its cloud.ply (oracle)."""
-    truth = read_plant_truth(folder / "plant.json")
-    cloud = read_cloud(folder / "cloud.ply")
+    """A generated plant's sample: its most realistic cloud (`synthetic_cloud`)."""
+    found = synthetic_cloud(folder)
+    if found is None:
+        raise InputError(folder, "not a plant folder (no plant.json with a cloud.ply)")
+    cloud_path, truth_path = found
+    truth = read_plant_truth(truth_path)
+    cloud = read_cloud(cloud_path)
     result = find_flowers(cloud, config)
     return _matched(folder.name, cloud, truth, result.flowers,
                     remove_ground(cloud, config.ground), max_distance)
 
 
 def synthetic_folders(paths: list[Path]) -> list[Path]:
-    """Plant folders (plant.json and cloud.ply) given directly or inside an eval run's
-    plants/ folder."""
+    """Plant folders given directly or inside an eval run's plants/ folder (oracle, scan or
+    RGB-D source)."""
     folders = []
     for path in paths:
-        if (path / "plant.json").is_file() and (path / "cloud.ply").is_file():
+        if synthetic_cloud(path) is not None:
             folders.append(path)
         elif found := sorted(p for p in (path / "plants").glob("seed-*")
-                             if (p / "plant.json").is_file() and (p / "cloud.ply").is_file()):
+                             if synthetic_cloud(p) is not None):
             folders.extend(found)
         else:
             raise InputError(path, "neither a plant folder (plant.json and cloud.ply, from "

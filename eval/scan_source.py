@@ -14,6 +14,8 @@ from pathlib import Path
 
 from flowerpose.config import require
 from flowerpose.pipeline.reconstruct import ReconstructConfig
+from flowerpose.sim.render_config import RenderConfig
+from flowerpose.sim.sensor import SensorConfig
 
 
 @dataclass(frozen=True)
@@ -32,6 +34,10 @@ class ScanSourceConfig:
     """Frames chosen for photogrammetry, the sharpest of as many bins (the paper: 200)."""
     workers: int | None = None
     """Render processes (default: every core)."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """The camera's imperfections and colour processing (the field preset's: `eval_config`)."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """The light on the bed (the field preset's: `eval_config`)."""
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
 
     def __post_init__(self):
@@ -63,7 +69,8 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig) -> dict:
     plant = read_plant(plant_dir)
     plan = plan_plant_scan(plant)
     bot_config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=config.frame_rate_hz,
-                                                     workers=config.workers),
+                                                     workers=config.workers,
+                                                     sensor=config.sensor, render=config.render),
                               width=config.width, height=config.height)
     scan_dir = plant_dir / "scan"
     with SimBot([plant_dir], bot_config) as bot:

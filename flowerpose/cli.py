@@ -676,7 +676,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("real", type=Path, metavar="REAL_DIR",
                    help="a labelled real plant folder (cloud.ply or candidates/)")
     p.add_argument("synthetic", type=Path, nargs="+", metavar="SYNTH_DIR",
-                   help="plant folders from flowerpose plant, or eval runs (their plants/)")
+                   help="plant folders from flowerpose plant, or eval runs (their plants/); a "
+                   "scan or RGB-D run is described by its reconstructed cloud")
     p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
                    help="the real labels' scale (default: source.json, else 25)")
     p.add_argument("--out", type=Path, required=True)

@@ -58,6 +58,8 @@ from flowerpose.scanio import (
     open_rows,
     trajectory_row,
 )
+from flowerpose.sim.render_config import RenderConfig
+from flowerpose.sim.sensor import SensorConfig
 from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
 
 TRUTH_COLUMNS = ("frame", "t", "speed_px_s", "since_stop_s", "motion_blur_px", "defocus_px",
@@ -93,6 +95,10 @@ class SimCameraConfig:
     """Render processes (default: every core)."""
     seed: int = 0
     """Seed of the sensor noise (frame k uses seed + k)."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """The camera's imperfections and colour processing."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """The light on the bed and its surroundings."""
 
     def __post_init__(self):
         if not (self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz)):
@@ -148,7 +154,7 @@ _worker: dict = {}
 
 
 def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
-                 samples: int, seed: int) -> None:
+                 samples: int, seed: int, render: RenderConfig) -> None:
     from flowerpose.sim.export import read_plant
     from flowerpose.sim.render import PlantRenderer
 
@@ -156,7 +162,7 @@ def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
     # the renderers finish the frames it still asks for instead of dying mid-batch.
     quiet_worker()
     plants = [read_plant(d) for d in plant_dirs]
-    _worker["renderer"] = PlantRenderer(plants)
+    _worker["renderer"] = PlantRenderer(plants, render)
     _worker["intrinsics"] = Intrinsics(**{k: intrinsics[k] for k in
                                           ("width", "height", "fx", "fy", "cx", "cy", "fps")})
     width = visibility_width
@@ -165,15 +171,15 @@ def _init_worker(plant_dirs: list[str], intrinsics: dict, visibility_width: int,
     _worker["petals"] = petal_samples(plants, _worker["renderer"].instance_id, samples, seed)
 
 
-def _render_frame(task: FrameTask, frames_dir: str, sensor_seed: int) -> dict:
+def _render_frame(task: FrameTask, frames_dir: str, sensor_seed: int,
+                  sensor: SensorConfig) -> dict:
     import cv2
 
     from flowerpose.sim.render import Output
-    from flowerpose.sim.sensor import SensorConfig, apply_sensor
+    from flowerpose.sim.sensor import apply_sensor
 
     rgb = _worker["renderer"].render(task.camera_to_bed, _worker["intrinsics"], Output.RGB).rgb
     rng = np.random.default_rng([sensor_seed, task.index])
-    sensor = SensorConfig()
     # The stored JPEG is the camera's compression: apply_sensor stops before it.
     image, record = apply_sensor(rgb, task.speed_px_s, task.since_stop_s,
                                  replace(sensor, jpeg_quality=None), rng)
@@ -312,7 +318,7 @@ class _FrameWriter:
                  config: SimCameraConfig):
         self.scan_dir = scan_dir
         init = (plant_dirs, intrinsics.to_json(), config.visibility_width,
-                config.visibility_samples, config.seed)
+                config.visibility_samples, config.seed, config.render)
         self._pool = ProcessPoolExecutor(config.workers or os.cpu_count() or 1,
                                          mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_init_worker, initargs=init)
@@ -323,7 +329,7 @@ class _FrameWriter:
         # offered again when the recording stops, and its written part is skipped.
         self._next_row = last_recorded(scan_dir)[0]
         self._render = functools.partial(_render_frame, frames_dir=str(scan_dir / "frames"),
-                                         sensor_seed=config.seed)
+                                         sensor_seed=config.seed, sensor=config.sensor)
         self._started, self._count = time.perf_counter(), 0
 
     def write(self, tasks: list[FrameTask], settled: np.ndarray | None) -> int:

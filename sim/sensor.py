@@ -1,8 +1,9 @@
 """The scan camera's imperfections, applied to a clean render: what a real scan records.
 
 In the order light meets them: motion blur while the camera moves during the exposure,
-defocus while the autofocus settles after a stop, sensor noise (shot and read noise), and
-the video's JPEG compression (the USB camera streams MJPEG at 1280 x 720 and 30 fps).
+defocus while the autofocus settles after a stop, sensor noise (shot and read noise), the
+camera's colour processing (white balance, exposure gain, saturation), and the video's JPEG
+compression (the USB camera streams MJPEG at 1280 x 720 and 30 fps).
 `apply_sensor` is deterministic given its random generator and returns a `SensorRecord`
 of exactly what it applied, so tests can rank frames by the blur they really carry
 (`sharpness_truth`).
@@ -21,6 +22,7 @@ from statistics import NormalDist
 import cv2
 import numpy as np
 
+from flowerpose.config import require
 from flowerpose.sim.camera import Intrinsics, project
 
 
@@ -48,6 +50,31 @@ class SensorConfig:
     defocus_px: float = 4.0
     """Defocus blur radius (disc) when the camera has just stopped (and while it moves),
     pixels."""
+    gain: float = 1.0
+    """Exposure gain of the camera's processing: every channel times this, clipped at
+    255 (1: the render's exposure, set for a sunlit scene; an auto-exposed camera in a
+    shaded bed brightens)."""
+    saturation: float = 1.0
+    """Chroma of the processed image against the render's, about each pixel's luma
+    (Rec. 601): 1 keeps colours, below 1 pales them (a low-saturation picture profile)."""
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Gains of the red, green and blue channels (after `gain`): above 1 in red and below
+    in blue warms the picture, moving greens toward yellow."""
+
+    def __post_init__(self):
+        require(self.gain > 0, "sensor.gain", "must be positive")
+        require(self.saturation >= 0, "sensor.saturation", "must be 0 or more")
+        require(len(self.white_balance) == 3 and all(g > 0 for g in self.white_balance),
+                "sensor.white_balance", "must be three positive gains (red, green, blue)")
+
+    def colour_matrix(self) -> np.ndarray | None:
+        """(3, 3) RGB -> RGB matrix of the colour processing, or None when it changes
+        nothing: the saturation about luma, then white balance and gain."""
+        if self.gain == 1.0 and self.saturation == 1.0 and self.white_balance == (1.0, 1.0, 1.0):
+            return None
+        luma = np.array([0.299, 0.587, 0.114])
+        chroma = self.saturation * np.eye(3) + (1.0 - self.saturation) * np.outer(np.ones(3), luma)
+        return self.gain * np.diag(self.white_balance) @ chroma
 
 
 @dataclass(frozen=True)
@@ -214,6 +241,18 @@ def _add_noise(image: np.ndarray, config: SensorConfig,
     return cv2.add(image, noise, dtype=cv2.CV_8U), rms
 
 
+def process_colour(image: np.ndarray, config: SensorConfig) -> np.ndarray:
+    """The camera's colour processing (`SensorConfig.colour_matrix`) of an (..., 3) uint8
+    RGB image or colour list, rounded and clipped to 0-255; unchanged without one."""
+    matrix = config.colour_matrix()
+    if matrix is None:
+        return image
+    shape = image.shape
+    out = cv2.transform(np.ascontiguousarray(image, np.uint8).reshape(-1, 1, 3).astype(np.float32),
+                        matrix.astype(np.float32))
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8).reshape(shape)
+
+
 def apply_sensor(rgb: np.ndarray, image_velocity_px_s: np.ndarray, seconds_since_stop: float,
                  config: SensorConfig, rng: np.random.Generator
                  ) -> tuple[np.ndarray, SensorRecord]:
@@ -244,6 +283,7 @@ def apply_sensor(rgb: np.ndarray, image_velocity_px_s: np.ndarray, seconds_since
         image, sigma = _add_noise(image, config, rng)
     else:
         sigma = 0.0
+    image = process_colour(image, config)
     if config.jpeg_quality is not None:
         ok, data = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
                                 [cv2.IMWRITE_JPEG_QUALITY, int(config.jpeg_quality)])

@@ -3,6 +3,7 @@
 import csv
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -16,6 +17,8 @@ from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_fram
 from flowerpose.scanio import frame_files, read_trajectory
 from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.bundle import make_plant
+from flowerpose.sim.render_config import RenderConfig
+from flowerpose.sim.sensor import SensorConfig
 
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=60.0, cylinder_bottom_m=0.22,
                                   cylinder_step_m=0.04, dome_polar_deg=(50.0,)))
@@ -102,3 +105,20 @@ def test_frame_selection_picks_the_frames_the_simulator_left_sharp(plant_dir, tm
     has_sharp = best > 0.9
     assert has_sharp.sum() >= bins - 2
     assert np.all(got[has_sharp] > 0.9), (got, best)
+
+
+def test_the_configured_camera_processing_and_light_reach_the_recorded_frames(plant_dir,
+                                                                            tmp_path):
+    plan = dataclasses.replace(_plan(plant_dir), waypoints=_plan(plant_dir).waypoints[:2])
+
+    def mean_level(camera):
+        scan = tmp_path / f"scan-{len(list(tmp_path.iterdir()))}"
+        config = dataclasses.replace(CONFIG, camera=dataclasses.replace(CONFIG.camera, **camera))
+        with SimBot([plant_dir], config) as bot:
+            run_scan(bot, plan, scan, source={"backend": "sim"}, progress=False)
+        return np.mean([cv2.imread(str(f)).mean() for f in frame_files(scan)])
+
+    plain = mean_level({})
+    assert mean_level({"sensor": SensorConfig(gain=0.5)}) == pytest.approx(plain / 2, rel=0.05)
+    assert mean_level({"render": RenderConfig(sun=0.2, sky=0.1, fill=0.0, bounce=0.0,
+                                              background_rgb=(40, 40, 40))}) < 0.7 * plain

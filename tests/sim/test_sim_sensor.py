@@ -7,12 +7,15 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
+from flowerpose.errors import InputError
+from flowerpose.pipeline.colour import rgb_to_hsv
 from flowerpose.sim.camera import intrinsics_from_config, look_at
 from flowerpose.sim.sensor import (
     SensorConfig,
     apply_sensor,
     defocus_radius,
     image_velocity,
+    process_colour,
     sharpness_truth,
 )
 
@@ -157,3 +160,34 @@ def test_image_velocity_of_a_turning_camera():
     slide[:3, 3] += [0.0, -0.01, 0.0]  # 1 cm to the camera's right
     velocity = image_velocity(start, slide, 0.5, k, distance_m=0.5)
     assert velocity == pytest.approx([-k.fx * 0.01 / 0.5 / 0.5, 0.0])
+
+
+def test_colour_processing_changes_nothing_by_default(texture):
+    image, _ = apply_sensor(texture, np.zeros(2), SETTLED, CLEAN, np.random.default_rng(0))
+    assert np.array_equal(image, texture)
+    assert process_colour(texture, SensorConfig()) is texture
+
+
+def test_gain_brightens_and_clips_saturation_pales_about_luma():
+    colours = np.array([[100, 50, 20], [200, 200, 200], [20, 150, 40]], np.uint8)
+    brighter = process_colour(colours, SensorConfig(gain=1.5))
+    assert brighter.tolist() == [[150, 75, 30], [255, 255, 255], [30, 225, 60]]
+    grey = process_colour(colours, SensorConfig(saturation=0.0)).astype(int)
+    luma = colours @ np.array([0.299, 0.587, 0.114])
+    assert np.all(np.abs(grey - np.rint(luma)[:, None]) <= 1)  # every channel at the luma
+    paler = rgb_to_hsv(process_colour(colours, SensorConfig(saturation=0.6)))[:, 1]
+    assert np.all(paler[[0, 2]] < rgb_to_hsv(colours)[[0, 2], 1])
+
+
+def test_a_warm_white_balance_moves_a_leaf_green_toward_yellow():
+    leaf = np.array([[60, 110, 40]], np.uint8)
+    warm = process_colour(leaf, SensorConfig(white_balance=(1.2, 1.0, 0.8)))
+    assert rgb_to_hsv(warm)[0, 0] < rgb_to_hsv(leaf)[0, 0] - 5
+
+
+@pytest.mark.parametrize("setting", [{"gain": 0.0}, {"saturation": -0.1},
+                                     {"white_balance": (1.0, 0.0, 1.0)},
+                                     {"white_balance": (1.0, 1.0)}])
+def test_bad_colour_processing_is_refused(setting):
+    with pytest.raises(InputError, match="sensor."):
+        SensorConfig(**setting)
