@@ -33,7 +33,12 @@
 - `emergency_stop()` may be called from any thread at any time: it writes `E` at once,
   under the write lock; the command blocked in the owner thread raises
   `EmergencyStopError`; motion raises `LockedError` until `unlock()` (F09), which re-sends
-  the servo angles (the firmware cuts their pulses).
+  the servo angles (the firmware cuts their pulses). The firmware's stop takes time: it
+  answers `R87` at once but goes on reporting while it stops and ends with `R03 V1` about
+  a quarter of a second later, discarding every byte before that. So after an `E` the
+  `R87` of the stopped command is not its final reply, the position is the last report
+  before the `R03`, and nothing is sent until the stop has ended (`R03`, or an idle
+  report; `STOP_SETTLE_S` at most).
 
 The observer gets an `Activity` for every move, head turn and dwell as `KinematicBot`
 gives one: a move follows `move_trajectory(t - t0, start, target, profile)` with the
@@ -111,7 +116,12 @@ MOVE_SLACK_S = 15.0
 """Wall seconds a move may take beyond the firmware's own timeouts (the link, the retries'
 start-up, the board's reports)."""
 ESTOP_GRACE_S = 2.0
-"""Wall seconds the command that an emergency stop ended waits for its final reply."""
+"""Wall seconds the command that an emergency stop ended waits for the stop's end (`R03
+V1`; the real firmware sends it 220-250 ms after the `E`)."""
+STOP_SETTLE_S = 6.0
+"""Wall seconds, at most, that the next command waits after an emergency stop for the
+firmware to end it (`R03`, or an idle report: every 5 s on the slowest boards), since the
+firmware discards what arrives before."""
 HEAD_SETTLE_S = 0.5
 """Bot seconds `set_head` waits after the servo commands: servos give no feedback."""
 _FINAL = {"R02", "R03", "R09", "R87", "R88"}
@@ -155,6 +165,12 @@ class Reply:
 
 _CODE = re.compile(r"R\d\d")
 _FIELD = re.compile(r"(?<![A-Za-z])([A-Z])(-?\d+(?:\.\d+)?)(?![\w.])")
+
+
+def _ends_stop(reply: Reply) -> bool:
+    """Whether a reply says an emergency stop is over: the stopped command's `R03`, or an
+    idle report (`R00` or `R87` with Q0) from a board with nothing left to stop."""
+    return reply.code == "R03" or (reply.code in ("R00", "R87") and reply.q == 0)
 
 
 def parse_reply(line: str) -> Reply | None:
@@ -296,6 +312,8 @@ class FarmduinoBot(Bot):
         self._busy = threading.Lock()
         self._locked = threading.Event()
         self._estops = 0
+        self._stop_sent: float | None = None
+        """Monotonic time of the last `E` whose end the firmware has not yet reported."""
         self._closed = False
         self._serial: serial.Serial | None = None
         self._reader: threading.Thread | None = None
@@ -400,6 +418,7 @@ class FarmduinoBot(Bot):
                 # the firmware is locked again as soon as the port is back (_initialise).
                 with contextlib.suppress(serial.SerialException, OSError):
                     self._serial.write(b"E")
+                    self._stop_sent = time.monotonic()
         self._locked.set()
 
     def unlock(self) -> None:
@@ -555,6 +574,7 @@ class FarmduinoBot(Bot):
         q = self._q
         line = checked_line(f"{body} Q{q}")
         lines = self._lines
+        self._await_stop_end(lines)
         self._drain(lines)
         estops = self._estops
         self._write(line.encode("ascii") + b"\r\n")
@@ -576,11 +596,31 @@ class FarmduinoBot(Bot):
             except queue.Empty:
                 continue
             reply = self._reply(item)
+            stopped = self._estops != estops
+            if reply is not None and stopped and _ends_stop(reply):
+                self._stop_sent = None
             if reply is None or reply.q != q:
                 continue
             replies.append(reply)
-            if reply.code in _FINAL:
-                return _Exchange(line, replies, self._estops != estops)
+            # After an E, the R87 only says the firmware is stopping: R03 V1 ends it.
+            if reply.code in _FINAL and not (stopped and reply.code == "R87"):
+                return _Exchange(line, replies, stopped)
+
+    def _await_stop_end(self, lines: queue.Queue) -> None:
+        """After an emergency stop, read until the firmware has ended it (it discards
+        what arrives before): `R03`, or an idle report, or `STOP_SETTLE_S` after the E."""
+        while self._stop_sent is not None:
+            remaining = self._stop_sent + STOP_SETTLE_S - time.monotonic()
+            if remaining <= 0 or self._closed:
+                self._stop_sent = None
+                return
+            try:
+                item = lines.get(timeout=min(remaining, 0.05))
+            except queue.Empty:
+                continue
+            reply = self._reply(item)
+            if reply is not None and _ends_stop(reply):
+                self._stop_sent = None
 
     def _reply(self, item) -> Reply | None:
         """A queued line as a reply; raises for a dropped link or the startup banner."""
@@ -632,6 +672,8 @@ class FarmduinoBot(Bot):
                                         name=f"farmduino-reader {self._port}", daemon=True)
         self._reader.start()
         restarted, approve = self._await_ready(deadline, first)
+        if restarted:
+            self._stop_sent = None  # a board that starts has no stop under way
         self._initialise(restarted, approve, first)
         return restarted
 
@@ -679,6 +721,7 @@ class FarmduinoBot(Bot):
         if self._locked.is_set():
             # An emergency stop asked for while the link was down, or before a restart.
             self._write(b"E")
+            self._stop_sent = time.monotonic()
         elif self._servo is not None:
             for pin, value in zip((YAW_PIN, PITCH_PIN), self._servo, strict=True):
                 self._raise_for(self._transact(servo_line(pin, value), REPLY_TIMEOUT_S))

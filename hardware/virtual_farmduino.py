@@ -18,6 +18,11 @@ reconnect. It behaves as farmbot-arduino-firmware 6.6 does (reference/farmbot.md
 - There is no queue: bytes that arrive while a command runs are discarded, except `E` / `e`
   (emergency stop, at any time, anywhere in a line) and `@` (abort the move); what is left
   of the input when a command ends is discarded too.
+- An emergency stop during a command takes as long as on the real board: the motors run on
+  for `STOP_ACK_S`, then `R87 Q<n>`; position reports with the command's Q follow every
+  `STOP_REPORT_S` while it stops, and `R03 V1 Q<n>` ends it `STOP_DONE_S` after the `E`.
+  Every byte before that `R03` is discarded, so a client that takes the `R87` as the end
+  and sends `F09` at once loses it. An `E` while idle locks at once.
 - G00 / G01 (axes left out go to 0, A/B/C lower the maximum speed of moves away from
   home), G28 (Z, then Y, then X to 0), F11-F13 (home one axis: the gantry drives to its
   physical home and the axis's counter becomes 0), F09 unlock, F21 / F22 parameters (an
@@ -82,6 +87,14 @@ BOOT_S = 1.0
 MIN_BOOT_WALL_S = 0.05
 """Least wall seconds from a reset to the banner: pyserial flushes its input as it opens
 the port, so a banner sent sooner could be lost."""
+STOP_ACK_S = 0.05
+"""Simulated seconds from an `E` during a command to the firmware's `R87 Q<n>`; the motors
+run on until then (farmbot-arduino-firmware 6.6.23 on an ATmega2560: within about 50 ms)."""
+STOP_DONE_S = 0.235
+"""... and to its `R03 V1 Q<n>`, the end of the stop (measured: 220-250 ms). Input that
+arrives before it is discarded."""
+STOP_REPORT_S = 0.1
+"""Simulated seconds between the position reports the firmware sends while it stops."""
 INPUT_LIMIT = 100
 """The firmware's input buffer: a longer line is cut and processed (INCOMING_CMD_BUF_SIZE)."""
 
@@ -126,6 +139,17 @@ class _Stage:
     end: np.ndarray
     profile: MotionProfile
     home_axis: int | None = None
+
+
+@dataclass
+class _Stopping:
+    """An emergency stop in progress (simulated seconds)."""
+
+    q: int
+    at: float
+    """When the `E` arrived."""
+    acknowledged: bool = False
+    next_report: float = 0.0
 
 
 @dataclass
@@ -192,6 +216,7 @@ class VirtualFarmduino:
         self._booted_at: float | None = None  # simulated time the banner is due; None: up
         self._input = bytearray()
         self._running: _Running | None = None
+        self._stopping: _Stopping | None = None
         self._locked = False
         self._servos: dict[int, float] = {}
         self._pins: dict[int, int] = {}
@@ -378,6 +403,7 @@ class VirtualFarmduino:
             self._set_joints(self._along(running, min(self.now() - running.t0,
                                                       running.stop_at)))
         self._running = None
+        self._stopping = None
         self._offset = self._physical()
         self._params = dict(self._eeprom)
         self._locked = False
@@ -451,6 +477,8 @@ class VirtualFarmduino:
             events.append(self._booted_at)
         if self._running is not None:
             events.append(self._running.t0 + self._running.stop_at)
+        if self._stopping is not None:
+            events.append(self._stopping.next_report)
         if self._drop_at is not None:
             events.append(self._drop_at[0])
         wait = (min(events) - now) / self.time_scale
@@ -466,6 +494,9 @@ class VirtualFarmduino:
                 continue  # still booting: nothing reads the UART
             if byte in b"Ee":
                 self._emergency_stop()
+                continue
+            if self._stopping is not None:
+                self.discarded += 1
                 continue
             if self._running is not None:
                 if byte == ord("@"):
@@ -497,6 +528,8 @@ class VirtualFarmduino:
             down = self._drop_at[1]
             self._drop_at = None
             self._drop(down)
+        if self._stopping is not None:
+            self._advance_stop(now)
         running = self._running
         if running is not None:
             stage = running.stages[0]
@@ -511,7 +544,7 @@ class VirtualFarmduino:
                     self._arrive(running, stage)
             else:
                 self._set_joints(self._along(running, t))
-        if self._booted_at is None and now >= self._next_report:
+        if self._booted_at is None and self._stopping is None and now >= self._next_report:
             self._next_report = now + self._report_period()
             self._periodic()
 
@@ -702,13 +735,40 @@ class VirtualFarmduino:
         self._next_report = self.now() + self._report_period()
 
     def _emergency_stop(self) -> None:
-        """E: the motors stop at once, the servos lose their pulses, the firmware locks."""
+        """E: the firmware locks and the servos lose their pulses; a running command stops
+        as on the real board (`STOP_ACK_S`, `STOP_DONE_S`), an idle board at once."""
         self._locked = True
         self._servos.clear()
-        if self._running is not None:
-            self._say(f"R87 Q{self._running.q}")
+        if self._running is not None and self._stopping is None:
+            now = self.now()
+            running = self._running
+            # The motors run on until the firmware acknowledges the stop.
+            running.stop_at = min(running.stop_at, now - running.t0 + STOP_ACK_S)
+            running.error, running.reset = _ERR_EMERGENCY_STOP, False
+            self._stopping = _Stopping(running.q, now, next_report=now + STOP_ACK_S)
+
+    def _advance_stop(self, now: float) -> None:
+        """The stop's reports as simulated time passes: R87, positions, then R03 V1."""
+        stop = self._stopping
+        running = self._running
+        if running is not None and now - running.t0 >= running.stop_at:
+            self._set_joints(self._along(running, running.stop_at))
+            self._running = None
+        if now < stop.next_report:
+            return
+        if not stop.acknowledged:
+            stop.acknowledged = True
+            self._say(f"R87 Q{stop.q}")
             self._say("R99 emergency stop")
-            self._finish(_ERR_EMERGENCY_STOP)
+        if now >= stop.at + STOP_DONE_S:
+            self._stopping = None
+            self._say(self._position_report(stop.q))
+            self._say(f"R03 V{_ERR_EMERGENCY_STOP} Q{stop.q}")
+            self._input.clear()
+            self._next_report = now + self._report_period()
+            return
+        self._say(self._position_report(stop.q))
+        stop.next_report = min(now + STOP_REPORT_S, stop.at + STOP_DONE_S)
 
     def describe(self) -> dict:
         """The device's settings, for scan.json."""

@@ -218,6 +218,25 @@ def test_emergency_stop_from_another_thread_mid_move(device):
             assert activities[-1].kind == "dwell" and activities[-1].elapsed < 50.0
 
 
+def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch):
+    """The real firmware answers R87 at once but discards input until its R03 V1 a quarter
+    of a second later: an F09 sent on the R87 was lost and unlock() timed out."""
+    monkeypatch.setattr("flowerpose.hardware.farmduino.REPLY_TIMEOUT_S", 3.0)
+    with VirtualFarmduino(time_scale=2.0) as device, _bot(device, scale=2.0) as bot:
+        bot.home()
+        bot.set_head(0.3, 0.8)
+        timer = threading.Timer(0.4, bot.emergency_stop)
+        timer.start()
+        with pytest.raises(EmergencyStopError):
+            bot.move_to([1.2, 0.135, 0.65])
+        # The position is where the firmware ended the stop, not its report before R87.
+        stopped = device.firmware_position_mm()
+        np.testing.assert_allclose(bed_to_farmbot_mm(bot.position()), stopped, atol=0.01)
+        bot.unlock()
+        assert not device.locked and device.servo(6) is not None
+        assert device.received[-3].startswith("F09")
+
+
 def test_close_ends_the_bot(device):
     bot = _bot(device)
     bot.close()

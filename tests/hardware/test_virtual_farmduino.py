@@ -169,6 +169,34 @@ def test_input_while_busy_is_discarded_except_e_and_abort(device, link):
     assert "R87 Q7" in lines and lines[-1] == "R03 V1 Q7" and device.locked
 
 
+@pytest.mark.parametrize("device", [1.0], indirect=True)
+def test_a_stop_takes_as_long_as_the_real_firmwares_and_discards_what_comes_meanwhile(
+        device, link):
+    """farmbot-arduino-firmware 6.6.23: R87 within about 50 ms of the E, position reports
+    while it stops, R03 V1 220-250 ms after the E; input before that R03 is dropped."""
+    _approve(link)
+    link.send("G00 X1000.00 Y0.00 Z0.00 Q3")
+    link.until(lambda line: line == "R01 Q3")
+    time.sleep(0.3)
+    link.port.write(b"E")
+    sent = device.now()
+    lines = link.until(lambda line: line == "R87 Q3")
+    acknowledged = device.now()
+    link.send("F09 Q4")  # inside the stop window: lost
+    lines += link.until(lambda line: line.startswith("R03"))
+    done = device.now()
+    assert lines[-1] == "R03 V1 Q3"
+    after = lines[lines.index("R87 Q3"):]
+    assert sum(line.startswith("R82") and line.endswith("Q3") for line in after) >= 2
+    assert acknowledged - sent < 0.2 and 0.2 <= done - sent < 0.4
+    assert "R08 *F09 Q4*" not in link.seen and device.locked
+    assert device.discarded >= len("F09 Q4\r\n")
+    # The last report is where the motors stopped.
+    assert float(lines[-2].split()[1][1:]) == pytest.approx(device.firmware_position_mm()[0],
+                                                            abs=0.01)
+    assert link.command("F09 Q5")[-1] == "R02 Q5" and not device.locked
+
+
 def test_lines_are_processed_one_at_a_time(device, link):
     link.port.write(b"F21 P11 Q3\r\nF21 P12 Q4\r\n")
     link.until(lambda line: line == "R02 Q3")
