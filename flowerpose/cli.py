@@ -228,9 +228,10 @@ def cmd_farmduino(args: argparse.Namespace) -> int:
     if not args.virtual:
         raise InputError("farmduino", "only --virtual is available: it serves a virtual "
                          "Farmduino on a pseudo-terminal")
-    from flowerpose.hardware.virtual_farmduino import VirtualFarmduino
+    from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 
-    with VirtualFarmduino(time_scale=args.time_scale) as device:
+    params = {} if args.bare else FEEDBACK_PARAMETERS
+    with VirtualFarmduino(time_scale=args.time_scale, params=params) as device:
         print(device.path, flush=True)
         print(f"virtual Farmduino on {device.path} (now {device.device}) at {args.time_scale:g}"
               " x real time; connect at 115200 baud; Ctrl-C stops it", file=sys.stderr,
@@ -271,6 +272,11 @@ def _scan_field(args: argparse.Namespace) -> int:
                          "stands, X,Y in metres in the bed frame")
     if args.token_file is not None and not args.cloud:
         raise InputError("--token-file", "is for --cloud")
+    for flag, value in (("--firmware-params", args.firmware_params),
+                        ("--home-here", args.home_here)):
+        if value and args.port is None:
+            raise InputError(flag, "is for --port (with --cloud, FarmBot OS holds the "
+                             "bot's settings and finds home)")
     x, y = args.plant_at
     length, width = PAPER_BOT.bed_size_m
     if not (0 <= x <= length and 0 <= y <= width):
@@ -313,17 +319,32 @@ def _scan_field(args: argparse.Namespace) -> int:
             return FarmbotCloudBot(credentials, camera=recorder.bind, observer=recorder.observe)
     else:
         from flowerpose.hardware.farmduino import FarmduinoBot
+        from flowerpose.hardware.firmware_params import read_settings
 
-        source = {"backend": "serial", "port": args.port}
+        settings = None
+        if args.firmware_params is not None:
+            settings = read_settings(args.firmware_params)
+        else:
+            print("warning: no --firmware-params: the Farmduino runs on the settings it holds, "
+                  "its firmware's defaults unless they were stored in its EEPROM (FarmBot OS, "
+                  "which writes them, is not connected)", file=sys.stderr, flush=True)
+        source = {"backend": "serial", "port": args.port,
+                  "firmware_params": str(args.firmware_params or "the board's own")}
 
         def connect():
-            return FarmduinoBot(args.port, camera=recorder.bind, observer=recorder.observe)
+            return FarmduinoBot(args.port, camera=recorder.bind, observer=recorder.observe,
+                                settings=settings)
     source["camera"] = {"device": args.camera, "width": args.width, "height": args.height,
                         "intrinsics": str(args.calibration or "estimated from the field of view")}
     source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
     try:
         with connect() as bot:
-            if args.port is not None:
+            if args.port is not None and args.home_here:
+                print(f"warning: --home-here: {bot.info.name} takes where the gantry stands "
+                      "for home; every move is off by as much as it is not at home",
+                      file=sys.stderr, flush=True)
+                bot.home_here()
+            elif args.port is not None:
                 # Opening the port reset the board, which lost the position: home, Z first.
                 print(f"homing {bot.info.name} (Z, Y, X)", file=sys.stderr, flush=True)
                 bot.home()
@@ -566,6 +587,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
                    "app; log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
                    "(FARMBOT_SERVER for another server), or --token-file")
+    p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
+                   "firmware settings as the FarmBot web app exports them (JSON); written to "
+                   "the Farmduino at connect and read back, as FarmBot OS does")
+    p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
+                   "home (put there by hand): take it as home instead of homing, for a bot "
+                   "without endstops or encoders")
     p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
                    "the repository holding a FarmBot token (its JSON or its JWT)")
     p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
@@ -603,6 +630,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--virtual", action="store_true", help="serve a virtual Farmduino")
     p.add_argument("--time-scale", type=_positive_number, default=1.0,
                    help="simulated seconds per wall second (1)")
+    p.add_argument("--bare", action="store_true", help="the board on the firmware's defaults: "
+                   "no endstops or encoders, so it cannot find home (default: encoders on, as "
+                   "FarmBot OS sets a Genesis up)")
     p.set_defaults(func=cmd_farmduino)
 
     p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")

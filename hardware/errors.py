@@ -138,6 +138,11 @@ def error_for_code(code: int, command: str) -> FirmwareError:
     return _R03_CLASSES.get(code, FirmwareError)(command, code)
 
 
+class HomingError(BotError):
+    """Home cannot be found, or was not: no endstops or encoders on the axis, or the
+    firmware reported the homing timed out or was displaced (it has been stopped)."""
+
+
 class CommandTimeoutError(BotError):
     """No final reply to `command` within `timeout_s` seconds."""
 

@@ -24,6 +24,16 @@
 - The position: a board that starts counts from 0 wherever the gantry stands, so after
   connecting `move_to` refuses (`PositionLostError`) until `home()` has found home on all
   three axes (Z first).
+- Homing that cannot hang: an axis whose parameters (read at connect) enable neither its
+  endstops (25-27) nor its encoder (101-103) is refused in one line before anything moves
+  (`HomingError`): the firmware would drive it into the frame, time out, back off and try
+  again for good. A homing the firmware reports as timed out (R71-R73) or displaced is
+  aborted at once (`@`, then `E` if that goes unanswered) and fails with that reason.
+  `home_here()` takes where the gantry stands for home (F84, for a bot put there by hand).
+- The bot's own settings: without FarmBot OS nobody writes them, and a board that starts
+  runs on its defaults unless they were stored in EEPROM; `settings` (the web app's export,
+  `firmware_params.read_settings`) are written after every start and read back, and one
+  that did not take fails the connect.
 - A dropped port (SerialException, EIO) is recovered: the same path is reopened with
   backoff for up to `connect_timeout_s`, the firmware brought up again as at connect,
   homed when the reopening restarted the board (Z first, away from the plant), and the
@@ -84,12 +94,14 @@ from flowerpose.hardware.errors import (
     CommandTimeoutError,
     ConnectionLostError,
     EmergencyStopError,
+    HomingError,
     LockedError,
     NotConfiguredError,
     OutOfRangeError,
     UnknownCommandError,
     error_for_code,
 )
+from flowerpose.hardware.firmware_params import ENCODERS, ENDSTOPS, describe
 from flowerpose.hardware.geometry import (
     PITCH_PIN,
     YAW_PIN,
@@ -105,9 +117,14 @@ SERVO_PINS = (4, 5, 6, 11)
 BANNER = "ARDUINO STARTUP COMPLETE"
 AXIS_LENGTH_PARAMETERS = (141, 142, 143)
 READ_PARAMETERS = (2, 5, 11, 12, 13, 41, 42, 43, 44, 55, 56, 57, 61, 62, 63, 64, 71, 72, 73, 74,
-                   *AXIS_LENGTH_PARAMETERS)
+                   *AXIS_LENGTH_PARAMETERS, *ENDSTOPS.values(), *ENCODERS.values())
 """Parameters read at connect: 2 configuration approved, 5 movement retries, the motion
-model's (motion.FIRMWARE_PARAMETERS) and the axis lengths."""
+model's (motion.FIRMWARE_PARAMETERS), the axis lengths, and what homing needs (endstops
+25-27, encoders 101-103)."""
+_OPTIONAL_PARAMETERS = {*ENDSTOPS.values(), *ENCODERS.values()}
+"""Read when the firmware has them; without them homing is not checked beforehand."""
+_HOMING_FAILURES = {"R71": "X", "R72": "Y", "R73": "Z"}
+"""The firmware's axis timeout reports while homing."""
 _Z_HOME_FALLBACK = {44: 43, 64: 63, 74: 73}
 """A firmware without Z's own "toward home" settings moves Z up with its other settings."""
 REPLY_TIMEOUT_S = 15.0
@@ -236,6 +253,8 @@ class _Exchange:
     line: str
     replies: list[Reply]
     stopped: bool
+    failure: str | None = None
+    """What made the client abort the command (a homing the firmware cannot finish)."""
 
     def position_mm(self) -> np.ndarray | None:
         """The last position (R82) the firmware reported with this command, millimetres."""
@@ -289,18 +308,24 @@ class FarmduinoBot(Bot):
         scale on a virtual one that runs faster.
     connect_timeout_s: wall seconds to wait for the firmware at connect, and to get the
         port back after it drops.
+    settings: the bot's own firmware parameters {id: value} (`firmware_params.read_settings`
+        of the web app's export), written after every start of the board as FarmBot OS
+        does, each read back: one that did not take fails the connect (BotError), so
+        nothing moves on settings the board does not hold. None: the board runs on what it
+        holds (its defaults, unless stored in EEPROM).
     """
 
     def __init__(self, port: str, *,
                  camera: Callable[[Callable[[], float]], Camera] | None = None,
                  observer: Callable[[Activity], None] | None = None,
                  info: BotInfo | None = None, clock_scale: float = 1.0,
-                 connect_timeout_s: float = 15.0):
+                 connect_timeout_s: float = 15.0, settings: dict[int, float] | None = None):
         if not (math.isfinite(clock_scale) and clock_scale > 0):
             raise InputError("clock_scale", f"must be a positive number, got {clock_scale!r}")
         if not (math.isfinite(connect_timeout_s) and connect_timeout_s > 0):
             raise InputError("connect_timeout_s", f"must be positive, got {connect_timeout_s!r}")
         self._port = str(port)
+        self._settings = dict(settings or {})
         self._base_info = info or BotInfo.from_geometry(f"serial {self._port}")
         self._info = self._base_info
         self._observer = observer
@@ -373,9 +398,38 @@ class FarmduinoBot(Bot):
 
     def home(self, axes: str = "xyz") -> None:
         order = check_axes(axes)
-        with self._one_command(f"home({axes})"):
+        with self._one_command(f"home({axes})") as command:
+            for name in order:
+                self._check_homeable(name, command)
             for name in order:
                 self._home_axis(name)
+
+    def home_here(self) -> None:
+        """Take where the gantry stands for home on every axis (F84, the firmware's set
+        zero): for a bot a person has put at home by hand whose firmware cannot find home
+        (no endstops or encoders). Wrong if the gantry is elsewhere: every move is then
+        offset by as much."""
+        with self._one_command("home_here") as command:
+            if self._locked.is_set():
+                raise LockedError(command)
+            self._command("F84 X1 Y1 Z1")
+            with self._state_lock:
+                self._xyz = self._info.home
+            self._homed = {"x", "y", "z"}
+
+    def _check_homeable(self, name: str, command: str) -> None:
+        """HomingError, before anything moves, for an axis whose firmware parameters (read
+        at connect) say it has neither endstops nor an encoder: the firmware would drive it
+        into the frame until it times out, back off and try again for good."""
+        endstops, encoder = ENDSTOPS[name], ENCODERS[name]
+        if endstops in self._params and encoder in self._params and not (
+                self._params[endstops] or self._params[encoder]):
+            raise HomingError(
+                f"{command}: the firmware cannot find home on {name.upper()}: neither its "
+                f"endstops (parameter {describe(endstops)}) nor its encoder "
+                f"({describe(encoder)}) is enabled; load the bot's settings (--firmware-params, "
+                "exported from the FarmBot web app), or put the gantry at home by hand and "
+                "use --home-here")
 
     def set_head(self, yaw_rad: float, pitch_rad: float) -> None:
         yaw, pitch = check_head(self._info, yaw_rad, pitch_rad)
@@ -481,6 +535,15 @@ class FarmduinoBot(Bot):
         self._move(code, target, self._info.motion, name, f"home({name})", homing=name)
         self._homed.add(name)
 
+    def _homing_failure(self, reply: Reply) -> str | None:
+        """What in a reply says a homing will never finish: an axis timeout (R71-R73) or the
+        firmware's own timeout or displaced-home message."""
+        if reply.code in _HOMING_FAILURES:
+            return f"a {_HOMING_FAILURES[reply.code]} axis timeout ({reply.code})"
+        if reply.code == "R99" and ("timeout" in reply.text or "displaced" in reply.text):
+            return f"'{reply.text.strip()}' (R99)"
+        return None
+
     def _move(self, line: str, target: np.ndarray, profile: MotionProfile, axes: str,
               command: str, homing: str | None) -> None:
         """One movement command to its end, told to the observer; after a dropped link, the
@@ -495,7 +558,8 @@ class FarmduinoBot(Bot):
             with self._state_lock:
                 self._moving = (t0, start, target, profile)
             try:
-                exchange = self._transact(line, self._move_timeout(axes))
+                exchange = self._transact(line, self._move_timeout(axes),
+                                          self._homing_failure if homing else None)
             except _LinkDropped as drop:
                 # The board goes on moving until reopening the port resets it.
                 self._recover(command, drop, attempt, interrupted=functools.partial(
@@ -516,6 +580,13 @@ class FarmduinoBot(Bot):
             else:
                 end = None if reported is None else farmbot_mm_to_bed(reported)
             self._moved(t0, start, target, profile, end)
+            if exchange.failure is not None:
+                stopped = ("it was stopped with an emergency stop: unlock, then"
+                           if exchange.stopped else "it was stopped;")
+                raise HomingError(f"{command}: the firmware cannot find home: it reports "
+                                  f"{exchange.failure}; {stopped} check the endstops and "
+                                  "encoders and their settings (--firmware-params), or put "
+                                  "the gantry at home by hand and use --home-here")
             self._raise_for(exchange)
             return
         raise ConnectionLostError(self._port, f"{command}: the link kept dropping")
@@ -566,10 +637,13 @@ class FarmduinoBot(Bot):
             raise NotConfiguredError(exchange.line)
         raise UnknownCommandError(exchange.line)
 
-    def _transact(self, body: str, timeout_s: float) -> _Exchange:
+    def _transact(self, body: str, timeout_s: float,
+                  watch: Callable[[Reply], str | None] | None = None) -> _Exchange:
         """Send `body` with the next Q and collect the replies with that Q up to the final
         one. Raises _LinkDropped, _BoardStarted or CommandTimeoutError; an emergency stop
-        sent meanwhile gives `stopped` (waiting ESTOP_GRACE_S at most for the reply)."""
+        sent meanwhile gives `stopped` (waiting ESTOP_GRACE_S at most for the reply). When
+        `watch` names a failure in any reply, the command is aborted (`@`, then `E` if no
+        final reply comes within ESTOP_GRACE_S) and the exchange carries the failure."""
         self._q = self._q % 999 + 1
         q = self._q
         line = checked_line(f"{body} Q{q}")
@@ -581,6 +655,7 @@ class FarmduinoBot(Bot):
         deadline = time.monotonic() + timeout_s
         stop_deadline = math.inf
         replies: list[Reply] = []
+        failure: str | None = None
         while True:
             now = time.monotonic()
             if self._closed:
@@ -588,8 +663,12 @@ class FarmduinoBot(Bot):
             if self._estops != estops and stop_deadline == math.inf:
                 stop_deadline = now + ESTOP_GRACE_S
             if now >= min(deadline, stop_deadline):
+                if failure is not None and self._estops == estops:
+                    self.emergency_stop()  # the abort went unanswered: never leave it homing
+                    deadline = now + ESTOP_GRACE_S
+                    continue
                 if stop_deadline != math.inf:
-                    return _Exchange(line, replies, True)
+                    return _Exchange(line, replies, True, failure)
                 raise CommandTimeoutError(line, timeout_s)
             try:
                 item = lines.get(timeout=min(min(deadline, stop_deadline) - now, 0.05))
@@ -599,12 +678,17 @@ class FarmduinoBot(Bot):
             stopped = self._estops != estops
             if reply is not None and stopped and _ends_stop(reply):
                 self._stop_sent = None
+            if reply is not None and watch is not None and failure is None:
+                failure = watch(reply)
+                if failure is not None:
+                    self._write(b"@")
+                    deadline = min(deadline, now + ESTOP_GRACE_S)
             if reply is None or reply.q != q:
                 continue
             replies.append(reply)
             # After an E, the R87 only says the firmware is stopping: R03 V1 ends it.
             if reply.code in _FINAL and not (stopped and reply.code == "R87"):
-                return _Exchange(line, replies, stopped)
+                return _Exchange(line, replies, stopped, failure)
 
     def _await_stop_end(self, lines: queue.Queue) -> None:
         """After an emergency stop, read until the firmware has ended it (it discards
@@ -712,6 +796,7 @@ class FarmduinoBot(Bot):
         version = self._transact("F83", REPLY_TIMEOUT_S)
         self._raise_for(version)
         self._firmware = next((r.text for r in version.replies if r.code == "R83"), None)
+        self._write_settings()
         self._params = self._read_parameters()
         if approve or self._params.get(2) != 1:
             self._raise_for(self._transact("F22 P2 V1", REPLY_TIMEOUT_S))
@@ -731,6 +816,23 @@ class FarmduinoBot(Bot):
         if (first or not restarted) and where.position_mm() is not None:
             self._xyz = farmbot_mm_to_bed(where.position_mm())
 
+    def _write_settings(self) -> None:
+        """Write the bot's settings (F22) and read each back (F21); BotError naming the
+        first that did not take."""
+        for pid, value in self._settings.items():
+            self._raise_for(self._transact(f"F22 P{pid} V{round(value)}", REPLY_TIMEOUT_S))
+        for pid, value in self._settings.items():
+            exchange = self._transact(f"F21 P{pid}", REPLY_TIMEOUT_S)
+            self._raise_for(exchange)
+            held = next((r.values.get("V") for r in exchange.replies
+                         if r.code == "R21" and r.values.get("P") == pid), None)
+            if held is None or round(held) != round(value):
+                raise BotError(f"serial {self._port}: firmware parameter {describe(pid)} did "
+                               f"not take: wrote {round(value)}, the board holds "
+                               f"{'nothing' if held is None else f'{held:g}'}; the bot will "
+                               "not move on settings it does not hold (check the value, and "
+                               "the firmware version against the web app's)")
+
     def _read_parameters(self) -> dict[int, float]:
         params: dict[int, float] = {}
         for pid in READ_PARAMETERS:
@@ -742,7 +844,7 @@ class FarmduinoBot(Bot):
                 params[pid] = value
             elif pid in AXIS_LENGTH_PARAMETERS:
                 params[pid] = 0.0  # not calibrated
-            elif pid not in _Z_HOME_FALLBACK:
+            elif pid not in _Z_HOME_FALLBACK and pid not in _OPTIONAL_PARAMETERS:
                 raise BotError(f"serial {self._port}: the firmware does not report parameter "
                                f"{pid} (F21); is it FarmBot's Farmduino firmware 6.x?")
         for pid, fallback in _Z_HOME_FALLBACK.items():

@@ -24,11 +24,17 @@ reconnect. It behaves as farmbot-arduino-firmware 6.6 does (reference/farmbot.md
   Every byte before that `R03` is discarded, so a client that takes the `R87` as the end
   and sends `F09` at once loses it. An `E` while idle locks at once.
 - G00 / G01 (axes left out go to 0, A/B/C lower the maximum speed of moves away from
-  home), G28 (Z, then Y, then X to 0), F11-F13 (home one axis: the gantry drives to its
-  physical home and the axis's counter becomes 0), F09 unlock, F21 / F22 parameters (an
-  unknown id gets `R02` and nothing else), F41 / F42 pins, F61 servos (only pins 4, 5, 6,
+  home), G28 (Z, then Y, then X to 0), F11-F13 (home one axis: with its endstops or encoder
+  on, parameters 25-27 and 101-103, the gantry drives to its physical home and the axis's
+  counter becomes 0; with neither, as the real firmware does, it drives into the home end
+  until the axis times out, `R71`-`R73` and `R99 timeout`, reports `R99 homing displaced`
+  and tries again, for good, until `@` or `E`; the firmware's defaults have both off),
+  F09 unlock, F21 / F22 parameters (every id of `firmware_params.PARAMETERS`; another gets
+  `R02` and nothing else), F41 / F42 pins, F61 servos (only pins 4, 5, 6,
   11 drive servos; 0-180 degrees, >= 544 microseconds; other pins get `R02` and nothing
-  happens), F82 position, F83 version. F14-F16, F20, F31-F32, F43-F44, F81 and F84 are
+  happens), F82 position, F83 version, F20 every parameter, F43 / F44 pin mode and pulse, F81
+  endstops (none pressed), F84 set zero (the named axes' counters become 0 there). F14-F16
+  (measure the axis lengths) and F31-F32 (status and temperature) are
   not modelled and answer `R09`.
 - Moves follow FarmBot's motion profile (`motion.py`) with the device's own parameters,
   in whole motor steps; an axis still moving after its timeout (parameters 11-13) stops
@@ -73,6 +79,7 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.farmduino import SERVO_PINS, FarmduinoBot
+from flowerpose.hardware.firmware_params import ENCODERS, ENDSTOPS, PARAMETERS
 from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT
 from flowerpose.hardware.motion import MotionProfile, axis_durations, axis_motions, move_trajectory
 
@@ -99,15 +106,24 @@ INPUT_LIMIT = 100
 """The firmware's input buffer: a longer line is cut and processed (INCOMING_CMD_BUF_SIZE)."""
 
 DEFAULT_PARAMETERS: dict[int, float] = {
-    2: 0, 5: 3,                      # configuration approved, movement retries
+    **dict.fromkeys(PARAMETERS, 0.0),  # every parameter the firmware knows; unmodelled: 0
+    2: 0, 3: 0, 5: 3,                # configuration approved, use EEPROM, movement retries
     11: 120, 12: 120, 13: 120,       # move timeouts, seconds
     41: 300, 42: 300, 43: 300, 44: 300,  # ramp length, steps (44: Z toward home)
     55: 5, 56: 5, 57: 25,            # steps per millimetre
     61: 50, 62: 50, 63: 50, 64: 50,  # minimum speed, steps/s
     71: 400, 72: 400, 73: 400, 74: 400,  # maximum speed, steps/s
     141: 0, 142: 0, 143: 0,          # axis lengths, steps (0: not measured)
+    25: 0, 26: 0, 27: 0,             # endstops off
+    101: 0, 102: 0, 103: 0,          # encoders off: such a board cannot find home
 }
-"""The firmware's defaults (Config.h) of the parameters modelled here."""
+"""The firmware's defaults (Config.h) of the parameters modelled here; the others are known
+(F21 reads them, F22 writes them) at 0."""
+FEEDBACK_PARAMETERS: dict[int, float] = {ENCODERS[a]: 1.0 for a in "xyz"}
+"""A board with its encoders on (as FarmBot OS configures a Genesis): it can find home."""
+HOMING_MARKER = -1
+"""`_Running.error` of a homing stage without endstops or encoders: the axis timeout ends
+it, and the firmware tries again, for good."""
 
 _MOVEMENTS = {"G00", "F11", "F12", "F13"}
 _WHILE_LOCKED = {"F09", "F20", "F21", "F22", "F81", "F82", "F83"}
@@ -139,6 +155,8 @@ class _Stage:
     end: np.ndarray
     profile: MotionProfile
     home_axis: int | None = None
+    blind: bool = False
+    """Homing without endstops or encoders: nothing tells the firmware it got there."""
 
 
 @dataclass
@@ -223,6 +241,7 @@ class VirtualFarmduino:
         self._next_report = 0.0
         self._fault: tuple[str, float, float] | None = None
         self._drop_at: tuple[float, float] | None = None  # (simulated time, wall seconds down)
+        self._ignored: set[int] = set()
         self.received: list[str] = []
         """Every line the firmware processed, in order (for tests)."""
         self.discarded = 0
@@ -314,6 +333,12 @@ class VirtualFarmduino:
         if axis not in ("x", "y", "z"):
             raise InputError("axis", f"must be 'x', 'y' or 'z', got {axis!r}")
         self._schedule("stall", at_fraction, "xyz".index(axis))
+
+    def ignore_writes(self, pid: int) -> None:
+        """Answer F22 for parameter `pid` with R02 but keep its value, as the firmware does
+        for a value it rejects."""
+        with self._lock:
+            self._ignored.add(int(pid))
 
     def reset_next_move(self, at_fraction: float = 0.5) -> None:
         """The board restarts after `at_fraction` of the next movement: no final reply, the
@@ -538,6 +563,8 @@ class VirtualFarmduino:
                 self._set_joints(self._along(running, running.stop_at))
                 if running.reset:
                     self._boot()
+                elif running.error == HOMING_MARKER:
+                    self._homing_retry(running, stage)
                 elif running.error:
                     self._stalled_or_timed_out(running)
                 else:
@@ -608,9 +635,11 @@ class VirtualFarmduino:
         self._begin(q, stages)
 
     def _home(self, q: int, axis: int) -> None:
+        name = "xyz"[axis]
+        blind = not (self._params.get(ENDSTOPS[name]) or self._params.get(ENCODERS[name]))
         end = self._physical()
         end[axis] = 0.0
-        self._begin(q, [_Stage(end, self._profile(), home_axis=axis)])
+        self._begin(q, [_Stage(end, self._profile(), home_axis=axis, blind=blind)])
 
     def _cmd_F11(self, q: int, values: dict[str, float]) -> None:
         self._home(q, 0)
@@ -620,6 +649,35 @@ class VirtualFarmduino:
 
     def _cmd_F13(self, q: int, values: dict[str, float]) -> None:
         self._home(q, 2)
+
+    def _cmd_F20(self, q: int, values: dict[str, float]) -> None:
+        """Report every parameter."""
+        for pid in sorted(self._params):
+            self._say(f"R21 P{pid} V{self._params[pid]:g} Q{q}")
+        self._done(q)
+
+    def _cmd_F81(self, q: int, values: dict[str, float]) -> None:
+        """Report the endstops: none is wired to this board, so none is pressed."""
+        self._say(f"R81 XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}")
+        self._done(q)
+
+    def _cmd_F43(self, q: int, values: dict[str, float]) -> None:
+        """Set a pin's mode (input / output): nothing here reads it."""
+        self._done(q)
+
+    def _cmd_F44(self, q: int, values: dict[str, float]) -> None:
+        """Pulse a pin: value V, then W after T milliseconds; it is left at W."""
+        self._pins[int(values.get("P", 0))] = int(values.get("W", values.get("V", 0)))
+        self._done(q)
+
+    def _cmd_F84(self, q: int, values: dict[str, float]) -> None:
+        """Set zero: the named axes' counters become 0 where the gantry stands."""
+        here = self._physical()
+        for i, name in enumerate("XYZ"):
+            if values.get(name, 0) == 1:
+                self._offset[i] = here[i]
+        self._say(self._position_report(q))
+        self._done(q)
 
     def _cmd_F09(self, q: int, values: dict[str, float]) -> None:
         self._locked = False
@@ -633,7 +691,7 @@ class VirtualFarmduino:
 
     def _cmd_F22(self, q: int, values: dict[str, float]) -> None:
         pid = int(values.get("P", 0))
-        if pid in self._params:
+        if pid in self._params and pid not in self._ignored:
             self._params[pid] = float(int(values.get("V", 0)))
         self._done(q)
 
@@ -688,6 +746,11 @@ class VirtualFarmduino:
         late = [timeouts[i] for i in range(3) if durations[i] > timeouts[i]]
         if late:
             running.stop_at, running.error = min(late), _ERR_TIMEOUT
+        if stage.blind:
+            # It drives into the home end and on, until the axis times out.
+            running.stop_at = float(stage.profile.axis(stage.home_axis, True).timeout_s)
+            running.error = HOMING_MARKER
+            return
         if not first or self._fault is None:
             return  # a scheduled fault lands on the first stage of the next movement
         (kind, fraction, value), self._fault = self._fault, None
@@ -700,6 +763,16 @@ class VirtualFarmduino:
             running.stop_at, running.reset = at, True
         else:
             self._drop_at = (running.t0 + at, value)
+
+    def _homing_retry(self, running: _Running, stage: _Stage) -> None:
+        """farmbot-arduino-firmware 6.6.23 homing an axis with no endstops or encoders:
+        the axis times out (R71-R73), it backs off, reports the home displaced and tries
+        again, never ending the command."""
+        axis = "XYZ"[stage.home_axis]
+        self._say(f"R7{stage.home_axis + 1} Q{running.q}")
+        self._say(f"R99 timeout {axis} axis")
+        self._say(f"R99 homing displaced {axis} axis")
+        self._start_stage(running)
 
     def _arrive(self, running: _Running, stage: _Stage) -> None:
         if stage.home_axis is not None:
@@ -790,7 +863,7 @@ class SimulatedSerialBot(FarmduinoBot):
 
         self.sim_config = config or SimBotConfig()
         camera = sim_camera(plant_dirs, self.sim_config, self._current)
-        self.device = VirtualFarmduino(time_scale=time_scale).start()
+        self.device = VirtualFarmduino(time_scale=time_scale, params=FEEDBACK_PARAMETERS).start()
         try:
             super().__init__(self.device.path, camera=camera,
                              observer=lambda activity: self.camera.observe(activity),

@@ -17,6 +17,7 @@ from flowerpose.hardware.errors import (
     CameraError,
     ConnectionLostError,
     EmergencyStopError,
+    HomingError,
     LockedError,
     NotConfiguredError,
     OutOfRangeError,
@@ -36,7 +37,7 @@ from flowerpose.hardware.geometry import PAPER_BOT, bed_to_farmbot_mm
 from flowerpose.hardware.kinematics import HeadPose, servo_commands
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scanpath import ScanConfig, plan_scan
-from flowerpose.hardware.virtual_farmduino import VirtualFarmduino
+from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 from flowerpose.jsonio import read_json
 from flowerpose.scanpath import ScanPathConfig
 
@@ -53,7 +54,7 @@ pytestmark = pytest.mark.usefixtures("watchdog")
 
 @pytest.fixture
 def device():
-    with VirtualFarmduino(time_scale=SCALE) as dev:
+    with VirtualFarmduino(time_scale=SCALE, params=FEEDBACK_PARAMETERS) as dev:
         yield dev
 
 
@@ -100,7 +101,7 @@ def test_replies_are_parsed_through_line_noise():
 
 def test_connect_reads_the_firmware_and_its_own_parameters():
     params = {71: 300, 13: 60, 5: 2, 141: 5000}
-    with VirtualFarmduino(time_scale=SCALE, params=params) as tuned:
+    with VirtualFarmduino(time_scale=SCALE, params={**FEEDBACK_PARAMETERS, **params}) as tuned:
         with _bot(tuned) as bot:
             assert bot.info.firmware == "6.6.23.V.virtual"
             assert bot.info.motion.x.max_speed == 300 and bot.info.motion.z.timeout_s == 60
@@ -188,7 +189,8 @@ def test_the_head_takes_whole_servo_degrees_on_pins_6_and_5(device):
 
 def test_emergency_stop_from_another_thread_mid_move(device):
     activities = []
-    with VirtualFarmduino(time_scale=20.0) as slow:  # a 2.5 m X move takes 1.7 s of wall time
+    # A 2.5 m X move takes 1.7 s of wall time.
+    with VirtualFarmduino(time_scale=20.0, params=FEEDBACK_PARAMETERS) as slow:
         with _bot(slow, scale=20.0, observer=activities.append) as bot:
             bot.home()
             bot.set_head(0.3, 0.8)
@@ -222,7 +224,8 @@ def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch)
     """The real firmware answers R87 at once but discards input until its R03 V1 a quarter
     of a second later: an F09 sent on the R87 was lost and unlock() timed out."""
     monkeypatch.setattr("flowerpose.hardware.farmduino.REPLY_TIMEOUT_S", 3.0)
-    with VirtualFarmduino(time_scale=2.0) as device, _bot(device, scale=2.0) as bot:
+    with (VirtualFarmduino(time_scale=2.0, params=FEEDBACK_PARAMETERS) as device,
+          _bot(device, scale=2.0) as bot):
         bot.home()
         bot.set_head(0.3, 0.8)
         timer = threading.Timer(0.4, bot.emergency_stop)
@@ -235,6 +238,65 @@ def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch)
         bot.unlock()
         assert not device.locked and device.servo(6) is not None
         assert device.received[-3].startswith("F09")
+
+
+# --- homing and the bot's own settings -----------------------------------------------
+
+@pytest.fixture
+def bare():
+    """A board on the firmware's defaults: no endstops, no encoders."""
+    with VirtualFarmduino(time_scale=SCALE) as dev:
+        yield dev
+
+
+def test_homing_an_axis_without_endstops_or_encoder_is_refused_before_anything_moves(bare):
+    with _bot(bare) as bot:
+        with pytest.raises(HomingError, match=r"Z: neither its endstops \(parameter 27 "
+                           r"\(movement_enable_endpoints_z\)\) nor its encoder \(103 "
+                           r"\(encoder_enabled_z\)\).*--home-here"):
+            bot.home()
+        assert not any(line.startswith(("F11", "F12", "F13")) for line in bare.received)
+
+
+def test_a_homing_the_firmware_cannot_finish_fails_at_once_and_is_stopped(bare, monkeypatch):
+    """A board whose parameters do not tell: the firmware times out, backs off and tries
+    again for good; the client aborts on its first timeout report."""
+    monkeypatch.setattr(FarmduinoBot, "_check_homeable", lambda self, name, command: None)
+    with _bot(bare) as bot:
+        with pytest.raises(HomingError, match="Z axis timeout"):
+            bot.home()
+        assert bare.received[-1].startswith("F13")
+        assert bare.firmware_position_mm() is not None and not bare.locked
+        # Not left homing: the board takes the next command.
+        assert bot.describe()["firmware"]
+        bot.home_here()
+
+
+def test_home_here_zeroes_the_counters_where_the_gantry_stands(bare):
+    with _bot(bare) as bot:
+        with pytest.raises(PositionLostError):
+            bot.move_to([0.5, 0.135, 0.65])
+        bot.home_here()
+        np.testing.assert_allclose(bare.firmware_position_mm(), [0, 0, 0])
+        bot.move_to([0.5, 0.135, 0.65])
+        np.testing.assert_allclose(bare.firmware_position_mm(),
+                                   bed_to_farmbot_mm(np.array([0.5, 0.135, 0.65])), atol=0.2)
+
+
+def test_the_bots_settings_are_written_at_connect_and_read_back(bare):
+    settings = {101: 1.0, 102: 1.0, 103: 1.0, 71: 300.0}
+    with _bot(bare, settings=settings) as bot:
+        assert [bare.parameter(p) for p in settings] == list(settings.values())
+        bot.home()  # the encoders make home findable
+        bare.reset()  # a restart reloads the defaults: the client writes them again
+        with pytest.raises(PositionLostError):
+            bot.move_to([0.3, 0.135, 0.65])
+        assert bare.parameter(101) == 1.0
+        bot.home()
+    bare.ignore_writes(102)
+    with pytest.raises(BotError, match=r"parameter 102 \(encoder_enabled_y\) did not take: "
+                       "wrote 1, the board holds 0"):
+        _bot(bare, settings=settings)
 
 
 def test_close_ends_the_bot(device):

@@ -62,6 +62,11 @@ def test_the_dry_run_prints_the_checked_moves_without_connecting(tmp_path, capsy
     (["--sim", "--cloud", "--plant-at", "1.5,0.75"], ["not --sim and --cloud"]),
     (["--port", "/dev/ttyACM0", "--token-file", "{tmp}/t", "--plant-at", "1.5,0.75"],
      ["--token-file", "is for --cloud"]),
+    (["--cloud", "--firmware-params", "{tmp}/p.json", "--plant-at", "1.5,0.75"],
+     ["--firmware-params", "is for --port"]),
+    (["--cloud", "--home-here", "--plant-at", "1.5,0.75"], ["--home-here", "is for --port"]),
+    (["--port", "/dev/ttyACM0", "--plant-at", "1.5,0.75", "--camera", "{device}",
+      "--firmware-params", "{tmp}/bad.json"], ["bad.json", "unknown firmware parameter 'speed'"]),
     (["--cloud", "--plant-at", "1.5,0.75"], ["--camera", "needed"]),
     (["--cloud", "--plant-at", "1.5,0.75", "--camera", "/dev/v4l/by-id/none"],
      ["/dev/v4l/by-id/none", "no such camera device"]),
@@ -76,6 +81,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     (tmp_path / "repo" / ".git").mkdir(parents=True)
     (tmp_path / "repo" / "token.json").write_text(json.dumps(make_token()))
     (tmp_path / "video0").write_text("")
+    (tmp_path / "bad.json").write_text(json.dumps({"encoder_enabled_x": 1, "speed": 3}))
     names = {"tmp": tmp_path, "repo": tmp_path / "repo", "device": tmp_path / "video0"}
     code, _, err = _run(capsys, "scan", *[a.format(**names) for a in argv], "--out",
                         tmp_path / "scan")
@@ -151,7 +157,8 @@ def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, 
                                                                        monkeypatch):
     virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
     scan, _ = _small_field_scan(monkeypatch, tmp_path, fps=100.0)
-    with virtual.VirtualFarmduino(time_scale=100.0) as device:
+    with virtual.VirtualFarmduino(time_scale=100.0,
+                                  params=virtual.FEEDBACK_PARAMETERS) as device:
         code, out, err = _run(capsys, "scan", "--port", device.path, "--camera",
                               tmp_path / "video0", "--width", 64, "--height", 48, "--plant-at",
                               "1.5,0.75", "--plant-height", 0.22, "--out", scan)
@@ -160,3 +167,32 @@ def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, 
     assert read_json(scan / "scan.json")["source"]["backend"] == "serial"
     trajectory = read_trajectory(scan / "trajectory.csv")
     assert len(trajectory) > 0 and trajectory.frame[-1] == len(frame_files(scan)) - 1
+
+
+def test_a_board_on_its_defaults_scans_with_the_bots_settings_or_homed_by_hand(tmp_path, capsys,
+                                                                               monkeypatch):
+    """No endstops or encoders (the firmware's defaults): homing is refused in one line
+    before anything moves; the web app's settings, or --home-here, make the scan work."""
+    virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
+    scan, _ = _small_field_scan(monkeypatch, tmp_path, fps=100.0)
+    exported = {"id": 7, "created_at": "2026-11-30T10:00:00Z", "encoder_enabled_x": 1,
+                "encoder_enabled_y": 1, "encoder_enabled_z": 1, "movement_max_spd_x": 400,
+                "param_config_ok": 1, "movement_home_spd_x": None}
+    (tmp_path / "firmware.json").write_text(json.dumps({"firmware_config": exported}))
+    argv = ["--camera", tmp_path / "video0", "--width", 64, "--height", 48, "--plant-at",
+            "1.5,0.75", "--plant-height", 0.22]
+    with virtual.VirtualFarmduino(time_scale=100.0) as device:
+        code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--out", scan)
+        assert code == 2 and "warning: no --firmware-params" in err
+        assert "parameter 27 (movement_enable_endpoints_z)" in err.splitlines()[-1]
+        assert not any(line.startswith(("F11", "F12", "F13", "G00")) for line in device.received)
+        code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--firmware-params",
+                              tmp_path / "firmware.json", "--out", tmp_path / "with-settings")
+        assert code == 0, err
+        assert "scan complete: 6/6 waypoints" in out and device.parameter(101) == 1.0
+    with virtual.VirtualFarmduino(time_scale=100.0) as device:
+        code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--home-here",
+                              "--out", tmp_path / "by-hand")
+        assert code == 0, err
+        assert "--home-here" in err and "scan complete: 6/6 waypoints" in out
+        assert any(line.startswith("F84") for line in device.received)

@@ -14,7 +14,12 @@ import serial
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.motion import MotionProfile, move_duration
-from flowerpose.hardware.virtual_farmduino import BANNER, FIRMWARE_VERSION, VirtualFarmduino
+from flowerpose.hardware.virtual_farmduino import (
+    BANNER,
+    FEEDBACK_PARAMETERS,
+    FIRMWARE_VERSION,
+    VirtualFarmduino,
+)
 
 SCALE = 100.0  # simulated seconds per wall second: a 1 m X move takes 0.15 s
 SLOW = 20.0  # for tests that act during a move: 0.7 s of wall time for 1 m, so a busy
@@ -61,7 +66,8 @@ class Link:
 
 @pytest.fixture
 def device(request):
-    with VirtualFarmduino(time_scale=getattr(request, "param", SCALE)) as dev:
+    with VirtualFarmduino(time_scale=getattr(request, "param", SCALE),
+                          params=FEEDBACK_PARAMETERS) as dev:
         yield dev
 
 
@@ -195,6 +201,37 @@ def test_a_stop_takes_as_long_as_the_real_firmwares_and_discards_what_comes_mean
     assert float(lines[-2].split()[1][1:]) == pytest.approx(device.firmware_position_mm()[0],
                                                             abs=0.01)
     assert link.command("F09 Q5")[-1] == "R02 Q5" and not device.locked
+
+
+def test_homing_without_endstops_or_encoders_times_out_and_tries_again_for_good():
+    with VirtualFarmduino(time_scale=1000.0) as bare:  # the firmware's defaults
+        link = Link(bare.path)
+        try:
+            link.until(lambda line: line == BANNER)
+            _approve(link)
+            link.send("F13 Q3")
+            lines = link.until(lambda line: line.startswith("R99 homing displaced"))
+            assert "R73 Q3" in lines and "R99 timeout Z axis" in lines
+            lines = link.until(lambda line: line.startswith("R99 homing displaced"))
+            assert "R73 Q3" in lines and not any(line.startswith(("R02", "R03"))
+                                                 for line in lines)
+            link.port.write(b"@")
+            assert link.until(lambda line: line.startswith("R03"))[-1] == "R03 V5 Q3"
+        finally:
+            link.close()
+
+
+def test_the_commands_the_real_firmware_knows_beyond_motion(device, link):
+    _approve(link)
+    dump = link.command("F20 Q3")
+    assert dump[-1] == "R02 Q3" and "R21 P101 V1 Q3" in dump and "R21 P27 V0 Q3" in dump
+    assert link.command("F81 Q4")[-2:] == ["R81 XA0 XB0 YA0 YB0 ZA0 ZB0 Q4", "R02 Q4"]
+    assert link.command("F43 P13 M1 Q5")[-1] == "R02 Q5"
+    assert link.command("F44 P13 V1 W0 T100 M0 Q6")[-1] == "R02 Q6"
+    assert link.command("G00 X100.00 Y0.00 Z0.00 Q7")[-1] == "R02 Q7"
+    zeroed = link.command("F84 X1 Y0 Z0 Q8")
+    assert zeroed[-2:] == ["R82 X0.00 Y0.00 Z0.00 Q8", "R02 Q8"]
+    assert link.command("F14 Q9")[-1] == "R09 Q9"  # axis length measurement: not modelled
 
 
 def test_lines_are_processed_one_at_a_time(device, link):

@@ -1,0 +1,120 @@
+"""The Farmduino firmware's parameters: ids, the names FarmBot OS and the web app give them,
+and the bot's own settings as the web app exports them.
+
+The table is farmbot-arduino-firmware 6.x's (its README, "Arduino parameter numbers"), with
+FarmBot OS's names (`FarmbotFirmware.Param`), which are the keys of the web app's firmware
+settings. FarmBot OS writes a bot's settings to the board every time it connects; with the
+Farmduino on our own serial port nobody does, and after a reset the firmware runs on its
+defaults unless parameter 3 (use EEPROM) was stored as 1. `read_settings` reads the settings a
+user exports, for `FarmduinoBot(settings=...)` to write and check.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from flowerpose.errors import InputError
+from flowerpose.jsonio import read_json
+
+PARAMETERS: dict[int, str] = {
+    2: "param_config_ok", 3: "param_use_eeprom", 4: "param_e_stop_on_mov_err",
+    5: "param_mov_nr_retry",
+    11: "movement_timeout_x", 12: "movement_timeout_y", 13: "movement_timeout_z",
+    15: "movement_keep_active_x", 16: "movement_keep_active_y", 17: "movement_keep_active_z",
+    18: "movement_home_at_boot_x", 19: "movement_home_at_boot_y", 20: "movement_home_at_boot_z",
+    21: "movement_invert_endpoints_x", 22: "movement_invert_endpoints_y",
+    23: "movement_invert_endpoints_z",
+    25: "movement_enable_endpoints_x", 26: "movement_enable_endpoints_y",
+    27: "movement_enable_endpoints_z",
+    31: "movement_invert_motor_x", 32: "movement_invert_motor_y", 33: "movement_invert_motor_z",
+    36: "movement_secondary_motor_x", 37: "movement_secondary_motor_invert_x",
+    41: "movement_steps_acc_dec_x", 42: "movement_steps_acc_dec_y",
+    43: "movement_steps_acc_dec_z", 44: "movement_steps_acc_dec_z2",
+    45: "movement_stop_at_home_x", 46: "movement_stop_at_home_y", 47: "movement_stop_at_home_z",
+    51: "movement_home_up_x", 52: "movement_home_up_y", 53: "movement_home_up_z",
+    55: "movement_step_per_mm_x", 56: "movement_step_per_mm_y", 57: "movement_step_per_mm_z",
+    61: "movement_min_spd_x", 62: "movement_min_spd_y", 63: "movement_min_spd_z",
+    64: "movement_min_spd_z2",
+    65: "movement_home_spd_x", 66: "movement_home_spd_y", 67: "movement_home_spd_z",
+    71: "movement_max_spd_x", 72: "movement_max_spd_y", 73: "movement_max_spd_z",
+    74: "movement_max_spd_z2",
+    75: "movement_invert_2_endpoints_x", 76: "movement_invert_2_endpoints_y",
+    77: "movement_invert_2_endpoints_z",
+    81: "movement_motor_current_x", 82: "movement_motor_current_y",
+    83: "movement_motor_current_z",
+    85: "movement_stall_sensitivity_x", 86: "movement_stall_sensitivity_y",
+    87: "movement_stall_sensitivity_z",
+    91: "movement_microsteps_x", 92: "movement_microsteps_y", 93: "movement_microsteps_z",
+    101: "encoder_enabled_x", 102: "encoder_enabled_y", 103: "encoder_enabled_z",
+    105: "encoder_type_x", 106: "encoder_type_y", 107: "encoder_type_z",
+    111: "encoder_missed_steps_max_x", 112: "encoder_missed_steps_max_y",
+    113: "encoder_missed_steps_max_z",
+    115: "encoder_scaling_x", 116: "encoder_scaling_y", 117: "encoder_scaling_z",
+    121: "encoder_missed_steps_decay_x", 122: "encoder_missed_steps_decay_y",
+    123: "encoder_missed_steps_decay_z",
+    125: "encoder_use_for_pos_x", 126: "encoder_use_for_pos_y", 127: "encoder_use_for_pos_z",
+    131: "encoder_invert_x", 132: "encoder_invert_y", 133: "encoder_invert_z",
+    141: "movement_axis_nr_steps_x", 142: "movement_axis_nr_steps_y",
+    143: "movement_axis_nr_steps_z",
+    145: "movement_stop_at_max_x", 146: "movement_stop_at_max_y", 147: "movement_stop_at_max_z",
+    161: "movement_calibration_retry_x", 162: "movement_calibration_retry_y",
+    163: "movement_calibration_retry_z",
+    165: "movement_axis_stealth_x", 166: "movement_axis_stealth_y",
+    167: "movement_axis_stealth_z",
+    171: "movement_calibration_deadzone_x", 172: "movement_calibration_deadzone_y",
+    173: "movement_calibration_deadzone_z",
+    175: "movement_calibration_retry_total_x", 176: "movement_calibration_retry_total_y",
+    177: "movement_calibration_retry_total_z",
+    198: "pin_report_1_pin_nr", 199: "pin_report_2_pin_nr",
+    201: "pin_guard_1_pin_nr", 202: "pin_guard_1_time_out", 203: "pin_guard_1_active_state",
+    205: "pin_guard_2_pin_nr", 206: "pin_guard_2_time_out", 207: "pin_guard_2_active_state",
+    211: "pin_guard_3_pin_nr", 212: "pin_guard_3_time_out", 213: "pin_guard_3_active_state",
+    215: "pin_guard_4_pin_nr", 216: "pin_guard_4_time_out", 217: "pin_guard_4_active_state",
+    221: "pin_guard_5_pin_nr", 222: "pin_guard_5_time_out", 223: "pin_guard_5_active_state",
+}
+"""Firmware parameter id -> FarmBot OS / web app name."""
+IDS: dict[str, int] = {name: pid for pid, name in PARAMETERS.items()}
+
+ENDSTOPS = {"x": 25, "y": 26, "z": 27}
+"""Per axis, the parameter that enables its endstops (1: on)."""
+ENCODERS = {"x": 101, "y": 102, "z": 103}
+"""Per axis, the parameter that enables its rotary encoder (1: on)."""
+
+NOT_WRITTEN = frozenset({"param_config_ok", "param_version", "param_test"})
+"""Settings FarmBot OS never writes as they are: the configuration is approved last, by the
+client (`F22 P2 V1`), once the others are written."""
+_RECORD_KEYS = frozenset({"id", "created_at", "updated_at", "device_id", "api_migrated",
+                          "param_version", "param_test"})
+"""Keys of the web app's record that are not firmware settings."""
+
+
+def describe(pid: int) -> str:
+    """`25 (movement_enable_endpoints_x)`: a parameter as error messages name it."""
+    return f"{pid} ({PARAMETERS[pid]})" if pid in PARAMETERS else str(pid)
+
+
+def read_settings(path: str | Path) -> dict[int, float]:
+    """The firmware settings of a web app export: a JSON object of parameter name -> value
+    (the web app's firmware settings, or a whole account export holding them under
+    "firmware_config"), as parameter id -> value, in the order the firmware numbers them.
+    The record's own fields (id, dates) and null values are skipped; an unknown name or a
+    value that is not a finite number names the file and the key (InputError)."""
+    data = read_json(path)
+    if isinstance(data.get("firmware_config"), dict):
+        data = data["firmware_config"]
+    settings: dict[int, float] = {}
+    for name, value in data.items():
+        if name in _RECORD_KEYS or value is None:
+            continue
+        if name not in IDS:
+            raise InputError(path, f"unknown firmware parameter {name!r} (known: the names "
+                             "of FarmBot OS, e.g. encoder_enabled_x)")
+        if (isinstance(value, bool) or not isinstance(value, int | float)
+                or not math.isfinite(value)):
+            raise InputError(path, f"{name}: the value must be a number, got {value!r}")
+        if name not in NOT_WRITTEN:
+            settings[IDS[name]] = float(value)
+    if not settings:
+        raise InputError(path, "holds no firmware parameter to write")
+    return dict(sorted(settings.items()))
