@@ -302,12 +302,20 @@ def _scan_field(args: argparse.Namespace) -> int:
         raise InputError(args.camera, "no such camera device; list them with "
                          "ls -l /dev/v4l/by-id/")
     from flowerpose.hardware.trajectory import TrajectoryRecorder
-    from flowerpose.hardware.usb_camera import UsbCamera, UsbCameraConfig
+    from flowerpose.hardware.usb_camera import (
+        FrameChoice,
+        UsbCamera,
+        UsbCameraConfig,
+        check_disk_space,
+    )
     from flowerpose.scanio import read_intrinsics
 
     if args.calibration is not None:
         read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
-    camera = UsbCameraConfig(width=args.width, height=args.height, calibration=args.calibration)
+    choose = None if args.keep_all else FrameChoice(plan.duration_s)
+    camera = UsbCameraConfig(width=args.width, height=args.height, calibration=args.calibration,
+                             choose=choose)
+    check_disk_space(args.out, camera, plan.duration_s)
     recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
     if args.cloud:
         from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
@@ -335,7 +343,9 @@ def _scan_field(args: argparse.Namespace) -> int:
             return FarmduinoBot(args.port, camera=recorder.bind, observer=recorder.observe,
                                 settings=settings)
     source["camera"] = {"device": args.camera, "width": args.width, "height": args.height,
-                        "intrinsics": str(args.calibration or "estimated from the field of view")}
+                        "intrinsics": str(args.calibration or "estimated from the field of view"),
+                        "frames": "every frame" if choose is None else
+                        f"the {choose.keep} sharpest of each of {choose.bins} bins of the path"}
     source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
     try:
         with connect() as bot:
@@ -590,6 +600,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
                    "firmware settings as the FarmBot web app exports them (JSON); written to "
                    "the Farmduino at connect and read back, as FarmBot OS does")
+    p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
+                   "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
+                   "each of 200 bins of the path, chosen while recording")
     p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
                    "home (put there by hand): take it as home instead of homing, for a bot "
                    "without endstops or encoders")

@@ -15,7 +15,11 @@ recording, a writer thread saves them as JPEG files (frames/frame_NNNNNN.jpg in 
 folder, each written whole before it is named) and appends `frame,t` (bot-clock seconds) to
 frame_times.csv beside them. Files rather than one video let an interrupted scan resume and
 append: the next session numbers its frames after the highest on disk. A 1280 x 720 frame
-is about 0.1-0.3 MB, so a 20-minute scan at 30 fps needs several GB of disk.
+is about 0.1-0.3 MB, so keeping every frame of a 20-minute scan at 30 fps needs several GB:
+with `choose` the writer keeps only the sharpest few of each bin of the scan path as it goes
+(`frame_keeper.FrameKeeper`), and the rest are never written. Before every frame it checks
+the disk: with less than `disk_reserve_mb` left it stops the recording with a CameraError
+that says so, every frame saved until then intact.
 
 Intrinsics come from a calibration (camera.json, flowerpose/scanio.py, at the same
 resolution) or, without one, an estimate from the lens's horizontal field of view: square
@@ -27,11 +31,12 @@ from __future__ import annotations
 import csv
 import math
 import queue
+import shutil
 import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,11 +45,29 @@ import numpy as np
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Frame, Recording
 from flowerpose.hardware.errors import CameraError
+from flowerpose.hardware.frame_keeper import FrameKeeper
 from flowerpose.hardware.trajectory import RecordingCamera, last_recorded
 from flowerpose.scanio import FRAME_PATTERN, Intrinsics, read_intrinsics
 
 _MANUAL_EXPOSURE = 1.0
 """V4L2_EXPOSURE_MANUAL: OpenCV's V4L2 backend passes CAP_PROP_AUTO_EXPOSURE on as is."""
+
+
+@dataclass(frozen=True)
+class FrameChoice:
+    """Choosing frames while recording: the `keep` sharpest of each of `bins` equal bins of
+    the planned scan's bot time (`frame_keeper.FrameKeeper`)."""
+
+    duration_s: float
+    """The planned scan's duration on the bot's clock, seconds (`ScanPlan.duration_s`)."""
+    bins: int = 200
+    """Bins of the scan path (the frame stage's 200 images)."""
+    keep: int = 3
+    """Frames kept a bin: the frame stage chooses among them."""
+
+
+#: Upper estimate of a saved 1280 x 720 frame (JPEG quality 95 of a garden scene), bytes.
+FRAME_BYTES_720P = 300_000
 
 
 @dataclass(frozen=True)
@@ -78,6 +101,37 @@ class UsbCameraConfig:
     """Quality of the saved frames (OpenCV's 0-100)."""
     queue_frames: int = 60
     """Frames that may wait for the writer (2 s at 30 fps); more are dropped and counted."""
+    choose: FrameChoice | None = None
+    """Keep only the sharpest frames of each bin while recording; None: every frame."""
+    disk_reserve_mb: float = 500.0
+    """Space the recording leaves free on the scan folder's disk, megabytes: it stops with
+    a CameraError before a frame would eat into it."""
+
+    def expected_bytes(self, duration_s: float) -> int:
+        """Disk a recording of `duration_s` bot seconds takes, about and at most: the kept
+        frames with `choose`, else every frame."""
+        frame = FRAME_BYTES_720P * self.width * self.height / (1280 * 720)
+        frames = (self.choose.bins * self.choose.keep if self.choose is not None
+                  else duration_s * self.fps)
+        return int(frame * frames)
+
+
+def check_disk_space(scan_dir: Path, config: UsbCameraConfig, duration_s: float) -> None:
+    """InputError naming the scan folder when its disk lacks the room a recording of
+    `duration_s` needs (`expected_bytes`) plus the reserve: said before the bot moves."""
+    folder = Path(scan_dir)
+    while not folder.exists():
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free
+    needed = config.expected_bytes(duration_s) + config.disk_reserve_mb * 1e6
+    if free < needed:
+        chosen = replace(config, choose=FrameChoice(duration_s)).expected_bytes(duration_s)
+        every = "" if config.choose is not None else (
+            f"; choosing frames while recording (without --keep-all) needs about "
+            f"{(chosen + config.disk_reserve_mb * 1e6) / 1e6:.0f} MB")
+        raise InputError(scan_dir, f"{free / 1e6:.0f} MB free on its disk, but the scan needs "
+                         f"about {needed / 1e6:.0f} MB ({config.disk_reserve_mb:g} MB of it "
+                         f"kept free){every}: free space or record elsewhere")
 
     def __post_init__(self):
         checks = {"width": self.width >= 16, "height": self.height >= 16,
@@ -88,7 +142,9 @@ class UsbCameraConfig:
                   "frame_timeout_s": math.isfinite(self.frame_timeout_s)
                   and self.frame_timeout_s > 0,
                   "jpeg_quality": 0 <= self.jpeg_quality <= 100,
-                  "queue_frames": self.queue_frames >= 1}
+                  "queue_frames": self.queue_frames >= 1,
+                  "disk_reserve_mb": math.isfinite(self.disk_reserve_mb)
+                  and self.disk_reserve_mb >= 0}
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             raise InputError(f"camera {bad[0]}", f"{getattr(self, bad[0])!r} is out of range")
@@ -352,6 +408,9 @@ class _Recording:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.start = start
         self.count = self.dropped = 0
+        self._keeper = (None if config.choose is None else FrameKeeper(
+            start, config.choose.duration_s, config.choose.bins, config.choose.keep))
+        self._reserve = int(config.disk_reserve_mb * 1e6)
         self._next = first_index
         self._quality = config.jpeg_quality
         self._fail = fail
@@ -375,34 +434,54 @@ class _Recording:
         except queue.Full:
             self.dropped += 1
 
-    def _write_loop(self) -> None:
-        import cv2
+    @property
+    def discarded(self) -> int:
+        """Frames the frame choice left out (never written)."""
+        return 0 if self._keeper is None else self._keeper.left_out
 
+    def _write_loop(self) -> None:
         failed = False
         while (item := self._queue.get()) is not None:
             if failed:
                 continue  # keep draining so the capture thread never blocks
-            image, t = item
-            path = self.folder / FRAME_PATTERN.format(self._next)
-            try:
-                ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self._quality])
-                if not ok:
-                    raise OSError("JPEG encoding failed")
-                temporary = path.with_suffix(".tmp")
-                temporary.write_bytes(jpeg.tobytes())
-                temporary.replace(path)
-                self._times.writerow((self._next, f"{t:.6f}"))
-                self._times_file.flush()
-            except OSError as err:
-                failed = True
-                self._fail(CameraError(f"{path}: cannot save the frame "
-                                       f"({getattr(err, 'strerror', None) or err}); check the "
-                                       "disk"))
-                continue
-            with self._lock:
-                self._saved.append((self._next, t))
-            self._next += 1
-            self.count += 1
+            chosen = [item] if self._keeper is None else self._keeper.offer(*item)
+            failed = not all(self._save(image, t) for image, t in chosen)
+        if not failed and self._keeper is not None:
+            all(self._save(image, t) for image, t in self._keeper.flush())
+
+    def _save(self, image: np.ndarray, t: float) -> bool:
+        """Write one frame whole and its time; False (and the camera failed) when it
+        cannot, or when it would leave less than the disk reserve."""
+        import cv2
+
+        path = self.folder / FRAME_PATTERN.format(self._next)
+        try:
+            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self._quality])
+            if not ok:
+                raise OSError("JPEG encoding failed")
+            free = shutil.disk_usage(self.folder).free
+            if free - len(jpeg) < self._reserve:
+                self._fail(CameraError(
+                    f"{self.folder}: the disk is nearly full ({free / 1e6:.0f} MB left, "
+                    f"{self._reserve / 1e6:.0f} MB kept free): the recording stopped with "
+                    f"{self.count} frames saved; free space, then run the scan again to "
+                    "resume it"))
+                return False
+            temporary = path.with_suffix(".tmp")
+            temporary.write_bytes(jpeg.tobytes())
+            temporary.replace(path)
+            self._times.writerow((self._next, f"{t:.6f}"))
+            self._times_file.flush()
+        except OSError as err:
+            self._fail(CameraError(f"{path}: cannot save the frame "
+                                   f"({getattr(err, 'strerror', None) or err}); check the "
+                                   "disk"))
+            return False
+        with self._lock:
+            self._saved.append((self._next, t))
+        self._next += 1
+        self.count += 1
+        return True
 
     def take_saved(self) -> list[tuple[int, float]]:
         with self._lock:

@@ -2,6 +2,7 @@
 saved with their times, resumed recordings that append, and one-line errors."""
 
 import csv
+import dataclasses
 import math
 import time
 
@@ -12,7 +13,13 @@ from cloud_fakes import FakeCapture
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.errors import CameraError
-from flowerpose.hardware.usb_camera import UsbCamera, UsbCameraConfig, estimated_intrinsics
+from flowerpose.hardware.usb_camera import (
+    FrameChoice,
+    UsbCamera,
+    UsbCameraConfig,
+    check_disk_space,
+    estimated_intrinsics,
+)
 from flowerpose.jsonio import write_json
 from flowerpose.scanio import frame_files
 
@@ -139,4 +146,39 @@ def test_a_camera_that_stops_mid_recording_fails_the_check(tmp_path):
     # Every frame it delivered while recording is kept, up to its last.
     levels = [int(cv2.imread(str(p))[0, 0, 0]) for p in frame_files(tmp_path)]
     assert levels and levels == [k % 256 for k in range(last - len(levels) + 1, last + 1)]
+    camera.close()
+
+
+def test_choosing_while_recording_writes_only_the_kept_frames(tmp_path):
+    config = dataclasses.replace(SMALL, choose=FrameChoice(duration_s=0.2, bins=4, keep=2))
+    camera, capture = _camera(FakeCapture(fps=200.0), config)
+    camera.start_recording(tmp_path / "video.mp4")
+    time.sleep(0.3)  # past the planned end: the last bin takes the rest
+    recording = camera.stop_recording()
+    offered = capture.count
+    assert recording.frames == len(frame_files(tmp_path)) == 8 < offered / 2
+    assert np.all(np.diff(_times(tmp_path)[:, 1]) > 0)  # numbered in time order
+    camera.close()
+
+
+def test_a_disk_without_room_stops_the_recording_with_a_clear_error(tmp_path):
+    full = dataclasses.replace(SMALL, disk_reserve_mb=1e12)  # more than any disk holds
+    camera, _ = _camera(config=full)
+    camera.start_recording(tmp_path / "video.mp4")
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        try:
+            camera.check()
+        except CameraError as err:
+            assert "the disk is nearly full" in str(err) and "resume" in str(err)
+            break
+        time.sleep(0.02)
+    else:
+        pytest.fail("the full disk was never reported")
+    with pytest.raises(CameraError):
+        camera.stop_recording()
+    assert frame_files(tmp_path) == [] and not list((tmp_path / "frames").glob("*.tmp"))
+    with pytest.raises(InputError, match="MB free on its disk, but the scan needs about"):
+        check_disk_space(tmp_path / "scan", full, 1200.0)
+    check_disk_space(tmp_path / "scan", SMALL, 1.0)  # a second of 64 x 48 frames fits
     camera.close()
