@@ -313,13 +313,16 @@ class FarmduinoBot(Bot):
         does, each read back: one that did not take fails the connect (BotError), so
         nothing moves on settings the board does not hold. None: the board runs on what it
         holds (its defaults, unless stored in EEPROM).
+    wall_clock: the seconds the bot's clock scales (a simulation pauses it while it
+        renders); command timeouts always run on the real monotonic clock.
     """
 
     def __init__(self, port: str, *,
                  camera: Callable[[Callable[[], float]], Camera] | None = None,
                  observer: Callable[[Activity], None] | None = None,
                  info: BotInfo | None = None, clock_scale: float = 1.0,
-                 connect_timeout_s: float = 15.0, settings: dict[int, float] | None = None):
+                 connect_timeout_s: float = 15.0, settings: dict[int, float] | None = None,
+                 wall_clock: Callable[[], float] = time.monotonic):
         if not (math.isfinite(clock_scale) and clock_scale > 0):
             raise InputError("clock_scale", f"must be a positive number, got {clock_scale!r}")
         if not (math.isfinite(connect_timeout_s) and connect_timeout_s > 0):
@@ -331,7 +334,8 @@ class FarmduinoBot(Bot):
         self._observer = observer
         self._scale = float(clock_scale)
         self._connect_timeout_s = float(connect_timeout_s)
-        self._origin = time.monotonic()
+        self._wall_clock = wall_clock
+        self._origin = wall_clock()
         self._write_lock = threading.Lock()
         self._state_lock = threading.Lock()
         self._busy = threading.Lock()
@@ -371,7 +375,7 @@ class FarmduinoBot(Bot):
         return self._camera
 
     def now(self) -> float:
-        return (time.monotonic() - self._origin) * self._scale
+        return (self._wall_clock() - self._origin) * self._scale
 
     def position(self) -> np.ndarray:
         with self._state_lock:

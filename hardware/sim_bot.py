@@ -24,6 +24,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+import contextlib  # noqa: E402
 import functools  # noqa: E402
 import math
 import multiprocessing
@@ -205,8 +206,10 @@ class SimCamera(Camera):
     """The simulated IMX219 on the head: see the module docstring."""
 
     def __init__(self, clock, plant_dirs: list[Path], intrinsics: Intrinsics,
-                 poser: MujocoPoser, config: SimCameraConfig, state):
+                 poser: MujocoPoser, config: SimCameraConfig, state,
+                 pause: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext):
         self._clock = clock
+        self._pause = pause
         self._plant_dirs = [str(p) for p in plant_dirs]
         self._intrinsics = intrinsics
         self._poser = poser
@@ -240,8 +243,10 @@ class SimCamera(Camera):
         self._next_index, last_t = last_recorded(scan_dir)
         self._tasks, self._written, self._start = [], 0, self._clock()
         self._still_since = self._clock()
-        # A resumed scan's times continue the recorded ones (the new bot's clock restarts).
-        self._time_offset = 0.0 if last_t is None else last_t + 1.0 / 30.0 - self._clock()
+        # Times count from the scan's start, and a resumed scan's continue the recorded ones
+        # (the new bot's clock restarts), whatever the bot did before it recorded (a serial
+        # bot homes first).
+        self._time_offset = (0.0 if last_t is None else last_t + 1.0 / 30.0) - self._start
         self._writer = _FrameWriter(scan_dir, self._plant_dirs, self._intrinsics, self.config)
         self._scan_dir = scan_dir
 
@@ -270,8 +275,10 @@ class SimCamera(Camera):
             moving_until = activity.t0 + head_turn_time(activity,
                                                         self.config.servo_speed_rad_s)
         rate = self.config.frame_rate_hz
-        first = math.ceil(activity.t0 * rate - 1e-9)
-        times = [k / rate for k in range(first, math.ceil(end * rate - 1e-9))]
+        # Frames on a grid from the recording's start, the same for every backend.
+        first = math.ceil((activity.t0 - self._start) * rate - 1e-9)
+        times = [self._start + k / rate
+                 for k in range(first, math.ceil((end - self._start) * rate - 1e-9))]
         video_frame = 1.0 / 30.0
         if activity.kind == "dwell" and activity.elapsed > video_frame and (
                 not times or times[-1] < end - 2 * video_frame):
@@ -292,7 +299,8 @@ class SimCamera(Camera):
             # Render this waypoint's frames before the executor records it as done, so what
             # scan.json calls complete is on disk.
             settled = self._poser.camera_to_bed(*self._pose_state(activity, end))
-            self._written += self._writer.write(self._tasks, settled)
+            with self._pause():  # rendering takes none of the bot's time
+                self._written += self._writer.write(self._tasks, settled)
             self._next_index += len(self._tasks)
             self._tasks = []
 
@@ -401,6 +409,7 @@ class SimBotConfig:
 
 def sim_camera(plant_dirs: list[Path], config: SimBotConfig,
                state: Callable[[], tuple[np.ndarray, float, float]],
+               pause: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext,
                ) -> Callable[[Callable[[], float]], SimCamera]:
     """A bot's camera factory (it takes the bot's clock) making `SimCamera`s that film the
     plants in `plant_dirs` (checked now) as `config` says. state: () -> (gantry (3,)
@@ -414,7 +423,8 @@ def sim_camera(plant_dirs: list[Path], config: SimBotConfig,
                              "flowerpose plant")
     intrinsics = intrinsics_from_config(CameraConfig(width=config.width, height=config.height))
     poser = MujocoPoser()
-    return lambda clock: SimCamera(clock, plant_dirs, intrinsics, poser, config.camera, state)
+    return lambda clock: SimCamera(clock, plant_dirs, intrinsics, poser, config.camera, state,
+                                   pause)
 
 
 class SimBot(KinematicBot):

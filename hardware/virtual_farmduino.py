@@ -72,6 +72,7 @@ import tempfile
 import threading
 import time
 import tty
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -199,7 +200,8 @@ class VirtualFarmduino:
     """
 
     def __init__(self, *, time_scale: float = 1.0, params: dict[int, float] | None = None,
-                 link_dir: str | Path | None = None, start_mm=(0.0, 0.0, 0.0)):
+                 link_dir: str | Path | None = None, start_mm=(0.0, 0.0, 0.0),
+                 wall_clock: Callable[[], float] = time.monotonic):
         import mujoco
 
         if not (math.isfinite(time_scale) and time_scale > 0):
@@ -225,7 +227,8 @@ class VirtualFarmduino:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
-        self._wall0 = time.monotonic()
+        self._wall_clock = wall_clock
+        self._wall0 = wall_clock()
         self._master: int | None = None
         self.device: str | None = None
         """The current pty's slave path (changes at a simulated reconnect)."""
@@ -290,7 +293,7 @@ class VirtualFarmduino:
 
     def now(self) -> float:
         """Simulated seconds since the device was made."""
-        return (time.monotonic() - self._wall0) * self.time_scale
+        return (self._wall_clock() - self._wall0) * self.time_scale
 
     def joints(self) -> np.ndarray:
         """(5,) MuJoCo joints: x, y, z metres from the physical home (z <= 0), yaw, pitch
@@ -849,6 +852,37 @@ class VirtualFarmduino:
                 "time_scale": self.time_scale, "path": self.path}
 
 
+class PausableClock:
+    """Monotonic seconds that stand still inside `paused()`: the simulated world's time, so
+    rendering frames takes none of it, as with the direct backend's virtual clock."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._paused_for = 0.0
+        self._since: float | None = None
+        self._depth = 0
+
+    def __call__(self) -> float:
+        with self._lock:
+            now = time.monotonic() if self._since is None else self._since
+            return now - self._paused_for
+
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[None]:
+        with self._lock:
+            self._depth += 1
+            if self._depth == 1:
+                self._since = time.monotonic()
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._depth -= 1
+                if self._depth == 0:
+                    self._paused_for += time.monotonic() - self._since
+                    self._since = None
+
+
 class SimulatedSerialBot(FarmduinoBot):
     """The simulated scan through the serial code path: a `FarmduinoBot` on its own
     `VirtualFarmduino`, filming generated plants with `SimCamera` as `SimBot` does.
@@ -862,12 +896,16 @@ class SimulatedSerialBot(FarmduinoBot):
         from flowerpose.hardware.sim_bot import SimBotConfig, sim_camera
 
         self.sim_config = config or SimBotConfig()
-        camera = sim_camera(plant_dirs, self.sim_config, self._current)
-        self.device = VirtualFarmduino(time_scale=time_scale, params=FEEDBACK_PARAMETERS).start()
+        # The device, the bot's clock and the camera share one time that stops while frames
+        # render, so the trajectory's times are the direct backend's.
+        clock = PausableClock()
+        camera = sim_camera(plant_dirs, self.sim_config, self._current, pause=clock.paused)
+        self.device = VirtualFarmduino(time_scale=time_scale, params=FEEDBACK_PARAMETERS,
+                                       wall_clock=clock).start()
         try:
             super().__init__(self.device.path, camera=camera,
                              observer=lambda activity: self.camera.observe(activity),
-                             clock_scale=time_scale)
+                             clock_scale=time_scale, wall_clock=clock)
             self.home()
         except BaseException:
             self.device.close()

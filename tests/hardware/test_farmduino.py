@@ -293,10 +293,10 @@ def test_the_bots_settings_are_written_at_connect_and_read_back(bare):
             bot.move_to([0.3, 0.135, 0.65])
         assert bare.parameter(101) == 1.0
         bot.home()
-    bare.ignore_writes(102)
-    with pytest.raises(BotError, match=r"parameter 102 \(encoder_enabled_y\) did not take: "
-                       "wrote 1, the board holds 0"):
-        _bot(bare, settings=settings)
+    bare.ignore_writes(72)
+    with pytest.raises(BotError, match=r"parameter 72 \(movement_max_spd_y\) did not take: "
+                       "wrote 350, the board holds 400"):
+        _bot(bare, settings={**settings, 72: 350.0})
 
 
 def test_close_ends_the_bot(device):
@@ -453,7 +453,7 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     plan = plan_scan(np.array(truth["plant_center"][:2]), truth["height"], SMALL)
     config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=0.2, workers=1,
                                                  visibility_width=32), width=64, height=48)
-    with SimulatedSerialBot([plant], config, time_scale=200.0) as bot:
+    with SimulatedSerialBot([plant], config, time_scale=20.0) as bot:
         manifest = run_scan(bot, plan, tmp_path / "scan", source=bot.describe(),
                             progress=False)
         assert bot.device.firmware_position_mm() == pytest.approx(
@@ -467,6 +467,18 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     waypoints = np.array([w.pose.gantry for w in plan.waypoints])
     gap = np.linalg.norm(trajectory.gantry[:, None] - waypoints[None], axis=2).min(0)
     assert gap.max() < 3e-4
+    # Rendering stops the simulated world's clock, so the scan takes the direct backend's
+    # time but for the serial link's latency, scaled by the time scale (a few ms of wall
+    # time a command, a few tenths of a second of bot time a waypoint at 20 x).
+    from flowerpose.hardware.sim_bot import SimBot
+
+    with SimBot([plant], config) as direct:
+        run_scan(direct, plan, tmp_path / "direct", source={}, progress=False)
+    expected = read_trajectory(tmp_path / "direct" / "trajectory.csv")
+    print(f"serial against direct: {len(trajectory)} and {len(expected)} frames, scans of "
+          f"{trajectory.t[-1]:.1f} and {expected.t[-1]:.1f} s")
+    assert abs(len(trajectory) - len(expected)) <= 0.05 * len(expected)
+    assert abs(trajectory.t[-1] - expected.t[-1]) < 0.05 * expected.t[-1]
 
 
 def test_via_farmduino_needs_the_simulator(capsys):
