@@ -12,7 +12,12 @@ reconnect. It behaves as farmbot-arduino-firmware 6.6 does (reference/farmbot.md
   `R03 V<code>`; a reply repeats the command's `Q<n>`. Refusals send one reply only:
   `R87` while locked (every command but F09, F20-F22, F81-F83), `R88` for a movement
   before `F22 P2 V1`, `R09` for a command the firmware does not know.
-- Periodic reports every 0.5 simulated seconds: idle `R00` (`R87` while locked) with the
+- At boot, after the banner, every parameter (`R21 P.. V.. Q0`), as the real firmware
+  prints them. The echo keeps the sender's carriage return inside it (`R08 *F82 Q3\r*`).
+  A move ends as on the real board: `R99 stopped` and motor, endstop and encoder reports
+  (R05, R81, R84, R85), then after `END_OF_MOVE_S` its R82 and R02.
+- Periodic reports every `report_period_s` simulated seconds (0.5; 5 on the ATmega2560
+  build): idle `R00` (`R87` while locked) with the
   position `R82` and `R88` until configured, all with `Q0`; `R04` and `R82` with the
   command's Q during a move.
 - There is no queue: bytes that arrive while a command runs are discarded, except `E` / `e`
@@ -87,7 +92,11 @@ from flowerpose.hardware.motion import MotionProfile, axis_durations, axis_motio
 FIRMWARE_VERSION = "6.6.23.V.virtual"
 BANNER = "R99 ARDUINO STARTUP COMPLETE"
 REPORT_PERIOD_S = 0.5
-"""Simulated seconds between periodic reports (the Farmduino's 500 ms)."""
+"""Simulated seconds between periodic reports by default (Farmduino v1.4 and later: 500 ms;
+the firmware built for the ATmega2560 as FARMDUINO_V10 reports every 5 s)."""
+END_OF_MOVE_S = 0.3
+"""Simulated seconds a move's end takes after the motors stop: the real firmware reports
+`R99 stopped`, motors, endstops and encoders (R05, R81, R84, R85) before its R82 and R02."""
 MIN_REPORT_WALL_S = 0.02
 """Least wall seconds between periodic reports, whatever the time scale."""
 BOOT_S = 1.0
@@ -201,12 +210,16 @@ class VirtualFarmduino:
 
     def __init__(self, *, time_scale: float = 1.0, params: dict[int, float] | None = None,
                  link_dir: str | Path | None = None, start_mm=(0.0, 0.0, 0.0),
-                 wall_clock: Callable[[], float] = time.monotonic):
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 report_period_s: float = REPORT_PERIOD_S):
         import mujoco
 
         if not (math.isfinite(time_scale) and time_scale > 0):
             raise InputError("time_scale", f"must be a positive number, got {time_scale!r}")
         self.time_scale = float(time_scale)
+        if not (math.isfinite(report_period_s) and report_period_s > 0):
+            raise InputError("report_period_s", f"must be positive, got {report_period_s!r}")
+        self.report_period_s = float(report_period_s)
         self._eeprom = {**DEFAULT_PARAMETERS, **{int(k): float(v) for k, v in
                                                   (params or {}).items()}}
         self._params = dict(self._eeprom)
@@ -237,6 +250,7 @@ class VirtualFarmduino:
         self._booted_at: float | None = None  # simulated time the banner is due; None: up
         self._input = bytearray()
         self._running: _Running | None = None
+        self._closing: tuple[int, float] | None = None  # (Q, simulated time of its R02)
         self._stopping: _Stopping | None = None
         self._locked = False
         self._servos: dict[int, float] = {}
@@ -431,6 +445,7 @@ class VirtualFarmduino:
             self._set_joints(self._along(running, min(self.now() - running.t0,
                                                       running.stop_at)))
         self._running = None
+        self._closing = None
         self._stopping = None
         self._offset = self._physical()
         self._params = dict(self._eeprom)
@@ -446,7 +461,7 @@ class VirtualFarmduino:
         return f"R82 X{x:.2f} Y{y:.2f} Z{z:.2f} Q{q}"
 
     def _report_period(self) -> float:
-        return max(REPORT_PERIOD_S, MIN_REPORT_WALL_S * self.time_scale)
+        return max(self.report_period_s, MIN_REPORT_WALL_S * self.time_scale)
 
     def _serve(self) -> None:
         try:
@@ -507,6 +522,8 @@ class VirtualFarmduino:
             events.append(self._running.t0 + self._running.stop_at)
         if self._stopping is not None:
             events.append(self._stopping.next_report)
+        if self._closing is not None:
+            events.append(self._closing[1])
         if self._drop_at is not None:
             events.append(self._drop_at[0])
         wait = (min(events) - now) / self.time_scale
@@ -523,7 +540,7 @@ class VirtualFarmduino:
             if byte in b"Ee":
                 self._emergency_stop()
                 continue
-            if self._stopping is not None:
+            if self._stopping is not None or self._closing is not None:
                 self.discarded += 1
                 continue
             if self._running is not None:
@@ -536,10 +553,11 @@ class VirtualFarmduino:
                 self.discarded += 1
                 continue
             if byte == ord("\n") or len(self._input) >= INPUT_LIMIT - 1:
-                line = self._input.decode("ascii", "replace").strip()
+                raw = self._input.decode("ascii", "replace")
+                line = raw.strip()
                 self._input.clear()
                 if line:
-                    self._execute(line)
+                    self._execute(line, echo=raw.lstrip())
                     # The firmware empties its input buffer after every command.
                     discard_rest = True
                 continue
@@ -552,12 +570,19 @@ class VirtualFarmduino:
             self._booted_at = None
             self._next_report = now + self._report_period()
             self._say(BANNER)
+            for pid in sorted(self._params):  # the real firmware lists them all at boot
+                self._say(f"R21 P{pid} V{self._params[pid]:g} Q0")
         if self._drop_at is not None and now >= self._drop_at[0]:
             down = self._drop_at[1]
             self._drop_at = None
             self._drop(down)
         if self._stopping is not None:
             self._advance_stop(now)
+        if self._closing is not None and now >= self._closing[1]:
+            q, self._closing = self._closing[0], None
+            self._say(self._position_report(q))
+            self._say(f"R02 Q{q}")
+            self._next_report = now + self._report_period()
         running = self._running
         if running is not None:
             stage = running.stages[0]
@@ -579,9 +604,11 @@ class VirtualFarmduino:
             self._periodic()
 
     def _periodic(self) -> None:
-        if self._running is not None:
-            self._say(f"R04 Q{self._running.q}")
-            self._say(self._position_report(self._running.q))
+        busy = self._running.q if self._running is not None else (
+            self._closing[0] if self._closing is not None else None)
+        if busy is not None:
+            self._say(f"R04 Q{busy}")
+            self._say(self._position_report(busy))
             return
         self._say("R87 Q0" if self._locked else "R00 Q0")
         self._say(self._position_report(0))
@@ -590,9 +617,11 @@ class VirtualFarmduino:
 
     # --- commands ---------------------------------------------------------------------
 
-    def _execute(self, line: str) -> None:
+    def _execute(self, line: str, echo: str | None = None) -> None:
+        """One command line; `echo` is what the firmware echoes, the sender's carriage
+        return included (the real firmware keeps it)."""
         self.received.append(line)
-        self._say(f"R08 *{line}*")
+        self._say(f"R08 *{line if echo is None else echo}*")
         tokens = line.split()
         code = _ALIASES.get(tokens[0], tokens[0])
         values: dict[str, float] = {}
@@ -784,7 +813,19 @@ class VirtualFarmduino:
         if running.stages:
             self._start_stage(running)
         else:
-            self._finish(0)
+            self._end_move(running)
+
+    def _end_move(self, running: _Running) -> None:
+        """The motors have stopped at the target: the end-of-move reports, then (after
+        END_OF_MOVE_S) the position and R02; input meanwhile is discarded."""
+        q, mm = running.q, self.firmware_position_mm()
+        xyz = " ".join(f"{a}{v:.2f}" for a, v in zip("XYZ", mm, strict=True))
+        self._running = None
+        self._say("R99 stopped")
+        for line in (f"R05 X0 Y0 Z0 Q{q}", f"R81 XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}",
+                     f"R84 {xyz} Q{q}", f"R85 {xyz} Q{q}"):
+            self._say(line)
+        self._closing = (q, self.now() + END_OF_MOVE_S)
 
     def _stalled_or_timed_out(self, running: _Running) -> None:
         if running.error != _ERR_TIMEOUT:

@@ -220,11 +220,15 @@ def test_emergency_stop_from_another_thread_mid_move(device):
             assert activities[-1].kind == "dwell" and activities[-1].elapsed < 50.0
 
 
-def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch):
+@pytest.mark.parametrize("report_period_s", [0.5, 5.0])
+def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch,
+                                                                    report_period_s):
     """The real firmware answers R87 at once but discards input until its R03 V1 a quarter
-    of a second later: an F09 sent on the R87 was lost and unlock() timed out."""
+    of a second later: an F09 sent on the R87 was lost and unlock() timed out. Also on the
+    board that reports only every 5 s."""
     monkeypatch.setattr("flowerpose.hardware.farmduino.REPLY_TIMEOUT_S", 3.0)
-    with (VirtualFarmduino(time_scale=2.0, params=FEEDBACK_PARAMETERS) as device,
+    with (VirtualFarmduino(time_scale=2.0, params=FEEDBACK_PARAMETERS,
+                           report_period_s=report_period_s) as device,
           _bot(device, scale=2.0) as bot):
         bot.home()
         bot.set_head(0.3, 0.8)

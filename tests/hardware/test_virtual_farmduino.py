@@ -16,6 +16,7 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.motion import MotionProfile, move_duration
 from flowerpose.hardware.virtual_farmduino import (
     BANNER,
+    DEFAULT_PARAMETERS,
     FEEDBACK_PARAMETERS,
     FIRMWARE_VERSION,
     VirtualFarmduino,
@@ -86,7 +87,8 @@ def _approve(link):
 def test_opening_the_port_boots_and_every_command_is_echoed_with_its_q(device, link):
     assert device.boots == 1 and os.path.islink(device.path)
     lines = link.command("F83 Q5")
-    assert lines[-4:] == ["R08 *F83 Q5*", "R01 Q5", f"R83 {FIRMWARE_VERSION} Q5", "R02 Q5"]
+    # The echo keeps the sender's carriage return, as the real firmware's does.
+    assert lines[-4:] == ["R08 *F83 Q5\r*", "R01 Q5", f"R83 {FIRMWARE_VERSION} Q5", "R02 Q5"]
     lines = link.command("F82 Q6")
     assert lines[-2:] == ["R82 X0.00 Y0.00 Z0.00 Q6", "R02 Q6"]
 
@@ -98,7 +100,7 @@ def test_idle_reports_and_r88_until_the_configuration_is_approved(device, link):
     assert "R82 X0.00 Y0.00 Z0.00 Q0" in report
     # A movement before approval is refused with R88 alone: no R01, no R03.
     lines = link.command("G00 X10.00 Y0.00 Z0.00 Q7")
-    assert lines[-2:] == ["R08 *G00 X10.00 Y0.00 Z0.00 Q7*", "R88 Q7"]
+    assert lines[-2:] == ["R08 *G00 X10.00 Y0.00 Z0.00 Q7\r*", "R88 Q7"]
     assert device.firmware_position_mm()[0] == 0.0
     _approve(link)
     assert device.parameter(2) == 1
@@ -136,7 +138,7 @@ def test_emergency_stop_locks_until_f09(device, link):
     link.until(lambda line: line == "R87 Q0")  # the idle report says locked
     assert device.locked and device.servo(6) is None  # the servos lost their pulses
     assert link.command("G00 X10.00 Y0.00 Z0.00 Q3")[-2:] == [
-        "R08 *G00 X10.00 Y0.00 Z0.00 Q3*", "R87 Q3"]
+        "R08 *G00 X10.00 Y0.00 Z0.00 Q3\r*", "R87 Q3"]
     assert link.command("F61 P6 V90 Q4")[-1] == "R87 Q4"
     assert link.command("F82 Q5")[-1] == "R02 Q5"  # reading is allowed while locked
     assert link.command("F09 Q6")[-1] == "R02 Q6" and not device.locked
@@ -158,7 +160,7 @@ def test_input_while_busy_is_discarded_except_e_and_abort(device, link):
     link.send("F82 Q4")  # no queue: dropped
     assert link.until(lambda line: line.startswith("R02") or line.startswith("R03"))[-1] == \
         "R02 Q3"
-    assert device.discarded >= len("F82 Q4\r\n") and "R08 *F82 Q4*" not in link.seen
+    assert device.discarded >= len("F82 Q4\r\n") and "R08 *F82 Q4\r*" not in link.seen
     assert link.command("F82 Q5")[-1] == "R02 Q5"
     # @ aborts the running move (once it is well under way), E stops it.
     link.send("G00 X0.00 Y0.00 Z0.00 Q6")
@@ -195,7 +197,7 @@ def test_a_stop_takes_as_long_as_the_real_firmwares_and_discards_what_comes_mean
     after = lines[lines.index("R87 Q3"):]
     assert sum(line.startswith("R82") and line.endswith("Q3") for line in after) >= 2
     assert acknowledged - sent < 0.2 and 0.2 <= done - sent < 0.4
-    assert "R08 *F09 Q4*" not in link.seen and device.locked
+    assert "R08 *F09 Q4\r*" not in link.seen and device.locked
     assert device.discarded >= len("F09 Q4\r\n")
     # The last report is where the motors stopped.
     assert float(lines[-2].split()[1][1:]) == pytest.approx(device.firmware_position_mm()[0],
@@ -232,6 +234,25 @@ def test_the_commands_the_real_firmware_knows_beyond_motion(device, link):
     zeroed = link.command("F84 X1 Y0 Z0 Q8")
     assert zeroed[-2:] == ["R82 X0.00 Y0.00 Z0.00 Q8", "R02 Q8"]
     assert link.command("F14 Q9")[-1] == "R09 Q9"  # axis length measurement: not modelled
+
+
+def test_the_boot_lists_every_parameter_and_a_move_ends_with_the_firmwares_reports():
+    with VirtualFarmduino(time_scale=SCALE, params=FEEDBACK_PARAMETERS) as device:
+        link = Link(device.path)
+        try:
+            link.until(lambda line: line == BANNER)
+            dump = link.until(lambda line: line == "R21 P223 V0 Q0")
+            assert sum(line.startswith("R21 ") for line in dump) == len(DEFAULT_PARAMETERS)
+            assert "R21 P101 V1 Q0" in dump
+            _approve(link)
+            lines = link.command("G00 X50.00 Y0.00 Z0.00 Q4")
+            tail = [line for line in lines[lines.index("R99 stopped"):]
+                    if not line.startswith("R04")]  # busy reports may come meanwhile
+            assert [line.split()[0] for line in tail[:5]] == ["R99", "R05", "R81", "R84", "R85"]
+            assert tail[-2:] == ["R82 X50.00 Y0.00 Z0.00 Q4", "R02 Q4"]
+            assert tail[3] == "R84 X50.00 Y0.00 Z0.00 Q4"
+        finally:
+            link.close()
 
 
 def test_lines_are_processed_one_at_a_time(device, link):
