@@ -8,7 +8,14 @@ import pytest
 from realplants import write_real_plant
 
 from flowerpose.cli import main
-from flowerpose.eval.fidelity import compare, real_sample, statistics
+from flowerpose.eval.fidelity import (
+    compare,
+    real_sample,
+    statistics,
+    synthetic_cloud,
+    synthetic_folders,
+)
+from flowerpose.eval.harness import FIELD_CAMERA_GAIN, FIELD_VOXEL_M, eval_config
 from flowerpose.eval.real_source import read_real_plant
 from flowerpose.pipeline.colour import petal_mask, rgb_to_hsv
 from flowerpose.pipeline.flowers import PipelineConfig
@@ -64,3 +71,25 @@ def test_the_field_preset_makes_large_flowers_and_a_paled_sheened_cloud():
     # Sheen gives some leaf points a petal's colour, as on a real photogrammetry cloud.
     assert 0.05 < petal_mask(leaves(field), PipelineConfig().colour).mean() < 0.3
     assert petal_mask(leaves(realistic), PipelineConfig().colour).mean() < 0.01
+
+
+def test_the_field_preset_films_with_the_field_camera_and_keeps_polycams_density():
+    field, realistic = eval_config("field"), eval_config("realistic")
+    assert field.scan.sensor.gain == FIELD_CAMERA_GAIN > realistic.scan.sensor.gain == 1.0
+    assert field.scan.reconstruct.dense.voxel_size_m == FIELD_VOXEL_M
+    assert realistic.scan.reconstruct.dense.voxel_size_m < FIELD_VOXEL_M
+    assert field.score.label_error_deg > 0 == realistic.score.label_error_deg
+
+
+def test_a_scan_run_is_described_by_its_reconstruction_not_the_oracle_cloud(tmp_path):
+    plant = tmp_path / "run" / "plants" / "seed-0"
+    for name in ("plant.json", "cloud.ply"):
+        (plant / name).parent.mkdir(parents=True, exist_ok=True)
+        (plant / name).write_text("")
+    assert synthetic_cloud(plant) == (plant / "cloud.ply", plant / "plant.json")
+    for name in ("reconstruction/cloud.ply", "scan/plant.json"):
+        (plant / name).parent.mkdir(parents=True, exist_ok=True)
+        (plant / name).write_text("")
+    assert synthetic_cloud(plant) == (plant / "reconstruction" / "cloud.ply",
+                                      plant / "scan" / "plant.json")
+    assert synthetic_folders([tmp_path / "run"]) == [plant]
