@@ -32,6 +32,18 @@ def _camera(capture=None, config=SMALL, clock=time.monotonic):
                      capture=lambda device: capture), capture
 
 
+def _failure(camera, what: str) -> str:
+    """The CameraError `check()` raises once the camera's threads have failed (3 s at most)."""
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        try:
+            camera.check()
+        except CameraError as err:
+            return str(err)
+        time.sleep(0.02)
+    pytest.fail(f"{what} was never reported")
+
+
 def _times(scan_dir):
     with open(scan_dir / "frame_times.csv", newline="") as handle:
         rows = list(csv.reader(handle))
@@ -131,16 +143,7 @@ def test_a_camera_that_stops_mid_recording_fails_the_check(tmp_path):
     camera.start_recording(tmp_path / "video.mp4")
     # The camera goes silent 20 frames into the recording, however late the recording began.
     capture.frames = last = capture.count + 20
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
-        try:
-            camera.check()
-        except CameraError as err:
-            assert "no frame for 0.5 s" in str(err)
-            break
-        time.sleep(0.05)
-    else:
-        pytest.fail("the stalled camera was never reported")
+    assert "no frame for 0.5 s" in _failure(camera, "the stalled camera")
     with pytest.raises(CameraError):
         camera.stop_recording()
     # Every frame it delivered while recording is kept, up to its last.
@@ -165,16 +168,8 @@ def test_a_disk_without_room_stops_the_recording_with_a_clear_error(tmp_path):
     full = dataclasses.replace(SMALL, disk_reserve_mb=1e12)  # more than any disk holds
     camera, _ = _camera(config=full)
     camera.start_recording(tmp_path / "video.mp4")
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
-        try:
-            camera.check()
-        except CameraError as err:
-            assert "the disk is nearly full" in str(err) and "resume" in str(err)
-            break
-        time.sleep(0.02)
-    else:
-        pytest.fail("the full disk was never reported")
+    failure = _failure(camera, "the full disk")
+    assert "the disk is nearly full" in failure and "resume" in failure
     with pytest.raises(CameraError):
         camera.stop_recording()
     assert frame_files(tmp_path) == [] and not list((tmp_path / "frames").glob("*.tmp"))
