@@ -327,7 +327,7 @@ def _scan_field(args: argparse.Namespace) -> int:
             return FarmbotCloudBot(credentials, camera=recorder.bind, observer=recorder.observe)
     else:
         from flowerpose.hardware.farmduino import FarmduinoBot
-        from flowerpose.hardware.firmware_params import read_settings
+        from flowerpose.hardware.protocol import read_settings
 
         settings = None
         if args.firmware_params is not None:

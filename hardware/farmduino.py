@@ -32,7 +32,7 @@
   `home_here()` takes where the gantry stands for home (F84, for a bot put there by hand).
 - The bot's own settings: without FarmBot OS nobody writes them, and a board that starts
   runs on its defaults unless they were stored in EEPROM; `settings` (the web app's export,
-  `firmware_params.read_settings`) are written after every start and read back, and one
+  `protocol.read_settings`) are written after every start and read back, and one
   that did not take fails the connect.
 - A dropped port (SerialException, EIO) is recovered: the same path is reopened with
   backoff for up to `connect_timeout_s`, the firmware brought up again as at connect,
@@ -101,7 +101,6 @@ from flowerpose.hardware.errors import (
     UnknownCommandError,
     error_for_code,
 )
-from flowerpose.hardware.firmware_params import ENCODERS, ENDSTOPS, describe
 from flowerpose.hardware.geometry import (
     PITCH_PIN,
     YAW_PIN,
@@ -110,11 +109,17 @@ from flowerpose.hardware.geometry import (
 )
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
+from flowerpose.hardware.protocol import (
+    BANNER,
+    ENCODERS,
+    ENDSTOPS,
+    FINAL_REPLIES,
+    SERVO_PINS,
+    STARTUP_TEXT,
+    describe,
+)
 
 BAUD = 115200
-SERVO_PINS = (4, 5, 6, 11)
-"""The only Farmduino pins that drive servos (F61 on another answers R02 and does nothing)."""
-BANNER = "ARDUINO STARTUP COMPLETE"
 AXIS_LENGTH_PARAMETERS = (141, 142, 143)
 READ_PARAMETERS = (2, 5, 11, 12, 13, 41, 42, 43, 44, 55, 56, 57, 61, 62, 63, 64, 71, 72, 73, 74,
                    *AXIS_LENGTH_PARAMETERS, *ENDSTOPS.values(), *ENCODERS.values())
@@ -141,7 +146,6 @@ firmware to end it (`R03`, or an idle report: every 5 s on the slowest boards), 
 firmware discards what arrives before."""
 HEAD_SETTLE_S = 0.5
 """Bot seconds `set_head` waits after the servo commands: servos give no feedback."""
-_FINAL = {"R02", "R03", "R09", "R87", "R88"}
 _MAX_RECOVERIES = 3
 """Link drops one command recovers from before it gives up."""
 _FORBIDDEN = re.compile(r"[eE@\r\n]")
@@ -308,7 +312,7 @@ class FarmduinoBot(Bot):
         scale on a virtual one that runs faster.
     connect_timeout_s: wall seconds to wait for the firmware at connect, and to get the
         port back after it drops.
-    settings: the bot's own firmware parameters {id: value} (`firmware_params.read_settings`
+    settings: the bot's own firmware parameters {id: value} (`protocol.read_settings`
         of the web app's export), written after every start of the board as FarmBot OS
         does, each read back: one that did not take fails the connect (BotError), so
         nothing moves on settings the board does not hold. None: the board runs on what it
@@ -691,7 +695,7 @@ class FarmduinoBot(Bot):
                 continue
             replies.append(reply)
             # After an E, the R87 only says the firmware is stopping: R03 V1 ends it.
-            if reply.code in _FINAL and not (stopped and reply.code == "R87"):
+            if reply.code in FINAL_REPLIES and not (stopped and reply.code == "R87"):
                 return _Exchange(line, replies, stopped, failure)
 
     def _await_stop_end(self, lines: queue.Queue) -> None:
@@ -715,7 +719,7 @@ class FarmduinoBot(Bot):
         if isinstance(item, _Dropped):
             raise _LinkDropped(self._port, item.detail)
         reply = parse_reply(item)
-        if reply is not None and reply.code == "R99" and BANNER in reply.text:
+        if reply is not None and reply.code == "R99" and STARTUP_TEXT in reply.text:
             raise _BoardStarted("Farmduino", "the board restarted (R99 ARDUINO STARTUP "
                                 "COMPLETE)")
         return reply
@@ -772,7 +776,7 @@ class FarmduinoBot(Bot):
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                what = (f"serial {self._port}: no startup banner (R99 {BANNER}) or idle report "
+                what = (f"serial {self._port}: no startup banner ({BANNER}) or idle report "
                         f"(R00) within {self._connect_timeout_s:g} s; check that it is a "
                         "Farmduino with FarmBot's firmware at 115200 baud and that FarmBot OS "
                         "does not hold the port")

@@ -34,7 +34,7 @@ reconnect. It behaves as farmbot-arduino-firmware 6.6 does (reference/farmbot.md
   counter becomes 0; with neither, as the real firmware does, it drives into the home end
   until the axis times out, `R71`-`R73` and `R99 timeout`, reports `R99 homing displaced`
   and tries again, for good, until `@` or `E`; the firmware's defaults have both off),
-  F09 unlock, F21 / F22 parameters (every id of `firmware_params.PARAMETERS`; another gets
+  F09 unlock, F21 / F22 parameters (every id of `protocol.PARAMETERS`; another gets
   `R02` and nothing else), F41 / F42 pins, F61 servos (only pins 4, 5, 6,
   11 drive servos; 0-180 degrees, >= 544 microseconds; other pins get `R02` and nothing
   happens), F82 position, F83 version, F20 every parameter, F43 / F44 pin mode and pulse, F81
@@ -84,13 +84,12 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.farmduino import SERVO_PINS, FarmduinoBot
-from flowerpose.hardware.firmware_params import ENCODERS, ENDSTOPS, PARAMETERS
+from flowerpose.hardware.farmduino import FarmduinoBot
 from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT
 from flowerpose.hardware.motion import MotionProfile, axis_durations, axis_motions, move_trajectory
+from flowerpose.hardware.protocol import BANNER, ENCODERS, ENDSTOPS, PARAMETERS, SERVO_PINS
 
 FIRMWARE_VERSION = "6.6.23.V.virtual"
-BANNER = "R99 ARDUINO STARTUP COMPLETE"
 REPORT_PERIOD_S = 0.5
 """Simulated seconds between periodic reports by default (Farmduino v1.4 and later: 500 ms;
 the firmware built for the ATmega2560 as FARMDUINO_V10 reports every 5 s)."""

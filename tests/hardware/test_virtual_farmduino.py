@@ -14,8 +14,8 @@ import serial
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.motion import MotionProfile, move_duration
+from flowerpose.hardware.protocol import BANNER
 from flowerpose.hardware.virtual_farmduino import (
-    BANNER,
     DEFAULT_PARAMETERS,
     FEEDBACK_PARAMETERS,
     FIRMWARE_VERSION,

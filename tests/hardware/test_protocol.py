@@ -5,7 +5,8 @@ import json
 import pytest
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.firmware_params import (
+from flowerpose.hardware.motion import FIRMWARE_PARAMETERS
+from flowerpose.hardware.protocol import (
     ENCODERS,
     ENDSTOPS,
     IDS,
@@ -13,7 +14,6 @@ from flowerpose.hardware.firmware_params import (
     describe,
     read_settings,
 )
-from flowerpose.hardware.motion import FIRMWARE_PARAMETERS
 
 
 def test_the_table_names_every_parameter_the_client_uses_once():

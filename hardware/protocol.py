@@ -1,5 +1,6 @@
-"""The Farmduino firmware's parameters: ids, the names FarmBot OS and the web app give them,
-and the bot's own settings as the web app exports them.
+"""The Farmduino firmware's protocol facts, one owner for them: the startup banner, the
+replies that end a command, the servo pins, and the parameters (ids, the names FarmBot OS
+and the web app give them, and the bot's own settings as the web app exports them).
 
 The table is farmbot-arduino-firmware 6.x's (its README, "Arduino parameter numbers"), with
 FarmBot OS's names (`FarmbotFirmware.Param`), which are the keys of the web app's firmware
@@ -16,6 +17,15 @@ from pathlib import Path
 
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
+
+STARTUP_TEXT = "ARDUINO STARTUP COMPLETE"
+"""What the firmware's `R99` says when the board has (re)started."""
+BANNER = f"R99 {STARTUP_TEXT}"
+FINAL_REPLIES = frozenset({"R02", "R03", "R09", "R87", "R88"})
+"""Replies that end a command: done, error, unknown, locked, not configured (the last
+three come without an R03)."""
+SERVO_PINS = (4, 5, 6, 11)
+"""The only Farmduino pins that drive servos (F61 on another answers R02 and does nothing)."""
 
 PARAMETERS: dict[int, str] = {
     2: "param_config_ok", 3: "param_use_eeprom", 4: "param_e_stop_on_mov_err",
