@@ -53,10 +53,10 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
-from flowerpose.jsonio import object_list, read_json
+from flowerpose.pipeline.frames import ChosenFrame, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
-__all__ = ["DenseConfig", "reconstruct_dense", "read_frame_poses", "select_pairs"]
+__all__ = ["DenseConfig", "reconstruct_dense", "select_pairs"]
 
 Poses = Mapping[int | str, np.ndarray] | Sequence[np.ndarray | None] | np.ndarray
 
@@ -242,58 +242,32 @@ _SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "3way": cv2.STEREO_SGBM_MODE_S
 
 # ----------------------------------------------------------------------------- inputs
 
-def read_frame_poses(frames_dir: str | Path) -> dict[int, np.ndarray]:
-    """frames.json's camera-to-bed poses as {frame index: (4, 4) matrix}, metres."""
-    frames_dir = Path(frames_dir)
-    poses = {}
-    for entry in _frame_entries(frames_dir):
-        try:
-            pose = np.eye(4)
-            pose[:3, :3] = np.asarray(entry["pose"]["rotation"], float).reshape(3, 3)
-            pose[:3, 3] = np.asarray(entry["pose"]["position"], float).reshape(3)
-        except (KeyError, TypeError, ValueError) as err:
-            raise InputError(frames_dir / "frames.json",
-                             f"frame {entry['index']} needs a pose with a position (3) and "
-                             f"a rotation (3 x 3) ({err})") from None
-        poses[entry["index"]] = pose
-    return poses
-
-
-def _frame_entries(frames_dir: Path) -> list[dict]:
-    path = frames_dir / "frames.json"
-    entries = object_list(read_json(path), "frames", path, "frame")
-    for k, entry in enumerate(entries):
-        if not isinstance(entry.get("index"), int) or not isinstance(entry.get("file"), str):
-            raise InputError(path, f"frame {k} needs an integer 'index' and a 'file'")
-    return entries
-
-
-def _resolve_poses(frames_dir: Path, entries: list[dict], poses: Poses | None
+def _resolve_poses(frames_dir: Path, frames: list[ChosenFrame], poses: Poses | None
                    ) -> list[np.ndarray | None]:
-    """One (4, 4) pose or None per frames.json entry, checked."""
+    """One (4, 4) pose or None per frames.json frame, checked."""
     source: str | Path = "poses"
     if poses is None:
-        poses, source = read_frame_poses(frames_dir), frames_dir / "frames.json"
+        poses, source = {f.index: f.pose for f in frames}, frames_dir / "frames.json"
     if isinstance(poses, Mapping):
-        resolved = [poses.get(e["index"], poses.get(e["file"])) for e in entries]
+        resolved = [poses.get(f.index, poses.get(f.file)) for f in frames]
     else:
-        if len(poses) != len(entries):
-            raise InputError("poses", f"{len(poses)} poses for {len(entries)} frames in "
+        if len(poses) != len(frames):
+            raise InputError("poses", f"{len(poses)} poses for {len(frames)} frames in "
                              f"{frames_dir / 'frames.json'}")
         resolved = list(poses)
     out: list[np.ndarray | None] = []
-    for entry, pose in zip(entries, resolved, strict=True):
+    for frame, pose in zip(frames, resolved, strict=True):
         if pose is None:
             out.append(None)
             continue
         pose = np.asarray(pose, float)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
-            raise InputError(source, f"frame {entry['index']}: expected a finite (4, 4) "
+            raise InputError(source, f"frame {frame.index}: expected a finite (4, 4) "
                              "camera-to-bed matrix")
         rotation = pose[:3, :3]
         if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-4
                 or np.linalg.det(rotation) < 0):
-            raise InputError(source, f"frame {entry['index']}: the rotation is not a rotation")
+            raise InputError(source, f"frame {frame.index}: the rotation is not a rotation")
         out.append(pose)
     return out
 
@@ -793,8 +767,8 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():
         raise InputError(frames_dir, "frames folder not found")
-    entries = _frame_entries(frames_dir)
-    frame_poses = _resolve_poses(frames_dir, entries, poses)
+    frames = read_frames(frames_dir, need_poses=poses is None)
+    frame_poses = _resolve_poses(frames_dir, frames, poses)
     if intrinsics is None:
         intrinsics = read_intrinsics(frames_dir / "camera.json")
     posed = [n for n, p in enumerate(frame_poses) if p is not None]
@@ -808,7 +782,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
 
     with ThreadPoolExecutor(threads) as pool:
         loaded = list(pool.map(
-            lambda n: _load_image(frames_dir / entries[n]["file"], size,
+            lambda n: _load_image(frames_dir / frames[n].file, size,
                                   (intrinsics.width, intrinsics.height)), posed))
     step("load")
     say(f"loaded {len(posed)} frames at {size[0]}x{size[1]}")
@@ -847,7 +821,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
     seconds["total"] = round(time.perf_counter() - start, 3)
     say(f"{len(cloud)} points")
     report = {
-        "frames": len(entries), "posed": len(posed), "views": len(views),
+        "frames": len(frames), "posed": len(posed), "views": len(views),
         "duplicate_views": len(posed) - len(views),
         "image_size": list(size),
         "pairs": {"candidates": counts["candidates"], "selected": len(pairs), "used": used,

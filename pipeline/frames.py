@@ -21,7 +21,7 @@ import numpy as np
 from flowerpose.atomic import write_bytes, write_image
 from flowerpose.config import require
 from flowerpose.errors import InputError
-from flowerpose.jsonio import write_json
+from flowerpose.jsonio import object_list, read_json, write_json
 from flowerpose.outputs import OutputFolder, check_output
 from flowerpose.scanio import (
     FRAME_PATTERN,
@@ -50,6 +50,61 @@ class FrameSelectConfig:
     def __post_init__(self):
         require(self.count >= 1, "--count", f"must be at least 1, got {self.count}")
         require(self.crop_px >= 3, "--crop", f"must be at least 3 pixels, got {self.crop_px}")
+
+
+@dataclass(frozen=True)
+class ChosenFrame:
+    """One frame of frames.json (written by `select_frames`)."""
+
+    index: int
+    """The frame's number in the scan."""
+    file: str
+    """Image path relative to the frames folder."""
+    position: np.ndarray | None
+    """(3,) recorded camera centre, metres, bed frame; None when frames.json has no pose."""
+    rotation: np.ndarray | None
+    """(3, 3) camera-to-bed rotation, OpenCV camera axes; None with the position."""
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """(4, 4) camera-to-bed matrix, metres, or None."""
+        if self.position is None or self.rotation is None:
+            return None
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = self.rotation, self.position
+        return pose
+
+
+def read_frames(frames_dir: str | Path, need_poses: bool = True) -> list[ChosenFrame]:
+    """frames.json's frames, checked: an integer "index" and a "file" that exists in the
+    folder each, and a pose ("position" 3, "rotation" 3 x 3, finite, a proper rotation),
+    which may be missing only when `need_poses` is False. Errors name the file and frame."""
+    frames_dir = Path(frames_dir)
+    path = frames_dir / "frames.json"
+    frames = []
+    for k, entry in enumerate(object_list(read_json(path), "frames", path, "frame")):
+        index, name = entry.get("index"), entry.get("file")
+        if isinstance(index, bool) or not isinstance(index, int) or not isinstance(name, str):
+            raise InputError(path, f'frame {k} needs an integer "index" and a "file"')
+        position = rotation = None
+        if "pose" in entry or need_poses:
+            try:
+                position = np.asarray(entry["pose"]["position"], dtype=np.float64)
+                rotation = np.asarray(entry["pose"]["rotation"], dtype=np.float64)
+            except (KeyError, TypeError, ValueError):
+                raise InputError(path, f'frame {k} needs "file" and "pose" with "position" '
+                                 '(3) and "rotation" (3 x 3)') from None
+            if position.shape != (3,) or rotation.shape != (3, 3) or not (
+                    np.isfinite(position).all() and np.isfinite(rotation).all()):
+                raise InputError(path, f"frame {k}: pose needs a finite position (3) and "
+                                 "rotation (3 x 3)")
+            if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-4
+                    or np.linalg.det(rotation) < 0):
+                raise InputError(path, f"frame {k}: pose rotation is not a proper rotation")
+        if not (frames_dir / name).is_file():
+            raise InputError(frames_dir / name, "image listed in frames.json not found")
+        frames.append(ChosenFrame(index, name, position, rotation))
+    return frames
 
 
 def frame_score(rgb: np.ndarray, config: FrameSelectConfig) -> tuple[float, float, float]:

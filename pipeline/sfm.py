@@ -40,8 +40,9 @@ import pycolmap
 from flowerpose.atomic import write_text
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
-from flowerpose.jsonio import object_list, read_json, write_json
+from flowerpose.jsonio import write_json
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
+from flowerpose.pipeline.frames import ChosenFrame, read_frames
 from flowerpose.processes import reclaim_sigterm
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
@@ -141,18 +142,6 @@ class SparseResult:
     """Counts, errors, the alignment residual, seconds per step and the config."""
 
 
-@dataclass(frozen=True)
-class FrameRecord:
-    """One frame of frames.json."""
-
-    name: str
-    """Image path relative to the frames folder (COLMAP's image name)."""
-    position: np.ndarray
-    """(3,) recorded camera centre, metres, bed frame."""
-    rotation: np.ndarray
-    """(3, 3) camera-to-bed rotation, OpenCV camera axes."""
-
-
 def _progress(message: str) -> None:
     print(f"sfm: {message}", file=sys.stderr, flush=True)
 
@@ -166,31 +155,6 @@ def _colmap_logging(show: bool) -> Iterator[None]:
         yield
     finally:
         pycolmap.logging.minloglevel = before
-
-
-def read_frames(frames_dir: Path) -> list[FrameRecord]:
-    """frames.json's frames with their recorded poses, checked (images present, poses
-    finite and rotations proper)."""
-    path = Path(frames_dir) / "frames.json"
-    frames = []
-    for k, entry in enumerate(object_list(read_json(path), "frames", path, "frame")):
-        try:
-            name = str(entry["file"])
-            position = np.asarray(entry["pose"]["position"], dtype=np.float64)
-            rotation = np.asarray(entry["pose"]["rotation"], dtype=np.float64)
-        except (KeyError, TypeError, ValueError):
-            raise InputError(path, f"frame {k} needs \"file\" and \"pose\" with \"position\" "
-                             "(3) and \"rotation\" (3 x 3)") from None
-        if position.shape != (3,) or rotation.shape != (3, 3) or not (
-                np.isfinite(position).all() and np.isfinite(rotation).all()):
-            raise InputError(path, f"frame {k}: pose needs a finite position (3) and "
-                             "rotation (3 x 3)")
-        if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-4 or np.linalg.det(rotation) < 0:
-            raise InputError(path, f"frame {k}: pose rotation is not a proper rotation")
-        if not (Path(frames_dir) / name).is_file():
-            raise InputError(Path(frames_dir) / name, "image listed in frames.json not found")
-        frames.append(FrameRecord(name, position, rotation))
-    return frames
 
 
 def distinct_poses(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
@@ -377,7 +341,7 @@ def _in_front(rays1: np.ndarray, rays2: np.ndarray, baseline: np.ndarray) -> np.
 
 
 def _match_with_poses(database: Path, names: list[str],
-                      pairs: list[tuple[int, int]], frames: list[FrameRecord],
+                      pairs: list[tuple[int, int]], frames: list[ChosenFrame],
                       config: SfmConfig) -> None:
     """Epipolar-guided matching on the recorded poses; the matches are written as verified
     (calibrated) two-view geometries, so no RANSAC runs."""
@@ -447,12 +411,12 @@ def _mapper_options(config: SfmConfig, intrinsics_known: bool
     return options
 
 
-def _cam_from_world(frame: FrameRecord) -> pycolmap.Rigid3d:
+def _cam_from_world(frame: ChosenFrame) -> pycolmap.Rigid3d:
     rotation = frame.rotation.T
     return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ frame.position)
 
 
-def _posed_reconstruction(database: Path, frames: dict[str, FrameRecord]
+def _posed_reconstruction(database: Path, frames: dict[str, ChosenFrame]
                           ) -> pycolmap.Reconstruction:
     """The database's cameras and images, each at its recorded pose (no points yet)."""
     db = pycolmap.Database.open(database)
@@ -491,7 +455,7 @@ def _filter_points(reconstruction: pycolmap.Reconstruction, config: SfmConfig) -
     manager.filter_points3D_with_short_tracks(config.min_track_length)
 
 
-def _bundle_adjust(reconstruction: pycolmap.Reconstruction, frames: dict[str, FrameRecord],
+def _bundle_adjust(reconstruction: pycolmap.Reconstruction, frames: dict[str, ChosenFrame],
                    config: SfmConfig) -> None:
     """Refine points and poses (intrinsics fixed), the camera centres held near their
     recorded positions (a prior of config.pose_prior_m per axis)."""
@@ -537,7 +501,7 @@ def _map_incremental(database: Path, frames_dir: Path, output: Path, total: int,
     return max(models.values(), key=lambda m: m.num_reg_images())
 
 
-def _to_bed_frame(reconstruction: pycolmap.Reconstruction, frames: dict[str, FrameRecord],
+def _to_bed_frame(reconstruction: pycolmap.Reconstruction, frames: dict[str, ChosenFrame],
                   config: SfmConfig, frames_dir: Path) -> tuple[Similarity, dict]:
     """Move the model onto the recorded camera centres (robust similarity, in place)."""
     images = [im for im in reconstruction.images.values() if im.has_pose]
@@ -563,7 +527,7 @@ def _cloud(reconstruction: pycolmap.Reconstruction) -> Cloud:
 
 
 def _model(mode: str, database: Path, frames_dir: Path, sparse_dir: Path,
-           frames: dict[str, FrameRecord], config: SfmConfig, intrinsics_known: bool,
+           frames: dict[str, ChosenFrame], config: SfmConfig, intrinsics_known: bool,
            seconds: dict[str, float]) -> pycolmap.Reconstruction:
     """Poses and filtered points from the matched database, by `mode`; adds the seconds
     of each step to `seconds`."""
@@ -597,10 +561,10 @@ def _model(mode: str, database: Path, frames_dir: Path, sparse_dir: Path,
     return reconstruction
 
 
-def _distinct_frames(frames_dir: Path, given: list[FrameRecord], config: SfmConfig
-                     ) -> list[FrameRecord]:
+def _distinct_frames(frames_dir: Path, given: list[ChosenFrame], config: SfmConfig
+                     ) -> list[ChosenFrame]:
     """The frames at distinct poses; InputError when too few are left."""
-    if len({f.name for f in given}) != len(given):
+    if len({f.file for f in given}) != len(given):
         raise InputError(frames_dir / "frames.json", "an image is listed twice")
     distinct = distinct_poses(np.array([f.position for f in given]).reshape(-1, 3),
                               np.array([f.rotation for f in given]).reshape(-1, 3, 3))
@@ -633,7 +597,7 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     started = time.perf_counter()
     given = read_frames(frames_dir)
     frames = _distinct_frames(frames_dir, given, config)
-    names = [f.name for f in frames]
+    names = [f.file for f in frames]
     by_name = dict(zip(names, frames, strict=True))
     camera_path = frames_dir / "camera.json"
     intrinsics = None

@@ -20,10 +20,10 @@ from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.dense import (
     DenseConfig,
-    read_frame_poses,
     reconstruct_dense,
     select_pairs,
 )
+from flowerpose.pipeline.frames import read_frames
 from flowerpose.scanio import FRAME_PATTERN, Intrinsics
 
 WIDTH, HEIGHT, FOCAL = 320, 240, 300.0
@@ -220,7 +220,7 @@ def test_degenerate_frames_only_raise_a_clear_error(tmp_path):
 def test_too_few_frames(tmp_path):
     path = _write_frames(tmp_path, _ring_poses(count=3))
     with pytest.raises(InputError, match="at least 2 frames with a pose"):
-        reconstruct_dense(path, poses={0: read_frame_poses(path)[0]}, config=CONFIG)
+        reconstruct_dense(path, poses={0: read_frames(path)[0].pose}, config=CONFIG)
     with pytest.raises(InputError, match="poses"):
         reconstruct_dense(path, poses=[np.eye(4)], config=CONFIG)  # 1 pose for 3 frames
 

@@ -1,4 +1,5 @@
 import csv
+import json
 
 import cv2
 import numpy as np
@@ -6,7 +7,13 @@ import pytest
 
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
-from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, frame_score, select_frames
+from flowerpose.pipeline.frames import (
+    FrameSelectConfig,
+    bin_edges,
+    frame_score,
+    read_frames,
+    select_frames,
+)
 from flowerpose.scanio import (
     FRAME_PATTERN,
     TRAJECTORY_COLUMNS,
@@ -110,3 +117,32 @@ def test_a_second_selection_replaces_the_first_and_short_rows_are_refused(tmp_pa
     (scan / "trajectory.csv").write_text("\n".join([lines[0], "0,0,1,1,1,0,0", "1,0,1,1,1,1,0"]))
     with pytest.raises(InputError, match="row 1 has 7 values"):
         read_trajectory(scan / "trajectory.csv")
+
+
+def test_frames_json_is_read_once_with_every_check(tmp_path):
+    """The one reader of frames.json, as structure from motion and dense stereo use it."""
+    scan = _scan(tmp_path / "scan", np.zeros(6))
+    select_frames(scan, tmp_path / "out", FrameSelectConfig(count=3), progress=False)
+    frames = read_frames(tmp_path / "out")
+    assert [f.index for f in frames] == [0, 2, 4]  # equal scores: the first of each bin
+    assert frames[0].pose.shape == (4, 4) and np.allclose(frames[0].pose[:3, :3],
+                                                          frames[0].rotation)
+    path = tmp_path / "out" / "frames.json"
+    good = json.loads(path.read_text())
+
+    def fails(change, words, need_poses=True):
+        data = json.loads(json.dumps(good))
+        change(data["frames"][1])
+        path.write_text(json.dumps(data))
+        with pytest.raises(InputError, match=words):
+            read_frames(tmp_path / "out", need_poses)
+
+    fails(lambda f: f.update(index="1"), 'needs an integer "index"')
+    fails(lambda f: f.update(file="frames/none.jpg"), "image listed in frames.json not found")
+    fails(lambda f: f["pose"].update(rotation=np.diag([1, 1, -1]).tolist()), "proper rotation")
+    fails(lambda f: f["pose"].update(position=[0, float("nan")]), "finite position")
+    fails(lambda f: f.pop("pose"), '"pose" with "position"')
+    data = json.loads(json.dumps(good))
+    data["frames"][1].pop("pose")
+    path.write_text(json.dumps(data))
+    assert read_frames(tmp_path / "out", need_poses=False)[1].pose is None

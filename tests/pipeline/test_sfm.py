@@ -14,12 +14,12 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from flowerpose.errors import InputError
+from flowerpose.pipeline.frames import read_frames
 from flowerpose.pipeline.sfm import (
     SfmConfig,
     distinct_poses,
     epipolar_matches,
     pairs_from_poses,
-    read_frames,
     reconstruct_sparse,
     sequential_pairs,
 )
@@ -220,7 +220,7 @@ def test_missing_folder_or_image_is_a_clear_error(scene, tmp_path):
     (broken / "frames").symlink_to(frames_dir / "frames")
     with pytest.raises(InputError, match="image listed in frames.json not found"):
         reconstruct_sparse(broken, tmp_path / "work")
-    (broken / "frames.json").write_text(json.dumps({"frames": [{"file": "x.jpg"}]}))
+    (broken / "frames.json").write_text(json.dumps({"frames": [{"index": 0, "file": "x.jpg"}]}))
     with pytest.raises(InputError, match="needs \"file\" and \"pose\""):
         reconstruct_sparse(broken, tmp_path / "work")
 
@@ -302,7 +302,7 @@ def test_refined_poses_for_dense_stereo_match_the_recorded_ones(scene, tmp_path)
     frames_dir, positions = scene
     result = reconstruct_sparse(frames_dir, tmp_path / "work", SfmConfig())
     poses = refined_poses(result)
-    recorded = {f.name: f for f in read_frames(frames_dir)}
+    recorded = {f.file: f for f in read_frames(frames_dir)}
     assert set(poses) == set(recorded) and len(poses) == VIEWS
     for name, pose in poses.items():
         assert np.linalg.norm(pose[:3, 3] - recorded[name].position) < 0.003
