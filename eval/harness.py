@@ -302,7 +302,8 @@ def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out
                                    for s, c in zip(seeds, captured, strict=True)}
     if source == "scan":
         # One plant at a time: rendering, matching and stereo each use every core.
-        captured = run_jobs(capture_scan, [(folders[s], config.scan) for s in seeds], 1,
+        captured = run_jobs(capture_scan, [(folders[s], config.scan, config.sim.viewpoints)
+                                           for s in seeds], 1,
                             lambda k, v: f"seed-{seeds[k]}: scan of {v['recorded']} frames, "
                             f"{v['registered']}/{v['frames']} chosen frames registered, "
                             f"{v['points']} points, petal F-score at 5 mm "
@@ -328,7 +329,7 @@ def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:
 
     start = time.perf_counter()
     scan_dir = plant_dir / "rgbd"
-    recorded = record_rgbd_scan(plant_dir, scan_dir, config.rgbd)
+    recorded = record_rgbd_scan(plant_dir, scan_dir, config.rgbd, config.sim.viewpoints)
     cloud, fusion = fuse_rgbd_scan(scan_dir, config.fusion)
     write_cloud(scan_dir / "cloud.ply", cloud)
     plant = read_plant(plant_dir)

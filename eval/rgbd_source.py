@@ -22,6 +22,7 @@ from flowerpose.atomic import write_image, write_text
 from flowerpose.config import require
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
+from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.depth import DepthSensorConfig
 
 
@@ -43,10 +44,12 @@ class RgbdConfig:
                 "width and height must be at least 16 pixels")
 
 
-def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig) -> dict:
-    """Film the plant in plant_dir at every waypoint of its planned scan; write an RGB-D
-    scan folder to out_dir (frames/, depth/, trajectory.csv, camera.json, plant.json with
-    the views' visibility). Returns a small report."""
+def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig,
+                     viewpoints: ScanPathConfig | None = None) -> dict:
+    """Film the plant in plant_dir at every waypoint of its planned scan (`viewpoints`, the
+    synthetic world's path, or the default); write an RGB-D scan folder to out_dir (frames/,
+    depth/, trajectory.csv, camera.json, plant.json with the views' visibility). Returns a
+    small report."""
     from flowerpose.hardware.sim_bot import MujocoPoser, plan_plant_scan
     from flowerpose.pipeline.rgbd import DEPTH_PATTERN
     from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
@@ -57,7 +60,7 @@ def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig) -> dict
     from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
 
     plant = read_plant(plant_dir)
-    plan = plan_plant_scan(plant)
+    plan = plan_plant_scan(plant, viewpoints)
     poser = MujocoPoser()
     intrinsics = intrinsics_from_config(CameraConfig(width=config.width, height=config.height))
     renderer = PlantRenderer([plant])

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from flowerpose.config import require
 from flowerpose.pipeline.reconstruct import ReconstructConfig
+from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
 
@@ -46,7 +47,8 @@ class ScanSourceConfig:
         require(self.frames >= 3, "scan.frames", "photogrammetry needs at least 3 frames")
 
 
-def capture_scan(plant_dir: Path, config: ScanSourceConfig) -> dict:
+def capture_scan(plant_dir: Path, config: ScanSourceConfig,
+                 path: ScanPathConfig | None = None) -> dict:
     """Scan, choose frames and reconstruct the plant in plant_dir; returns the frame and
     point counts, the cloud's quality against the truth mesh (with the alignment residual)
     and seconds per step. The cloud is plant_dir/reconstruction/cloud.ply, the truth with
@@ -67,7 +69,7 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig) -> dict:
     seconds: dict[str, float] = {}
     tick = time.perf_counter()
     plant = read_plant(plant_dir)
-    plan = plan_plant_scan(plant)
+    plan = plan_plant_scan(plant, path)
     bot_config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=config.frame_rate_hz,
                                                      workers=config.workers,
                                                      sensor=config.sensor, render=config.render),

@@ -59,6 +59,7 @@ from flowerpose.scanio import (
     open_rows,
     trajectory_row,
 )
+from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
 from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
@@ -500,12 +501,13 @@ def write_preview(scan_dir: Path, plant_centers: list[np.ndarray], plant_heights
         renderer.close()
 
 
-def plan_plant_scan(plant) -> ScanPlan:
-    """The default scan path round a simulated plant (`sim.export.read_plant`), with reach
-    and collisions against its mesh checked."""
+def plan_plant_scan(plant, path: ScanPathConfig | None = None) -> ScanPlan:
+    """The scan path round a simulated plant (`sim.export.read_plant`), with reach and
+    collisions against its mesh checked: `path` (the synthetic world's `sim.viewpoints`,
+    the same cameras that decide the oracle's visibility) or the default."""
     from flowerpose.sim.export import plant_obstacles
 
-    return plan_scan(plant.center[:2], plant.height, ScanConfig(),
+    return plan_scan(plant.center[:2], plant.height, ScanConfig(path=path or ScanPathConfig()),
                      obstacles=plant_obstacles(plant))
 
 

@@ -122,3 +122,16 @@ def test_the_configured_camera_processing_and_light_reach_the_recorded_frames(pl
     assert mean_level({"sensor": SensorConfig(gain=0.5)}) == pytest.approx(plain / 2, rel=0.05)
     assert mean_level({"render": RenderConfig(sun=0.2, sky=0.1, fill=0.0, bounce=0.0,
                                               background_rgb=(40, 40, 40))}) < 0.7 * plain
+
+
+def test_the_simulated_bot_flies_the_synthetic_worlds_path(plant_dir):
+    """`--set sim.viewpoints.*` moves the cameras that decide visibility and the path the
+    bot flies alike."""
+    from flowerpose.hardware.sim_bot import plan_plant_scan
+    from flowerpose.sim.export import read_plant
+
+    plant = read_plant(plant_dir)
+    coarse = ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.22, dome_polar_deg=(50.0,))
+    plan = plan_plant_scan(plant, coarse)
+    assert plan.config.path == coarse
+    assert len(plan.waypoints) < len(plan_plant_scan(plant).waypoints)
