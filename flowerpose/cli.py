@@ -548,6 +548,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="flowerpose",
         description="3D strawberry flower poses from point clouds, scored against exact truth.")
+    from flowerpose import __version__
+
+    parser.add_argument("--version", action="version", version=f"flowerpose {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 parser_class=_Parser)
 
@@ -743,7 +746,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from flowerpose.processes import Terminated, terminate_cleanly
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    if not (sys.argv[1:] if argv is None else argv):
+        parser.print_help()  # a bare `flowerpose`: what it can do, not an error
+        return 0
+    args = parser.parse_args(argv)
     terminate_cleanly()
     try:
         return args.func(args)

@@ -1,10 +1,13 @@
 """The command line: each job end to end on a small plant, and every error path."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
+from flowerpose import __version__
 from flowerpose.cli import main
 from flowerpose.cloudio import Cloud, write_cloud
 
@@ -189,3 +192,18 @@ def test_a_toml_file_that_is_not_utf8_is_one_line(tmp_path, capsys):
     assert main(["detect", str(tmp_path / "none.ply"), "--out", str(tmp_path / "o"),
                  "--config", str(bad)]) == 2
     assert "not a UTF-8 text file" in capsys.readouterr().err
+
+
+def test_a_bare_command_shows_the_help_and_the_version_is_one_line(capsys):
+    assert main([]) == 0
+    assert "COMMAND" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.strip() == f"flowerpose {__version__}"
+
+
+def test_python_dash_m_runs_the_command_line():
+    result = subprocess.run([sys.executable, "-m", "flowerpose", "--version"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0 and result.stdout.strip() == f"flowerpose {__version__}"
