@@ -18,7 +18,13 @@ from scipy.spatial import cKDTree
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry
-from flowerpose.hardware.kinematics import HeadPose, check_reachable, forward, look_at
+from flowerpose.hardware.kinematics import (
+    HeadPose,
+    UnreachableError,
+    check_reachable,
+    forward,
+    look_at,
+)
 from flowerpose.hardware.motion import MotionProfile, move_duration, move_trajectory
 from flowerpose.scanpath import ScanPathConfig, path_cameras
 
@@ -88,7 +94,20 @@ def plan_scan(plant_center, plant_height: float, config: ScanConfig = ScanConfig
     profile = profile or MotionProfile()
     kinds, cameras, targets = path_cameras(plant_center, plant_height, config.path)
     poses = look_at(cameras, targets, geometry)
-    check_reachable(poses, geometry, name="scan waypoint")
+    try:
+        check_reachable(poses, geometry, name="scan waypoint")
+    except UnreachableError as error:
+        if not {"gantry X", "gantry Y"} & set(error.limits):
+            raise
+        # The path is the same round any plant: say where a plant fits it.
+        reach = poses.gantry[:, :2] - np.asarray(plant_center, np.float64)[:2]
+        low = np.asarray(geometry.gantry_min)[:2] - reach.min(axis=0)
+        high = np.asarray(geometry.gantry_max)[:2] - reach.max(axis=0)
+        fits = (f"this path fits a plant with its stem at x {low[0]:.2f}-{high[0]:.2f} m and "
+                f"y {low[1]:.2f}-{high[1]:.2f} m" if (low <= high).all()
+                else "no plant position on this bed fits this path")
+        raise UnreachableError(error.source, f"{error.problem}; {fits}", error.waypoint,
+                               error.limits) from None
     waypoints = [Waypoint(i, kind, cameras[i], targets[i],
                           HeadPose(poses.gantry[i], poses.yaw[i], poses.pitch[i]))
                  for i, kind in enumerate(kinds)]

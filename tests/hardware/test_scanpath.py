@@ -65,3 +65,17 @@ def test_path_geometry_is_the_papers():
     assert np.linalg.norm(dome - [0.4, 0.3, 0.15], axis=1) == pytest.approx(0.3)
     polar = np.degrees(np.arccos((dome[:, 2] - 0.15) / 0.3))
     assert sorted(set(np.round(polar, 6))) == [10.0, 30.0, 50.0, 70.0]
+
+
+def test_a_plant_off_the_reachable_strip_is_told_where_plants_fit():
+    with pytest.raises(UnreachableError, match="gantry Y") as error:
+        plan_scan(np.array([1.2, 0.6]), 0.25)
+    words = str(error.value).split("this path fits a plant with its stem at ")[1]
+    (x_low, x_high), (y_low, y_high) = (
+        [float(v) for v in part.split()[1].split("-")] for part in words.split(" and "))
+    assert y_low < 0.75 < y_high and x_low < 1.2 < x_high
+    # The ends of the strip it names plan, a step beyond them does not.
+    plan_scan(np.array([1.2, y_low + 0.005]), 0.25)
+    plan_scan(np.array([1.2, y_high - 0.005]), 0.25)
+    with pytest.raises(UnreachableError):
+        plan_scan(np.array([1.2, y_high + 0.02]), 0.25)
