@@ -582,11 +582,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("plant", help="generate one plant: plant.json (truth), mesh, oracle cloud")
-    p.add_argument("--seed", type=SEED, required=True)
+    p.add_argument("--seed", type=SEED, required=True,
+                   help="the plant's seed: the same seed and preset give the same plant")
     p.add_argument("--points", type=CLOUD_POINTS, default=None,
                    help="oracle cloud points (60000)")
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True, help="the plant folder to write")
     _add_overwrite(p)
     p.set_defaults(func=cmd_plant)
 
@@ -631,8 +632,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the planned moves, checked against the bot's limits; no scan")
     p.add_argument("--frame-rate", type=float, default=0.6,
                    help="frames rendered per second of bot time (0.6)")
-    p.add_argument("--width", type=_at_least(16), default=1280)
-    p.add_argument("--height", type=_at_least(16), default=720)
+    p.add_argument("--width", type=_at_least(16), default=1280,
+                   help="frame width, pixels (1280, the paper's video)")
+    p.add_argument("--height", type=_at_least(16), default=720,
+                   help="frame height, pixels (720)")
     p.add_argument("--workers", type=POSITIVE, default=None, help="render processes (all cores)")
     p.add_argument("--no-preview", dest="preview", action="store_false",
                    help="skip preview.mp4 (the gantry scanning, seen from outside)")
@@ -652,13 +655,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_farmduino)
 
     p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")
-    p.add_argument("scan", type=Path, metavar="SCAN_DIR")
+    p.add_argument("scan", type=Path, metavar="SCAN_DIR",
+                   help="a scan folder from flowerpose scan (frames/, trajectory.csv)")
     p.add_argument("--count", type=POSITIVE, default=200, help="number of bins and frames (200)")
     p.add_argument("--crop", type=_at_least(3), default=400,
                    help="centre crop side, pixels (400)")
     p.add_argument("--brightness-penalty", action="store_true",
                    help="subtract |mean V - 105| from the score, as the authors' code did")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for the chosen frames, frames.json and camera.json")
     _add_overwrite(p)
     p.set_defaults(func=cmd_frames)
 
@@ -666,7 +671,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "coloured cloud in the bed frame")
     p.add_argument("frames", type=Path, metavar="FRAMES_DIR",
                    help="a folder from flowerpose frames (frames.json, frames/, camera.json)")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for cloud.ply, the sparse model and reconstruction.json")
     _add_overwrite(p)
     p.add_argument("--dense-poses", choices=("refined", "recorded"), default="refined",
                    help="camera poses for dense stereo: the sparse stage's (default) or the "
@@ -675,8 +681,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
-    p.add_argument("cloud", type=Path, metavar="CLOUD.ply")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("cloud", type=Path, metavar="CLOUD.ply",
+                   help="a coloured point cloud (PLY): a reconstruction, Polycam's, an oracle's")
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for flowers.json and the grid views")
     _add_overwrite(p)
     p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
                    help="the cloud's unit (auto: decided from its extent)")
@@ -687,16 +695,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("pose", help="normals of one flower crop, printed as JSON")
-    p.add_argument("crop", type=Path, metavar="CROP.ply")
-    p.add_argument("--units", choices=("auto", "m", "mm"), default="auto")
+    p.add_argument("crop", type=Path, metavar="CROP.ply", help="one flower's points (PLY)")
+    p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
+                   help="the crop's unit (auto: decided from its extent)")
     _add_config_options(p)
     p.set_defaults(func=cmd_pose)
 
     p = sub.add_parser("score", help="score flowers.json against truth (plant.json or "
                        "SageMaker cuboids)")
-    p.add_argument("flowers", type=Path, metavar="FLOWERS.json")
-    p.add_argument("truth", type=Path, metavar="TRUTH.json")
-    p.add_argument("--truth-format", choices=("plant", "sagemaker"), default="plant")
+    p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
+                   help="estimates, from flowerpose detect")
+    p.add_argument("truth", type=Path, metavar="TRUTH.json",
+                   help="the truth: a plant.json, or SageMaker Ground Truth cuboids")
+    p.add_argument("--truth-format", choices=("plant", "sagemaker"), default="plant",
+                   help="TRUTH.json's format: plant (the simulator's) or sagemaker (the "
+                   "authors' hand labels)")
     p.add_argument("--truth-scale", type=float, default=25.0,
                    help="SageMaker labels: the factor the labelled cloud was scaled by (25)")
     p.add_argument("--max-distance", type=float, default=0.02,
@@ -708,11 +721,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sweep", help="evaluate a grid of settings over seeded plants")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting and its values; repeat for a grid over several")
-    p.add_argument("--plants", type=PLANTS, default=5)
-    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--plants", type=PLANTS, default=5, help="seeded plants per setting (5)")
+    p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
-    p.add_argument("--workers", type=POSITIVE, default=None)
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--workers", type=POSITIVE, default=None,
+                   help="processes (default: all cores)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for sweep.csv, best.json and sweep.png")
     _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
@@ -726,7 +741,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "scan or RGB-D run is described by its reconstructed cloud")
     p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
                    help="the real labels' scale (default: source.json, else 25)")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for fidelity.json, fidelity.md and fidelity.png")
     _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_fidelity)
@@ -734,12 +750,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time the pipeline from cloud to flower poses")
     p.add_argument("--points", type=_at_least(1000, CLOUD_POINTS_MAX, "more does not fit in "
                                                "memory"), nargs="+",
-                   default=[125_000, 1_000_000])
-    p.add_argument("--repeat", type=POSITIVE, default=3)
+                   default=[125_000, 1_000_000],
+                   help="cloud sizes to time (125000 1000000)")
+    p.add_argument("--repeat", type=POSITIVE, default=3,
+                   help="runs per size; the median is reported (3)")
     p.add_argument("--seed", type=SEED, default=3,
                    help="plant seed (3: a realistic plant with 18 open flowers)")
     p.add_argument("--out", type=Path, help="also write bench.json here")
     p.set_defaults(func=cmd_bench)
+    for action in sub._choices_actions:  # each command's --help says what it does
+        command = sub.choices[action.dest]
+        command.description = command.description or f"{action.help[0].upper()}{action.help[1:]}."
     return parser
 
 

@@ -207,3 +207,17 @@ def test_python_dash_m_runs_the_command_line():
     result = subprocess.run([sys.executable, "-m", "flowerpose", "--version"],
                             capture_output=True, text=True)
     assert result.returncode == 0 and result.stdout.strip() == f"flowerpose {__version__}"
+
+
+def test_every_command_says_what_it_does_and_every_option_has_help():
+    import argparse
+
+    from flowerpose.cli import build_parser
+
+    commands = next(a for a in build_parser()._actions
+                    if isinstance(a, argparse._SubParsersAction)).choices
+    assert len(commands) >= 12
+    for name, command in commands.items():
+        assert command.description, name
+        bare = [a.dest for a in command._actions if not a.help]
+        assert not bare, (name, bare)
