@@ -156,10 +156,20 @@ def summary_lines(report: dict) -> list[str]:
     return lines
 
 
+#: What Table I's columns mean, under the table in report.md.
+TABLE_LEGEND = (
+    "GT: flowers in the truth. Visible: those a camera of the scan sees (every hand-labelled "
+    "flower counts as visible). Found: visible flowers a detection lies within the match "
+    "distance of. Extra: detections matched to a flower that is hidden or has no label (not "
+    "scored, not false). FP: detections near no flower. Angles: the mean error of each "
+    "fit's normal over the found flowers; rows below the rule summarise the plants.")
+
+
 def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
     """Write report.json and report.md into out_dir."""
     json_path = write_json(out_dir / "report.json", report)
-    md = [f"# {title}", "", table(report), "", *[f"- {line}" for line in summary_lines(report)]]
+    md = [f"# {title}", "", table(report), "", TABLE_LEGEND, "",
+          *[f"- {line}" for line in summary_lines(report)]]
     if report.get("compare"):
         md += ["", "## Compared on the same plants", "", comparison_table(report)]
     md += ["", "## Timing (seconds)", "", "| stage | seconds |", "|---|---|"]
