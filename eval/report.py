@@ -159,10 +159,11 @@ def summary_lines(report: dict) -> list[str]:
 #: What Table I's columns mean, under the table in report.md.
 TABLE_LEGEND = (
     "GT: flowers in the truth. Visible: those a camera of the scan sees (every hand-labelled "
-    "flower counts as visible). Found: visible flowers a detection lies within the match "
-    "distance of. Extra: detections matched to a flower that is hidden or has no label (not "
-    "scored, not false). FP: detections near no flower. Angles: the mean error of each "
-    "fit's normal over the found flowers; rows below the rule summarise the plants.")
+    "flower counts as visible). Found: flowers a detection lies within the match distance "
+    "of (percent of GT). Extra: how many of those are hidden or carry no label: matched, "
+    "not scored, not false. FP: detections near no flower. Angles: per plant, the mean "
+    "error of each fit's normal over its visible found flowers; the rows below the rule "
+    "take all plants' flowers together.")
 
 
 def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
