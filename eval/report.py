@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
+import shlex
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -56,11 +59,21 @@ def summarise(plants: list[dict]) -> dict:
             "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}
 
 
+def run_record() -> dict[str, Any]:
+    """flowerpose's version, the time (UTC, ISO 8601) and the command line of this run."""
+    from flowerpose import __version__
+
+    return {"flowerpose": __version__,
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "command": shlex.join(["flowerpose", *sys.argv[1:]])}
+
+
 def build_report(config: dict, plants: list[dict], timing_s: dict[str, float],
                  extra: dict | None = None) -> dict:
-    """The whole report.json document."""
-    report = {"config": config, "plants": plants, "summary": summarise(plants),
-              "timing_s": timing_s}
+    """The whole report.json document, with what made it (`run`: flowerpose's version, the
+    time it was written, in UTC, and the command line)."""
+    report = {"run": run_record(), "config": config, "plants": plants,
+              "summary": summarise(plants), "timing_s": timing_s}
     report.update(extra or {})
     return report
 

@@ -81,3 +81,13 @@ def test_score_of_nothing():
     score = score_plant([], [])
     assert (score.gt, score.found, score.fp, score.pairs) == (0, 0, 0, [])
     assert score.error_deg == {"plane": [], "superellipsoid": [], "paraboloid": []}
+
+
+def test_a_report_says_what_made_it():
+    from flowerpose import __version__
+    from flowerpose.eval.report import build_report
+
+    report = build_report({}, [], {"total": 0.0})
+    assert report["run"]["flowerpose"] == __version__
+    assert report["run"]["date"].endswith("+00:00") and report["run"]["command"].startswith(
+        "flowerpose")
