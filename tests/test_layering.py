@@ -1,0 +1,44 @@
+"""The layout's import rules (DESIGN.md, "Layout"), read from the source: every import,
+at module level or inside a function."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"pipeline": "pipeline", "sim": "sim", "hardware": "hardware", "eval": "eval",
+            "flowerpose": "flowerpose"}
+
+
+def _imports(path: Path) -> set[str]:
+    """The flowerpose packages a module imports: "pipeline", "sim", "hardware", "eval"."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+        for name in names:
+            parts = name.split(".")
+            if parts[0] == "flowerpose" and len(parts) > 1 and parts[1] in PACKAGES:
+                found.add(parts[1])
+    return found
+
+
+def _modules(folder: str) -> list[Path]:
+    return sorted((ROOT / folder).glob("*.py"))
+
+
+@pytest.mark.parametrize("folder, forbidden, allowed_in", [
+    ("pipeline", {"sim", "hardware", "eval"}, {}),
+    ("sim", {"pipeline", "hardware", "eval"}, {}),
+    ("hardware", {"sim", "eval"}, {"sim": {"sim_bot.py"}}),
+    ("flowerpose", {"pipeline", "sim", "hardware", "eval"}, {
+        name: {"cli.py"} for name in ("pipeline", "sim", "hardware", "eval")}),
+])
+def test_each_package_imports_only_what_the_layout_allows(folder, forbidden, allowed_in):
+    modules = _modules(folder)
+    assert modules
+    broken = {f"{path.name} imports {package}" for path in modules
+              for package in _imports(path) & forbidden
+              if path.name not in allowed_in.get(package, set())}
+    assert not broken, sorted(broken)
