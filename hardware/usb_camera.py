@@ -434,11 +434,6 @@ class _Recording:
         except queue.Full:
             self.dropped += 1
 
-    @property
-    def discarded(self) -> int:
-        """Frames the frame choice left out (never written)."""
-        return 0 if self._keeper is None else self._keeper.left_out
-
     def _write_loop(self) -> None:
         failed = False
         while (item := self._queue.get()) is not None:

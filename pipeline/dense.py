@@ -53,7 +53,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
-from flowerpose.pipeline.frames import ChosenFrame, read_frames
+from flowerpose.pipeline.frames import ChosenFrame, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
 __all__ = ["DenseConfig", "reconstruct_dense", "select_pairs"]
@@ -264,9 +264,7 @@ def _resolve_poses(frames_dir: Path, frames: list[ChosenFrame], poses: Poses | N
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise InputError(source, f"frame {frame.index}: expected a finite (4, 4) "
                              "camera-to-bed matrix")
-        rotation = pose[:3, :3]
-        if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-4
-                or np.linalg.det(rotation) < 0):
+        if not is_rotation(pose[:3, :3]):
             raise InputError(source, f"frame {frame.index}: the rotation is not a rotation")
         out.append(pose)
     return out

@@ -75,6 +75,12 @@ class ChosenFrame:
         return pose
 
 
+def is_rotation(matrix: np.ndarray) -> bool:
+    """Whether a (3, 3) matrix is a proper rotation (orthonormal to 1e-4, determinant +1)."""
+    return bool(np.abs(matrix.T @ matrix - np.eye(3)).max() <= 1e-4
+                and np.linalg.det(matrix) > 0)
+
+
 def read_frames(frames_dir: str | Path, need_poses: bool = True) -> list[ChosenFrame]:
     """frames.json's frames, checked: an integer "index" and a "file" that exists in the
     folder each, and a pose ("position" 3, "rotation" 3 x 3, finite, a proper rotation),
@@ -98,8 +104,7 @@ def read_frames(frames_dir: str | Path, need_poses: bool = True) -> list[ChosenF
                     np.isfinite(position).all() and np.isfinite(rotation).all()):
                 raise InputError(path, f"frame {k}: pose needs a finite position (3) and "
                                  "rotation (3 x 3)")
-            if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-4
-                    or np.linalg.det(rotation) < 0):
+            if not is_rotation(rotation):
                 raise InputError(path, f"frame {k}: pose rotation is not a proper rotation")
         if not (frames_dir / name).is_file():
             raise InputError(frames_dir / name, "image listed in frames.json not found")

@@ -7,12 +7,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = {"pipeline": "pipeline", "sim": "sim", "hardware": "hardware", "eval": "eval",
-            "flowerpose": "flowerpose"}
+PACKAGES = {"pipeline", "sim", "hardware", "eval"}
 
 
 def _imports(path: Path) -> set[str]:
-    """The flowerpose packages a module imports: "pipeline", "sim", "hardware", "eval"."""
+    """The packages of PACKAGES a module imports."""
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         names = ([a.name for a in node.names] if isinstance(node, ast.Import)
