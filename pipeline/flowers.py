@@ -32,6 +32,9 @@ from flowerpose.pipeline.segment import (
     typical_radius,
 )
 
+#: Up in the bed frame a whole plant's cloud is in (DESIGN.md: metres, z up).
+BED_UP = np.array([0.0, 0.0, 1.0])
+
 
 @dataclass(frozen=True)
 class PipelineConfig:
@@ -107,7 +110,7 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
               for d, p in zip(detections, projections, strict=True)]
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
-    flowers = _flowers_among(plant, candidates, above_ground, config, timer)
+    flowers = _flowers_among(plant, candidates, above_ground, config, timer, BED_UP)
     return FlowerResult(flowers, projections, detections, timer.total())
 
 
@@ -120,14 +123,15 @@ def find_flowers_in_candidates(candidates: Cloud,
     timer = _Timer()
     first = candidates.first_copies()
     points = candidates.subset(first)
-    flowers = _flowers_among(points, np.arange(len(points)), first, config, timer)
+    flowers = _flowers_among(points, np.arange(len(points)), first, config, timer, None)
     return FlowerResult(flowers, [], [], timer.total())
 
 
 def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
-                   config: PipelineConfig, timer: _Timer) -> list[Flower]:
+                   config: PipelineConfig, timer: _Timer, up: np.ndarray | None) -> list[Flower]:
     """Clusters, crops and poses of the flowers among `candidates` (indices into `plant`);
-    `original` maps plant indices to those of the caller's cloud."""
+    `original` maps plant indices to those of the caller's cloud; `up` is the frame's up
+    where it is known (`PoseConfig.up_prior`)."""
     clusters, flower_radius = cluster_flowers(plant, candidates, config.outliers,
                                               config.cluster, config.colour)
     boxes, crops = crop_flowers(plant, clusters, config.cluster)
@@ -135,7 +139,7 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
         pose = estimate_pose(plant.subset(crop), config.pose, config.colour, config.cluster,
-                             flower_radius)
+                             flower_radius, up)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
         flowers.append(Flower(len(flowers), pose, box, original[crop]))

@@ -19,8 +19,9 @@ CENTRE = np.array([0.4, 0.3, 0.2])
 
 
 def flower(seed: int, rim: float = 0.003, petals: int = 300, dome: int = 60, sepals: int = 15,
-           dome_side: float = 1.0, stem: int = 0, noise: float = 3e-4):
-    """A noisy cupped disc flower at a random rotation: the crop, its true normal.
+           dome_side: float = 1.0, stem: int = 0, noise: float = 3e-4,
+           rotation: Rotation | None = None):
+    """A noisy cupped disc flower at `rotation` (default random): the crop, its true normal.
 
     White petals (rim raised by `rim` metres, negative curls down) around a yellow
     receptacle dome protruding along `dome_side` times the normal, green sepals behind,
@@ -45,7 +46,7 @@ def flower(seed: int, rim: float = 0.003, petals: int = 300, dome: int = 60, sep
     colours += [STEM_YELLOW] * stem
     local = np.vstack(parts)
     local += rng.normal(0.0, noise, local.shape)
-    rotation = Rotation.random(random_state=seed)
+    rotation = rotation or Rotation.random(random_state=seed)
     cloud = Cloud(rotation.apply(local) + CENTRE, np.array(colours, dtype=np.uint8).reshape(-1, 3))
     return cloud, rotation.apply([0.0, 0.0, 1.0])
 
@@ -175,3 +176,24 @@ def test_a_pale_stem_under_the_flower_does_not_tilt_the_fits():
     limited = estimate_pose(crop)
     assert angle_deg(unlimited.normals["plane"], normal) > 20.0
     assert max(angle_deg(limited.normals[m], normal) for m in METHODS) < 3.0
+
+
+TILTED_UP = Rotation.from_rotvec([np.radians(6.0), 0.0, 0.0])
+TILTED_DOWN = Rotation.from_rotvec([np.radians(170.0), 0.0, 0.0])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_bed_up_prior_orients_a_flat_flower_without_a_receptacle(seed):
+    # A reconstruction that flattened the receptacle into the petals and saw no sepals
+    # leaves no offset to orient by; in a bed frame the prior says such a flower faces up.
+    crop, normal = flower(seed, rim=0.0, dome_side=0.0, sepals=0, rotation=TILTED_UP)
+    pose = estimate_pose(crop, up=np.array([0.0, 0.0, 1.0]))
+    assert angle_deg(pose.normals["plane"], normal) < 3.0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_up_prior_never_overrides_a_downward_flower_s_receptacle(seed):
+    crop, normal = flower(seed, rotation=TILTED_DOWN)
+    assert normal[2] < -0.9
+    pose = estimate_pose(crop, up=np.array([0.0, 0.0, 1.0]))
+    assert angle_deg(pose.normals["plane"], normal) < 3.0
