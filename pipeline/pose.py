@@ -312,8 +312,8 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
     crop's own corolla radius. up: the frame's unit up vector where the frame is a bed's
     (z up) and so known, else None (`up_prior`). Normals come back in the same frame,
     each oriented by the pistil (or, without one, away from the sepals and peduncle), or
-    None: for a failed
-    fit, or for all three when nothing orients them (the fits are then skipped).
+    None: for a failed fit, or for all three when nothing orients them (the fits are then
+    skipped).
     """
     config = config or PoseConfig()
     colour = colour or ColourConfig()
