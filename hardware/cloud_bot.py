@@ -255,12 +255,16 @@ def _farmbot_client() -> Any:
 #: MQTT over TLS (the broker's standard port for it); plain MQTT is 1883.
 MQTT_TLS_PORT = 8883
 MQTT_PLAIN_PORT = 1883
+#: Brokers this process already warned about (one warning for all the client's connections).
+_PLAIN_BROKERS: set[str] = set()
 
 
 def _connect_broker(self) -> None:
     """farmbot 2.x's BrokerConnect.connect with TLS: its own connects on port 1883 in the
     clear, with the bot's token as the MQTT password. TLS on 8883 first, with the system's
-    certificate authorities; a broker that offers none gets plain MQTT and a warning."""
+    certificate authorities; a broker that offers none (its TLS port refuses or times out)
+    gets plain MQTT and one warning a process; a certificate that does not verify is an
+    error, never a reason to drop to plain."""
     import ssl
 
     import paho.mqtt.client as mqtt
@@ -269,13 +273,13 @@ def _connect_broker(self) -> None:
     token = self.state.token["token"]
     host = token["unencoded"]["mqtt"]
 
-    def on_connect(_client, _obj, _flags, reason_code):
-        status = mqtt.connack_string(reason_code)
+    def on_connect(_client, _obj, _flags, reason_code, _properties=None):
+        status = str(reason_code)
         self.state.print_status(description=status)
-        self.state.error = status if reason_code != 0 else None
+        self.state.error = status if reason_code.is_failure else None
 
     def client() -> Any:
-        made = mqtt.Client()
+        made = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
         made.username_pw_set(username=token["unencoded"]["bot"], password=token["encoded"])
         made.on_connect = on_connect
         return made
@@ -284,10 +288,15 @@ def _connect_broker(self) -> None:
     try:
         self.client.tls_set(cert_reqs=ssl.CERT_REQUIRED)
         self.client.connect(host, port=MQTT_TLS_PORT, keepalive=60)
+    except ssl.SSLCertVerificationError as err:
+        raise ConnectionError(f"MQTT broker {host}:{MQTT_TLS_PORT}: its TLS certificate did "
+                              f"not verify ({err.verify_message})") from None
     except (OSError, ssl.SSLError, ValueError) as err:
-        print(f"warning: MQTT broker {host}: no TLS on port {MQTT_TLS_PORT} ({type(err).__name__}"
-              f"); connecting in the clear on {MQTT_PLAIN_PORT}, so the token crosses the "
-              "network unencrypted", file=sys.stderr, flush=True)
+        if host not in _PLAIN_BROKERS:
+            print(f"warning: MQTT broker {host}: no TLS on port {MQTT_TLS_PORT} "
+                  f"({type(err).__name__}); connecting in the clear on {MQTT_PLAIN_PORT}, so "
+                  "the token crosses the network unencrypted", file=sys.stderr, flush=True)
+        _PLAIN_BROKERS.add(host)
         self.client = client()
         self.client.connect(host, port=MQTT_PLAIN_PORT, keepalive=60)
     self.client.loop_start()
@@ -304,20 +313,32 @@ def _secure_broker() -> None:
     BrokerConnect.connect = _connect_broker
 
 
-def _disconnect(client: Any) -> None:
-    """Close the MQTT connections a client opened: farmbot 2.x opens one per command group
+def _brokers(client: Any) -> list[Any]:
+    """The broker connections a client opened: farmbot 2.x opens one per command group
     (basic, movements, peripherals, information, ...) on its first use."""
-    seen: set[int] = set()
+    seen: dict[int, Any] = {}
     for part in [client, *getattr(client, "__dict__", {}).values()]:
         for holder in (part, getattr(part, "info", None)):
             broker = getattr(holder, "broker", None)
-            if broker is None or id(broker) in seen or getattr(broker, "client", None) is None:
-                continue
-            seen.add(id(broker))
-            try:
-                broker.disconnect()
-            except Exception:  # noqa: BLE001 - closing must go on with the others
-                pass
+            if broker is not None and getattr(broker, "client", None) is not None:
+                seen.setdefault(id(broker), broker)
+    return list(seen.values())
+
+
+def _broker_lost(client: Any) -> bool:
+    """Whether a broker connection the client opened is down now (paho reconnects by
+    itself, so a reply that never came over a dropped link reads as a plain timeout)."""
+    return any(not broker.client.is_connected() for broker in _brokers(client)
+               if callable(getattr(broker.client, "is_connected", None)))
+
+
+def _disconnect(client: Any) -> None:
+    """Close the MQTT connections a client opened (`_brokers`)."""
+    for broker in _brokers(client):
+        try:
+            broker.disconnect()
+        except Exception:  # noqa: BLE001 - closing must go on with the others
+            pass
 
 
 class FarmbotCloudBot(Bot):
@@ -471,6 +492,9 @@ class FarmbotCloudBot(Bot):
         if self._stop.is_set():
             return EmergencyStopError(command, 1)
         if "timed out waiting" in error.lower():
+            if _broker_lost(self._client):
+                return CloudLinkError(self._link, f"{command}: the MQTT broker connection "
+                                      "dropped and no reply came")
             key = "movements" if command.startswith(("move", "find home")) else "listen"
             return CommandTimeoutError(command, self._timeouts[key])
         detail = self._scrub(self._explanation() or error)
