@@ -38,9 +38,11 @@ reconnect. It behaves as farmbot-arduino-firmware 6.6 does (reference/farmbot.md
   `R02` and nothing else), F41 / F42 pins, F61 servos (only pins 4, 5, 6,
   11 drive servos; 0-180 degrees, >= 544 microseconds; other pins get `R02` and nothing
   happens), F82 position, F83 version, F20 every parameter, F43 / F44 pin mode and pulse, F81
-  endstops (none pressed), F84 set zero (the named axes' counters become 0 there). F14-F16
-  (measure the axis lengths) and F31-F32 (status and temperature) are
-  not modelled and answer `R09`.
+  endstops (none pressed), F84 set zero (the named axes' counters become 0 there), F14-F16
+  (measure an axis: home, then the far end at the homing speed, parameters 65-67, without
+  the axis timeout; `R23 P21-23 V0` and `R23 P801-803 V<steps>`, and the counter reads the
+  length; with neither endstops nor encoders it drives into the home end until `E`, as the
+  real calibration loop does), F31 / F32 (a status value: `R31 P.. V0`).
 - Moves follow FarmBot's motion profile (`motion.py`) with the device's own parameters,
   in whole motor steps; an axis still moving after its timeout (parameters 11-13) stops
   the move with `R03 V2`. The gantry joints of the MuJoCo model (assets/farmbot/scene.xml)
@@ -78,7 +80,7 @@ import threading
 import time
 import tty
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -134,7 +136,7 @@ HOMING_MARKER = -1
 """`_Running.error` of a homing stage without endstops or encoders: the axis timeout ends
 it, and the firmware tries again, for good."""
 
-_MOVEMENTS = {"G00", "F11", "F12", "F13"}
+_MOVEMENTS = {"G00", "F11", "F12", "F13", "F14", "F15", "F16"}
 _WHILE_LOCKED = {"F09", "F20", "F21", "F22", "F81", "F82", "F83"}
 _ALIASES = {"G0": "G00", "G01": "G00", "G1": "G00", "F9": "F09"}
 _KNOWN = {"G00", "G28", "F09", "F11", "F12", "F13", "F14", "F15", "F16", "F20", "F21", "F22",
@@ -166,6 +168,10 @@ class _Stage:
     home_axis: int | None = None
     blind: bool = False
     """Homing without endstops or encoders: nothing tells the firmware it got there."""
+    calibrating: bool = False
+    """F14-F16: the firmware's calibration loop, which watches no axis timeout."""
+    measure_axis: int | None = None
+    """F14-F16: on arrival at the far end, report that axis's length in steps (R23)."""
 
 
 @dataclass
@@ -681,6 +687,47 @@ class VirtualFarmduino:
     def _cmd_F13(self, q: int, values: dict[str, float]) -> None:
         self._home(q, 2)
 
+    def _measure(self, q: int, axis: int) -> None:
+        """F14-F16: drive to home, then to the far end at the homing speed (parameters
+        65-67, steps/s, no ramp), and report the axis length in steps (R23 P801-803); the
+        position counter then reads the length. With neither endstops nor encoders nothing
+        tells the firmware it reached home: it drives into the home end until an E (the
+        real firmware's calibration loop watches no timeout and no `@`)."""
+        name = "xyz"[axis]
+        blind = not (self._params.get(ENDSTOPS[name]) or self._params.get(ENCODERS[name]))
+        speed = float(self._params.get(65 + axis) or 50)  # 0: unset; the firmware default
+        motion = self._profile().axis(axis, False)
+        crawl = replace(motion, max_speed=speed, min_speed=speed)
+        profile = replace(self._profile(), **{name: crawl}, **({"z_home": crawl} if axis == 2
+                                                               else {}))
+        home = self._physical()
+        home[axis] = 0.0
+        stages = [_Stage(home, profile, home_axis=axis, blind=blind, calibrating=True)]
+        if not blind:
+            far = home.copy()
+            low, high = self._model_.jnt_range[self._model_.joint(name).id]
+            far[axis] = high if abs(high) > abs(low) else low
+            stages.append(_Stage(far, profile, calibrating=True, measure_axis=axis))
+        self._begin(q, stages)
+
+    def _cmd_F14(self, q: int, values: dict[str, float]) -> None:
+        self._measure(q, 0)
+
+    def _cmd_F15(self, q: int, values: dict[str, float]) -> None:
+        self._measure(q, 1)
+
+    def _cmd_F16(self, q: int, values: dict[str, float]) -> None:
+        self._measure(q, 2)
+
+    def _cmd_F31(self, q: int, values: dict[str, float]) -> None:
+        """Read a status value (the firmware keeps one, "general", at 0)."""
+        self._say(f"R31 P{int(values.get('P', 0))} V0 Q{q}")
+        self._done(q)
+
+    def _cmd_F32(self, q: int, values: dict[str, float]) -> None:
+        """The firmware's F32 reads a status value too (the same handler as F31)."""
+        self._cmd_F31(q, values)
+
     def _cmd_F20(self, q: int, values: dict[str, float]) -> None:
         """Report every parameter."""
         for pid in sorted(self._params):
@@ -777,6 +824,12 @@ class VirtualFarmduino:
         late = [timeouts[i] for i in range(3) if durations[i] > timeouts[i]]
         if late:
             running.stop_at, running.error = min(late), _ERR_TIMEOUT
+        if stage.calibrating:
+            running.stop_at, running.error = float(durations.max()), 0
+        if stage.blind and stage.calibrating:
+            # Calibration watches no timeout: it drives into the home end until an E.
+            running.stop_at = math.inf
+            return
         if stage.blind:
             # It drives into the home end and on, until the axis times out.
             running.stop_at = float(stage.profile.axis(stage.home_axis, True).timeout_s)
@@ -808,6 +861,12 @@ class VirtualFarmduino:
     def _arrive(self, running: _Running, stage: _Stage) -> None:
         if stage.home_axis is not None:
             self._offset[stage.home_axis] = 0.0
+        if stage.measure_axis is not None:
+            axis = stage.measure_axis
+            steps = round(self.firmware_position_mm()[axis]
+                          * self._profile().axis(axis, False).steps_per_mm)
+            self._say(f"R23 P{21 + axis} V0 Q{running.q}")  # the home end is not inverted
+            self._say(f"R23 P{801 + axis} V{float(abs(steps)):.2f} Q{running.q}")
         running.stages.pop(0)
         if running.stages:
             self._start_stage(running)

@@ -233,7 +233,45 @@ def test_the_commands_the_real_firmware_knows_beyond_motion(device, link):
     assert link.command("G00 X100.00 Y0.00 Z0.00 Q7")[-1] == "R02 Q7"
     zeroed = link.command("F84 X1 Y0 Z0 Q8")
     assert zeroed[-2:] == ["R82 X0.00 Y0.00 Z0.00 Q8", "R02 Q8"]
-    assert link.command("F14 Q9")[-1] == "R09 Q9"  # axis length measurement: not modelled
+    assert link.command("F31 P1 Q9")[-2:] == ["R31 P1 V0 Q9", "R02 Q9"]
+    assert link.command("F32 P1 Q10")[-2:] == ["R31 P1 V0 Q10", "R02 Q10"]
+
+
+@pytest.mark.parametrize("code, axis, steps", [("F14", 0, 13611), ("F15", 1, 6150),
+                                               ("F16", 2, 10791)])
+def test_measuring_an_axis_reports_its_length_in_steps(code, axis, steps):
+    with VirtualFarmduino(time_scale=2000.0, params=FEEDBACK_PARAMETERS) as device:
+        link = Link(device.path)
+        try:
+            link.until(lambda line: line == BANNER)
+            _approve(link)
+            lines = link.command(f"{code} Q3")
+            assert lines[-1] == "R02 Q3" and f"R23 P{21 + axis} V0 Q3" in lines
+            assert f"R23 P{801 + axis} V{steps:.2f} Q3" in lines
+            # The travel of the MuJoCo gantry (assets/farmbot), in the firmware's steps.
+            length_mm = steps / (5.0, 5.0, 25.0)[axis]
+            assert abs(device.firmware_position_mm()[axis]) == pytest.approx(length_mm, abs=0.2)
+        finally:
+            link.close()
+
+
+def test_measuring_an_axis_without_endstops_or_encoders_drives_on_until_e():
+    with VirtualFarmduino(time_scale=1000.0) as bare:  # the firmware's defaults
+        link = Link(bare.path)
+        try:
+            link.until(lambda line: line == BANNER)
+            _approve(link)
+            link.send("F14 Q3")
+            # Far beyond the axis timeout (120 s simulated), still busy, never an R23.
+            lines = link.until(lambda line: line == "R04 Q3")
+            time.sleep(0.3)
+            lines = link.until(lambda line: line == "R04 Q3")
+            assert bare.now() > 150.0
+            assert not any(line.startswith(("R02", "R03", "R23", "R71")) for line in lines)
+            link.port.write(b"E")
+            assert link.until(lambda line: line.startswith("R03"))[-1] == "R03 V1 Q3"
+        finally:
+            link.close()
 
 
 def test_the_boot_lists_every_parameter_and_a_move_ends_with_the_firmwares_reports():
