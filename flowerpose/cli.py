@@ -117,11 +117,12 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
     config = _configure(PipelineConfig(), args)
     out: Path = args.out
-    check_output(out, "detect", args.overwrite)
+    writes = ("flowers.json", "config.json", "views", "crops")
+    check_output(out, "detect", args.overwrite, writes)
     cloud = read_cloud(args.cloud, units=args.units)
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
     # An earlier detection's files (crops of flowers this one may not have) go first.
-    output = OutputFolder(out, "detect", args.overwrite)
+    output = OutputFolder(out, "detect", args.overwrite, writes)
     output.record(write_flowers(out / "flowers.json", result),
                   write_json(out / "config.json", to_dict(config)))
     if result.projections:

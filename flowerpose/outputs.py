@@ -5,7 +5,9 @@ wrote it and the files it wrote. A folder that does not exist or is empty become
 stage's; one with the same stage's marker is its own earlier output, whose files are
 removed (stale) before the new ones are written; anything else (another stage's output, or
 files flowerpose did not write) is refused with one line, unless the user says
-`--overwrite`, and even then nothing of it is deleted.
+`--overwrite`, and even then nothing of it is deleted or written over: a stage names the
+top-level entries it writes (`writes`), and one of them already there that is not its own
+earlier output is refused, --overwrite or not.
 """
 
 from __future__ import annotations
@@ -36,8 +38,27 @@ def _previous(folder: Path) -> dict | None:
     return data
 
 
-def check_output(folder: str | Path, stage: str, overwrite: bool = False) -> None:
-    """Refuse, before any work, a folder that this stage may not write into."""
+def _own_earlier(folder: Path, stage: str) -> set[str]:
+    """Top-level names of this stage's earlier output in `folder` (its marker's files)."""
+    previous = _previous(folder)
+    if previous is None or previous["stage"] != stage:
+        return set()
+    return {Path(name).parts[0] for name in previous["files"] if Path(name).parts}
+
+
+def _refuse_foreign(folder: Path, stage: str, writes: tuple[str, ...], own: set[str]) -> None:
+    for name in writes:
+        if (folder / name).exists() and name not in own:
+            raise InputError(folder / name, f"was not written by flowerpose {stage}, and "
+                             "nothing is ever written over what flowerpose did not write: "
+                             "choose an empty or new folder")
+
+
+def check_output(folder: str | Path, stage: str, overwrite: bool = False,
+                 writes: tuple[str, ...] = ()) -> None:
+    """Refuse, before any work, a folder that this stage may not write into: one holding
+    what it did not write (unless `overwrite`), or, even with `overwrite`, one where an
+    entry the stage writes (`writes`, top-level names) exists and is not its own."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InputError(folder, "is a file, not a folder")
@@ -45,6 +66,7 @@ def check_output(folder: str | Path, stage: str, overwrite: bool = False) -> Non
         return
     entries = sorted(p.name for p in folder.iterdir() if p.name != MARKER)
     previous = _previous(folder)
+    _refuse_foreign(folder, stage, writes, _own_earlier(folder, stage))
     if not entries or overwrite or (previous is not None and previous["stage"] == stage):
         return
     what = (f"the output of flowerpose {previous['stage']}" if previous is not None
@@ -62,19 +84,26 @@ def _remove(path: Path) -> None:
 
 
 class OutputFolder:
-    """A stage's claim on its output folder; `record` each file written, then `finish`."""
+    """A stage's claim on its output folder; `record` each file written, then `finish`.
 
-    def __init__(self, folder: str | Path, stage: str, overwrite: bool = False):
+    writes: the top-level entries the stage will write (`check_output`). Whatever else was
+    in the folder is foreign: `record` refuses it, so it never becomes the stage's to
+    delete on the next run."""
+
+    def __init__(self, folder: str | Path, stage: str, overwrite: bool = False,
+                 writes: tuple[str, ...] = ()):
         self.folder = Path(folder)
         self.stage = stage
-        check_output(self.folder, stage, overwrite)
+        check_output(self.folder, stage, overwrite, writes)
         previous = _previous(self.folder) if self.folder.is_dir() else None
+        own = _own_earlier(self.folder, stage) if self.folder.is_dir() else set()
         if previous is not None and previous["stage"] == stage:
             for name in previous["files"]:
                 stale = (self.folder / name).resolve()
                 if self.folder.resolve() in stale.parents:  # never outside the folder
                     _remove(stale)
         self.folder.mkdir(parents=True, exist_ok=True)
+        self._foreign = {p.name for p in self.folder.iterdir() if p.name != MARKER} - own
         self.files: list[str] = []
         self._write(complete=False)
 
@@ -83,9 +112,14 @@ class OutputFolder:
                                           "files": sorted(set(self.files))})
 
     def record(self, *paths: str | Path) -> None:
-        """Note files (or folders) this stage wrote in its folder."""
+        """Note files (or folders) this stage wrote in its folder; one inside an entry that
+        was there before the stage claimed the folder is refused (it is not the stage's)."""
         for path in paths:
-            self.files.append(os.path.relpath(Path(path), self.folder))
+            relative = os.path.relpath(Path(path), self.folder)
+            if Path(relative).parts[0] in self._foreign or relative.startswith(".."):
+                raise InputError(Path(path), f"was not written by flowerpose {self.stage}; "
+                                 "it is kept and not claimed")
+            self.files.append(relative)
         self._write(complete=False)
 
     def finish(self) -> None:
@@ -95,11 +129,12 @@ class OutputFolder:
 
 def publish(staging: Path, folder: str | Path, stage: str, overwrite: bool = False) -> Path:
     """Move a stage's finished output from `staging` (a folder it filled) into `folder`,
-    replacing only its own earlier output there; staging is removed."""
-    output = OutputFolder(folder, stage, overwrite)
-    for entry in sorted(staging.iterdir()):
+    replacing only its own earlier output there; staging is removed. An entry there that is
+    not its own refuses the whole move, before anything moves."""
+    entries = sorted(staging.iterdir())
+    output = OutputFolder(folder, stage, overwrite, tuple(e.name for e in entries))
+    for entry in entries:
         target = output.folder / entry.name
-        _remove(target)
         os.replace(entry, target)
         output.record(target)
     staging.rmdir()

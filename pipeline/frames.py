@@ -138,6 +138,10 @@ def bin_edges(frame_count: int, bins: int) -> np.ndarray:
     return np.linspace(0, frame_count, bins + 1).round().astype(np.int64)
 
 
+#: What a frame selection writes in its folder (`outputs.check_output`).
+FRAMES_OUTPUTS = ("frames", "camera.json", "frames.json")
+
+
 def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
                   progress: bool = True, overwrite: bool = False) -> dict:
     """Choose the sharpest frame of each bin; write them to out_dir/frames/ with
@@ -147,9 +151,11 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     scan_dir, out_dir = Path(scan_dir), Path(out_dir)
     if not scan_dir.is_dir():
         raise InputError(scan_dir, "scan folder not found")
-    if out_dir.resolve() == scan_dir.resolve():
-        raise InputError("--out", "must not be the scan folder itself")
-    check_output(out_dir, "frames", overwrite)
+    scan_at, out_at = scan_dir.resolve(), out_dir.resolve()
+    if out_at == scan_at or scan_at in out_at.parents or out_at in scan_at.parents:
+        raise InputError(out_dir, f"must not be the scan folder {scan_dir}, inside it, or "
+                         "hold it: choose a folder of its own")
+    check_output(out_dir, "frames", overwrite, FRAMES_OUTPUTS)
     trajectory = read_trajectory(scan_dir / "trajectory.csv")
     intrinsics = read_intrinsics(scan_dir / "camera.json")
     total = len(trajectory)
@@ -196,7 +202,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     if len(best) < config.count:
         raise InputError(scan_dir, f"frames for only {len(best)} of {config.count} bins: the "
                          "video or frames/ holds fewer frames than trajectory.csv")
-    output = OutputFolder(out_dir, "frames", overwrite)
+    output = OutputFolder(out_dir, "frames", overwrite, FRAMES_OUTPUTS)
     images_dir = out_dir / "frames"
     images_dir.mkdir(parents=True, exist_ok=True)
     output.record(images_dir)

@@ -94,6 +94,12 @@ def sparse_intrinsics(sparse: SparseResult) -> Intrinsics:
     return Intrinsics(camera.width, camera.height, fx, fy, cx, cy)
 
 
+#: What a reconstruction writes in its folder (`outputs.check_output` refuses a folder where
+#: one of them is there and not an earlier reconstruction's, before minutes of work).
+RECONSTRUCT_OUTPUTS = ("cloud.ply", "database.db", "pairs.txt", "reconstruction.json",
+                       "sparse", "sparse.json", "sparse.ply", "mvs")
+
+
 def reconstruct(frames_dir: str | Path, out_dir: str | Path,
                 config: ReconstructConfig = ReconstructConfig(),
                 progress: bool = True, overwrite: bool = False) -> Reconstruction:
@@ -112,7 +118,7 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
                          "the camera's intrinsics (flowerpose frames copies the scan's)")
     # The work happens beside out_dir and moves in only when whole: a run that fails
     # leaves an earlier reconstruction in out_dir as it was (`outputs.publish`).
-    check_output(out_dir, "reconstruct", overwrite)
+    check_output(out_dir, "reconstruct", overwrite, RECONSTRUCT_OUTPUTS)
     staging = staging_folder(out_dir)
     try:
         result = _reconstruct(frames_dir, staging, out_dir, config, progress)

@@ -90,3 +90,38 @@ def test_a_failed_reconstruction_keeps_the_earlier_one(tmp_path, monkeypatch):
         stage.reconstruct(frames, out)
     assert (out / "cloud.ply").read_text() == "the earlier cloud"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "recon"]
+
+
+def test_overwrite_never_claims_or_writes_over_what_the_stage_did_not_write(tmp_path):
+    # A scan's own frames/ and camera.json in the folder a frame selection is told to use
+    # (the audit's case: claimed once with --overwrite, they were deleted by the next run).
+    folder = tmp_path / "scan_copy"
+    (folder / "frames").mkdir(parents=True)
+    (folder / "frames" / "frame_000000.jpg").write_bytes(b"recorded")
+    (folder / "notes.txt").write_text("keep me")
+    with pytest.raises(InputError, match="frames: was not written by flowerpose frames"):
+        OutputFolder(folder, "frames", overwrite=True, writes=("frames", "camera.json"))
+    output = OutputFolder(folder, "detect", overwrite=True, writes=("flowers.json",))
+    with pytest.raises(InputError, match="not claimed"):
+        output.record(folder / "frames")
+    output.record(folder / "flowers.json")
+    output.finish()
+    OutputFolder(folder, "detect", overwrite=True, writes=("flowers.json",)).finish()
+    assert (folder / "frames" / "frame_000000.jpg").read_bytes() == b"recorded"
+    assert (folder / "notes.txt").read_text() == "keep me"
+
+
+def test_a_reconstruction_over_a_folder_of_other_files_deletes_none(tmp_path):
+    from flowerpose.pipeline.reconstruct import reconstruct
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "camera.json").write_text("{}")
+    plant = tmp_path / "plant"
+    (plant / "sparse").mkdir(parents=True)
+    (plant / "sparse" / "my_model.txt").write_text("mine")
+    (plant / "cloud.ply").write_text("the oracle cloud")
+    with pytest.raises(InputError, match="was not written by flowerpose reconstruct"):
+        reconstruct(frames, plant, overwrite=True)
+    assert (plant / "sparse" / "my_model.txt").read_text() == "mine"
+    assert (plant / "cloud.ply").read_text() == "the oracle cloud"

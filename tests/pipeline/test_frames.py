@@ -111,8 +111,9 @@ def test_a_second_selection_replaces_the_first_and_short_rows_are_refused(tmp_pa
     select_frames(scan, tmp_path / "out", FrameSelectConfig(count=6), progress=False)
     select_frames(scan, tmp_path / "out", FrameSelectConfig(count=3), progress=False)
     assert len(list((tmp_path / "out" / "frames").glob("*.jpg"))) == 3
-    with pytest.raises(InputError, match="scan folder itself"):
-        select_frames(scan, scan, FrameSelectConfig(count=3), progress=False)
+    for out in (scan, scan / "selected", tmp_path):  # the scan, inside it, holding it
+        with pytest.raises(InputError, match="must not be the scan folder"):
+            select_frames(scan, out, FrameSelectConfig(count=3), progress=False)
     lines = (scan / "trajectory.csv").read_text().splitlines()
     (scan / "trajectory.csv").write_text("\n".join([lines[0], "0,0,1,1,1,0,0", "1,0,1,1,1,1,0"]))
     with pytest.raises(InputError, match="row 1 has 7 values"):
