@@ -9,9 +9,13 @@ frame kept.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
+import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,12 +37,57 @@ def _progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+#: Held (flock) by the one scan recording into a folder; the OS lets go when it dies.
+LOCK_NAME = ".scan.lock"
+
+
+@contextlib.contextmanager
+def scan_lock(out_dir: Path) -> Iterator[None]:
+    """The scan folder for this process alone: a second scan into it is refused with one
+    line instead of interleaving its frames with the first's."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(out_dir / LOCK_NAME, "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            holder = lock.read().strip() or "another process"
+            raise InputError(out_dir, f"another scan ({holder}) is recording into this folder;"
+                             " wait for it to end or choose another --out") from None
+        lock.seek(0)
+        lock.truncate()
+        lock.write(f"pid {os.getpid()}")
+        lock.flush()
+        yield
+
+
+def check_scan_folder(out_dir: Path) -> None:
+    """Refuse a folder that holds files but no scan (a plant folder, another stage's
+    output): a scan writes camera.json, frames/ and trajectory.csv, and must not write them
+    over what it did not record."""
+    if not out_dir.is_dir() or (out_dir / "scan.json").is_file():
+        return
+    entries = sorted(p.name for p in out_dir.iterdir() if p.name != LOCK_NAME)
+    if entries:
+        listed = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise InputError(out_dir, f"holds files that are not a flowerpose scan ({listed}); "
+                         "choose an empty or new folder (a scan folder of the same plan "
+                         "resumes)")
+
+
 def run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, *, source: dict,
              progress: bool = True) -> dict:
     """Scan along `plan` with `bot`, recording into out_dir; resumes a scan of the same plan
     already in out_dir. Returns scan.json's content. `source` describes the bot and plant
-    (written into scan.json)."""
+    (written into scan.json). Refuses a folder another scan is recording into
+    (`scan_lock`) and one that holds files but no scan (`check_scan_folder`)."""
     out_dir = Path(out_dir)
+    check_scan_folder(out_dir)
+    with scan_lock(out_dir):
+        return _run_scan(bot, plan, out_dir, source, progress)
+
+
+def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: bool) -> dict:
     manifest_path = out_dir / "scan.json"
     fingerprint = plan_id(plan)
     manifest = {"version": 1, "plan_id": fingerprint, "source": source, "plan": plan.to_json(),
@@ -59,17 +108,17 @@ def run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, *, source: dict,
         _progress(f"scan: resuming at waypoint {start} of {len(plan.waypoints)}")
     out_dir.mkdir(parents=True, exist_ok=True)
     intrinsics = bot.camera.intrinsics()
-    if start and (out_dir / "camera.json").exists():
+    if manifest_path.exists() and (out_dir / "camera.json").exists():
         recorded = read_json(out_dir / "camera.json")
         if any(not np.isclose(float(recorded.get(k, np.nan)), float(v))
                for k, v in intrinsics.items() if isinstance(v, int | float)):
             raise InputError(out_dir / "camera.json", "the scan was recorded with other camera "
                              "settings; resume with the same ones or choose a new --out folder")
-    write_json(out_dir / "camera.json", intrinsics)
     session = {"started_waypoint": start, "bot_time_start": bot.now(),
                "wall_start": time.time()}
     manifest["sessions"].append(session)
-    write_json(manifest_path, manifest)
+    write_json(manifest_path, manifest)  # first: a folder with anything in it is a scan
+    write_json(out_dir / "camera.json", intrinsics)
     bot.camera.start_recording(out_dir / "video.mp4")
     wall = time.perf_counter()
     try:

@@ -25,6 +25,7 @@ from flowerpose.jsonio import object_list, read_json, write_json
 from flowerpose.outputs import OutputFolder, check_output
 from flowerpose.scanio import (
     FRAME_PATTERN,
+    Intrinsics,
     frame_files,
     iter_frames,
     read_intrinsics,
@@ -126,10 +127,20 @@ def frame_score(rgb: np.ndarray, config: FrameSelectConfig) -> tuple[float, floa
     return score, sharpness, brightness
 
 
-def _score_file(path: Path, config: FrameSelectConfig) -> tuple[float, float, float]:
+def _check_size(image: np.ndarray, where: Path | str, intrinsics: Intrinsics) -> None:
+    height, width = image.shape[:2]
+    if (width, height) != (intrinsics.width, intrinsics.height):
+        raise InputError(where, f"is {width}x{height} pixels but the scan's camera.json says "
+                         f"{intrinsics.width}x{intrinsics.height}: a scan of two resolutions "
+                         "cannot be reconstructed")
+
+
+def _score_file(path: Path, config: FrameSelectConfig,
+                intrinsics: Intrinsics) -> tuple[float, float, float]:
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise InputError(path, "unreadable image")
+    _check_size(image, path, intrinsics)
     return frame_score(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), config)
 
 
@@ -190,7 +201,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
                   "trajectory.csv row (their poses are unknown) and are left out",
                   file=sys.stderr)
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-            scores = pool.map(lambda i: _score_file(sources[i], config), indices)
+            scores = pool.map(lambda i: _score_file(sources[i], config, intrinsics), indices)
             for seen, (index, scored) in enumerate(zip(indices, scores, strict=True), 1):
                 keep(seen, index, scored, None)
     else:
@@ -198,6 +209,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         for index, image in iter_frames(scan_dir):
             if index in row_of:
                 seen += 1
+                _check_size(image, scan_dir / f"video frame {index}", intrinsics)
                 keep(seen, index, frame_score(image, config), image)
     if len(best) < config.count:
         raise InputError(scan_dir, f"frames for only {len(best)} of {config.count} bins: the "

@@ -63,3 +63,35 @@ def test_an_interrupted_scan_resumes_at_the_next_waypoint(tmp_path):
     other = plan_scan(np.array([1.4, 0.75]), 0.25, SMALL)
     with pytest.raises(InputError, match="different scan"):
         run_scan(_bot(), other, tmp_path, source=SOURCE, progress=False)
+
+
+def test_a_second_scan_into_a_folder_being_recorded_is_refused(tmp_path):
+    from flowerpose.hardware.scan import scan_lock
+
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    with scan_lock(tmp_path):  # as a scan in another process holds it
+        with pytest.raises(InputError, match=r"another scan \(pid \d+\) is recording"):
+            run_scan(_bot(), plan, tmp_path, source=SOURCE, progress=False)
+    assert not (tmp_path / "scan.json").exists()
+    assert run_scan(_bot(), plan, tmp_path, source=SOURCE, progress=False)["status"] == \
+        "complete"
+
+
+def test_a_scan_never_writes_into_a_folder_that_is_not_a_scan(tmp_path):
+    plant = tmp_path / "plant"
+    plant.mkdir()
+    (plant / "plant.json").write_text('{"truth": "kept"}')
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    with pytest.raises(InputError, match=r"not a flowerpose scan \(plant.json\)"):
+        run_scan(_bot(), plan, plant, source=SOURCE, progress=False)
+    assert sorted(p.name for p in plant.iterdir()) == ["plant.json"]
+
+
+def test_a_resume_with_another_camera_is_refused_even_before_the_first_waypoint(tmp_path):
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    with pytest.raises(StallError):
+        run_scan(_StallsAt(1), plan, tmp_path, source=SOURCE, progress=False)
+    assert read_json(tmp_path / "scan.json")["completed"] == 0
+    wider = KinematicBot(camera=functools.partial(SolidCamera, width=64, height=48, fps=2))
+    with pytest.raises(InputError, match="other camera settings"):
+        run_scan(wider, plan, tmp_path, source=SOURCE, progress=False)

@@ -147,3 +147,13 @@ def test_frames_json_is_read_once_with_every_check(tmp_path):
     data["frames"][1].pop("pose")
     path.write_text(json.dumps(data))
     assert read_frames(tmp_path / "out", need_poses=False)[1].pose is None
+
+
+def test_a_frame_of_another_size_than_the_camera_is_one_clear_error(tmp_path):
+    scan = _scan(tmp_path / "scan", [0.0] * 6)
+    small = cv2.imread(str(scan / "frames" / FRAME_PATTERN.format(0)))[:120, :160]
+    cv2.imwrite(str(scan / "frames" / FRAME_PATTERN.format(0)), small)
+    with pytest.raises(InputError, match=r"is 160x120 pixels but the scan's camera.json says "
+                       r"320x240"):
+        select_frames(scan, tmp_path / "out", FrameSelectConfig(count=3), progress=False)
+    assert not (tmp_path / "out").exists()
