@@ -18,6 +18,11 @@ import numpy as np
 
 from flowerpose.errors import InputError
 
+#: The process's umask (read once: os.umask can only be read by setting it): written files
+#: get the mode an ordinary open() would give them, not mkstemp's 0600.
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
 
 def _fsync(path: str | Path, directory: bool = False) -> None:
     flags = os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0)
@@ -46,6 +51,7 @@ def write_file(path: str | Path, write: Callable[[Path], object]) -> Path:
         handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
                                         dir=path.parent)
         os.close(handle)
+        os.chmod(name, 0o666 & ~_UMASK)
     except OSError as err:
         raise InputError(path, f"cannot write ({err.strerror or err})") from None
     temporary = Path(name)

@@ -119,13 +119,21 @@ def read_trajectory(path: Path) -> Trajectory:
     """trajectory.csv, checked: the header, numbers, finite values, increasing frames."""
     try:
         with open(path, newline="") as handle:
-            reader = csv.reader(handle)
-            header = next(reader, None)
-            rows = [row for row in reader if row]
+            text = handle.read()
     except FileNotFoundError:
         raise InputError(path, "file not found") from None
-    except OSError as err:
-        raise InputError(path, f"cannot read ({err.strerror})") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(path, f"cannot read ({getattr(err, 'strerror', None) or err})") from None
+    lines = text.splitlines(keepends=True)
+    if len(lines) > 1 and not lines[-1].endswith("\n"):
+        # Rows are written whole, newline last: a last line without one was cut off by an
+        # interruption and may hold a value cut short. The next recording drops it too.
+        print(f"note: {path}: the last row, cut off by an interruption, is ignored",
+              file=sys.stderr)
+        lines = lines[:-1]
+    reader = csv.reader(lines)
+    header = next(reader, None)
+    rows = [row for row in reader if row]
     if header is None or tuple(h.strip() for h in header) != TRAJECTORY_COLUMNS:
         raise InputError(path, f"expected the header {','.join(TRAJECTORY_COLUMNS)}")
     wrong = next((k for k, row in enumerate(rows) if len(row) != len(TRAJECTORY_COLUMNS)), None)
@@ -156,12 +164,12 @@ def open_rows(path: Path, header: tuple[str, ...]):
     interruption is dropped first, so the table stays readable, and a new table gets its
     header. Write a row only after what it describes is on disk, and flush after each."""
     path = Path(path)
-    new = not path.exists() or path.stat().st_size == 0
-    if not new:
+    if path.exists():
         text = path.read_bytes()
-        if not text.endswith(b"\n"):
+        if text and not text.endswith(b"\n"):
             with open(path, "r+b") as handle:
                 handle.truncate(text.rfind(b"\n") + 1)
+    new = not path.exists() or path.stat().st_size == 0  # after the cut: a lost header too
     handle = open(path, "a", newline="")  # noqa: SIM115 - the caller closes it
     writer = csv.writer(handle)
     if new:

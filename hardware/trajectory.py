@@ -20,6 +20,7 @@ Frames and units: bed frame, metres, radians, seconds on the bot's clock (trajec
 from __future__ import annotations
 
 import math
+import os
 import threading
 from abc import abstractmethod
 from collections.abc import Callable
@@ -181,6 +182,7 @@ class TrajectoryWriter:
                                               float(yaw[k]), float(pitch[k]), positions[k],
                                               rotations[k]))
         self._file.flush()
+        os.fsync(self._file.fileno())  # the rows on disk, as the frames they describe are
         return int(known.sum())
 
     def close(self) -> None:

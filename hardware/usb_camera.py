@@ -28,8 +28,8 @@ pixels, the principal point at the image centre, no distortion. Calibrate for ac
 
 from __future__ import annotations
 
-import csv
 import math
+import os
 import queue
 import shutil
 import sys
@@ -42,12 +42,13 @@ from typing import Any
 
 import numpy as np
 
+from flowerpose.atomic import write_bytes
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Frame, Recording
 from flowerpose.hardware.errors import CameraError
 from flowerpose.hardware.frame_keeper import FrameKeeper
 from flowerpose.hardware.trajectory import RecordingCamera, last_recorded
-from flowerpose.scanio import FRAME_PATTERN, Intrinsics, read_intrinsics
+from flowerpose.scanio import FRAME_PATTERN, Intrinsics, open_rows, read_intrinsics
 
 _MANUAL_EXPOSURE = 1.0
 """V4L2_EXPOSURE_MANUAL: OpenCV's V4L2 backend passes CAP_PROP_AUTO_EXPOSURE on as is."""
@@ -417,12 +418,7 @@ class _Recording:
         self._queue: queue.Queue = queue.Queue(config.queue_frames)
         self._saved: list[tuple[int, float]] = []
         self._lock = threading.Lock()
-        times = scan_dir / "frame_times.csv"
-        new = not times.exists()
-        self._times_file = open(times, "a", newline="")  # noqa: SIM115
-        self._times = csv.writer(self._times_file)
-        if new:
-            self._times.writerow(("frame", "t"))
+        self._times_file, self._times = open_rows(scan_dir / "frame_times.csv", ("frame", "t"))
         self._thread = threading.Thread(target=self._write_loop, name="usb-camera-writer",
                                         daemon=True)
         self._thread.start()
@@ -462,12 +458,11 @@ class _Recording:
                     f"{self.count} frames saved; free space, then run the scan again to "
                     "resume it"))
                 return False
-            temporary = path.with_suffix(".tmp")
-            temporary.write_bytes(jpeg.tobytes())
-            temporary.replace(path)
+            write_bytes(path, jpeg.tobytes())  # whole and on disk before its row
             self._times.writerow((self._next, f"{t:.6f}"))
             self._times_file.flush()
-        except OSError as err:
+            os.fsync(self._times_file.fileno())
+        except (OSError, InputError) as err:
             self._fail(CameraError(f"{path}: cannot save the frame "
                                    f"({getattr(err, 'strerror', None) or err}); check the "
                                    "disk"))

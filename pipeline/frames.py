@@ -163,9 +163,10 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     if not scan_dir.is_dir():
         raise InputError(scan_dir, "scan folder not found")
     scan_at, out_at = scan_dir.resolve(), out_dir.resolve()
-    if out_at == scan_at or scan_at in out_at.parents or out_at in scan_at.parents:
-        raise InputError(out_dir, f"must not be the scan folder {scan_dir}, inside it, or "
-                         "hold it: choose a folder of its own")
+    recorded = scan_at / "frames"
+    if out_at in (scan_at, recorded) or out_at in scan_at.parents or recorded in out_at.parents:
+        raise InputError(out_dir, f"must not be the scan folder {scan_dir}, its frames/, or "
+                         "a folder that holds it: choose a folder of its own")
     check_output(out_dir, "frames", overwrite, FRAMES_OUTPUTS)
     trajectory = read_trajectory(scan_dir / "trajectory.csv")
     intrinsics = read_intrinsics(scan_dir / "camera.json")

@@ -106,6 +106,22 @@ def test_last_recorded_keeps_images_whose_row_was_cut_off(tmp_path):
     np.testing.assert_array_equal(trajectory.frame, [0, 2])
 
 
+def test_a_row_cut_mid_value_is_never_trusted_and_a_cut_header_is_written_again(tmp_path,
+                                                                               capsys):
+    path = tmp_path / "trajectory.csv"
+    writer = TrajectoryWriter(path)
+    writer.write([0, 1], [0.0, 0.5], np.tile(A, (2, 1)), [0.1, 0.1], [0.2, 0.2])
+    writer.close()
+    text = path.read_text()
+    path.write_text(text[:-6])  # the last value cut short: a number still, but wrong
+    trajectory = read_trajectory(path)
+    np.testing.assert_array_equal(trajectory.frame, [0])
+    assert "cut off by an interruption, is ignored" in capsys.readouterr().err
+    path.write_text("frame,t,x")  # killed while the header itself was written
+    TrajectoryWriter(path).close()
+    assert len(read_trajectory(path)) == 0  # readable: the header is back
+
+
 class _GridCamera(RecordingCamera):
     """Frames every 1 / fps seconds of a simulated bot's clock, saved as soon as asked."""
 

@@ -111,7 +111,7 @@ def test_a_second_selection_replaces_the_first_and_short_rows_are_refused(tmp_pa
     select_frames(scan, tmp_path / "out", FrameSelectConfig(count=6), progress=False)
     select_frames(scan, tmp_path / "out", FrameSelectConfig(count=3), progress=False)
     assert len(list((tmp_path / "out" / "frames").glob("*.jpg"))) == 3
-    for out in (scan, scan / "selected", tmp_path):  # the scan, inside it, holding it
+    for out in (scan, scan / "frames", tmp_path):  # the scan, its frames, holding it
         with pytest.raises(InputError, match="must not be the scan folder"):
             select_frames(scan, out, FrameSelectConfig(count=3), progress=False)
     lines = (scan / "trajectory.csv").read_text().splitlines()
