@@ -24,7 +24,8 @@ from flowerpose.pipeline.frames import FrameSelectConfig, frame_score
 
 
 class FrameKeeper:
-    """The `keep` best-scoring frames of each time bin over [start_t, start_t + duration_s).
+    """The `keep` best-scoring frames of each time bin of width duration_s / bins from
+    start_t (`bins` over the planned duration, as many more as the scan overruns it).
 
     Images are (H, W, 3) uint8 in either channel order (the score is a grey Laplacian and a
     channel maximum); times are seconds on the bot's clock.
@@ -50,8 +51,10 @@ class FrameKeeper:
         return self.offered - self.kept - len(self._best)
 
     def bin_of(self, t: float) -> int:
-        """The bin of bot time t: 0 before the start, the last from the planned end on."""
-        return min(max(int((t - self.start_t) // self.width_s), 0), self.bins - 1)
+        """The bin of bot time t: 0 before the start; past the planned end, more bins of
+        the same width (a real scan overruns its plan: head settling, reply latency; one
+        last bin would have kept 3 frames of the plan's whole last part)."""
+        return max(int((t - self.start_t) // self.width_s), 0)
 
     def offer(self, image: np.ndarray, t: float) -> list[tuple[np.ndarray, float]]:
         """Score a frame; returns the kept frames (image, t) of the bins that have now

@@ -67,10 +67,16 @@ def test_the_sharpest_few_of_each_bin_are_handed_on_once_their_bin_has_passed():
     assert keeper.kept == 12
 
 
-def test_frames_past_the_planned_end_fall_in_the_last_bin():
+def test_a_scan_that_overruns_its_plan_keeps_bins_of_the_same_width():
+    # A field scan takes longer than planned (head settling, latency): its last part must
+    # not collapse into one bin of 3 frames.
     keeper = FrameKeeper(0.0, 10.0, bins=5, keep=1)
-    assert [keeper.bin_of(t) for t in (-1.0, 0.0, 1.99, 2.0, 9.99, 10.0, 500.0)] == \
-        [0, 0, 0, 1, 4, 4, 4]
+    assert [keeper.bin_of(t) for t in (-1.0, 0.0, 1.99, 2.0, 9.99, 10.0, 13.0)] == \
+        [0, 0, 0, 1, 4, 5, 6]
+    frames = [(np.full((8, 8, 3), k, np.uint8), 0.5 * k) for k in range(30)]  # 15 s
+    kept = [handed for image, t in frames for handed in keeper.offer(image, t)]
+    kept += keeper.flush()
+    assert len(kept) == 8 and keeper.kept == 8  # bins 0-7 of 2 s, one frame each
 
 
 def test_the_streamed_choice_is_the_frame_stages_on_every_frame_and_on_the_kept_ones(tmp_path):
