@@ -99,7 +99,8 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
             raise InputError(out_dir, "holds a different scan (another plant or path); "
                              "choose a new --out folder")
         manifest.update(completed=int(previous.get("completed", 0)),
-                        sessions=list(previous.get("sessions", [])))
+                        sessions=list(previous.get("sessions", [])),
+                        source=previous.get("source", source))  # the first session's
     start = manifest["completed"]
     if start >= len(plan.waypoints):
         manifest["status"] = "complete"
@@ -115,7 +116,7 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
             raise InputError(out_dir / "camera.json", "the scan was recorded with other camera "
                              "settings; resume with the same ones or choose a new --out folder")
     session = {"started_waypoint": start, "bot_time_start": bot.now(),
-               "wall_start": time.time()}
+               "wall_start": time.time(), "source": source}
     manifest["sessions"].append(session)
     write_json(manifest_path, manifest)  # first: a folder with anything in it is a scan
     write_json(out_dir / "camera.json", intrinsics)

@@ -135,11 +135,19 @@ def _check_size(image: np.ndarray, where: Path | str, intrinsics: Intrinsics) ->
                          "cannot be reconstructed")
 
 
+#: A JPEG's last two bytes (end of image): a file without them was cut off while written.
+JPEG_END = b"\xff\xd9"
+
+
 def _score_file(path: Path, config: FrameSelectConfig,
-                intrinsics: Intrinsics) -> tuple[float, float, float]:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise InputError(path, "unreadable image")
+                intrinsics: Intrinsics) -> tuple[float, float, float] | None:
+    """The frame's score, or None for a damaged file (empty, cut off or undecodable: a
+    frame a power cut left half-written), which is left out rather than losing the scan."""
+    data = path.read_bytes()
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+    if image is None or (path.suffix.lower() in (".jpg", ".jpeg")
+                         and not data.rstrip(b"\x00").endswith(JPEG_END)):
+        return None
     _check_size(image, path, intrinsics)
     return frame_score(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), config)
 
@@ -203,8 +211,16 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
                   file=sys.stderr)
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             scores = pool.map(lambda i: _score_file(sources[i], config, intrinsics), indices)
+            damaged = []
             for seen, (index, scored) in enumerate(zip(indices, scores, strict=True), 1):
-                keep(seen, index, scored, None)
+                if scored is None:
+                    damaged.append(sources[index].name)
+                else:
+                    keep(seen, index, scored, None)
+        if damaged:
+            print(f"note: {scan_dir}: {len(damaged)} damaged frames (empty or cut off: "
+                  f"{', '.join(damaged[:3])}{', ...' if len(damaged) > 3 else ''}) left out",
+                  file=sys.stderr)
     else:
         seen = 0
         for index, image in iter_frames(scan_dir):

@@ -157,3 +157,13 @@ def test_a_frame_of_another_size_than_the_camera_is_one_clear_error(tmp_path):
                        r"320x240"):
         select_frames(scan, tmp_path / "out", FrameSelectConfig(count=3), progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_damaged_frames_are_left_out_and_the_rest_of_the_scan_kept(tmp_path, capsys):
+    scan = _scan(tmp_path / "scan", [0.0] * 8)
+    (scan / "frames" / FRAME_PATTERN.format(1)).write_bytes(b"")  # empty
+    whole = (scan / "frames" / FRAME_PATTERN.format(2)).read_bytes()
+    (scan / "frames" / FRAME_PATTERN.format(2)).write_bytes(whole[: len(whole) // 2])  # cut
+    result = select_frames(scan, tmp_path / "out", FrameSelectConfig(count=4), progress=False)
+    assert [f["index"] for f in result["frames"]] == [0, 3, 4, 6]
+    assert "2 damaged frames" in capsys.readouterr().err
