@@ -103,6 +103,9 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
                         source=previous.get("source", source))  # the first session's
     start = manifest["completed"]
     if start >= len(plan.waypoints):
+        if progress:
+            _progress(f"scan: {out_dir} holds this plan's scan, complete: nothing recorded "
+                      "(choose a new --out to scan again)")
         manifest["status"] = "complete"
         return manifest
     if start and progress:
