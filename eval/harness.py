@@ -34,7 +34,13 @@ from flowerpose.eval.report import (
 from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
-from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, read_flowers, write_flowers
+from flowerpose.pipeline.flowers import (
+    PipelineConfig,
+    find_flowers,
+    read_flowers,
+    write_flowers,
+    write_normals_ply,
+)
 from flowerpose.pipeline.rgbd import FusionConfig
 from flowerpose.processes import quiet_worker
 from flowerpose.sim.config import PresetName, SimConfig, sim_preset
@@ -117,6 +123,7 @@ def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_d
     cloud = read_cloud(cloud_path)
     result = find_flowers(cloud, pipeline_part(config))
     write_flowers(out_dir / "flowers.json", result)
+    write_normals_ply(out_dir, result.flowers)
     start = time.perf_counter()
     truth = read_plant_truth(truth_path)
     if config.score.label_error_deg > 0:

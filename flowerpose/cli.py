@@ -112,18 +112,20 @@ def cmd_detect(args: argparse.Namespace) -> int:
         find_flowers,
         find_flowers_in_candidates,
         write_flowers,
+        write_normals_ply,
     )
     from flowerpose.pipeline.views import write_views
 
     config = _configure(PipelineConfig(), args)
     out: Path = args.out
-    writes = ("flowers.json", "config.json", "views", "crops")
+    writes = ("flowers.json", "flowers.ply", "normals.ply", "config.json", "views", "crops")
     check_output(out, "detect", args.overwrite, writes)
     cloud = read_cloud(args.cloud, units=args.units)
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
     # An earlier detection's files (crops of flowers this one may not have) go first.
     output = OutputFolder(out, "detect", args.overwrite, writes)
     output.record(write_flowers(out / "flowers.json", result),
+                  *write_normals_ply(out, result.flowers),
                   write_json(out / "config.json", to_dict(config)))
     if result.projections:
         output.record(*write_views(out / "views", result.projections, result.detections))

@@ -172,6 +172,56 @@ def write_flowers(path: Path, result: FlowerResult) -> Path:
     return write_json(path, result.to_json())
 
 
+#: Colour of the estimated normals in the PLY exports (MeshLab and CloudCompare show it).
+NORMAL_COLOUR = (230, 40, 40)
+
+
+def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
+                      ) -> tuple[Path, Path]:
+    """The flowers' `method` normals for MeshLab and CloudCompare: `flowers.ply`, one point
+    per flower at its centre with the normal as nx ny nz, and `normals.ply`, a mesh of one
+    arrow per flower from its centre along the normal, as long as the flower's box (the
+    cloud's frame and unit, as flowers.json). Flowers without that normal are left out."""
+    import open3d as o3d
+
+    from flowerpose.atomic import write_file
+
+    oriented = [f for f in flowers if f.pose.normals.get(method) is not None]
+    centres = np.array([f.pose.center for f in oriented], np.float64).reshape(-1, 3)
+    normals = np.array([f.pose.normals[method] for f in oriented], np.float64).reshape(-1, 3)
+    points = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centres))
+    points.normals = o3d.utility.Vector3dVector(normals)
+    points.colors = o3d.utility.Vector3dVector(np.tile(np.array(NORMAL_COLOUR) / 255.0,
+                                                       (len(centres), 1)))
+    arrows = o3d.geometry.TriangleMesh()
+    for flower, centre, normal in zip(oriented, centres, normals, strict=True):
+        length = float(np.max(flower.box.extent))
+        arrow = o3d.geometry.TriangleMesh.create_arrow(
+            cylinder_radius=0.03 * length, cone_radius=0.07 * length,
+            cylinder_height=0.75 * length, cone_height=0.25 * length)
+        arrow.rotate(_rotation_from_z(normal), center=(0.0, 0.0, 0.0))
+        arrows += arrow.translate(centre)
+    arrows.paint_uniform_color(np.array(NORMAL_COLOUR) / 255.0)
+    arrows.compute_vertex_normals()
+    cloud_path = write_file(folder / "flowers.ply", lambda tmp: o3d.io.write_point_cloud(
+        str(tmp), points, write_ascii=False))
+    mesh_path = write_file(folder / "normals.ply", lambda tmp: o3d.io.write_triangle_mesh(
+        str(tmp), arrows, write_ascii=False))
+    return cloud_path, mesh_path
+
+
+def _rotation_from_z(direction: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation taking +z to the unit vector `direction` (Rodrigues)."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, direction)
+    sine, cosine = float(np.linalg.norm(axis)), float(z @ direction)
+    if sine < 1e-12:
+        return np.eye(3) if cosine > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / sine
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sine * cross + (1 - cosine) * cross @ cross
+
+
 def read_flowers(path: Path) -> list[dict]:
     """The flower entries of a `flowers.json`, checked: a 3D centre and, per method, a
     normal that is `null` or 3 finite numbers (normalised here). Errors name the file and

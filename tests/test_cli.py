@@ -41,6 +41,21 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
     assert flowers["timing_s"]["total"] > 0
     assert (out / "views" / "views.png").exists()
     assert len(list((out / "views").glob("view_*.png"))) == 14  # the default grid.views
+    # The normals for MeshLab / CloudCompare: centres with nx ny nz, and an arrow mesh.
+    import open3d as o3d
+
+    points = o3d.io.read_point_cloud(str(out / "flowers.ply"))
+    np.testing.assert_allclose(np.asarray(points.points),
+                               [f["center"] for f in flowers["flowers"]], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(points.normals),
+                               [f["normals"]["plane"] for f in flowers["flowers"]], atol=1e-9)
+    arrows = o3d.io.read_triangle_mesh(str(out / "normals.ply"))
+    vertices = np.asarray(arrows.vertices)
+    assert len(arrows.triangles) > 0 and len(vertices) % 6 == 0
+    for flower, tip in zip(flowers["flowers"], np.split(vertices, 6), strict=True):
+        # each arrow runs from its flower's centre along its normal
+        along = (tip - flower["center"]) @ np.array(flower["normals"]["plane"])
+        assert along.min() > -1e-3 and along.max() == pytest.approx(max(flower["box"]["extent"]))
     code, text, _ = _run(capsys, "pose", out / "crops" / "flower_00.ply")
     entry = json.loads(text)
     assert code == 0 and entry["pistil_found"] and len(entry["normals"]["plane"]) == 3
