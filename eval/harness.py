@@ -122,7 +122,7 @@ def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_d
     truth; returns the report's plant entry and stage timings."""
     cloud = read_cloud(cloud_path)
     result = find_flowers(cloud, pipeline_part(config))
-    write_flowers(out_dir / "flowers.json", result)
+    write_flowers(out_dir / "flowers.json", result, cloud_path)
     write_normals_ply(out_dir, result.flowers)
     start = time.perf_counter()
     truth = read_plant_truth(truth_path)

@@ -47,6 +47,7 @@ from flowerpose.pipeline.flowers import (
     find_flowers,
     find_flowers_in_candidates,
     pose_crops,
+    write_flowers,
 )
 
 Stage = Literal["cloud", "candidates", "crops"]
@@ -198,14 +199,16 @@ def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,
                                for k, (p, pose) in enumerate(zip(plant.clouds, poses,
                                                                  strict=True))],
                    "timing_s": timing}
-        write_json(out_dir / "flowers.json", flowers)
+        write_json(out_dir / "flowers.json", {"units": "m", "frame": "cloud",
+                                              "source": str(plant.folder), **flowers})
     else:
         cloud = (read_cloud(plant.clouds[0], units=plant.units) if plant.stage == "cloud"
                  else merged_candidates(plant.clouds, plant.units))
         _check_scale(plant, truth, cloud.points, max_distance)
-        result = (find_flowers if plant.stage == "cloud" else find_flowers_in_candidates)(
-            cloud, config)
-        write_json(out_dir / "flowers.json", result.to_json())
+        # A real cloud is in its scanner's frame: its up is not known to be z.
+        result = (find_flowers(cloud, config, up=None) if plant.stage == "cloud"
+                  else find_flowers_in_candidates(cloud, config))
+        write_flowers(out_dir / "flowers.json", result, plant.folder, "cloud")
         poses, timing = [f.pose for f in result.flowers], dict(result.timing_s)
     start = time.perf_counter()
     entry = plant_entry(plant.name, score_plant(poses, truth, max_distance))

@@ -59,11 +59,31 @@ def summarise(plants: list[dict]) -> dict:
             "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}
 
 
+def git_commit() -> str | None:
+    """The commit of the source flowerpose runs from when it is a git checkout ("+dirty"
+    with uncommitted changes), else None (an installed package)."""
+    import subprocess
+
+    source = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "-C", str(source), "rev-parse", "HEAD"],
+                              capture_output=True, text=True, timeout=5)
+        if head.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(source), "status", "--porcelain",
+                                "--untracked-files=no"], capture_output=True, text=True,
+                               timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head.stdout.strip() + ("+dirty" if dirty else "")
+
+
 def run_record() -> dict[str, Any]:
-    """flowerpose's version, the time (UTC, ISO 8601) and the command line of this run."""
+    """flowerpose's version, its git commit when run from a checkout, the time (UTC, ISO
+    8601) and the command line of this run."""
     from flowerpose import __version__
 
-    return {"flowerpose": __version__,
+    return {"flowerpose": __version__, "commit": git_commit(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "command": shlex.join(["flowerpose", *sys.argv[1:]])}
 

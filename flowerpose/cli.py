@@ -124,7 +124,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
     # An earlier detection's files (crops of flowers this one may not have) go first.
     output = OutputFolder(out, "detect", args.overwrite, writes)
-    output.record(write_flowers(out / "flowers.json", result),
+    output.record(write_flowers(out / "flowers.json", result, args.cloud,
+                                "cloud" if args.candidates else "bed"),
                   *write_normals_ply(out, result.flowers),
                   write_json(out / "config.json", to_dict(config)))
     if result.projections:

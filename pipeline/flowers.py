@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -95,8 +96,11 @@ class _Timer:
         return self.timing
 
 
-def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> FlowerResult:
-    """Flowers and their normals in a whole plant's coloured cloud (metres, bed frame, z up)."""
+def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
+                 up: np.ndarray | None = BED_UP) -> FlowerResult:
+    """Flowers and their normals in a whole plant's coloured cloud (metres, bed frame, z up).
+    up: the frame's up, for the direction prior (`PoseConfig.up_prior`); None for a cloud
+    whose up is not known (a phone scan's own frame)."""
     timer = _Timer()
     above_ground = remove_ground(cloud, config.ground)
     plant = cloud.subset(above_ground)
@@ -110,7 +114,7 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig()) -> Flo
               for d, p in zip(detections, projections, strict=True)]
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
-    flowers = _flowers_among(plant, candidates, above_ground, config, timer, BED_UP)
+    flowers = _flowers_among(plant, candidates, above_ground, config, timer, up)
     return FlowerResult(flowers, projections, detections, timer.total())
 
 
@@ -167,9 +171,17 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
     return poses, timer.total()
 
 
-def write_flowers(path: Path, result: FlowerResult) -> Path:
-    """Write `flowers.json` (DESIGN.md's format)."""
-    return write_json(path, result.to_json())
+Frame = Literal["bed", "cloud"]
+
+
+def write_flowers(path: Path, result: FlowerResult, source: str | Path | None = None,
+                  frame: Frame = "bed") -> Path:
+    """Write `flowers.json` (DESIGN.md's format): the flowers, with the unit (metres), the
+    frame their centres and normals are in ("bed": the bed frame, z up; "cloud": the
+    input cloud's own, e.g. a Polycam scan's) and the cloud they came from."""
+    return write_json(path, {"units": "m", "frame": frame,
+                             "source": None if source is None else str(source),
+                             **result.to_json()})
 
 
 #: Colour of the estimated normals in the PLY exports (MeshLab and CloudCompare show it).
@@ -184,7 +196,7 @@ def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
     cloud's frame and unit, as flowers.json). Flowers without that normal are left out."""
     import open3d as o3d
 
-    from flowerpose.atomic import write_file
+    from flowerpose.atomic import write_file, write_text
 
     oriented = [f for f in flowers if f.pose.normals.get(method) is not None]
     centres = np.array([f.pose.center for f in oriented], np.float64).reshape(-1, 3)
@@ -201,6 +213,10 @@ def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
             cylinder_height=0.75 * length, cone_height=0.25 * length)
         arrow.rotate(_rotation_from_z(normal), center=(0.0, 0.0, 0.0))
         arrows += arrow.translate(centre)
+    if not oriented:  # Open3D writes no empty geometry; an empty PLY still says "none"
+        return (write_text(folder / "flowers.ply", _EMPTY_PLY.format(faces="")),
+                write_text(folder / "normals.ply", _EMPTY_PLY.format(
+                    faces="element face 0\nproperty list uchar int vertex_indices\n")))
     arrows.paint_uniform_color(np.array(NORMAL_COLOUR) / 255.0)
     arrows.compute_vertex_normals()
     cloud_path = write_file(folder / "flowers.ply", lambda tmp: o3d.io.write_point_cloud(
@@ -208,6 +224,10 @@ def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
     mesh_path = write_file(folder / "normals.ply", lambda tmp: o3d.io.write_triangle_mesh(
         str(tmp), arrows, write_ascii=False))
     return cloud_path, mesh_path
+
+
+_EMPTY_PLY = ("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+              "property double z\n{faces}end_header\n")
 
 
 def _rotation_from_z(direction: np.ndarray) -> np.ndarray:

@@ -36,6 +36,8 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
     assert code == 0 and "flowers" in text
     flowers = json.loads((out / "flowers.json").read_text())
     assert len(flowers["flowers"]) == 6
+    assert (flowers["units"], flowers["frame"]) == ("m", "bed")
+    assert flowers["source"] == str(plant_dir / "cloud.ply")
     assert {"center", "normals", "points", "petal_points", "pistil_found", "box"} <= set(
         flowers["flowers"][0])
     assert flowers["timing_s"]["total"] > 0
@@ -107,6 +109,9 @@ def test_a_cloud_without_flowers_gives_an_empty_result(tmp_path, capsys):
     code, text, _ = _run(capsys, "detect", path, "--out", tmp_path / "out")
     assert code == 0 and text.startswith("0 flowers")
     assert json.loads((tmp_path / "out" / "flowers.json").read_text())["flowers"] == []
+    import open3d as o3d
+
+    assert len(o3d.io.read_point_cloud(str(tmp_path / "out" / "flowers.ply")).points) == 0
 
 
 def test_a_millimetre_cloud_is_converted_and_said(plant0, tmp_path, capsys):

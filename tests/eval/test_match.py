@@ -91,3 +91,6 @@ def test_a_report_says_what_made_it():
     assert report["run"]["flowerpose"] == __version__
     assert report["run"]["date"].endswith("+00:00") and report["run"]["command"].startswith(
         "flowerpose")
+    # Run from this checkout: its commit (40 hex digits, "+dirty" with local changes).
+    commit = report["run"]["commit"]
+    assert commit is None or len(commit.removesuffix("+dirty")) == 40
