@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import os
 import statistics
-import sys
 from pathlib import Path
 
 from flowerpose.config import to_dict
 from flowerpose.jsonio import write_json
+from flowerpose.log import LOG
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
 from flowerpose.sim.bundle import make_plant
 
@@ -24,7 +24,7 @@ def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
     config = config or PipelineConfig()
     results = []
     for points in point_counts:
-        print(f"generating a {points:,}-point cloud (seed {seed}, realistic)...", file=sys.stderr)
+        LOG.info(f"generating a {points:,}-point cloud (seed {seed}, realistic)...")
         cloud = make_plant(seed, points=points).cloud
         find_flowers(cloud, config)  # warm-up: first-call costs of Open3D and SciPy
         runs = [find_flowers(cloud, config) for _ in range(repeat)]

@@ -12,7 +12,6 @@ import dataclasses
 import math
 import multiprocessing
 import os
-import sys
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
@@ -34,6 +33,7 @@ from flowerpose.eval.report import (
 from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
+from flowerpose.log import Tally
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
     find_flowers,
@@ -145,33 +145,34 @@ def _pool(workers: int | None) -> ProcessPoolExecutor | None:
 
 def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
              describe: Callable[[int, Any], str] | None = None) -> list[Any]:
-    """function(*job) for every job, in a process pool, results in job order; a progress
-    line per finished job on stderr."""
+    """function(*job) for every job, in a process pool, results in job order; with
+    `describe`, a line per finished job with the time left (`log.Tally`)."""
     results: list[Any] = [None] * len(jobs)
     pool = _pool(min(workers or os.cpu_count() or 1, len(jobs)))
+    with Tally(len(jobs) if describe is not None else 0) as tally:
 
-    def report(k: int, value: Any, done: int) -> None:
-        if describe is not None:
-            print(f"[{done}/{len(jobs)}] {describe(k, value)}", file=sys.stderr, flush=True)
+        def report(k: int, value: Any) -> None:
+            if describe is not None:
+                tally.finished(describe(k, value))
 
-    if pool is None:
-        for k, job in enumerate(jobs):
-            results[k] = function(*job)
-            report(k, results[k], k + 1)
-        return results
-    from concurrent.futures import as_completed
+        if pool is None:
+            for k, job in enumerate(jobs):
+                results[k] = function(*job)
+                report(k, results[k])
+            return results
+        from concurrent.futures import as_completed
 
-    try:
-        futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
-        for done, future in enumerate(as_completed(futures), start=1):
-            k = futures[future]
-            results[k] = future.result()
-            report(k, results[k], done)
-    except BaseException:
-        # Ctrl-C, SIGTERM or a failed job: no new job starts, and the workers, which ignore
-        # Ctrl-C, end with this process (`processes.die_with_parent`).
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
+        try:
+            futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
+            for future in as_completed(futures):
+                k = futures[future]
+                results[k] = future.result()
+                report(k, results[k])
+        except BaseException:
+            # Ctrl-C, SIGTERM or a failed job: no new job starts, and the workers, which
+            # ignore Ctrl-C, end with this process (`processes.die_with_parent`).
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
     pool.shutdown()
     return results
 

@@ -13,6 +13,7 @@ from typing import Any
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.errors import BotError
+from flowerpose.log import LOG
 
 #: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
 SCAN_PLANTS = 2
@@ -237,13 +238,12 @@ def cmd_farmduino(args: argparse.Namespace) -> int:
     params = {} if args.bare else FEEDBACK_PARAMETERS
     with VirtualFarmduino(time_scale=args.time_scale, params=params) as device:
         print(device.path, flush=True)
-        print(f"virtual Farmduino on {device.path} (now {device.device}) at {args.time_scale:g}"
-              " x real time; connect at 115200 baud; Ctrl-C stops it", file=sys.stderr,
-              flush=True)
+        LOG.info(f"virtual Farmduino on {device.path} (now {device.device}) at "
+                 f"{args.time_scale:g} x real time; connect at 115200 baud; Ctrl-C stops it")
         try:
             device.wait()
         except KeyboardInterrupt:
-            print("virtual Farmduino stopped", file=sys.stderr)
+            LOG.info("virtual Farmduino stopped")
     return 0
 
 
@@ -337,9 +337,9 @@ def _scan_field(args: argparse.Namespace) -> int:
         if args.firmware_params is not None:
             settings = read_settings(args.firmware_params)
         else:
-            print("warning: no --firmware-params: the Farmduino runs on the settings it holds, "
-                  "its firmware's defaults unless they were stored in its EEPROM (FarmBot OS, "
-                  "which writes them, is not connected)", file=sys.stderr, flush=True)
+            LOG.warning("warning: no --firmware-params: the Farmduino runs on the settings it "
+                        "holds, its firmware's defaults unless they were stored in its EEPROM "
+                        "(FarmBot OS, which writes them, is not connected)")
         source = {"backend": "serial", "port": args.port,
                   "firmware_params": str(args.firmware_params or "the board's own")}
 
@@ -354,13 +354,12 @@ def _scan_field(args: argparse.Namespace) -> int:
     try:
         with connect() as bot:
             if args.port is not None and args.home_here:
-                print(f"warning: --home-here: {bot.info.name} takes where the gantry stands "
-                      "for home; every move is off by as much as it is not at home",
-                      file=sys.stderr, flush=True)
+                LOG.warning(f"warning: --home-here: {bot.info.name} takes where the gantry "
+                            "stands for home; every move is off by as much as it is not at home")
                 bot.home_here()
             elif args.port is not None:
                 # Opening the port reset the board, which lost the position: home, Z first.
-                print(f"homing {bot.info.name} (Z, Y, X)", file=sys.stderr, flush=True)
+                LOG.info(f"homing {bot.info.name} (Z, Y, X)")
                 bot.home()
             _approach(bot, plan, args.out)
             manifest = run_scan(bot, plan, args.out, source={
@@ -555,6 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
     from flowerpose import __version__
 
     parser.add_argument("--version", action="version", version=f"flowerpose {__version__}")
+    _add_verbosity(parser, default=0)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 parser_class=_Parser)
 
@@ -765,10 +765,20 @@ def build_parser() -> argparse.ArgumentParser:
     for action in sub._choices_actions:  # each command's --help says what it does
         command = sub.choices[action.dest]
         command.description = command.description or f"{action.help[0].upper()}{action.help[1:]}."
+        _add_verbosity(command, default=argparse.SUPPRESS)
     return parser
 
 
+def _add_verbosity(parser: argparse.ArgumentParser, default: Any) -> None:
+    """-q / -v, before or after the command (`flowerpose -q eval`, `flowerpose eval -q`)."""
+    parser.add_argument("-q", "--quiet", action="count", default=default,
+                        help="say only warnings and errors (no progress)")
+    parser.add_argument("-v", "--verbose", action="count", default=default,
+                        help="say more: debugging detail")
+
+
 def main(argv: list[str] | None = None) -> int:
+    from flowerpose.log import configure as configure_log
     from flowerpose.processes import Terminated, terminate_cleanly
 
     parser = build_parser()
@@ -776,6 +786,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()  # a bare `flowerpose`: what it can do, not an error
         return 0
     args = parser.parse_args(argv)
+    configure_log(args.verbose - args.quiet)
     terminate_cleanly()
     try:
         return args.func(args)

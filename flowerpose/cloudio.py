@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -11,6 +10,7 @@ import numpy as np
 
 from flowerpose.atomic import write_file
 from flowerpose.errors import InputError
+from flowerpose.log import LOG
 
 #: Largest extent (metres) a single-plant scan in metres can plausibly have.
 MAX_METRIC_EXTENT_M = 5.0
@@ -112,8 +112,8 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
     if extent <= MAX_METRIC_EXTENT_M:
         return points
     if MM_EXTENT_RANGE[0] <= extent <= MM_EXTENT_RANGE[1]:
-        print(f"note: {source}: extent {extent:.0f} units looks like millimetres; "
-              "converted to metres", file=sys.stderr)
+        LOG.warning(f"note: {source}: extent {extent:.0f} units looks like millimetres; "
+                    "converted to metres")
         return points * 1e-3
     raise InputError(source, f"extent {extent:.3g} units fits neither metres (<= "
                      f"{MAX_METRIC_EXTENT_M:g}) nor millimetres ({MM_EXTENT_RANGE[0]:g}-"

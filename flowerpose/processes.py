@@ -49,11 +49,14 @@ _PR_SET_PDEATHSIG = 1
 def quiet_worker() -> None:
     """A worker initializer: Ctrl-C (which the terminal sends to every process of the
     group) is left to the command, which stops its workers itself, so none prints a
-    traceback; SIGTERM ends the worker quietly; and the worker dies with the command
-    (`die_with_parent`)."""
+    traceback; SIGTERM ends the worker quietly; the worker dies with the command
+    (`die_with_parent`); and it says as much as the command (`log.configure_worker`)."""
+    from flowerpose.log import configure_worker
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _set_sigterm(signal.SIG_DFL)
     die_with_parent()
+    configure_worker()
 
 
 def die_with_parent() -> None:

@@ -15,7 +15,6 @@ as a position and a unit quaternion (w, x, y, z).
 from __future__ import annotations
 
 import csv
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
+from flowerpose.log import LOG
 
 TRAJECTORY_COLUMNS = ("frame", "t", "x", "y", "z", "yaw", "pitch",
                       "cam_x", "cam_y", "cam_z", "qw", "qx", "qy", "qz")
@@ -128,8 +128,7 @@ def read_trajectory(path: Path) -> Trajectory:
     if len(lines) > 1 and not lines[-1].endswith("\n"):
         # Rows are written whole, newline last: a last line without one was cut off by an
         # interruption and may hold a value cut short. The next recording drops it too.
-        print(f"note: {path}: the last row, cut off by an interruption, is ignored",
-              file=sys.stderr)
+        LOG.warning(f"note: {path}: the last row, cut off by an interruption, is ignored")
         lines = lines[:-1]
     reader = csv.reader(lines)
     header = next(reader, None)
@@ -191,8 +190,8 @@ def _without_repeats(path: Path, table: np.ndarray,
                          "table is damaged; record the scan again into a new folder")
     keep = np.zeros(len(frame), bool)
     keep[first] = True
-    print(f"note: {path}: {len(frame) - len(first)} repeated rows (a batch written twice by "
-          "an interruption) ignored", file=sys.stderr)
+    LOG.warning(f"note: {path}: {len(frame) - len(first)} repeated rows (a batch written "
+                "twice by an interruption) ignored")
     return table[keep], frame[keep]
 
 

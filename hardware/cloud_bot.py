@@ -35,7 +35,6 @@ import json
 import math
 import os
 import stat
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -75,6 +74,7 @@ from flowerpose.hardware.geometry import (
 )
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import MotionProfile, move_duration, move_trajectory
+from flowerpose.log import LOG
 
 DEFAULT_SERVER = "https://my.farm.bot"
 ENV_TOKEN, ENV_EMAIL, ENV_PASSWORD, ENV_SERVER = ("FARMBOT_TOKEN", "FARMBOT_EMAIL",
@@ -293,9 +293,9 @@ def _connect_broker(self) -> None:
                               f"not verify ({err.verify_message})") from None
     except (OSError, ssl.SSLError, ValueError) as err:
         if host not in _PLAIN_BROKERS:
-            print(f"warning: MQTT broker {host}: no TLS on port {MQTT_TLS_PORT} "
-                  f"({type(err).__name__}); connecting in the clear on {MQTT_PLAIN_PORT}, so "
-                  "the token crosses the network unencrypted", file=sys.stderr, flush=True)
+            LOG.warning(f"warning: MQTT broker {host}: no TLS on port {MQTT_TLS_PORT} "
+                        f"({type(err).__name__}); connecting in the clear on "
+                        f"{MQTT_PLAIN_PORT}, so the token crosses the network unencrypted")
         _PLAIN_BROKERS.add(host)
         self.client = client()
         self.client.connect(host, port=MQTT_PLAIN_PORT, keepalive=60)

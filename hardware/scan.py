@@ -13,7 +13,6 @@ import contextlib
 import fcntl
 import hashlib
 import os
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,6 +23,7 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot
 from flowerpose.hardware.scanpath import ScanPlan
 from flowerpose.jsonio import read_json, write_json
+from flowerpose.log import LOG
 
 
 def plan_id(plan: ScanPlan) -> str:
@@ -34,7 +34,7 @@ def plan_id(plan: ScanPlan) -> str:
 
 
 def _progress(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    LOG.info(message)
 
 
 #: Held (flock) by the one scan recording into a folder; the OS lets go when it dies.
@@ -132,6 +132,8 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
             bot.dwell(plan.config.pause_s)
             manifest["completed"] = waypoint.index + 1
             write_json(manifest_path, manifest)
+            LOG.debug(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
+                      f"({waypoint.kind}) at bot clock {bot.now():.1f} s")
             if progress and (waypoint.index + 1) % 20 == 0:
                 _progress(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
                           f"(bot clock {bot.now():.0f} s, {time.perf_counter() - wall:.1f} s)")

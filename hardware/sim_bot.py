@@ -28,7 +28,6 @@ import contextlib  # noqa: E402
 import functools  # noqa: E402
 import math
 import multiprocessing
-import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -51,6 +50,7 @@ from flowerpose.hardware.trajectory import (
     pose_at,
 )
 from flowerpose.jsonio import read_json, write_json
+from flowerpose.log import LOG
 from flowerpose.processes import quiet_worker
 from flowerpose.scanio import (
     FRAME_PATTERN,
@@ -361,9 +361,8 @@ class _FrameWriter:
             self._next_row = task.index + 1
             self._count += 1
             if self._count % 100 == 0:
-                print(f"scan: rendered {self._count} frames "
-                      f"({time.perf_counter() - self._started:.0f} s)", file=sys.stderr,
-                      flush=True)
+                LOG.info(f"scan: rendered {self._count} frames "
+                         f"({time.perf_counter() - self._started:.0f} s)")
         if visibility is not None:
             _merge_visibility(self.scan_dir / "visibility.json", [visibility.result()])
         return len(tasks)

@@ -32,7 +32,6 @@ import math
 import os
 import queue
 import shutil
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -48,6 +47,7 @@ from flowerpose.hardware.bot import Frame, Recording
 from flowerpose.hardware.errors import CameraError
 from flowerpose.hardware.frame_keeper import FrameKeeper
 from flowerpose.hardware.trajectory import RecordingCamera, last_recorded
+from flowerpose.log import LOG
 from flowerpose.scanio import FRAME_PATTERN, Intrinsics, open_rows, read_intrinsics
 
 _MANUAL_EXPOSURE = 1.0
@@ -162,7 +162,7 @@ def open_v4l2(device: str) -> Any:
 
 
 def _warn(device: str, message: str) -> None:
-    print(f"warning: camera {device}: {message}", file=sys.stderr, flush=True)
+    LOG.warning(f"warning: camera {device}: {message}")
 
 
 def estimated_intrinsics(width: int, height: int, hfov_deg: float, fps: float) -> Intrinsics:

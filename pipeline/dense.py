@@ -39,7 +39,6 @@ Poses are camera-to-bed (4, 4) matrices in metres with OpenCV camera axes.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -53,6 +52,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
+from flowerpose.log import LOG
 from flowerpose.pipeline.frames import ChosenFrame, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
@@ -759,8 +759,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
 
     def say(message: str) -> None:
         if progress:
-            print(f"dense: {message} ({time.perf_counter() - start:.1f} s)", file=sys.stderr,
-                  flush=True)
+            LOG.info(f"dense: {message} ({time.perf_counter() - start:.1f} s)")
 
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():

@@ -17,6 +17,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
+from flowerpose.log import LOG
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
@@ -148,6 +149,8 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
             continue
         flowers.append(Flower(len(flowers), pose, box, original[crop]))
     timer.lap("pose")
+    LOG.debug(f"detect: {len(candidates)} candidate points, {len(clusters)} clusters, typical "
+              f"flower radius {flower_radius}, {len(flowers)} flowers")
     return flowers
 
 

@@ -9,7 +9,6 @@ scan fits.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from flowerpose.atomic import write_bytes, write_image
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, write_json
+from flowerpose.log import LOG, eta
 from flowerpose.outputs import OutputFolder, check_output
 from flowerpose.scanio import (
     FRAME_PATTERN,
@@ -198,17 +198,15 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         if b not in best or scored[0] > best[b][0]:
             best[b] = (*scored, row, image)
         if progress and seen % 500 == 0:
-            print(f"frames: scored {seen}/{total} ({time.perf_counter() - start:.1f} s)",
-                  file=sys.stderr, flush=True)
+            LOG.info(f"frames: scored {seen}/{total} {eta(start, seen, total)}")
 
     if sources:
         # Recorded images: score them on every core (decoding releases the GIL) and copy the
         # winners' files as they are, so no image needs keeping.
         indices = [i for i in sorted(sources) if i in row_of]
         if len(indices) < len(sources):
-            print(f"note: {scan_dir}: {len(sources) - len(indices)} recorded frames have no "
-                  "trajectory.csv row (their poses are unknown) and are left out",
-                  file=sys.stderr)
+            LOG.warning(f"note: {scan_dir}: {len(sources) - len(indices)} recorded frames have "
+                        "no trajectory.csv row (their poses are unknown) and are left out")
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             scores = pool.map(lambda i: _score_file(sources[i], config, intrinsics), indices)
             damaged = []
@@ -218,9 +216,9 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
                 else:
                     keep(seen, index, scored, None)
         if damaged:
-            print(f"note: {scan_dir}: {len(damaged)} damaged frames (empty or cut off: "
-                  f"{', '.join(damaged[:3])}{', ...' if len(damaged) > 3 else ''}) left out",
-                  file=sys.stderr)
+            LOG.warning(f"note: {scan_dir}: {len(damaged)} damaged frames (empty or cut off: "
+                        f"{', '.join(damaged[:3])}{', ...' if len(damaged) > 3 else ''}) "
+                        "left out")
     else:
         seen = 0
         for index, image in iter_frames(scan_dir):

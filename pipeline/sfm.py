@@ -26,7 +26,6 @@ import contextlib
 import dataclasses
 import os
 import shutil
-import sys
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -41,6 +40,7 @@ from flowerpose.atomic import write_text
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
+from flowerpose.log import LOG
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
 from flowerpose.pipeline.frames import ChosenFrame, read_frames
 from flowerpose.processes import reclaim_sigterm
@@ -143,7 +143,7 @@ class SparseResult:
 
 
 def _progress(message: str) -> None:
-    print(f"sfm: {message}", file=sys.stderr, flush=True)
+    LOG.info(f"sfm: {message}")
 
 
 @contextlib.contextmanager

@@ -1,6 +1,7 @@
 """The command line: each job end to end on a small plant, and every error path."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -72,10 +73,20 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
 
 def test_eval_writes_the_report_contract(tmp_path, capsys):
     out = tmp_path / "eval"
-    code, text, _ = _run(capsys, "eval", "--source", "oracle", "--plants", 1, "--seed", 1,
-                         "--workers", 1,
-                         "--out", out, "--set", "cluster.eps=0.01")
+    code, text, err = _run(capsys, "eval", "--source", "oracle", "--plants", 1, "--seed", 1,
+                           "--workers", 1,
+                           "--out", out, "--set", "cluster.eps=0.01")
     assert code == 0
+    # Progress: a line per plant with the time it took (the last: nothing left).
+    assert re.search(r"^\[1/1\] seed-1: .* \(\d+ s\)$", err, re.MULTILINE), err
+    code, quiet_text, quiet_err = _run(capsys, "eval", "-q", "--source", "oracle", "--plants",
+                                       1, "--seed", 1, "--workers", 1, "--out", out,
+                                       "--set", "cluster.eps=0.01")
+    def without_times(printed):
+        return [line for line in printed.splitlines() if "wall time" not in line]
+
+    assert code == 0 and quiet_err == ""  # -q: the result alone
+    assert without_times(quiet_text) == without_times(text)
     assert "Superellipsoid" in text and "Total" in text and "Std Dev" in text
     report = json.loads((out / "report.json").read_text())
     assert set(report) >= {"config", "plants", "summary", "timing_s"}

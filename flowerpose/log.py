@@ -1,0 +1,117 @@
+"""What flowerpose says on stderr besides its errors: progress, notes and warnings, through
+one logger, and progress bars with the time left.
+
+The result of a command goes to stdout (tables, paths, JSON); everything said along the
+way goes to the `flowerpose` logger, at INFO for progress and WARNING for notes and
+warnings. `configure` (the command line's `-q` / `-v`) sets what is shown, for the command
+and for the worker processes it starts. `Tally` counts the parts of a long job (an eval's
+plants): a line per part with the time left (`eta`), under a tqdm bar on a terminal,
+nothing with `-q`. Errors are not logged: the command line prints them as one line whatever the
+verbosity. Used as a library without `configure`, only warnings show.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+
+LOG = logging.getLogger("flowerpose")
+
+#: How `configure` hands its verbosity to spawned worker processes.
+VERBOSITY_ENV = "FLOWERPOSE_VERBOSITY"
+
+_LEVELS = {-1: logging.WARNING, 0: logging.INFO, 1: logging.DEBUG}
+
+class _CurrentStderr(logging.StreamHandler):
+    """A handler writing to whatever sys.stderr is when a record comes (a test, or tqdm,
+    may have replaced it since)."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def configure(verbosity: int = 0) -> None:
+    """Show warnings only (-1, `-q`), progress too (0, the default) or debugging detail (1,
+    `-v`), here and in the worker processes started from now on."""
+    verbosity = max(-1, min(1, int(verbosity)))
+    LOG.setLevel(_LEVELS[verbosity])
+    os.environ[VERBOSITY_ENV] = str(verbosity)
+
+
+def _install() -> None:
+    """flowerpose's own stderr handler, warnings only until `configure`: notes reach the
+    user whatever handlers the application gave the root logger."""
+    if not any(isinstance(h, _CurrentStderr) for h in LOG.handlers):
+        handler = _CurrentStderr()
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        LOG.addHandler(handler)
+    LOG.setLevel(logging.WARNING)
+    LOG.propagate = False
+
+
+def configure_worker() -> None:
+    """In a worker process: the verbosity its command was given (`configure`)."""
+    if VERBOSITY_ENV in os.environ:
+        configure(int(os.environ[VERBOSITY_ENV]))
+
+
+def eta(start: float, done: int, total: int) -> str:
+    """"(12 s, about 30 s left)": the time since `start` (perf_counter) and, at the rate so
+    far, the time the rest of `total` will take."""
+    elapsed = time.perf_counter() - start
+    left = elapsed / done * (total - done) if done else float("nan")
+    return f"({_duration(elapsed)}" + (f", about {_duration(left)} left)" if done < total
+                                       else ")")
+
+
+def _duration(seconds: float) -> str:
+    if seconds != seconds:  # NaN: nothing done yet
+        return "?"
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    minutes, seconds = divmod(round(seconds), 60)
+    return f"{minutes} min {seconds:02d} s" if minutes < 60 else \
+        f"{minutes // 60} h {minutes % 60:02d} min"
+
+
+class Tally:
+    """Finished parts of a job that ends in `total` of them (plants of an eval, settings of
+    a sweep), each said in one line with the time left, under a bar on a terminal."""
+
+    def __init__(self, total: int, what: str = ""):
+        self.total, self.done, self.start = total, 0, time.perf_counter()
+        self._bar = None
+        if total and LOG.isEnabledFor(logging.INFO) and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=what, leave=False, dynamic_ncols=True)
+
+    def __enter__(self) -> Tally:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+    def finished(self, message: str) -> None:
+        """One more part is done: `message` says what came of it."""
+        self.done += 1
+        line = f"[{self.done}/{self.total}] {message} {eta(self.start, self.done, self.total)}"
+        if self._bar is not None:
+            self._bar.write(line, file=sys.stderr)
+            self._bar.update(1)
+        else:
+            LOG.info(line)
+
+
+_install()
