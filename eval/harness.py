@@ -22,6 +22,7 @@ from typing import Any
 from flowerpose.cloudio import read_cloud
 from flowerpose.config import require, to_dict
 from flowerpose.errors import InputError
+from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.report import (
     build_report,
@@ -246,7 +247,27 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     timing["total"] = round(time.perf_counter() - start, 4)
     report = build_report(run_config, entries, timing, extra)
     write_report(out_dir, report, title)
+    write_html_report(out_dir / "report.html", title, report, _plant_views(jobs, config, out_dir))
     return report
+
+
+def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path) -> list[PlantView]:
+    """Each scored plant's cloud, flowers and truth (as it was scored) for report.html."""
+    views = []
+    for kind, name, *inputs in jobs:
+        if kind == "real":
+            from flowerpose.eval.real_source import plant_cloud, real_truth
+
+            plant = inputs[0]
+            cloud, truth, flowers = plant_cloud(plant), real_truth(plant), out_dir / name
+        else:
+            cloud_path, truth_path = inputs
+            cloud, truth = read_cloud(cloud_path), read_plant_truth(truth_path)
+            if config.score.label_error_deg > 0:
+                truth = as_labelled(truth, config.score.label_error_deg, name)
+            flowers = out_dir / "plants" / name
+        views.append(PlantView(name, cloud, read_flowers(flowers / "flowers.json"), truth))
+    return views
 
 
 def _score_jobs(jobs: list[tuple], config: EvalConfig, out_dir: Path,

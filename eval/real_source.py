@@ -177,6 +177,18 @@ def _check_scale(plant: RealPlant, truth: list[TruthFlower], points: np.ndarray,
                          "or truth_scale in source.json)")
 
 
+def plant_cloud(plant: RealPlant) -> Cloud:
+    """The folder's points as one cloud: cloud.ply, the candidates merged, or the crops
+    together."""
+    if plant.stage == "cloud":
+        return read_cloud(plant.clouds[0], units=plant.units)
+    if plant.stage == "candidates":
+        return merged_candidates(plant.clouds, plant.units)
+    crops = [read_cloud(p, units=plant.units) for p in plant.clouds]
+    return Cloud(np.concatenate([c.points for c in crops]),
+                 np.concatenate([c.colors for c in crops]))
+
+
 def merged_candidates(paths: tuple[Path, ...], units: Units) -> Cloud:
     """The candidate files as one cloud (a point several views took is there several
     times; the candidates stage counts it once)."""

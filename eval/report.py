@@ -122,7 +122,15 @@ def aligned_table(header: list[str], rows: list[list[str]],
 
 
 def table(report: dict) -> str:
-    """The paper's Table I for a report: per plant, then total, mean, median, std."""
+    """The paper's Table I for a report (Markdown): per plant, then total, mean, median,
+    std."""
+    header, rows, rule = table_rows(report)
+    return aligned_table(header, rows, rules_before=[rule])
+
+
+def table_rows(report: dict) -> tuple[list[str], list[list[str]], int]:
+    """Table I's header, rows and the index of the first summary row (Markdown and HTML
+    reports print the same cells)."""
     header = ["Plant", "GT", "Visible", "Found (%)", "Extra", "FP",
               "Superellipsoid", "Paraboloid", "Plane"]
     rows = []
@@ -138,7 +146,7 @@ def table(report: dict) -> str:
     for stat, label in (("mean", "Mean"), ("median", "Median"), ("std", "Std Dev")):
         rows.append([label, "-", "-", "-", "-", "-"]
                     + [_deg(s["error_deg"][m][stat]) for m in TABLE_METHODS])
-    return aligned_table(header, rows, rules_before=[len(rows) - 4])
+    return header, rows, len(rows) - 4
 
 
 def _plane_errors(plants: list[dict]) -> dict[tuple[str, Any], float]:
@@ -152,6 +160,11 @@ def comparison_table(report: dict, name: str = "default") -> str:
     """This run's configuration beside each compared one (report["compare"]) on the same
     plants: found, false positives, the error means, and the plane error over the flowers
     every row found (paired, so a profile that finds fewer, easier flowers gains nothing)."""
+    return aligned_table(*comparison_rows(report, name))
+
+
+def comparison_rows(report: dict, name: str = "default") -> tuple[list[str], list[list[str]]]:
+    """`comparison_table`'s header and rows."""
     rows = [(name, report["summary"], report["plants"])]
     rows += [(other, c["summary"], c["plants"]) for other, c in report.get("compare", {}).items()]
     errors_by_row = [_plane_errors(plants) for _, _, plants in rows]
@@ -167,7 +180,7 @@ def comparison_table(report: dict, name: str = "default") -> str:
                       _deg(errors["plane"]["mean"]), _deg(errors["plane"]["median"]),
                       _deg(errors["superellipsoid"]["mean"]), _deg(errors["paraboloid"]["mean"]),
                       paired])
-    return aligned_table(header, lines)
+    return header, lines
 
 
 def summary_lines(report: dict) -> list[str]:

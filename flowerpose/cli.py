@@ -112,6 +112,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         PipelineConfig,
         find_flowers,
         find_flowers_in_candidates,
+        read_flowers,
         write_flowers,
         write_normals_ply,
     )
@@ -119,7 +120,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
     config = _configure(PipelineConfig(), args)
     out: Path = args.out
-    writes = ("flowers.json", "flowers.ply", "normals.ply", "config.json", "views", "crops")
+    writes = ("flowers.json", "flowers.ply", "normals.ply", "config.json", "views", "crops",
+              "report.html")
     check_output(out, "detect", args.overwrite, writes)
     cloud = read_cloud(args.cloud, units=args.units)
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
@@ -133,6 +135,12 @@ def cmd_detect(args: argparse.Namespace) -> int:
         output.record(*write_views(out / "views", result.projections, result.detections))
     output.record(*(write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply",
                                 cloud.subset(flower.crop)) for flower in result.flowers))
+    from flowerpose.eval.html_report import PlantView, write_html_report
+
+    output.record(write_html_report(
+        out / "report.html", f"flowerpose detect: {args.cloud.name}", None,
+        [PlantView(args.cloud.stem, cloud, read_flowers(out / "flowers.json"),
+                   views_png=out / "views" / "views.png" if result.projections else None)]))
     output.finish()
     found = sum(f.pose.normals["plane"] is not None for f in result.flowers)
     views = f", {out / 'views' / 'views.png'}" if result.projections else ""

@@ -1,0 +1,232 @@
+"""report.html: one self-contained page to look at a run (an eval, or a detection).
+
+Table I, the per-flower table, the error histograms and, per plant, an interactive 3D view
+of the cloud (subsampled) with each flower's estimated normal (red) and true normal
+(green) drawn from its centre and its id beside it, and the grid views with their numbered
+detections. The figures are plotly's (the standard for interactive figures from Python);
+its JavaScript is embedded once in the page, so it opens from disk with no server and no
+network.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flowerpose.atomic import write_text
+from flowerpose.cloudio import Cloud
+from flowerpose.eval.report import (
+    METHODS,
+    TABLE_LEGEND,
+    comparison_rows,
+    summary_lines,
+    table_rows,
+)
+from flowerpose.eval.truth import TruthFlower
+
+#: Most cloud points a plant's 3D view draws (a seeded subsample above it).
+MAX_VIEW_POINTS = 12000
+ESTIMATE_COLOUR, TRUTH_COLOUR = "rgb(220,30,30)", "rgb(20,160,60)"
+
+
+@dataclass
+class PlantView:
+    """What a plant's section shows: its cloud, the flowers found (flowers.json entries, as
+    `read_flowers` gives them) and, for a scored run, the truth."""
+
+    name: str
+    cloud: Cloud
+    flowers: list[dict]
+    truth: list[TruthFlower] | None = None
+    views_png: Path | None = None
+    """The grid views with their detections (`views/views.png`), when the run made them."""
+
+
+def write_html_report(path: Path, title: str, report: dict | None,
+                      plants: list[PlantView]) -> Path:
+    """Write report.html: `report` is report.json's content (None for a detection, which
+    has no scores)."""
+    parts = [f"<h1>{_e(title)}</h1>"]
+    if report is not None:
+        parts += _scores(report)
+    for plant in plants:
+        parts.append(f"<h2>{_e(plant.name)}</h2>")
+        parts.append(_flower_table(plant, report))
+        parts.append(_figure_html(_view_3d(plant), f"view-{plant.name}"))
+        if plant.views_png is not None and plant.views_png.is_file():
+            encoded = base64.b64encode(plant.views_png.read_bytes()).decode("ascii")
+            parts.append(f'<p>Grid views with the numbered detections</p><img class="views" '
+                         f'src="data:image/png;base64,{encoded}" alt="grid views">')
+    if report is not None:
+        parts.append("<h2>Configuration</h2><details><summary>settings of this run</summary>"
+                     f"<pre>{_e(json.dumps(report.get('config', {}), indent=1))}</pre>"
+                     "</details>")
+    from plotly.offline import get_plotlyjs
+
+    return write_text(path, _PAGE.format(title=_e(title), plotly=get_plotlyjs(),
+                                         body="\n".join(parts)))
+
+
+def _scores(report: dict) -> list[str]:
+    run = report.get("run", {})
+    parts = [f'<p class="run">flowerpose {_e(run.get("flowerpose", ""))}'
+             + (f', commit {_e(run["commit"])}' if run.get("commit") else "")
+             + f', {_e(run.get("date", ""))}: <code>{_e(run.get("command", ""))}</code></p>']
+    header, rows, rule = table_rows(report)
+    parts += ["<h2>Table I</h2>", _table(header, rows, "table-1", rule_before=rule),
+              f'<p class="legend">{_e(TABLE_LEGEND)}</p>',
+              "<ul>" + "".join(f"<li>{_e(line)}</li>" for line in summary_lines(report))
+              + "</ul>"]
+    if report.get("compare"):
+        parts += ["<h2>Compared on the same plants</h2>",
+                  _table(*comparison_rows(report), "compare")]
+    errors = {m: [e for p in report["plants"] for e in p["error_deg"][m]] for m in METHODS}
+    if any(errors.values()):
+        parts.append(_figure_html(_histograms(errors), "histograms"))
+    if report.get("reconstruction"):
+        parts += ["<h2>Reconstruction</h2>", _reconstruction_table(report["reconstruction"])]
+    return parts
+
+
+def _flower_table(plant: PlantView, report: dict | None) -> str:
+    """Per flower: detection id, and for a scored run its truth id, centre distance and
+    error per method; its points and petal points."""
+    if report is None:
+        return _table(["Detection", "Plane normal", "Points", "Petal points"],
+                      [[str(f.get("id", k)), _vector(f["normals"].get("plane")),
+                        str(f.get("points", "")), str(f.get("petal_points", ""))]
+                       for k, f in enumerate(plant.flowers)], f"flowers-{plant.name}")
+    entry = next((p for p in report.get("plants", []) if p["plant"] == plant.name), None)
+    matches = {m["detection"]: m for m in (entry or {}).get("matches", [])}
+    rows = []
+    for k, flower in enumerate(plant.flowers):
+        match = matches.get(flower.get("id", k))
+        rows.append([
+            str(flower.get("id", k)), "-" if match is None else str(match["truth"]),
+            "-" if match is None else f"{1000 * match['distance_m']:.1f}",
+            *("-" if match is None or match["error_deg"].get(m) is None
+              else f"{match['error_deg'][m]:.1f}°" for m in METHODS),
+            str(flower.get("points", "")), str(flower.get("petal_points", ""))])
+    header = ["Detection", "Truth", "Distance (mm)", *(m.capitalize() for m in METHODS),
+              "Points", "Petal points"]
+    return _table(header, rows, f"flowers-{plant.name}")
+
+
+def _vector(value) -> str:
+    return "-" if value is None else "(" + ", ".join(f"{v:.3f}" for v in value) + ")"
+
+
+def _view_3d(plant: PlantView):
+    import plotly.graph_objects as go
+
+    points, colours = plant.cloud.points, plant.cloud.colors
+    if len(points) > MAX_VIEW_POINTS:
+        keep = np.random.default_rng(0).choice(len(points), MAX_VIEW_POINTS, replace=False)
+        points, colours = points[keep], colours[keep]
+    traces = [go.Scatter3d(x=points[:, 0], y=points[:, 1], z=points[:, 2], mode="markers",
+                           name="cloud", hoverinfo="skip",
+                           marker={"size": 1.5, "color": [f"rgb({r},{g},{b})"
+                                                          for r, g, b in colours]})]
+    starts, ends, labels = [], [], []
+    for k, flower in enumerate(plant.flowers):
+        normal = flower["normals"].get("plane")
+        if normal is None:
+            continue
+        length = max(flower.get("box", {}).get("extent", [0.03]))
+        centre = np.asarray(flower["center"], float)
+        starts.append(centre)
+        ends.append(centre + length * np.asarray(normal, float))
+        labels.append(str(flower.get("id", k)))
+    traces += _arrows(starts, ends, ESTIMATE_COLOUR, "estimated normal (plane)", labels)
+    if plant.truth:
+        length = float(np.median([max(f.get("box", {}).get("extent", [0.03]))
+                                  for f in plant.flowers])) if plant.flowers else 0.03
+        visible = [t for t in plant.truth if t.visible]
+        traces += _arrows([t.center for t in visible],
+                          [t.center + length * t.normal for t in visible], TRUTH_COLOUR,
+                          "true normal", [str(t.id) for t in visible])
+    figure = go.Figure(traces)
+    figure.update_layout(height=640, margin={"l": 0, "r": 0, "t": 30, "b": 0},
+                         scene={"aspectmode": "data"}, legend={"x": 0, "y": 1},
+                         title=f"{plant.name}: cloud and estimated normals (red)"
+                         + (", true normals (green)" if plant.truth else ""))
+    return figure
+
+
+def _arrows(starts, ends, colour: str, name: str, labels: list[str]) -> list:
+    """One line trace for all the segments, and their labels at the tips."""
+    import plotly.graph_objects as go
+
+    if not starts:
+        return []
+    xyz: list[list[float | None]] = [[], [], []]
+    for start, end in zip(starts, ends, strict=True):
+        for axis in range(3):
+            xyz[axis] += [float(start[axis]), float(end[axis]), None]
+    tips = np.asarray(ends, float)
+    return [go.Scatter3d(x=xyz[0], y=xyz[1], z=xyz[2], mode="lines", name=name,
+                         line={"color": colour, "width": 6}, hoverinfo="skip"),
+            go.Scatter3d(x=tips[:, 0], y=tips[:, 1], z=tips[:, 2], mode="text", text=labels,
+                         textfont={"color": colour}, showlegend=False, hoverinfo="text")]
+
+
+def _histograms(errors: dict[str, list[float]]):
+    import plotly.graph_objects as go
+
+    figure = go.Figure([go.Histogram(x=values, name=method, opacity=0.6,
+                                     xbins={"start": 0, "size": 1})
+                        for method, values in errors.items() if values])
+    figure.update_layout(barmode="overlay", height=320, title="Normal errors (degrees)",
+                         xaxis_title="error (degrees)", yaxis_title="flowers",
+                         margin={"l": 40, "r": 10, "t": 40, "b": 40})
+    return figure
+
+
+def _reconstruction_table(reconstruction: dict) -> str:
+    rows = [[plant, key, json.dumps(value) if isinstance(value, dict | list) else str(value)]
+            for plant, metrics in reconstruction.items()
+            for key, value in (metrics.items() if isinstance(metrics, dict) else [])]
+    return _table(["Plant", "Metric", "Value"], rows, "reconstruction")
+
+
+def _figure_html(figure, div_id: str) -> str:
+    """The figure's div and script; plotly's JavaScript is in the page's head, once."""
+    import plotly.io as pio
+
+    return pio.to_html(figure, include_plotlyjs=False, full_html=False, div_id=div_id,
+                       config={"displaylogo": False})
+
+
+def _table(header: list[str], rows: list[list[str]], table_id: str,
+           rule_before: int | None = None) -> str:
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join(
+        f'<tr{" class=rule" if k == rule_before else ""}>'
+        + "".join(f"<td>{_e(c)}</td>" for c in row) + "</tr>" for k, row in enumerate(rows))
+    return f'<table id="{_e(table_id)}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _e(text: object) -> str:
+    return html.escape(str(text))
+
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<script type="text/javascript">{plotly}</script>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em; max-width: 1200px; }}
+table {{ border-collapse: collapse; margin: 0.5em 0 1em; }}
+th, td {{ border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: right; }}
+th {{ background: #eee; }} td:first-child {{ text-align: left; }}
+tr.rule td {{ border-top: 3px double #555; }}
+.legend, .run {{ color: #444; font-size: 0.9em; }}
+img.views {{ max-width: 100%; }}
+</style></head><body>
+{body}
+</body></html>
+"""
