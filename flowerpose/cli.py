@@ -11,7 +11,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from flowerpose.errors import InputError
+from flowerpose.errors import InputError, missing_extra
 from flowerpose.hardware.errors import BotError
 from flowerpose.log import LOG
 
@@ -801,6 +801,13 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, BotError) as err:
         # BotError: a fault of the bot or its link, said in one line that names the device.
         print(f"flowerpose: error: {err}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as err:
+        # An optional package of an extra the install left out: say which extra.
+        missing = missing_extra(err.name or "", f"flowerpose {args.command}")
+        if missing is None:
+            raise
+        print(f"flowerpose: error: {missing}", file=sys.stderr)
         return 2
     except BrokenPipeError:
         # The reader went away (`flowerpose ... | head`): nothing left to tell anyone.

@@ -34,3 +34,18 @@ class InputError(PicklableError):
         self.source = str(source)
         self.problem = problem
         super().__init__(f"{self.source}: {problem}")
+
+
+#: The optional packages, by the extra that installs them (pyproject.toml).
+EXTRAS = {"mujoco": "sim", "pyrender": "sim", "trimesh": "sim", "OpenGL": "sim",
+          "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot"}
+
+
+def missing_extra(module: str, needed_for: str) -> InputError | None:
+    """The one-line error for an optional package that is not installed (`module`, a
+    top-level name), or None when it is not one of flowerpose's extras."""
+    extra = EXTRAS.get(module.split(".")[0])
+    if extra is None:
+        return None
+    return InputError(needed_for, f"needs the [{extra}] extra ({module} is not installed): "
+                      f"pip install 'flowerpose[{extra}]'")

@@ -17,7 +17,10 @@ import shutil
 import time
 from pathlib import Path
 
-import pycolmap
+try:
+    import pycolmap
+except ImportError:  # the [recon] extra is not installed: the settings still load
+    pycolmap = None
 
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
@@ -29,7 +32,7 @@ reclaim_sigterm()
 
 def cuda_available() -> bool:
     """Whether this pycolmap can run PatchMatch stereo (built with CUDA)."""
-    return bool(pycolmap.has_cuda)
+    return pycolmap is not None and bool(pycolmap.has_cuda)
 
 
 def reconstruct_patch_match(frames_dir: Path, sparse_dir: Path, work_dir: Path,

@@ -34,11 +34,15 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import pycolmap
+
+try:
+    import pycolmap
+except ImportError:  # the [recon] extra is not installed: the settings still load
+    pycolmap = None
 
 from flowerpose.atomic import write_text
 from flowerpose.cloudio import Cloud, write_cloud
-from flowerpose.errors import InputError
+from flowerpose.errors import InputError, missing_extra
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
@@ -590,6 +594,8 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     fewer than config.min_registered images, or fewer than config.min_registered_fraction
     of them, register.
     """
+    if pycolmap is None:
+        raise missing_extra("pycolmap", "flowerpose reconstruct")
     config = config or SfmConfig()
     frames_dir, work_dir = Path(frames_dir), Path(work_dir)
     if not frames_dir.is_dir():

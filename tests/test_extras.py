@@ -1,0 +1,39 @@
+"""The core install: the pipeline runs without the simulator, photogrammetry or the bot's
+packages, and a command that needs one of those extras says which, in one line."""
+
+import subprocess
+import sys
+
+import numpy as np
+
+from flowerpose.cloudio import Cloud, write_cloud
+from flowerpose.errors import EXTRAS
+
+BLOCK = "import sys\n" + "".join(f"sys.modules[{m!r}] = None\n" for m in EXTRAS) + (
+    "from flowerpose.cli import main\nsys.exit(main(sys.argv[1:]))\n")
+
+
+def _core(*args):
+    """flowerpose as a core install runs it: every optional package unimportable."""
+    return subprocess.run([sys.executable, "-c", BLOCK, *map(str, args)], capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_detect_runs_on_the_core_install_and_the_extras_are_named(tmp_path):
+    rng = np.random.default_rng(0)
+    leaves = Cloud(rng.random((2000, 3)) * [0.3, 0.3, 0.2],
+                   np.tile([50, 120, 40], (2000, 1)).astype(np.uint8))
+    cloud = write_cloud(tmp_path / "leaves.ply", leaves)
+    done = _core("detect", cloud, "--out", tmp_path / "det")
+    assert done.returncode == 0 and (tmp_path / "det" / "flowers.json").exists(), done.stderr
+    for args, extra in ((["plant", "--seed", "1", "--out", tmp_path / "p"], "sim"),
+                        (["farmduino", "--virtual"], "bot")):
+        done = _core(*args)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+        assert done.stderr.strip().endswith(f"pip install 'flowerpose[{extra}]'")
+        assert done.stderr.count("\n") == 1
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "camera.json").write_text("{}")
+    done = _core("reconstruct", frames, "--out", tmp_path / "rec")
+    assert done.returncode == 2 and "[recon] extra (pycolmap" in done.stderr, done.stderr
