@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from flowerpose.errors import InputError, missing_extra
-from flowerpose.hardware.errors import BotError
+from flowerpose.hardware.bot_errors import BotError
 from flowerpose.log import LOG
 
 #: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
@@ -276,7 +276,7 @@ def _scan_field(args: argparse.Namespace) -> int:
 
     from flowerpose.hardware.geometry import PAPER_BOT
     from flowerpose.hardware.scan import run_scan
-    from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+    from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
     from flowerpose.scanio import frame_files
 
     if args.plant_at is None:

@@ -17,7 +17,7 @@ Blocking: `move_to`, `home` and `set_head` return when the motion has finished (
 arrived; the head had its settle time, as servos give no feedback) or raise; nothing is
 queued. After a failure the gantry stays where it stopped: `position()` tells where.
 
-Errors (flowerpose.hardware.errors):
+Errors (flowerpose.hardware.bot_errors):
 - `OutOfRangeError` (an InputError, the user's to fix) before anything moves: a target
   outside the travel limits, a head angle outside its limits, a speed fraction outside
   (0, 1], an unknown axis.
@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.errors import (
+from flowerpose.hardware.bot_errors import (
     BotError,
     CameraError,
     EmergencyStopError,

@@ -88,7 +88,7 @@ from flowerpose.hardware.bot import (
     check_head,
     check_target,
 )
-from flowerpose.hardware.errors import (
+from flowerpose.hardware.bot_errors import (
     BotError,
     CameraError,
     CommandTimeoutError,

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.errors import OutOfRangeError
+from flowerpose.hardware.bot_errors import OutOfRangeError
 
 # Firmware parameter ids per settings set: (steps/mm, max speed, min speed, ramp, timeout).
 # "z_home" is Z moving toward home (up): its own speeds and ramp, Z's steps/mm and timeout.

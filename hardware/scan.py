@@ -21,7 +21,7 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot
-from flowerpose.hardware.scanpath import ScanPlan
+from flowerpose.hardware.scan_plan import ScanPlan
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG
 

@@ -39,10 +39,10 @@ import numpy as np
 from flowerpose.atomic import write_bytes, write_file
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicBot, Recording
-from flowerpose.hardware.errors import CameraError
+from flowerpose.hardware.bot_errors import CameraError
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
-from flowerpose.hardware.scanpath import ScanConfig, ScanPlan, plan_scan
+from flowerpose.hardware.scan_plan import ScanConfig, ScanPlan, plan_scan
 from flowerpose.hardware.trajectory import (
     SERVO_SPEED_RAD_S,
     head_turn_time,

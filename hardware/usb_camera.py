@@ -44,7 +44,7 @@ import numpy as np
 from flowerpose.atomic import write_bytes
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Frame, Recording
-from flowerpose.hardware.errors import CameraError
+from flowerpose.hardware.bot_errors import CameraError
 from flowerpose.hardware.frame_keeper import FrameKeeper
 from flowerpose.hardware.trajectory import RecordingCamera, last_recorded
 from flowerpose.log import LOG

@@ -5,7 +5,7 @@ import pickle
 import pytest
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.errors import (
+from flowerpose.hardware.bot_errors import (
     CommandTimeoutError,
     ConnectionLostError,
     StallError,

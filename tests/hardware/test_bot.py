@@ -13,7 +13,7 @@ import pytest
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot, KinematicBot, SolidCamera
-from flowerpose.hardware.errors import (
+from flowerpose.hardware.bot_errors import (
     AbortedError,
     BotError,
     CalibrationError,

@@ -22,13 +22,7 @@ from cloud_fakes import (
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import SolidCamera
-from flowerpose.hardware.cloud_bot import (
-    CloudCommandError,
-    CloudCredentials,
-    FarmbotCloudBot,
-    parse_token,
-)
-from flowerpose.hardware.errors import (
+from flowerpose.hardware.bot_errors import (
     BotError,
     CommandTimeoutError,
     ConnectionLostError,
@@ -37,11 +31,17 @@ from flowerpose.hardware.errors import (
     MoveTimeoutError,
     StallError,
 )
+from flowerpose.hardware.cloud_bot import (
+    CloudCommandError,
+    CloudCredentials,
+    FarmbotCloudBot,
+    parse_token,
+)
 from flowerpose.hardware.geometry import bed_to_farmbot_mm, farmbot_mm_to_bed
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import move_duration
 from flowerpose.hardware.scan import run_scan
-from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.scanpath import ScanPathConfig
 
 TOKEN_ENV = {"FARMBOT_TOKEN": json.dumps(make_token())}

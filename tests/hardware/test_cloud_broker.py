@@ -14,11 +14,11 @@ from farmbot_os import Broker, FarmbotOS, free_port, make_certificate, mosquitto
 
 from flowerpose.hardware import cloud_bot
 from flowerpose.hardware.bot import SolidCamera
+from flowerpose.hardware.bot_errors import ConnectionLostError
 from flowerpose.hardware.cloud_bot import CloudCredentials, CloudLinkError, FarmbotCloudBot
-from flowerpose.hardware.errors import ConnectionLostError
 from flowerpose.hardware.geometry import bed_to_farmbot_mm
 from flowerpose.hardware.scan import run_scan
-from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json
 from flowerpose.scanpath import ScanPathConfig
 

@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import quad
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.errors import OutOfRangeError
+from flowerpose.hardware.bot_errors import OutOfRangeError
 from flowerpose.hardware.motion import (
     AxisMotion,
     MotionProfile,

@@ -5,9 +5,9 @@ import pytest
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import KinematicBot, SolidCamera
-from flowerpose.hardware.errors import StallError
+from flowerpose.hardware.bot_errors import StallError
 from flowerpose.hardware.scan import run_scan
-from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json
 from flowerpose.scanpath import ScanPathConfig
 

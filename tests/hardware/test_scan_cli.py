@@ -11,7 +11,7 @@ import pytest
 from cloud_fakes import FakeCapture, FakeDevice, fake_factory, make_token
 
 from flowerpose.cli import main
-from flowerpose.hardware import cloud_bot, scanpath, usb_camera
+from flowerpose.hardware import cloud_bot, scan_plan, usb_camera
 from flowerpose.jsonio import read_json
 from flowerpose.scanio import frame_files, read_trajectory
 
@@ -97,10 +97,10 @@ def _small_field_scan(monkeypatch, tmp_path: Path, fps: float):
     monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=fps))
     monkeypatch.setattr(usb_camera, "UsbCameraConfig", functools.partial(
         usb_camera.UsbCameraConfig, settle_s=0.0))
-    small = scanpath.ScanConfig(scanpath.ScanPathConfig(
+    small = scan_plan.ScanConfig(scan_plan.ScanPathConfig(
         azimuth_step_deg=120.0, cylinder_bottom_m=0.2, cylinder_step_m=0.1,
         dome_polar_deg=(50.0,)), pause_s=0.05)
-    monkeypatch.setattr(scanpath, "ScanConfig", lambda: small)
+    monkeypatch.setattr(scan_plan, "ScanConfig", lambda: small)
     (tmp_path / "video0").write_text("")
     return tmp_path / "scan", small
 

@@ -13,7 +13,7 @@ from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
 from flowerpose.hardware.scan import run_scan
-from flowerpose.hardware.scanpath import ScanConfig, plan_scan
+from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.trajectory import (
     RecordingCamera,
     Timeline,

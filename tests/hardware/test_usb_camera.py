@@ -12,7 +12,7 @@ import pytest
 from cloud_fakes import FakeCapture
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.errors import CameraError
+from flowerpose.hardware.bot_errors import CameraError
 from flowerpose.hardware.usb_camera import (
     FrameChoice,
     UsbCamera,
