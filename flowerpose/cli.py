@@ -72,6 +72,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise InputError(args.folders[0], "plant folders are for --source real")
     if args.truth_scale is not None and args.source != "real":
         raise InputError("--truth-scale", "is for --source real")
+    from flowerpose.eval.gates import parse_requirements
+
+    requirements = parse_requirements(args.require)  # a bad gate says so before any work
+    if (args.junit or args.summary) and not requirements:
+        raise InputError("--junit" if args.junit else "--summary", "needs --require")
     config = eval_config(args.preset, lambda base: _configure(base, args))
     # A compared profile shares the run's settings (scoring, plants) but for its own keys.
     compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
@@ -88,7 +93,28 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(line)
     if compare:
         print(comparison_table(report, args.profile or "default"))
-    print(f"report: {out / 'report.json'}, {out / 'report.md'}")
+    print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'report.html'}")
+    return _gates(report, requirements, args) if requirements else 0
+
+
+def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
+    """eval's --require: the table of what failed (or that all hold), the JUnit and
+    Markdown files when asked; 1 when a requirement does not hold."""
+    from flowerpose.eval.gates import check, outcome_table, write_junit, write_summary
+
+    outcomes = check(report, requirements)
+    failed = [o for o in outcomes if not o.passed]
+    title = f"flowerpose eval --source {args.source}"
+    if args.junit:
+        write_junit(args.junit, outcomes, title)
+    if args.summary:
+        write_summary(args.summary, outcomes, title)
+    if failed:
+        print(f"\n{len(failed)} of {len(outcomes)} requirements failed:")
+        print(outcome_table(outcomes, failed_only=True))
+        return 1
+    print(f"\nall {len(outcomes)} requirements hold ({len(requirements)} on the run and on "
+          f"each of {len(report['plants'])} plants)")
     return 0
 
 
@@ -589,6 +615,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
     p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
+    p.add_argument("--require", action="append", default=[], metavar="KEY>=NUMBER",
+                   help="a CI gate on the report's summary, on the whole run and on each "
+                   "plant, e.g. 'recall_visible>=0.95' or 'error_deg.plane.mean<=3' "
+                   "(>=, <=, >, <, ==; repeatable): exit status 1 when one does not hold")
+    p.add_argument("--junit", type=Path, metavar="FILE.xml",
+                   help="with --require: write the gates as JUnit XML (a test case per plant "
+                   "and requirement)")
+    p.add_argument("--summary", type=Path, metavar="FILE.md",
+                   help="with --require: write the gates as Markdown for a CI job's summary "
+                   "page (e.g. $GITHUB_STEP_SUMMARY)")
     _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_eval)

@@ -1,0 +1,49 @@
+"""CI gates: --require on the run and each plant, exit status 1 with a table of what
+failed, JUnit XML and a Markdown summary; a bad gate is bad input (exit 2) before any work."""
+
+import xml.etree.ElementTree as ET
+
+import pytest
+from realplants import write_real_plant
+
+from flowerpose.cli import main
+from flowerpose.errors import InputError
+from flowerpose.eval.gates import parse_requirements
+
+
+def test_a_run_that_meets_its_gates_exits_0_and_one_that_misses_exits_1(tmp_path, capsys):
+    one = write_real_plant(tmp_path / "one", "crops")
+    two = write_real_plant(tmp_path / "two", "crops", labelled=3)  # its 4th flower: a FP
+    common = ["eval", "-q", "--source", "real", str(one), str(two), "--workers", "1"]
+    assert main([*common, "--out", str(tmp_path / "a"), "--require", "recall_visible>=1",
+                 "--require", "error_deg.plane.mean<=2"]) == 0
+    assert "all 6 requirements hold" in capsys.readouterr().out
+    junit, summary = tmp_path / "gates.xml", tmp_path / "gates.md"
+    code = main([*common, "--out", str(tmp_path / "b"), "--require", "fp<=0",
+                 "--require", "found>=4", "--junit", str(junit), "--summary", str(summary)])
+    out = capsys.readouterr().out
+    assert code == 1
+    failed = out.split("requirements failed:")[1]
+    assert "| all " in failed and "| two " in failed and "| one " not in failed
+    suite = ET.parse(junit).getroot().find("testsuite")
+    # fp<=0 fails on the run and on "two"; found>=4 fails on "two" only.
+    assert (suite.get("tests"), suite.get("failures")) == ("6", "3")
+    names = {(c.get("classname"), c.get("name")): c.find("failure") is not None
+             for c in suite.iter("testcase")}
+    assert names[("flowerpose.two", "found>=4")] and not names[("flowerpose.one", "found>=4")]
+    assert summary.read_text().startswith("## flowerpose eval") and "3 of 6" in summary.read_text()
+
+
+@pytest.mark.parametrize("gate, words", [
+    ("recall", "expected KEY>=NUMBER"),
+    ("error_deg.plane>=1", "not a number of the report's summary"),
+    ("recall>=high", "is not a number"),
+    ("nope<=3", "error_deg.plane.mean"),
+])
+def test_a_bad_gate_is_one_line_before_any_work(gate, words, tmp_path, capsys):
+    with pytest.raises(InputError, match=words):
+        parse_requirements([gate])
+    assert main(["eval", "--source", "oracle", "--require", gate,
+                 "--out", str(tmp_path / "never")]) == 2
+    assert not (tmp_path / "never").exists()
+    assert capsys.readouterr().err.count("\n") == 1
