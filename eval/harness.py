@@ -212,7 +212,8 @@ SOURCES = ("scan", "oracle", "rgbd", "real")
 def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: int = 0,
              out_dir: Path = Path("runs/eval"), workers: int | None = None,
              folders: Iterable[Path] = (), truth_scale: float | None = None,
-             compare: dict[str, EvalConfig] | None = None) -> dict:
+             compare: dict[str, EvalConfig] | None = None,
+             suite: dict | None = None) -> dict:
     """The benchmark: returns report.json's content and writes report.json, report.md and,
     per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
 
@@ -220,6 +221,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     source.json unless `truth_scale` is given); the others generate `plants` seeded plants
     from `seed`. `compare` runs other configurations (by name) on the same clouds; their
     summaries and plants go under report["compare"] and their files under out_dir/NAME/.
+    `suite` (name, version, description) is recorded as report["suite"].
     """
     if source not in SOURCES:
         raise InputError("--source", f"'{source}': one of {', '.join(SOURCES)}")
@@ -245,6 +247,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
             extra["compare"][name] = {"summary": summarise(others), "plants": others,
                                       "config": to_dict(pipeline_part(other))}
     timing["total"] = round(time.perf_counter() - start, 4)
+    if suite is not None:
+        extra["suite"] = suite
     report = build_report(run_config, entries, timing, extra)
     write_report(out_dir, report, title)
     write_html_report(out_dir / "report.html", title, report, _plant_views(jobs, config, out_dir))

@@ -64,10 +64,18 @@ def _default_out() -> Path:
     return Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
 
 
+#: eval's source, preset and first seed when neither the command line nor a suite says.
+EVAL_DEFAULTS = {"source": "scan", "preset": "realistic", "seed": 0}
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from flowerpose.config import apply_overrides, load_profile
     from flowerpose.eval.harness import eval_config, run_eval
 
+    suite = _apply_suite(args) if args.suite else None
+    for key, default in EVAL_DEFAULTS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
     if args.truth_scale is not None and args.source != "real":
@@ -85,7 +93,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     with _owned(out, "eval", args.overwrite):
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
-                          truth_scale=args.truth_scale, compare=compare)
+                          truth_scale=args.truth_scale, compare=compare, suite=suite)
     from flowerpose.eval.report import comparison_table, summary_lines, table
 
     print(table(report))
@@ -95,6 +103,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(comparison_table(report, args.profile or "default"))
     print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'report.html'}")
     return _gates(report, requirements, args) if requirements else 0
+
+
+def _apply_suite(args: argparse.Namespace) -> dict:
+    """--suite NAME: the suite's source, preset, plants and seed for this eval; what it
+    fixes may not be given too, nor settings that would change what it measures."""
+    from flowerpose.config import load_suite
+
+    suite = load_suite(args.suite)
+    for key, value in suite["eval"].items():
+        given = getattr(args, key)
+        if given is not None and given != value:
+            raise InputError(f"--{key}", f"is fixed by --suite {args.suite} ({value}); leave "
+                             "it out")
+        setattr(args, key, value)
+    for flag, given in (("--set", args.set), ("--config", args.config),
+                        ("--profile", args.profile), ("folders", args.folders)):
+        if given:
+            raise InputError(flag, f"--suite {args.suite} runs its own settings only, so its "
+                             "numbers compare between versions and labs")
+    return {k: suite[k] for k in ("name", "version", "description")}
 
 
 def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
@@ -580,7 +608,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from flowerpose.config import profile_names
+    from flowerpose.config import profile_names, suite_names
 
     parser = _Parser(
         prog="flowerpose",
@@ -594,7 +622,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="the synthetic benchmark: plants -> clouds -> flowers -> "
                        "scores (the paper's Table I)")
-    p.add_argument("--source", choices=("scan", "oracle", "rgbd", "real"), default="scan",
+    p.add_argument("--source", choices=("scan", "oracle", "rgbd", "real"), default=None,
                    help="where clouds come from: scan = the simulated bot films each plant "
                    "and photogrammetry reconstructs it (default); oracle = the plant's "
                    "surfaces sampled directly; rgbd = a simulated depth camera's views fused; "
@@ -611,10 +639,15 @@ def build_parser() -> argparse.ArgumentParser:
                    "(e.g. --compare upstream)")
     p.add_argument("--plants", type=PLANTS, default=None,
                    help=f"number of seeded plants (scan: {SCAN_PLANTS}, oracle and rgbd: 10)")
-    p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
-    p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
+    p.add_argument("--seed", type=SEED, default=None, help="first plant seed (0)")
+    p.add_argument("--preset", choices=PRESETS, default=None,
+                   help=PRESET_HELP + " (realistic)")
     p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
+    p.add_argument("--suite", choices=suite_names(), metavar="NAME",
+                   help="a named, versioned benchmark suite that fixes the source, preset, "
+                   f"plants and seeds ({', '.join(suite_names())}; assets/suites/); the report "
+                   "records its name and version")
     p.add_argument("--require", action="append", default=[], metavar="KEY>=NUMBER",
                    help="a CI gate on the report's summary, on the whole run and on each "
                    "plant, e.g. 'recall_visible>=0.95' or 'error_deg.plane.mean<=3' "

@@ -171,3 +171,36 @@ def load_toml(path: Path) -> dict[str, Any]:
         raise InputError(path, "not a UTF-8 text file (TOML is UTF-8)") from None
     except OSError as err:
         raise InputError(path, f"cannot read ({err.strerror})") from None
+
+
+def suite_names() -> list[str]:
+    """The named benchmark suites shipped in assets/suites (`eval --suite NAME`)."""
+    from importlib.resources import files
+
+    return sorted(p.name.removesuffix(".toml") for p in (files("flowerpose.assets") / "suites")
+                  .iterdir() if p.name.endswith(".toml"))
+
+
+#: What a suite fixes of an eval, and the type of each.
+SUITE_KEYS = {"source": str, "preset": str, "plants": int, "seed": int}
+
+
+def load_suite(name: str) -> dict[str, Any]:
+    """A named suite (assets/suites/NAME.toml): {"name", "version", "description", "eval":
+    {source, preset, plants, seed}}; errors name the file."""
+    from importlib.resources import as_file, files
+
+    if name not in suite_names():
+        raise InputError("--suite", f"no suite {name!r} (known: {', '.join(suite_names())})")
+    with as_file(files("flowerpose.assets") / "suites" / f"{name}.toml") as path:
+        data = load_toml(path)
+        header, fixed = data.get("suite", {}), data.get("eval", {})
+        version = header.get("version")
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise InputError(path, "[suite] needs a version, a whole number from 1")
+        if set(fixed) != set(SUITE_KEYS) or not all(
+                isinstance(fixed[k], t) and not isinstance(fixed[k], bool)
+                for k, t in SUITE_KEYS.items()):
+            raise InputError(path, f"[eval] must give exactly {', '.join(SUITE_KEYS)}")
+    return {"name": name, "version": version,
+            "description": str(header.get("description", "")), "eval": fixed}

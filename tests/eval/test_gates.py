@@ -47,3 +47,25 @@ def test_a_bad_gate_is_one_line_before_any_work(gate, words, tmp_path, capsys):
                  "--out", str(tmp_path / "never")]) == 2
     assert not (tmp_path / "never").exists()
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_every_shipped_suite_loads_and_what_it_fixes_cannot_be_given_too(tmp_path, capsys):
+    from flowerpose.config import SUITE_KEYS, load_suite, suite_names
+
+    assert {"oracle-10", "field-10", "scan-3"} <= set(suite_names())
+    for name in suite_names():
+        suite = load_suite(name)
+        assert suite["version"] >= 1 and set(suite["eval"]) == set(SUITE_KEYS)
+    for extra in (["--plants", "3"], ["--source", "scan"], ["--set", "cluster.eps=0.01"]):
+        assert main(["eval", "--suite", "oracle-10", *extra, "--out", str(tmp_path / "n")]) == 2
+        assert "--suite oracle-10" in capsys.readouterr().err
+    assert not (tmp_path / "n").exists()
+
+
+def test_the_report_records_the_suite(tmp_path):
+    from flowerpose.eval.harness import EvalConfig, run_eval
+
+    suite = {"name": "mine", "version": 3, "description": "a test"}
+    report = run_eval(EvalConfig(), source="real", workers=1, out_dir=tmp_path / "out",
+                      folders=[write_real_plant(tmp_path / "plant", "crops")], suite=suite)
+    assert report["suite"] == suite
