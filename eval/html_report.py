@@ -109,12 +109,18 @@ def _flower_table(plant: PlantView, report: dict | None) -> str:
         rows.append([
             str(flower.get("id", k)), "-" if match is None else str(match["truth"]),
             "-" if match is None else f"{1000 * match['distance_m']:.1f}",
-            *("-" if match is None or match["error_deg"].get(m) is None
-              else f"{match['error_deg'][m]:.1f}°" for m in METHODS),
+            *_errors(match),
             str(flower.get("points", "")), str(flower.get("petal_points", ""))])
     header = ["Detection", "Truth", "Distance (mm)", *(m.capitalize() for m in METHODS),
               "Points", "Petal points"]
     return _table(header, rows, f"flowers-{plant.name}")
+
+
+def _errors(match: dict | None) -> list[str]:
+    """A match's error per method; "-" where it has none (no match, a failed fit, or a
+    flower that is matched but not scored: hidden or without a label)."""
+    errors = (match or {}).get("error_deg", {})
+    return ["-" if errors.get(m) is None else f"{errors[m]:.1f}°" for m in METHODS]
 
 
 def _vector(value) -> str:
