@@ -24,6 +24,7 @@ from flowerpose.config import require, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
+from flowerpose.eval.methods import ExternalMethod, run_method
 from flowerpose.eval.report import (
     build_report,
     error_stats,
@@ -213,7 +214,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
              out_dir: Path = Path("runs/eval"), workers: int | None = None,
              folders: Iterable[Path] = (), truth_scale: float | None = None,
              compare: dict[str, EvalConfig] | None = None,
-             suite: dict | None = None) -> dict:
+             suite: dict | None = None, methods: Iterable[ExternalMethod] = ()) -> dict:
     """The benchmark: returns report.json's content and writes report.json, report.md and,
     per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
 
@@ -221,7 +222,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     source.json unless `truth_scale` is given); the others generate `plants` seeded plants
     from `seed`. `compare` runs other configurations (by name) on the same clouds; their
     summaries and plants go under report["compare"] and their files under out_dir/NAME/.
-    `suite` (name, version, description) is recorded as report["suite"].
+    `suite` (name, version, description) is recorded as report["suite"]. Each external
+    method (`methods.py`) runs on the same clouds and is scored and compared the same way.
     """
     if source not in SOURCES:
         raise InputError("--source", f"'{source}': one of {', '.join(SOURCES)}")
@@ -246,6 +248,13 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
             others, _ = _score_jobs(jobs, other, out_dir / name, workers)
             extra["compare"][name] = {"summary": summarise(others), "plants": others,
                                       "config": to_dict(pipeline_part(other))}
+    for method in methods:
+        results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
+                           workers, _describe_entry)
+        others = [entry for entry, _ in results]
+        extra.setdefault("compare", {})[method.name] = {
+            "summary": summarise(others), "plants": others,
+            "config": {"method": method.command, "timeout_s": method.timeout_s}}
     timing["total"] = round(time.perf_counter() - start, 4)
     if suite is not None:
         extra["suite"] = suite
@@ -258,20 +267,50 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
 def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path) -> list[PlantView]:
     """Each scored plant's cloud, flowers and truth (as it was scored) for report.html."""
     views = []
-    for kind, name, *inputs in jobs:
+    for job in jobs:
+        kind, name, *inputs = job
         if kind == "real":
-            from flowerpose.eval.real_source import plant_cloud, real_truth
+            from flowerpose.eval.real_source import plant_cloud
 
-            plant = inputs[0]
-            cloud, truth, flowers = plant_cloud(plant), real_truth(plant), out_dir / name
+            cloud, flowers = plant_cloud(inputs[0]), out_dir / name
         else:
-            cloud_path, truth_path = inputs
-            cloud, truth = read_cloud(cloud_path), read_plant_truth(truth_path)
-            if config.score.label_error_deg > 0:
-                truth = as_labelled(truth, config.score.label_error_deg, name)
-            flowers = out_dir / "plants" / name
-        views.append(PlantView(name, cloud, read_flowers(flowers / "flowers.json"), truth))
+            cloud, flowers = read_cloud(inputs[0]), out_dir / "plants" / name
+        views.append(PlantView(name, cloud, read_flowers(flowers / "flowers.json"),
+                               _job_truth(job, config)))
     return views
+
+
+def _job_truth(job: tuple, config: EvalConfig) -> list:
+    """A job's truth as it is scored (tilted by the hand labels' error where the preset
+    says so)."""
+    kind, name, *inputs = job
+    if kind == "real":
+        from flowerpose.eval.real_source import real_truth
+
+        return real_truth(inputs[0])
+    truth = read_plant_truth(inputs[1])
+    if config.score.label_error_deg > 0:
+        truth = as_labelled(truth, config.score.label_error_deg, name)
+    return truth
+
+
+def _method_job(job: tuple, method: ExternalMethod, config: EvalConfig,
+                out_dir: Path) -> tuple[dict, dict[str, float]]:
+    """An external method on one job's cloud (a real plant's candidates or crops merged
+    into one cloud first), scored against the job's truth."""
+    kind, name, *inputs = job
+    folder = out_dir / method.name / name
+    if kind == "real":
+        from flowerpose.cloudio import write_cloud
+        from flowerpose.eval.real_source import plant_cloud
+
+        plant = inputs[0]
+        cloud = (plant.clouds[0] if plant.stage == "cloud"
+                 else write_cloud(folder / "input.ply", plant_cloud(plant)))
+    else:
+        cloud = inputs[0]
+    return run_method(method, Path(cloud), _job_truth(job, config), folder, name,
+                      config.score.max_distance_m)
 
 
 def _score_jobs(jobs: list[tuple], config: EvalConfig, out_dir: Path,

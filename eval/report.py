@@ -168,13 +168,15 @@ def comparison_rows(report: dict, name: str = "default") -> tuple[list[str], lis
     rows = [(name, report["summary"], report["plants"])]
     rows += [(other, c["summary"], c["plants"]) for other, c in report.get("compare", {}).items()]
     errors_by_row = [_plane_errors(plants) for _, _, plants in rows]
-    common = sorted(set.intersection(*(set(e) for e in errors_by_row)))
+    # Over the rows that scored any flower: a method that found none has nothing to pair.
+    scored = [set(e) for e in errors_by_row if e]
+    common = sorted(set.intersection(*scored)) if scored else []
     header = ["Profile", "Found", "FP", "Plane mean", "Plane median", "Superellipsoid",
               "Paraboloid", "Plane, flowers all found"]
     lines = []
     for (label, summary, _), theirs in zip(rows, errors_by_row, strict=True):
         paired = (f"{np.mean([theirs[k] for k in common]):.1f}° over {len(common)}"
-                  if common else "-")
+                  if common and theirs else "-")
         errors = summary["error_deg"]
         lines.append([label, f"{summary['found']}/{summary['gt']}", str(summary["fp"]),
                       _deg(errors["plane"]["mean"]), _deg(errors["plane"]["median"]),

@@ -81,8 +81,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.truth_scale is not None and args.source != "real":
         raise InputError("--truth-scale", "is for --source real")
     from flowerpose.eval.gates import parse_requirements
+    from flowerpose.eval.methods import parse_method
 
     requirements = parse_requirements(args.require)  # a bad gate says so before any work
+    methods = [parse_method(text, args.method_timeout) for text in args.method]
+    names = [m.name for m in methods] + list(args.compare)
+    if len(set(names)) < len(names):
+        raise InputError("--method", "each compared method needs a name of its own")
     if (args.junit or args.summary) and not requirements:
         raise InputError("--junit" if args.junit else "--summary", "needs --require")
     config = eval_config(args.preset, lambda base: _configure(base, args))
@@ -93,14 +98,19 @@ def cmd_eval(args: argparse.Namespace) -> int:
     with _owned(out, "eval", args.overwrite):
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
-                          truth_scale=args.truth_scale, compare=compare, suite=suite)
+                          truth_scale=args.truth_scale, compare=compare, suite=suite,
+                          methods=methods)
     from flowerpose.eval.report import comparison_table, summary_lines, table
 
     print(table(report))
     for line in summary_lines(report):
         print(line)
-    if compare:
+    if compare or methods:
         print(comparison_table(report, args.profile or "default"))
+    for compared in report.get("compare", {}).values():
+        for plant in compared["plants"]:
+            if "error" in plant:
+                print(f"{plant['plant']}: {plant['error']}")
     print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'report.html'}")
     return _gates(report, requirements, args) if requirements else 0
 
@@ -644,6 +654,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help=PRESET_HELP + " (realistic)")
     p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
+    p.add_argument("--method", action="append", default=[], metavar="NAME=CMD",
+                   help="also score another method on the same clouds, printed beside this "
+                   "one: CMD runs once per plant with {cloud} (the plant's cloud, PLY) and "
+                   "{out} (a folder to write flowers.json into), e.g. "
+                   "mine='python detect.py {cloud} {out}' (repeatable)")
+    p.add_argument("--method-timeout", type=_positive_number, default=600.0, metavar="S",
+                   help="seconds an external method may take on one plant (600)")
     p.add_argument("--suite", choices=suite_names(), metavar="NAME",
                    help="a named, versioned benchmark suite that fixes the source, preset, "
                    f"plants and seeds ({', '.join(suite_names())}; assets/suites/); the report "

@@ -1,0 +1,86 @@
+"""Other methods, scored exactly like the built-in pipeline: an external command per plant.
+
+`eval --method NAME='CMD {cloud} {out}'` runs CMD once per plant, with `{cloud}` the plant's
+cloud (PLY, the frame and unit its flowers are scored in) and `{out}` a folder it must write
+`flowers.json` into (DESIGN.md's format); the flowers are then matched and scored as the
+pipeline's are, and printed beside it. A command that fails, runs past its timeout or writes
+a bad file is reported for that plant (its entry says why, with nothing found), never a
+traceback, and the other plants go on.
+"""
+
+from __future__ import annotations
+
+import shlex
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from flowerpose.errors import InputError
+from flowerpose.eval.match import score_plant
+from flowerpose.eval.report import plant_entry
+from flowerpose.eval.truth import TruthFlower
+
+#: Seconds an external method may take on one plant unless told otherwise.
+DEFAULT_TIMEOUT_S = 600.0
+
+
+@dataclass(frozen=True)
+class ExternalMethod:
+    """An external method: its name in the report and its command line (a template)."""
+
+    name: str
+    command: str
+    timeout_s: float = DEFAULT_TIMEOUT_S
+
+    def argv(self, cloud: Path, out: Path) -> list[str]:
+        return [part.replace("{cloud}", str(cloud)).replace("{out}", str(out))
+                for part in shlex.split(self.command)]
+
+
+def parse_method(text: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> ExternalMethod:
+    """--method NAME=CMD, checked: a name, and a command naming {cloud} and {out}."""
+    name, sep, command = text.partition("=")
+    name = name.strip()
+    if not sep or not name.replace("-", "").replace("_", "").isalnum():
+        raise InputError("--method", f"'{text}': expected NAME='CMD {{cloud}} {{out}}'")
+    try:
+        parts = shlex.split(command)
+    except ValueError as err:
+        raise InputError("--method", f"'{text}': {err}") from None
+    if not parts or "{cloud}" not in command or "{out}" not in command:
+        raise InputError("--method", f"'{text}': the command must name {{cloud}} (the plant's "
+                         "cloud) and {out} (the folder for its flowers.json)")
+    return ExternalMethod(name, command, timeout_s)
+
+
+def run_method(method: ExternalMethod, cloud: Path, truth: list[TruthFlower], out_dir: Path,
+               name: str, max_distance: float) -> tuple[dict, dict[str, float]]:
+    """Run the method on one plant's cloud and score what it wrote; the plant's report
+    entry (with "error" when it failed, and then nothing found) and its timing."""
+    from flowerpose.pipeline.flowers import read_flowers
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    error = None
+    try:
+        done = subprocess.run(method.argv(cloud, out_dir), capture_output=True, text=True,
+                              timeout=method.timeout_s)
+        if done.returncode != 0:
+            last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+            error = f"exited with status {done.returncode}: {last[:200]}"
+    except subprocess.TimeoutExpired:
+        error = f"ran past its timeout of {method.timeout_s:g} s and was stopped"
+    except OSError as err:
+        error = f"could not start: {err.strerror or err}"
+    seconds = time.perf_counter() - start
+    estimates = []
+    if error is None:
+        try:
+            estimates = read_flowers(out_dir / "flowers.json")
+        except InputError as err:
+            error = f"wrote no usable flowers.json ({err})"
+    entry = plant_entry(name, score_plant(estimates, truth, max_distance))
+    if error is not None:
+        entry["error"] = f"{method.name}: {error}"
+    return entry, {"method": round(seconds, 4), "total": round(seconds, 4)}

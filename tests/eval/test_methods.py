@@ -1,0 +1,58 @@
+"""Another method as an external command, scored like the pipeline: itself gives the same
+scores; one that crashes, hangs past its timeout or writes garbage is reported for that
+plant and the run goes on."""
+
+import json
+import sys
+
+import pytest
+from realplants import write_real_plant
+
+from flowerpose.cli import main
+from flowerpose.errors import InputError
+from flowerpose.eval.methods import parse_method
+
+SCRIPT = '''
+import json, shutil, subprocess, sys, time
+cloud, out, how = sys.argv[1:4]
+if how == "crash":
+    raise SystemExit("a method that crashes")
+if how == "hang":
+    time.sleep(60)
+if how == "garbage":
+    open(out + "/flowers.json", "w").write("{not json")
+    raise SystemExit(0)
+subprocess.run([sys.executable, "-m", "flowerpose", "detect", cloud, "--out", out + "/d",
+                "-q"], check=True)
+shutil.copy(out + "/d/flowers.json", out + "/flowers.json")
+'''
+
+
+def test_external_methods_are_scored_beside_the_pipeline_and_failures_reported(tmp_path,
+                                                                             capsys):
+    script = tmp_path / "method.py"
+    script.write_text(SCRIPT)
+    plants = [write_real_plant(tmp_path / name, "cloud") for name in ("one", "two")]
+    run = f"{sys.executable} {script} {{cloud}} {{out}}"
+    code = main(["eval", "-q", "--source", "real", *map(str, plants), "--workers", "1",
+                 "--out", str(tmp_path / "out"), "--method-timeout", "5",
+                 "--method", f"itself={run} itself", "--method", f"crash={run} crash",
+                 "--method", f"hang={run} hang", "--method", f"garbage={run} garbage"])
+    out = capsys.readouterr().out
+    assert code == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    compared = report["compare"]
+    assert compared["itself"]["summary"] == report["summary"]  # the same scores
+    for name, words in (("crash", "a method that crashes"), ("hang", "past its timeout"),
+                        ("garbage", "no usable flowers.json")):
+        plants = compared[name]["plants"]
+        assert [p["found"] for p in plants] == [0, 0] and all(words in p["error"] for p in plants)
+        assert f"one: {name}:" in out and f"two: {name}:" in out
+
+
+@pytest.mark.parametrize("text, words", [("nameless", "expected NAME="),
+                                         ("x=detect {cloud}", "{out}"),
+                                         ("x=detect '{cloud} {out}", "quotation")])
+def test_a_malformed_method_is_bad_input(text, words):
+    with pytest.raises(InputError, match=words):
+        parse_method(text)
