@@ -196,7 +196,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
                   *write_normals_ply(out, result.flowers),
                   write_json(out / "config.json", to_dict(config)))
     if result.projections:
-        output.record(*write_views(out / "views", result.projections, result.detections))
+        output.record(*write_views(out / "views", result.projections, result.detections,
+                                   result.detection_flowers))
     output.record(*(write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply",
                                 cloud.subset(flower.crop)) for flower in result.flowers))
     from flowerpose.eval.html_report import PlantView, write_html_report

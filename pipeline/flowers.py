@@ -76,6 +76,9 @@ class FlowerResult:
     projections: list[Projection]
     detections: list[list[Detection]]
     timing_s: dict[str, float]
+    detection_flowers: list[list[int | None]] = field(default_factory=list)
+    """Per view, per detection: the id of the flower most of its points went to, or None
+    (its points were no flower's), so the views can number their boxes as flowers.json."""
 
     def to_json(self) -> dict:
         return {"flowers": [f.to_json() for f in self.flowers], "timing_s": self.timing_s}
@@ -116,7 +119,18 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
     flowers = _flowers_among(plant, candidates, above_ground, config, timer, up)
-    return FlowerResult(flowers, projections, detections, timer.total())
+    owner = np.full(len(cloud), -1, np.int64)
+    for flower in flowers:
+        owner[flower.crop] = flower.id
+    return FlowerResult(flowers, projections, detections, timer.total(),
+                        [[_owner_of(owner[above_ground[points]]) for points in view]
+                         for view in picked])
+
+
+def _owner_of(ids: np.ndarray) -> int | None:
+    """The flower id most of these points belong to (-1: none), or None."""
+    ids = ids[ids >= 0]
+    return int(np.bincount(ids).argmax()) if len(ids) else None
 
 
 def find_flowers_in_candidates(candidates: Cloud,

@@ -57,3 +57,20 @@ def test_mask_backprojection_returns_fewer_points_than_the_box():
     x0, y0, x1, y1 = det[0].box
     assert len(box_pts) == (x1 - x0) * (y1 - y0)
     assert len(mask_pts) == det[0].mask.sum()
+
+
+def test_each_detection_is_numbered_with_the_flower_it_became(plant0):
+    from flowerpose.cloudio import read_cloud
+    from flowerpose.pipeline.flowers import find_flowers
+    from flowerpose.pipeline.views import draw_detections
+
+    _, folder = plant0
+    result = find_flowers(read_cloud(folder / "cloud.ply"))
+    ids = {f.id for f in result.flowers}
+    named = [i for view in result.detection_flowers for i in view if i is not None]
+    assert [len(v) for v in result.detection_flowers] == [len(d) for d in result.detections]
+    assert set(named) == ids  # every flower is some view's box, every number a flower
+    plain = draw_detections(result.projections[0], result.detections[0])
+    numbered = draw_detections(result.projections[0], result.detections[0],
+                               result.detection_flowers[0])
+    assert (plain != numbered).any()  # the numbers are drawn
