@@ -29,6 +29,10 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting by its dotted key, e.g. cluster.eps=0.008")
+    parser.add_argument("--detector", metavar="MODULE:CLASS",
+                        help="the 2D detector on the grid views: any importable class with "
+                        "the Detector interface (pipeline/detect.py), instead of the colour "
+                        "detector (the same as --set detect.detector=MODULE:CLASS)")
 
 
 @contextlib.contextmanager
@@ -57,7 +61,8 @@ def _configure(base: Any, args: argparse.Namespace) -> Any:
         config = apply_overrides(config, load_profile(args.profile))
     if args.config is not None:
         config = apply_overrides(config, load_toml(args.config))
-    return apply_overrides(config, parse_set_options(args.set))
+    sets = args.set + ([f"detect.detector={args.detector}"] if args.detector else [])
+    return apply_overrides(config, parse_set_options(sets))
 
 
 def _default_out() -> Path:
@@ -127,8 +132,9 @@ def _apply_suite(args: argparse.Namespace) -> dict:
             raise InputError(f"--{key}", f"is fixed by --suite {args.suite} ({value}); leave "
                              "it out")
         setattr(args, key, value)
-    for flag, given in (("--set", args.set), ("--config", args.config),
-                        ("--profile", args.profile), ("folders", args.folders)):
+    for flag, given in (("--set", args.set), ("--detector", args.detector),
+                        ("--config", args.config), ("--profile", args.profile),
+                        ("folders", args.folders)):
         if given:
             raise InputError(flag, f"--suite {args.suite} runs its own settings only, so its "
                              "numbers compare between versions and labs")

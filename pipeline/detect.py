@@ -8,6 +8,7 @@ plugs in by implementing `Detector`.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -15,6 +16,7 @@ import cv2
 import numpy as np
 
 from flowerpose.config import require
+from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 
 
@@ -22,8 +24,10 @@ from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rg
 class DetectConfig:
     """Which detector runs and how its detections return to 3D."""
 
-    detector: Literal["colour"] = "colour"
-    """The detector: "colour" (white petals around a yellow centre; needs no weights)."""
+    detector: str = "colour"
+    """The detector: "colour" (white petals around a yellow centre; needs no weights), or
+    "MODULE:CLASS", any importable class with the `Detector` interface (made with no
+    arguments, called once per view), e.g. a YOLO model wrapped in a few lines."""
     backproject: Literal["mask", "box"] = "mask"
     """What returns to 3D: the detection's pixel mask (the paper's suggested improvement;
     default) or every pixel of its box (the paper)."""
@@ -38,6 +42,8 @@ class DetectConfig:
     a stem, not a flower."""
 
     def __post_init__(self):
+        require(self.detector == "colour" or _plugin_name(self.detector) is not None,
+                "detect.detector", 'must be "colour" or MODULE:CLASS')
         require(0 <= self.min_white_fraction <= 1, "detect.min_white_fraction",
                 "must be within 0-1")
         require(self.close_radius_px >= 0, "detect.close_radius_px", "must be 0 or more")
@@ -105,10 +111,54 @@ class ColourDetector:
 
 
 def make_detector(config: DetectConfig, colour: ColourConfig) -> Detector:
-    """The detector the config names; `colour` is the colour model it reads."""
+    """The detector the config names; `colour` is the colour model the built-in one reads.
+    A plug-in (MODULE:CLASS) is imported and made here; its detections are checked as
+    they come (`_Checked`), so a wrong one is one clear line naming it."""
     if config.detector == "colour":
         return ColourDetector(config, colour)
-    raise ValueError(f"unknown detector {config.detector!r}")
+    module_name, class_name = _plugin_name(config.detector)
+    try:
+        factory = getattr(importlib.import_module(module_name), class_name)
+        return _Checked(factory(), config.detector)
+    except (ImportError, AttributeError) as err:
+        raise InputError("detect.detector", f"{config.detector}: cannot load it ({err})") from None
+    except Exception as err:  # noqa: BLE001 - the plug-in's own failure, said in one line
+        raise InputError("detect.detector", f"{config.detector}: making it failed "
+                         f"({type(err).__name__}: {err})") from None
+
+
+def _plugin_name(name: str) -> tuple[str, str] | None:
+    module, sep, cls = name.partition(":")
+    valid = sep and all(part.isidentifier() for part in module.split(".")) and cls.isidentifier()
+    return (module, cls) if valid else None
+
+
+class _Checked:
+    """A plug-in detector whose output is checked: a list of Detection, boxes inside the
+    image, masks the size of their boxes."""
+
+    def __init__(self, detector: Detector, name: str):
+        self.detector, self.name = detector, name
+
+    def __call__(self, image: np.ndarray, occupied: np.ndarray,
+                 pixel_size_m: float) -> list[Detection]:
+        try:
+            found = self.detector(image, occupied, pixel_size_m)
+        except Exception as err:  # noqa: BLE001 - the plug-in's own failure, in one line
+            raise InputError("detect.detector", f"{self.name} failed on a view "
+                             f"({type(err).__name__}: {err})") from None
+        height, width = image.shape[:2]
+        for k, det in enumerate(found if isinstance(found, list) else [None]):
+            box = getattr(det, "box", None)
+            mask = np.asarray(getattr(det, "mask", None))
+            ok = (isinstance(det, Detection) and len(box) == 4
+                  and 0 <= box[0] < box[2] <= width and 0 <= box[1] < box[3] <= height
+                  and mask.shape == (box[3] - box[1], box[2] - box[0]))
+            if not ok:
+                raise InputError("detect.detector", f"{self.name} returned a bad detection "
+                                 f"({k}): expected a list of Detection(box=(x0, y0, x1, y1) "
+                                 "inside the image, mask of the box's shape, score)")
+        return found
 
 
 def backproject(detections: list[Detection], index: np.ndarray,
