@@ -5,16 +5,20 @@ cloud (PLY, the frame and unit its flowers are scored in) and `{out}` a folder i
 `flowers.json` into (DESIGN.md's format); the flowers are then matched and scored as the
 pipeline's are, and printed beside it. A command that fails, runs past its timeout or writes
 a bad file is reported for that plant (its entry says why, with nothing found), never a
-traceback, and the other plants go on.
+traceback, and the other plants go on. An installed package can register a method by name
+(entry points, group `flowerpose.methods`): `--method NAME` runs it the same way.
 """
 
 from __future__ import annotations
 
 import shlex
 import subprocess
+import sys
 import time
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
+from typing import Any
 
 from flowerpose.errors import InputError
 from flowerpose.eval.match import score_plant
@@ -38,12 +42,29 @@ class ExternalMethod:
                 for part in shlex.split(self.command)]
 
 
+#: The entry-point group a package registers methods in: NAME = "module:function", a
+#: function(cloud: Path, out: Path) that writes out/flowers.json.
+ENTRY_POINTS = "flowerpose.methods"
+
+
+def registered_methods() -> dict[str, Any]:
+    """The methods installed packages register (entry points of ENTRY_POINTS), by name."""
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINTS)}
+
+
 def parse_method(text: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> ExternalMethod:
-    """--method NAME=CMD, checked: a name, and a command naming {cloud} and {out}."""
+    """--method NAME=CMD, checked: a name, and a command naming {cloud} and {out}; or
+    --method NAME, a method an installed package registers (ENTRY_POINTS), which runs in a
+    process of its own like a command."""
     name, sep, command = text.partition("=")
     name = name.strip()
+    if not sep and name in registered_methods():
+        return ExternalMethod(name, f"{shlex.quote(sys.executable)} -m flowerpose.eval.methods "
+                              f"{shlex.quote(name)} {{cloud}} {{out}}", timeout_s)
     if not sep or not name.replace("-", "").replace("_", "").isalnum():
-        raise InputError("--method", f"'{text}': expected NAME='CMD {{cloud}} {{out}}'")
+        known = ", ".join(sorted(registered_methods())) or "none installed"
+        raise InputError("--method", f"'{text}': expected NAME='CMD {{cloud}} {{out}}', or "
+                         f"the name of a registered method ({known})")
     try:
         parts = shlex.split(command)
     except ValueError as err:
@@ -84,3 +105,15 @@ def run_method(method: ExternalMethod, cloud: Path, truth: list[TruthFlower], ou
     if error is not None:
         entry["error"] = f"{method.name}: {error}"
     return entry, {"method": round(seconds, 4), "total": round(seconds, 4)}
+
+
+def _run_registered(argv: list[str]) -> int:
+    """`python -m flowerpose.eval.methods NAME CLOUD OUT`: a registered method, in the
+    process `run_method` started for it."""
+    name, cloud, out = argv
+    registered_methods()[name].load()(Path(cloud), Path(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_run_registered(sys.argv[1:]))

@@ -56,3 +56,26 @@ def test_external_methods_are_scored_beside_the_pipeline_and_failures_reported(t
 def test_a_malformed_method_is_bad_input(text, words):
     with pytest.raises(InputError, match=words):
         parse_method(text)
+
+
+def test_a_package_registers_a_method_by_name(tmp_path, monkeypatch):
+    # An installed package as importlib.metadata finds one: its module and its dist-info.
+    site = tmp_path / "site"
+    (site / "mymethods-0.1.dist-info").mkdir(parents=True)
+    (site / "mymethods-0.1.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: mymethods\nVersion: 0.1\n")
+    (site / "mymethods-0.1.dist-info" / "entry_points.txt").write_text(
+        "[flowerpose.methods]\nnothing = mymethods:find_nothing\n")
+    (site / "mymethods.py").write_text(
+        "import json\n\ndef find_nothing(cloud, out):\n"
+        "    (out / 'flowers.json').write_text(json.dumps({'flowers': []}))\n")
+    monkeypatch.syspath_prepend(str(site))
+    monkeypatch.setenv("PYTHONPATH", str(site))
+    plant = write_real_plant(tmp_path / "plant", "cloud")
+    assert main(["eval", "-q", "--source", "real", str(plant), "--workers", "1",
+                 "--out", str(tmp_path / "out"), "--method", "nothing"]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    nothing = report["compare"]["nothing"]
+    assert nothing["summary"]["detections"] == 0 and "error" not in nothing["plants"][0]
+    with pytest.raises(InputError, match="registered method .*nothing"):
+        parse_method("unknown")
