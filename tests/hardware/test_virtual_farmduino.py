@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -82,6 +83,19 @@ def link(device):
 
 def _approve(link):
     assert link.command("F22 P2 V1 Q90")[-1] == "R02 Q90"
+
+
+@contextlib.contextmanager
+def _approved_board(time_scale: float, params=None):
+    """A board of its own, booted, with its configuration approved: (device, link)."""
+    with VirtualFarmduino(time_scale=time_scale, params=params or {}) as device:
+        link = Link(device.path)
+        try:
+            link.until(lambda line: line == BANNER)
+            _approve(link)
+            yield device, link
+        finally:
+            link.close()
 
 
 def test_opening_the_port_boots_and_every_command_is_echoed_with_its_q(device, link):
@@ -206,21 +220,14 @@ def test_a_stop_takes_as_long_as_the_real_firmwares_and_discards_what_comes_mean
 
 
 def test_homing_without_endstops_or_encoders_times_out_and_tries_again_for_good():
-    with VirtualFarmduino(time_scale=1000.0) as bare:  # the firmware's defaults
-        link = Link(bare.path)
-        try:
-            link.until(lambda line: line == BANNER)
-            _approve(link)
-            link.send("F13 Q3")
-            lines = link.until(lambda line: line.startswith("R99 homing displaced"))
-            assert "R73 Q3" in lines and "R99 timeout Z axis" in lines
-            lines = link.until(lambda line: line.startswith("R99 homing displaced"))
-            assert "R73 Q3" in lines and not any(line.startswith(("R02", "R03"))
-                                                 for line in lines)
-            link.port.write(b"@")
-            assert link.until(lambda line: line.startswith("R03"))[-1] == "R03 V5 Q3"
-        finally:
-            link.close()
+    with _approved_board(1000.0) as (_, link):  # the firmware's defaults
+        link.send("F13 Q3")
+        lines = link.until(lambda line: line.startswith("R99 homing displaced"))
+        assert "R73 Q3" in lines and "R99 timeout Z axis" in lines
+        lines = link.until(lambda line: line.startswith("R99 homing displaced"))
+        assert "R73 Q3" in lines and not any(line.startswith(("R02", "R03")) for line in lines)
+        link.port.write(b"@")
+        assert link.until(lambda line: line.startswith("R03"))[-1] == "R03 V5 Q3"
 
 
 def test_the_commands_the_real_firmware_knows_beyond_motion(device, link):
@@ -240,38 +247,26 @@ def test_the_commands_the_real_firmware_knows_beyond_motion(device, link):
 @pytest.mark.parametrize("code, axis, steps", [("F14", 0, 13611), ("F15", 1, 6150),
                                                ("F16", 2, 10791)])
 def test_measuring_an_axis_reports_its_length_in_steps(code, axis, steps):
-    with VirtualFarmduino(time_scale=2000.0, params=FEEDBACK_PARAMETERS) as device:
-        link = Link(device.path)
-        try:
-            link.until(lambda line: line == BANNER)
-            _approve(link)
-            lines = link.command(f"{code} Q3")
-            assert lines[-1] == "R02 Q3" and f"R23 P{21 + axis} V0 Q3" in lines
-            assert f"R23 P{801 + axis} V{steps:.2f} Q3" in lines
-            # The travel of the MuJoCo gantry (assets/farmbot), in the firmware's steps.
-            length_mm = steps / (5.0, 5.0, 25.0)[axis]
-            assert abs(device.firmware_position_mm()[axis]) == pytest.approx(length_mm, abs=0.2)
-        finally:
-            link.close()
+    with _approved_board(2000.0, FEEDBACK_PARAMETERS) as (device, link):
+        lines = link.command(f"{code} Q3")
+        assert lines[-1] == "R02 Q3" and f"R23 P{21 + axis} V0 Q3" in lines
+        assert f"R23 P{801 + axis} V{steps:.2f} Q3" in lines
+        # The travel of the MuJoCo gantry (assets/farmbot), in the firmware's steps.
+        length_mm = steps / (5.0, 5.0, 25.0)[axis]
+        assert abs(device.firmware_position_mm()[axis]) == pytest.approx(length_mm, abs=0.2)
 
 
 def test_measuring_an_axis_without_endstops_or_encoders_drives_on_until_e():
-    with VirtualFarmduino(time_scale=1000.0) as bare:  # the firmware's defaults
-        link = Link(bare.path)
-        try:
-            link.until(lambda line: line == BANNER)
-            _approve(link)
-            link.send("F14 Q3")
-            # Far beyond the axis timeout (120 s simulated), still busy, never an R23.
-            lines = link.until(lambda line: line == "R04 Q3")
-            time.sleep(0.3)
-            lines = link.until(lambda line: line == "R04 Q3")
-            assert bare.now() > 150.0
-            assert not any(line.startswith(("R02", "R03", "R23", "R71")) for line in lines)
-            link.port.write(b"E")
-            assert link.until(lambda line: line.startswith("R03"))[-1] == "R03 V1 Q3"
-        finally:
-            link.close()
+    with _approved_board(1000.0) as (bare, link):  # the firmware's defaults
+        link.send("F14 Q3")
+        # Far beyond the axis timeout (120 s simulated), still busy, never an R23.
+        lines = link.until(lambda line: line == "R04 Q3")
+        time.sleep(0.3)
+        lines = link.until(lambda line: line == "R04 Q3")
+        assert bare.now() > 150.0
+        assert not any(line.startswith(("R02", "R03", "R23", "R71")) for line in lines)
+        link.port.write(b"E")
+        assert link.until(lambda line: line.startswith("R03"))[-1] == "R03 V1 Q3"
 
 
 def test_the_boot_lists_every_parameter_and_a_move_ends_with_the_firmwares_reports():
