@@ -197,3 +197,21 @@ def test_the_up_prior_never_overrides_a_downward_flower_s_receptacle(seed):
     assert normal[2] < -0.9
     pose = estimate_pose(crop, up=np.array([0.0, 0.0, 1.0]))
     assert angle_deg(pose.normals["plane"], normal) < 3.0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_one_offset_pulled_far_off_is_one_vote_not_a_veto(seed):
+    # Leaves well in front of the flower, beyond the petals and the sepal reach, drag the
+    # crop's centroid forward: unclipped, that one offset outweighs the receptacle and the
+    # sepals and flips the normal.
+    crop, normal = flower(seed)
+    rng = np.random.default_rng(seed)
+    side = np.cross(normal, [0.3, 0.5, 0.8])
+    side /= np.linalg.norm(side)
+    leaves = (crop.points[:1] + 0.03 * normal + 0.03 * side
+              + rng.normal(0.0, 0.004, (600, 3)))
+    crowded = Cloud(np.vstack([crop.points, leaves]),
+                    np.vstack([crop.colors, np.tile(np.array(GREEN, np.uint8), (600, 1))]))
+    assert angle_deg(estimate_pose(crowded).normals["plane"], normal) < 5.0
+    unclipped = estimate_pose(crowded, PoseConfig(offset_clip=None)).normals["plane"]
+    assert angle_deg(unclipped, normal) > 170.0  # what the clip prevents
