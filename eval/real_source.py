@@ -46,6 +46,7 @@ from flowerpose.pipeline.flowers import (
     PipelineConfig,
     find_flowers,
     find_flowers_in_candidates,
+    flowers_document,
     pose_crops,
     write_flowers,
 )
@@ -211,8 +212,7 @@ def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,
                                for k, (p, pose) in enumerate(zip(plant.clouds, poses,
                                                                  strict=True))],
                    "timing_s": timing}
-        write_json(out_dir / "flowers.json", {"units": "m", "frame": "cloud",
-                                              "source": str(plant.folder), **flowers})
+        write_json(out_dir / "flowers.json", flowers_document(flowers, plant.folder, "cloud"))
     else:
         cloud = (read_cloud(plant.clouds[0], units=plant.units) if plant.stage == "cloud"
                  else merged_candidates(plant.clouds, plant.units))

@@ -196,9 +196,14 @@ def write_flowers(path: Path, result: FlowerResult, source: str | Path | None = 
     """Write `flowers.json` (DESIGN.md's format): the flowers, with the unit (metres), the
     frame their centres and normals are in ("bed": the bed frame, z up; "cloud": the
     input cloud's own, e.g. a Polycam scan's) and the cloud they came from."""
-    return write_json(path, {"units": "m", "frame": frame,
-                             "source": None if source is None else str(source),
-                             **result.to_json()})
+    return write_json(path, flowers_document(result.to_json(), source, frame))
+
+
+def flowers_document(body: dict, source: str | Path | None, frame: Frame) -> dict:
+    """flowers.json's content: `body` ({"flowers": [...], "timing_s": {...}}) under the
+    unit, frame and source that every flowers.json states."""
+    return {"units": "m", "frame": frame, "source": None if source is None else str(source),
+            **body}
 
 
 #: Colour of the estimated normals in the PLY exports (MeshLab and CloudCompare show it).
