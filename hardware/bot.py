@@ -149,6 +149,12 @@ class Camera(ABC):
     def stop_recording(self) -> Recording:
         """Stop recording; the video is complete at `Recording.path` on return."""
 
+    def recorded_until(self) -> float:
+        """Bot-clock seconds before which every frame this recording keeps is on disk with
+        its pose, so a power cut now loses nothing taken earlier: what a scan may call done.
+        This default is for cameras that write each frame, whole, as they take it."""
+        return math.inf
+
 
 class Bot(ABC):
     """A FarmBot-like bot: see the module docstring for the contract."""
@@ -285,6 +291,10 @@ class SolidCamera(Camera):
             raise CameraError(f"{path}: already recording to {self._recording[0]}; "
                               "stop that recording first")
         self._recording = (path, self._clock())
+
+    def recorded_until(self) -> float:
+        """Nothing while recording: the video is written when it stops."""
+        return -math.inf if self._recording is not None else math.inf
 
     def stop_recording(self) -> Recording:
         import cv2

@@ -50,6 +50,12 @@ class FrameKeeper:
         """Frames offered that will never be handed on (the open bin's are still candidates)."""
         return self.offered - self.kept - len(self._best)
 
+    @property
+    def open_since(self) -> float:
+        """Bot-clock start of the open bin, whose frames are still candidates (inf when no
+        bin is open): every frame kept from before it has been handed on."""
+        return math.inf if self._bin is None else self.start_t + self._bin * self.width_s
+
     def bin_of(self, t: float) -> int:
         """The bin of bot time t: 0 before the start; past the planned end, more bins of
         the same width (a real scan overruns its plan: head settling, reply latency; one

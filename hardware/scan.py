@@ -4,7 +4,9 @@ The executor moves through the plan's waypoints (move, turn the head, pause for 
 autofocus) while the bot's camera records, and writes the scan folder (`flowerpose.scanio`).
 After every waypoint `scan.json` records how far the scan got, atomically, so an interrupted
 scan (an error, Ctrl-C, a dropped link) resumes at the next waypoint with every recorded
-frame kept.
+frame kept. A waypoint counts as done only once the camera has every frame of it on disk
+with its pose (`Camera.recorded_until`): a power cut, which runs no clean-up, then costs
+the waypoints still in the camera's queue or open bin a second flight, never a hole.
 """
 
 from __future__ import annotations
@@ -87,12 +89,19 @@ def run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, *, source: dict,
         return _run_scan(bot, plan, out_dir, source, progress)
 
 
+def _recorded(ends: list[float], recorded_until: float) -> int:
+    """How many of the waypoints that ended at bot-clock `ends` (ascending) have every frame
+    on disk."""
+    return int(np.searchsorted(ends, recorded_until, side="right"))
+
+
 def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: bool) -> dict:
     manifest_path = out_dir / "scan.json"
     fingerprint = plan_id(plan)
     manifest = {"version": 1, "plan_id": fingerprint, "source": source, "plan": plan.to_json(),
                 "waypoints": len(plan.waypoints), "completed": 0, "status": "running",
                 "sessions": []}
+    cut = False  # the last session died without closing
     if manifest_path.exists():
         previous = read_json(manifest_path)
         if previous.get("plan_id") != fingerprint:
@@ -101,6 +110,13 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         manifest.update(completed=int(previous.get("completed", 0)),
                         sessions=list(previous.get("sessions", [])),
                         source=previous.get("source", source))  # the first session's
+        cut = (previous.get("status") == "running" and bool(manifest["sessions"])
+               and "bot_time_end" not in manifest["sessions"][-1])
+        if cut:
+            # We hold the lock, so its session is not running: it died without closing.
+            manifest["sessions"][-1]["error"] = ("ended without closing (power cut or killed); "
+                                                 "waypoints whose frames were not yet on disk "
+                                                 "are flown again")
     start = manifest["completed"]
     if start >= len(plan.waypoints):
         if progress:
@@ -109,7 +125,8 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         manifest["status"] = "complete"
         return manifest
     if start and progress:
-        _progress(f"scan: resuming at waypoint {start} of {len(plan.waypoints)}")
+        _progress(f"scan: resuming at waypoint {start} of {len(plan.waypoints)}"
+                  + (" (the last session ended without closing)" if cut else ""))
     out_dir.mkdir(parents=True, exist_ok=True)
     intrinsics = bot.camera.intrinsics()
     if manifest_path.exists() and (out_dir / "camera.json").exists():
@@ -122,15 +139,21 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
                "wall_start": time.time(), "source": source}
     manifest["sessions"].append(session)
     write_json(manifest_path, manifest)  # first: a folder with anything in it is a scan
-    write_json(out_dir / "camera.json", intrinsics)
-    bot.camera.start_recording(out_dir / "video.mp4")
+    ends: list[float] = []  # bot-clock end of each waypoint flown in this session
+    recording = False
     wall = time.perf_counter()
     try:
+        write_json(out_dir / "camera.json", intrinsics)
+        bot.camera.start_recording(out_dir / "video.mp4")
+        recording = True
         for waypoint in plan.waypoints[start:]:
             bot.move_to(waypoint.pose.gantry)
             bot.set_head(float(waypoint.pose.yaw), float(waypoint.pose.pitch))
             bot.dwell(plan.config.pause_s)
-            manifest["completed"] = waypoint.index + 1
+            ends.append(bot.now())
+            # Done only once its frames are on disk with their poses: the camera may still
+            # hold some in a queue or an open bin, which a power cut would lose.
+            manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
             write_json(manifest_path, manifest)
             LOG.debug(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
                       f"({waypoint.kind}) at bot clock {bot.now():.1f} s")
@@ -143,8 +166,15 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         session["error"] = f"{type(err).__name__}: {err}"
         raise
     finally:
-        recording = bot.camera.stop_recording()
-        session.update(bot_time_end=bot.now(), frames=recording.frames,
-                       wall_s=round(time.perf_counter() - wall, 3))
-        write_json(manifest_path, manifest)
+        try:
+            if recording:
+                session["frames"] = bot.camera.stop_recording().frames
+        except BaseException as err:
+            manifest["status"] = "interrupted"
+            session.setdefault("error", f"{type(err).__name__}: {err}")
+            raise
+        finally:
+            manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
+            session.update(bot_time_end=bot.now(), wall_s=round(time.perf_counter() - wall, 3))
+            write_json(manifest_path, manifest)
     return manifest

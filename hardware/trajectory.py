@@ -235,6 +235,7 @@ class TrajectoryRecorder(Camera):
         self._writer: TrajectoryWriter | None = None
         self._pending: list[tuple[int, float]] = []
         self._offset = 0.0
+        self._rows_until = math.inf
         self.rows = 0
         """trajectory.csv rows written in this session."""
 
@@ -263,6 +264,11 @@ class TrajectoryRecorder(Camera):
     def frame(self) -> Frame:
         return self.camera.frame()
 
+    def recorded_until(self) -> float:
+        """Frames are on disk with their rows up to the camera's saved frames as of the
+        latest batch of rows, and the bot's activities reported by then."""
+        return self._rows_until
+
     def start_recording(self, path: str | Path) -> None:
         scan_dir = Path(path).parent
         scan_dir.mkdir(parents=True, exist_ok=True)
@@ -272,7 +278,7 @@ class TrajectoryRecorder(Camera):
         # trajectory.csv's t counts from the scan's start; a resumed session continues it.
         self._offset = (0.0 if last_t is None else last_t + 1.0 / fps) - start
         self.camera.start_recording(path)
-        self._pending, self.rows = [], 0
+        self._pending, self.rows, self._rows_until = [], 0, -math.inf
         self._writer = TrajectoryWriter(scan_dir / "trajectory.csv", self._geometry)
 
     def stop_recording(self) -> Recording:
@@ -289,18 +295,20 @@ class TrajectoryRecorder(Camera):
 
     def _flush(self, until: float) -> None:
         """Write the rows of the saved frames taken up to `until` (bot clock)."""
+        saved_before = self.camera.recorded_until()  # first: those frames are in the list
         self._pending += self.camera.saved_frames()
-        if not self._pending or not len(self._timeline):
+        if not len(self._timeline):
             return
-        times = np.array([t for _, t in self._pending])
-        ready = int(np.searchsorted(times, until, side="right"))
-        if ready == 0:
-            return
-        frames = np.array([index for index, _ in self._pending[:ready]])
-        gantry, yaw, pitch = self._timeline.poses(times[:ready])
-        self.rows += self._writer.write(frames, times[:ready] + self._offset, gantry, yaw,
-                                        pitch)
-        self._pending = self._pending[ready:]
+        if self._pending:
+            times = np.array([t for _, t in self._pending])
+            ready = int(np.searchsorted(times, until, side="right"))
+            if ready:
+                frames = np.array([index for index, _ in self._pending[:ready]])
+                gantry, yaw, pitch = self._timeline.poses(times[:ready])
+                self.rows += self._writer.write(frames, times[:ready] + self._offset, gantry,
+                                                yaw, pitch)
+                self._pending = self._pending[ready:]
+        self._rows_until = max(self._rows_until, min(saved_before, until))
 
     def close(self) -> None:
         """Stop a recording still running and release the camera."""

@@ -371,6 +371,10 @@ class UsbCamera(RecordingCamera):
         return Recording(recording.folder, recording.start, self._clock(), self.config.fps,
                          recording.count)
 
+    def recorded_until(self) -> float:
+        session = self._session
+        return session.recorded_until if session is not None else math.inf
+
     def saved_frames(self) -> list[tuple[int, float]]:
         session = self._session
         return session.take_saved() if session is not None else []
@@ -418,6 +422,9 @@ class _Recording:
         self._queue: queue.Queue = queue.Queue(config.queue_frames)
         self._saved: list[tuple[int, float]] = []
         self._lock = threading.Lock()
+        self.recorded_until = -math.inf
+        """Bot-clock seconds before which every frame to keep is saved (`Camera`'s): it
+        trails the queue and the keeper's open bin, and stops where a save failed."""
         self._times_file, self._times = open_rows(scan_dir / "frame_times.csv", ("frame", "t"))
         self._thread = threading.Thread(target=self._write_loop, name="usb-camera-writer",
                                         daemon=True)
@@ -437,8 +444,12 @@ class _Recording:
                 continue  # keep draining so the capture thread never blocks
             chosen = [item] if self._keeper is None else self._keeper.offer(*item)
             failed = not all(self._save(image, t) for image, t in chosen)
-        if not failed and self._keeper is not None:
-            all(self._save(image, t) for image, t in self._keeper.flush())
+            if not failed:
+                self.recorded_until = min(item[1], self._keeper.open_since
+                                          if self._keeper is not None else math.inf)
+        if not failed and (self._keeper is None
+                           or all(self._save(image, t) for image, t in self._keeper.flush())):
+            self.recorded_until = math.inf
 
     def _save(self, image: np.ndarray, t: float) -> bool:
         """Write one frame whole and its time; False (and the camera failed) when it

@@ -8,7 +8,7 @@ from flowerpose.hardware.bot import KinematicBot, SolidCamera
 from flowerpose.hardware.bot_errors import StallError
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
-from flowerpose.jsonio import read_json
+from flowerpose.jsonio import read_json, write_json
 from flowerpose.scanpath import ScanPathConfig
 
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,
@@ -95,3 +95,36 @@ def test_a_resume_with_another_camera_is_refused_even_before_the_first_waypoint(
     wider = KinematicBot(camera=functools.partial(SolidCamera, width=64, height=48, fps=2))
     with pytest.raises(InputError, match="other camera settings"):
         run_scan(wider, plan, tmp_path, source=SOURCE, progress=False)
+
+
+class _StartFails(SolidCamera):
+    """A camera whose recording never starts (Ctrl-C while it opens)."""
+
+    def start_recording(self, path):
+        raise KeyboardInterrupt
+
+
+def test_a_scan_stopped_while_its_camera_starts_is_recorded_as_interrupted(tmp_path):
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    bot = KinematicBot(camera=functools.partial(_StartFails, width=32, height=24, fps=2))
+    with pytest.raises(KeyboardInterrupt):
+        run_scan(bot, plan, tmp_path, source=SOURCE, progress=False)
+    manifest = read_json(tmp_path / "scan.json")
+    assert manifest["status"] == "interrupted" and manifest["completed"] == 0
+    assert "KeyboardInterrupt" in manifest["sessions"][0]["error"]
+
+
+def test_a_session_that_died_without_closing_is_named_on_resume(tmp_path, caplog):
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
+    run_scan(_bot(), plan, tmp_path, source=SOURCE, progress=False)
+    manifest = read_json(tmp_path / "scan.json")
+    session = {k: v for k, v in manifest["sessions"][0].items()
+               if k not in ("bot_time_end", "frames", "wall_s")}  # as a power cut leaves it
+    write_json(tmp_path / "scan.json", {**manifest, "status": "running", "completed": 2,
+                                        "sessions": [session]})
+    with caplog.at_level("INFO", logger="flowerpose"):
+        resumed = run_scan(_bot(), plan, tmp_path, source=SOURCE, progress=True)
+    assert resumed["status"] == "complete"
+    assert "power cut" in resumed["sessions"][0]["error"]
+    assert "error" not in resumed["sessions"][1]
+    assert "the last session ended without closing" in caplog.text

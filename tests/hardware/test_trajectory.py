@@ -23,7 +23,7 @@ from flowerpose.hardware.trajectory import (
     last_recorded,
     pose_at,
 )
-from flowerpose.hardware.usb_camera import UsbCamera, UsbCameraConfig
+from flowerpose.hardware.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
 from flowerpose.scanio import read_trajectory
@@ -228,6 +228,51 @@ def test_a_cloud_scan_with_a_usb_camera_makes_a_scan_folder_the_frame_stage_read
     chosen = select_frames(tmp_path, tmp_path / "chosen", FrameSelectConfig(count=5),
                            progress=False)
     assert len(chosen["frames"]) == 5
+
+
+def test_scan_json_counts_a_waypoint_done_only_once_its_kept_frames_are_on_disk(tmp_path,
+                                                                              monkeypatch):
+    """A power cut runs no clean-up, so every scan.json written mid-scan must be safe to
+    resume from: the frames the recording keeps from before the waypoints it calls done are
+    already on disk with their trajectory rows, none in the writer's queue or the frame
+    keeper's open bin."""
+    import flowerpose.hardware.scan as scan
+
+    plan = plan_scan(np.array([1.5, 0.75]), 0.25, ScanConfig(SMALL.path, pause_s=0.05))
+    config = UsbCameraConfig(width=64, height=48, settle_s=0.0,
+                             choose=FrameChoice(duration_s=1.0, bins=4, keep=2))
+    snapshots, dwell_ends = [], []
+
+    def write_and_snapshot(path, document):
+        write_json(path, document)
+        if path.name == "scan.json" and document["status"] == "running":
+            rows = tmp_path / "trajectory.csv"
+            on_disk = set(read_trajectory(rows).frame) if rows.exists() else set()
+            snapshots.append((document["completed"], on_disk))
+
+    monkeypatch.setattr(scan, "write_json", write_and_snapshot)
+    recorder = TrajectoryRecorder(lambda clock: UsbCamera(
+        "/dev/v4l/by-id/fake", clock, config, capture=lambda _: FakeCapture(fps=300.0)))
+
+    def observe(activity):
+        if activity.kind == "dwell":
+            dwell_ends.append(activity.t0 + activity.elapsed)
+        recorder.observe(activity)
+
+    with FarmbotCloudBot(CloudCredentials(token=make_token()), camera=recorder.bind,
+                         observer=observe, head_settle_s=0.02, reply_latency_s=0.0,
+                         client_factory=fake_factory(FakeDevice())) as bot:
+        manifest = run_scan(bot, plan, tmp_path, source=bot.describe(), progress=False)
+    assert manifest["completed"] == len(plan.waypoints) == len(dwell_ends)
+    times = np.loadtxt(tmp_path / "frame_times.csv", delimiter=",", skiprows=1, ndmin=2)
+    with_rows = set(read_trajectory(tmp_path / "trajectory.csv").frame)
+    kept_t = {int(frame): t for frame, t in times if int(frame) in with_rows}
+    assert len(snapshots) > len(plan.waypoints) // 2
+    assert any(done < k + 1 for k, (done, _) in enumerate(snapshots[1:]))  # a bin lags
+    for done, on_disk in snapshots:
+        if done:
+            needed = {f for f, t in kept_t.items() if t <= dwell_ends[done - 1]}
+            assert needed <= on_disk, f"waypoint {done} called done before its frames"
 
 
 def test_the_recorder_is_usable_only_once_bound():
