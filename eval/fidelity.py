@@ -315,6 +315,10 @@ def table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: What `run_fidelity` writes into its folder.
+FIDELITY_FILES = ("fidelity.json", "fidelity.md", "fidelity.png")
+
+
 def run_fidelity(real_dir: Path, synthetic_dirs: list[Path], out_dir: Path,
                  config: PipelineConfig, max_distance: float,
                  truth_scale: float | None = None) -> dict[str, Any]:

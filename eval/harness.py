@@ -26,6 +26,7 @@ from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.methods import ExternalMethod, run_method
 from flowerpose.eval.report import (
+    REPORT_FILES,
     build_report,
     error_stats,
     plant_entry,
@@ -343,13 +344,29 @@ def _real_jobs(folders: list[Path],
         raise InputError("--source real", "needs at least one labelled plant folder: "
                          "flowerpose eval --source real DIR [DIR ...]")
     plants = [read_real_plant(folder, truth_scale) for folder in folders]
-    names: dict[str, int] = {}
-    jobs = []
-    for plant in plants:
-        names[plant.name] = names.get(plant.name, 0) + 1
-        name = plant.name if names[plant.name] == 1 else f"{plant.name}-{names[plant.name]}"
-        jobs.append(("real", name, plant))
+    jobs = [("real", name, plant)
+            for name, plant in zip(_unique([p.name for p in plants]), plants, strict=True)]
     return jobs, [p.describe() for p in plants]
+
+
+def _unique(names: list[str]) -> list[str]:
+    """Folder names made unique by a count: a, a-2, a-3."""
+    seen: dict[str, int] = {}
+    unique = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        unique.append(name if seen[name] == 1 else f"{name}-{seen[name]}")
+    return unique
+
+
+def eval_outputs(source: str, folders: Iterable[Path] = (), compared: Iterable[str] = ()
+                 ) -> tuple[str, ...]:
+    """The top-level entries `run_eval` writes (`outputs.OutputFolder`): the reports, the
+    plants (a real plant under its folder's name) and a folder per compared profile or
+    method."""
+    plants = (_unique([Path(f).resolve().name for f in folders]) if source == "real"
+              else ["plants"])
+    return (*REPORT_FILES, "report.html", *plants, *compared)
 
 
 def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,

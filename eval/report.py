@@ -214,6 +214,10 @@ TABLE_LEGEND = (
     "take all plants' flowers together.")
 
 
+#: What `write_report` writes into its folder.
+REPORT_FILES = ("report.json", "report.md")
+
+
 def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
     """Write report.json and report.md into out_dir."""
     json_path = write_json(out_dir / "report.json", report)

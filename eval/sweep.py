@@ -85,6 +85,17 @@ def _plot(path: Path, rows: list[dict], keys: list[str]) -> None:
     plt.close(fig)
 
 
+def sweep_outputs(grid: list[tuple[str, list[str]]]) -> tuple[str, ...]:
+    """The top-level entries `run_sweep` writes for `grid` (`outputs.OutputFolder`)."""
+    count = 1
+    for _, values in grid:
+        count *= len(values)
+    plants = ([f"plants-{k}" for k in range(count)] if any(k.startswith("sim.") for k, _ in grid)
+              else ["plants"])
+    return ("sweep.csv", "sweep.png", "best.json", *plants,
+            *(f"setting-{k}" for k in range(count)))
+
+
 def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int, seed: int,
               out_dir: Path, workers: int | None = None) -> dict:
     """Evaluate every combination of the grid over `plants` seeded plants; returns the best

@@ -36,12 +36,13 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
 
 
 @contextlib.contextmanager
-def _owned(folder: Path, stage: str, overwrite: bool):
+def _owned(folder: Path, stage: str, overwrite: bool, writes: tuple[str, ...]):
     """The command's output folder, refused when it holds files the command did not
-    write (`outputs`), and marked whole when the command succeeds."""
+    write (`outputs`; with --overwrite, when one of them has a name in `writes`, the
+    entries the command writes), and marked whole when the command succeeds."""
     from flowerpose.outputs import OutputFolder
 
-    output = OutputFolder(folder, stage, overwrite)
+    output = OutputFolder(folder, stage, overwrite, writes)
     yield output
     output.finish()
 
@@ -100,7 +101,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
     out = args.out or _default_out()
     plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
-    with _owned(out, "eval", args.overwrite):
+    from flowerpose.eval.harness import eval_outputs
+
+    writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
+    with _owned(out, "eval", args.overwrite, writes):
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
                           truth_scale=args.truth_scale, compare=compare, suite=suite,
@@ -164,8 +168,9 @@ def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
 
 def cmd_plant(args: argparse.Namespace) -> int:
     from flowerpose.sim.bundle import make_plant
+    from flowerpose.sim.export import PLANT_FILES
 
-    with _owned(args.out, "plant", args.overwrite):
+    with _owned(args.out, "plant", args.overwrite, PLANT_FILES):
         bundle = make_plant(args.seed, preset=args.preset, points=args.points, out_dir=args.out)
     visible = int(sum(bundle.visible))
     print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
@@ -239,13 +244,13 @@ def cmd_score(args: argparse.Namespace) -> int:
 
     report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,
                          args.max_distance)
-    from flowerpose.eval.report import summary_lines, table, write_report
+    from flowerpose.eval.report import REPORT_FILES, summary_lines, table, write_report
 
     print(table(report))
     for line in summary_lines(report):
         print(line)
     if args.out:
-        with _owned(args.out, "score", args.overwrite):
+        with _owned(args.out, "score", args.overwrite, REPORT_FILES):
             paths = write_report(args.out, report, f"flowerpose score: {args.flowers.name}")
         print(f"report: {paths[0]}, {paths[1]}")
     return 0
@@ -527,11 +532,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_config
-    from flowerpose.eval.sweep import parse_grid, run_sweep
+    from flowerpose.eval.sweep import parse_grid, run_sweep, sweep_outputs
 
     config = eval_config(args.preset, lambda base: _configure(base, args))
     grid = parse_grid(args.grid, config)
-    with _owned(args.out, "sweep", args.overwrite):
+    with _owned(args.out, "sweep", args.overwrite, sweep_outputs(grid)):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
                          workers=args.workers)
     print(f"best: {best}")
@@ -539,11 +544,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
-    from flowerpose.eval.fidelity import run_fidelity, table
+    from flowerpose.eval.fidelity import FIDELITY_FILES, run_fidelity, table
     from flowerpose.eval.harness import EvalConfig, pipeline_part
 
     config = _configure(EvalConfig(), args)
-    with _owned(args.out, "fidelity", args.overwrite):
+    with _owned(args.out, "fidelity", args.overwrite, FIDELITY_FILES):
         report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
                               config.score.max_distance_m, args.truth_scale)
     print(table(report))

@@ -1,7 +1,7 @@
 """Output folders that a command owns: it deletes only what it wrote itself.
 
 A command's output folder holds a marker, `.flowerpose-output.json`, naming the stage that
-wrote it and the files it wrote. A folder that does not exist or is empty becomes the
+wrote it, the files it recorded and the top-level entries it declared it writes. A folder that does not exist or is empty becomes the
 stage's; one with the same stage's marker is its own earlier output, whose files are
 removed (stale) before the new ones are written; anything else (another stage's output, or
 files flowerpose did not write) is refused with one line, unless the user says
@@ -39,11 +39,15 @@ def _previous(folder: Path) -> dict | None:
 
 
 def _own_earlier(folder: Path, stage: str) -> set[str]:
-    """Top-level names of this stage's earlier output in `folder` (its marker's files)."""
+    """Top-level names of this stage's earlier output in `folder`: the files its marker
+    lists, and the entries that run declared (`writes`), which it found absent or its own
+    before it wrote them."""
     previous = _previous(folder)
     if previous is None or previous["stage"] != stage:
         return set()
-    return {Path(name).parts[0] for name in previous["files"] if Path(name).parts}
+    declared = previous.get("writes", [])
+    names = previous["files"] + (declared if isinstance(declared, list) else [])
+    return {Path(name).parts[0] for name in names if isinstance(name, str) and Path(name).parts}
 
 
 def _refuse_foreign(folder: Path, stage: str, writes: tuple[str, ...], own: set[str]) -> None:
@@ -94,6 +98,7 @@ class OutputFolder:
                  writes: tuple[str, ...] = ()):
         self.folder = Path(folder)
         self.stage = stage
+        self.writes = tuple(writes)
         check_output(self.folder, stage, overwrite, writes)
         previous = _previous(self.folder) if self.folder.is_dir() else None
         own = _own_earlier(self.folder, stage) if self.folder.is_dir() else set()
@@ -109,7 +114,8 @@ class OutputFolder:
 
     def _write(self, complete: bool) -> None:
         write_json(self.folder / MARKER, {"stage": self.stage, "complete": complete,
-                                          "files": sorted(set(self.files))})
+                                          "files": sorted(set(self.files)),
+                                          "writes": list(self.writes)})
 
     def record(self, *paths: str | Path) -> None:
         """Note files (or folders) this stage wrote in its folder; one inside an entry that

@@ -37,6 +37,10 @@ def truth_dict(plant: Plant, visible: np.ndarray | None = None,
             "flowers": flowers}
 
 
+#: What `write_plant` writes into a plant folder (cloud.ply when given a cloud).
+PLANT_FILES = ("plant.json", "plant.ply", "plant_labels.npz", "cloud.ply")
+
+
 def write_plant(plant: Plant, out_dir: str | Path, cloud: Cloud | None = None,
                 visible: np.ndarray | None = None,
                 fraction: np.ndarray | None = None) -> dict[str, Path]:

@@ -125,3 +125,27 @@ def test_a_reconstruction_over_a_folder_of_other_files_deletes_none(tmp_path):
         reconstruct(frames, plant, overwrite=True)
     assert (plant / "sparse" / "my_model.txt").read_text() == "mine"
     assert (plant / "cloud.ply").read_text() == "the oracle cloud"
+
+
+def test_overwrite_never_writes_a_report_or_plant_over_a_file_it_did_not_write(plant0,
+                                                                                 tmp_path,
+                                                                                 capsys):
+    """The commands without their own staging (score, plant, eval, sweep, fidelity) name
+    what they write, so --overwrite refuses a same-named file that is not theirs."""
+    _, plant_dir = plant0
+    flowers = tmp_path / "flowers.json"
+    flowers.write_text(json.dumps({"flowers": []}))
+    score = ["score", str(flowers), str(plant_dir / "plant.json")]
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "report.md").write_text("my notes")
+    assert main([*score, "--out", str(out), "--overwrite"]) == 2
+    assert (out / "report.md").read_text() == "my notes" and not (out / "report.json").exists()
+    assert main([*score, "--out", str(tmp_path / "own")]) == 0
+    assert main([*score, "--out", str(tmp_path / "own")]) == 0  # its own: written again
+    assert main(["plant", "--seed", "0", "--out", str(plant_dir), "--overwrite"]) == 2
+    capsys.readouterr()
+    assert main(["eval", "--source", "real", str(tmp_path / "nowhere"), "--out", str(out),
+                 "--overwrite"]) == 2
+    assert "report.md: was not written by flowerpose eval" in capsys.readouterr().err
+    assert (out / "report.md").read_text() == "my notes"
