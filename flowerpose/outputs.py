@@ -1,13 +1,13 @@
 """Output folders that a command owns: it deletes only what it wrote itself.
 
 A command's output folder holds a marker, `.flowerpose-output.json`, naming the stage that
-wrote it, the files it recorded and the top-level entries it declared it writes. A folder that does not exist or is empty becomes the
-stage's; one with the same stage's marker is its own earlier output, whose files are
-removed (stale) before the new ones are written; anything else (another stage's output, or
-files flowerpose did not write) is refused with one line, unless the user says
-`--overwrite`, and even then nothing of it is deleted or written over: a stage names the
-top-level entries it writes (`writes`), and one of them already there that is not its own
-earlier output is refused, --overwrite or not.
+wrote it, the files it recorded and the top-level entries it declared it writes. A folder
+that does not exist or is empty becomes the stage's; one with the same stage's marker is
+its own earlier output, whose recorded files are removed (stale) before the new ones are
+written; anything else (another stage's output, or files flowerpose did not write) is
+refused with one line, unless the user says `--overwrite`, and even then nothing of it is
+deleted or written over: a stage names the top-level entries it writes (`writes`), and one
+of them already there that is not its own earlier output is refused, --overwrite or not.
 """
 
 from __future__ import annotations
