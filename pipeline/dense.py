@@ -53,7 +53,7 @@ from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.log import LOG
-from flowerpose.pipeline.frames import ChosenFrame, is_rotation, read_frames
+from flowerpose.pipeline.frames import ChosenFrame, distinct_views, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
 __all__ = ["DenseConfig", "reconstruct_dense", "select_pairs"]
@@ -90,8 +90,10 @@ class DenseConfig:
     optical axis, degrees: the epipole then falls in or near the image and planar
     rectification stretches it without bound (forward motion)."""
     duplicate_distance_m: float = 0.005
-    """Frames within this distance of a sharper frame, looking the same way (within 2
-    degrees), add nothing but time: they are dropped, metres."""
+    """Frames within this distance of a sharper frame, looking the same way (within
+    `duplicate_angle_deg`), add nothing but time: they are dropped, metres."""
+    duplicate_angle_deg: float = 2.0
+    """The viewing directions of such duplicates differ by at most this, degrees."""
     # --- matching ---
     image_scale: float = 0.5
     """Images are resized by this before matching (1280 x 720 -> 640 x 360): SGM's time grows
@@ -991,17 +993,7 @@ def _fuse_and_filter(views: list[_View], k: np.ndarray, config: DenseConfig, thr
 def _drop_duplicates(poses: np.ndarray, sharpness: np.ndarray, config: DenseConfig
                      ) -> np.ndarray:
     """Indices of the views kept: of frames taken from the same spot looking the same way,
-    the sharpest."""
-    centres, axes = poses[:, :3, 3], poses[:, :3, 2]
-    distance = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-    same = (distance <= config.duplicate_distance_m) & (
-        _angle_deg(axes[:, None], axes[None, :]) <= 2.0)
-    order = np.argsort(-sharpness, kind="stable")
-    dropped = np.zeros(len(poses), bool)
-    for i in order:
-        if dropped[i]:
-            continue
-        others = same[i].copy()
-        others[i] = False
-        dropped |= others
-    return np.flatnonzero(~dropped)
+    the sharpest (`frames.distinct_views`)."""
+    return np.flatnonzero(distinct_views(poses[:, :3, 3], poses[:, :3, 2], sharpness,
+                                         config.duplicate_distance_m,
+                                         config.duplicate_angle_deg))

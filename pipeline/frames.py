@@ -113,6 +113,28 @@ def read_frames(frames_dir: str | Path, need_poses: bool = True) -> list[ChosenF
     return frames
 
 
+def distinct_views(centres: np.ndarray, axes: np.ndarray, priority: np.ndarray,
+                   distance_m: float, angle_deg: float) -> np.ndarray:
+    """(N,) bool: the views kept when, of views from within `distance_m` of each other
+    looking within `angle_deg` the same way, only the one of highest `priority` counts (a
+    greedy pass in priority order: a view is dropped by a kept one only).
+
+    centres: (N, 3) camera centres, metres, bed frame; axes: (N, 3) unit optical axes;
+    priority: (N,) higher first, ties to the earlier view.
+    """
+    centres, axes = np.asarray(centres, np.float64), np.asarray(axes, np.float64)
+    near = (np.linalg.norm(centres[:, None] - centres[None], axis=-1) <= distance_m) & (
+        axes @ axes.T >= np.cos(np.radians(angle_deg)))
+    keep = np.ones(len(centres), bool)
+    dropped = np.zeros(len(centres), bool)
+    for i in np.argsort(-np.asarray(priority, np.float64), kind="stable"):
+        if dropped[i]:
+            keep[i] = False
+            continue
+        dropped |= near[i]
+    return keep
+
+
 def frame_score(rgb: np.ndarray, config: FrameSelectConfig) -> tuple[float, float, float]:
     """(score, Laplacian variance, mean value 0-255) of the centre crop of an RGB image."""
     height, width = rgb.shape[:2]

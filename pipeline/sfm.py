@@ -46,7 +46,7 @@ from flowerpose.errors import InputError, missing_extra
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
-from flowerpose.pipeline.frames import ChosenFrame, read_frames
+from flowerpose.pipeline.frames import ChosenFrame, distinct_views, read_frames
 from flowerpose.processes import reclaim_sigterm
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
@@ -56,8 +56,10 @@ reclaim_sigterm()
 #: An image that sees fewer triangulated points than this counts as not registered (the
 #: inliers COLMAP's mapper asks of a new image's pose, abs_pose_min_num_inliers).
 MIN_IMAGE_POINTS = 30
-#: Frames closer than this in position (metres) and viewing direction (degrees) show the
-#: same view; only the first is used.
+#: Frames closer than this in position (metres) and viewing direction (degrees) were taken
+#: at one stop of the scan; only the first is used. Tighter than the dense stage's
+#: duplicates (`DenseConfig.duplicate_distance_m`): a pair a few millimetres apart still
+#: helps a frame register, but adds no depth to stereo.
 SAME_POSE_M = 0.001
 SAME_POSE_DEG = 0.5
 #: Fewest matches for an image pair to count (COLMAP's two_view_geometry min_num_inliers).
@@ -162,21 +164,16 @@ def _colmap_logging(show: bool) -> Iterator[None]:
 
 
 def distinct_poses(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-    """(N,) bool: False for a frame recorded at the pose of an earlier kept one.
+    """(N,) bool: False for a frame recorded at the pose of an earlier kept one
+    (`frames.distinct_views` within SAME_POSE_M and SAME_POSE_DEG).
 
     A stop-and-go scan often gives two chosen frames at one stop. Such a pair has no
     baseline: its matches confirm any feature, and a track through both counts one view
     twice (on a simulated scan those tracks held most points more than 5 mm off).
     positions: (N, 3) metres, bed frame; rotations: (N, 3, 3) camera-to-bed.
     """
-    keep = np.ones(len(positions), dtype=bool)
-    axes = rotations[:, :, 2]
-    for i in range(1, len(positions)):
-        earlier = np.flatnonzero(keep[:i])
-        close = (np.linalg.norm(positions[earlier] - positions[i], axis=1) < SAME_POSE_M) & (
-            axes[earlier] @ axes[i] > np.cos(np.radians(SAME_POSE_DEG)))
-        keep[i] = not close.any()
-    return keep
+    return distinct_views(positions, rotations[:, :, 2], -np.arange(len(positions)),
+                          SAME_POSE_M, SAME_POSE_DEG)
 
 
 def sequential_pairs(count: int, overlap: int) -> set[tuple[int, int]]:

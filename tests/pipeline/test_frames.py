@@ -10,6 +10,7 @@ from flowerpose.jsonio import write_json
 from flowerpose.pipeline.frames import (
     FrameSelectConfig,
     bin_edges,
+    distinct_views,
     frame_score,
     read_frames,
     select_frames,
@@ -167,3 +168,17 @@ def test_damaged_frames_are_left_out_and_the_rest_of_the_scan_kept(tmp_path, cap
     result = select_frames(scan, tmp_path / "out", FrameSelectConfig(count=4), progress=False)
     assert [f["index"] for f in result["frames"]] == [0, 3, 4, 6]
     assert "2 damaged frames" in capsys.readouterr().err
+
+
+def test_of_views_at_one_spot_looking_one_way_only_the_first_in_priority_counts():
+    centres = np.array([[0, 0, 0], [0.003, 0, 0], [0.006, 0, 0], [0.003, 0, 0], [1, 0, 0]])
+    axes = np.array([[0, 0, 1]] * 5, float)
+    axes[3] = [0, np.sin(0.1), np.cos(0.1)]  # 5.7 degrees off: another view
+    # Greedy: view 1 drops 0 and 2 (3 mm either side), though they are 6 mm apart.
+    np.testing.assert_array_equal(
+        distinct_views(centres, axes, np.array([0, 9, 1, 5, 2]), 0.004, 2.0),
+        [False, True, False, True, True])
+    # A dropped view drops nothing: in index order 1 goes, and 2 stays.
+    np.testing.assert_array_equal(
+        distinct_views(centres, axes, -np.arange(5), 0.004, 2.0),
+        [True, False, True, True, True])
