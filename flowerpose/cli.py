@@ -1011,6 +1011,7 @@ def _add_verbosity(parser: argparse.ArgumentParser, default: Any) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from flowerpose.log import configure as configure_log
+    from flowerpose.log import third_party
     from flowerpose.processes import Terminated, terminate_cleanly
 
     parser = build_parser()
@@ -1021,7 +1022,8 @@ def main(argv: list[str] | None = None) -> int:
     configure_log(args.verbose - args.quiet)
     terminate_cleanly()
     try:
-        return args.func(args)
+        with third_party():  # other libraries' warnings: debug lines (-v), not the user's
+            return args.func(args)
     except (InputError, BotError) as err:
         # BotError: a fault of the bot or its link, said in one line that names the device.
         print(f"flowerpose: error: {err}", file=sys.stderr)
