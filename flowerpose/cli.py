@@ -543,7 +543,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     with _owned(args.out, "sweep", args.overwrite):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
                          workers=args.workers)
-    print(f"best: {best}")
+    metrics = best["metrics"]
+    print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
+          + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
+          f"plane {metrics['plane_mean_deg']}°; its whole config in {args.out / 'best.json'})")
     return 0
 
 
