@@ -13,6 +13,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from flowerpose.log import open3d
 from flowerpose.sim.pieces import Part
 
 THRESHOLDS_M = (0.002, 0.005)
@@ -20,8 +21,7 @@ THRESHOLDS_M = (0.002, 0.005)
 
 def _closest(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(distance (N,), face index (N,)) of points to the mesh's nearest surface, metres."""
-    import open3d as o3d
-
+    o3d = open3d()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))

@@ -1,8 +1,9 @@
 """Sweeps: the benchmark over a grid of settings, to tune grid resolution, DBSCAN and more.
 
 Plants are generated once and shared by every setting (unless a `sim.*` setting varies),
-then every (setting, plant) pair runs in one process pool. Writes `sweep.csv`, `sweep.png`
-(the metrics per setting) and `best.json`.
+then every (setting, plant) pair runs in one process pool. Writes `sweep.csv` (a row per
+setting), `sweep.png` (each metric per setting, its spread over the plants) and `best.json`
+(the best setting, its metrics and whole config; every setting with its plants' metrics).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import time
 from pathlib import Path
 
 from flowerpose.atomic import write_figure, write_text
-from flowerpose.config import apply_overrides, to_dict
+from flowerpose.config import apply_overrides, to_dict, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.harness import EvalConfig, evaluate_cloud, generate_plants, run_jobs
 from flowerpose.eval.report import summarise
@@ -42,17 +43,18 @@ def parse_grid(items: list[str], config: EvalConfig) -> list[tuple[str, list[str
     return grid
 
 
-def _row(setting: dict[str, str], entries: list[dict], seconds: list[float]) -> dict:
+def _metrics(entries: list[dict], seconds: list[float]) -> dict:
+    """The sweep's metrics over plant entries (pooled: a recall is found over all the
+    plants' flowers) and their mean wall seconds per plant."""
     s = summarise(entries)
-    row: dict = dict(setting)
-    row.update({"recall": s["recall"], "recall_visible": s["recall_visible"],
-                "fp_rate": s["fp_rate"], "detections": s["detections"], "fp": s["fp"]})
+    metrics = {"recall": s["recall"], "recall_visible": s["recall_visible"],
+               "fp_rate": s["fp_rate"], "detections": s["detections"], "fp": s["fp"]}
     for method in ("plane", "superellipsoid", "paraboloid"):
-        row[f"{method}_mean_deg"] = s["error_deg"][method]["mean"]
-        row[f"{method}_median_deg"] = s["error_deg"][method]["median"]
-        row[f"{method}_failed"] = s["failed"][method]
-    row["seconds_per_plant"] = round(sum(seconds) / len(seconds), 4)
-    return row
+        metrics[f"{method}_mean_deg"] = s["error_deg"][method]["mean"]
+        metrics[f"{method}_median_deg"] = s["error_deg"][method]["median"]
+        metrics[f"{method}_failed"] = s["failed"][method]
+    metrics["seconds_per_plant"] = round(sum(seconds) / len(seconds), 4)
+    return metrics
 
 
 def best_row(rows: list[dict]) -> dict:
@@ -64,25 +66,66 @@ def best_row(rows: list[dict]) -> dict:
     return min(rows, key=key)
 
 
-def _plot(path: Path, rows: list[dict], keys: list[str]) -> None:
+#: What each metric's axis in sweep.png says, with its unit.
+METRIC_LABELS = {"recall": "recall", "recall_visible": "recall (visible)",
+                 "fp_rate": "false positives\n(of detections)",
+                 "plane_mean_deg": "plane error (°)",
+                 "superellipsoid_mean_deg": "superellipsoid\nerror (°)",
+                 "paraboloid_mean_deg": "paraboloid error (°)",
+                 "seconds_per_plant": "seconds per plant"}
+
+
+def setting_label(setting: dict) -> str:
+    """A setting as its full dotted keys and values, one a line."""
+    return "\n".join(f"{key}={value}" for key, value in setting.items())
+
+
+def sweep_figure(settings: list[dict], pooled: list[dict], per_plant: list[list[dict]],
+                 best: int):
+    """sweep.png's figure: per metric, each setting a category on the x axis (nothing
+    joins them), its plants' values as a box and points, the value over all its plants as
+    a diamond, and the best setting shaded and named.
+
+    settings: the grid's settings (full dotted keys, typed values); pooled: their metrics
+    over all plants; per_plant: per setting, each plant's metrics; best: the best
+    setting's index."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
-    labels = [", ".join(f"{k.split('.')[-1]}={r[k]}" for k in keys) for r in rows]
-    fig, axes = plt.subplots(len(METRICS), 1, figsize=(max(6, 0.6 * len(rows) + 3),
-                                                       2.0 * len(METRICS)), sharex=True)
-    for ax, metric in zip(axes, METRICS, strict=True):
-        values = [r[metric] if r[metric] is not None else float("nan") for r in rows]
-        ax.plot(range(len(rows)), values, "o-")
-        ax.set_ylabel(metric.replace("_", " "), fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[-1].set_xticks(range(len(rows)), labels, rotation=45, ha="right", fontsize=8)
-    fig.suptitle("flowerpose sweep")
+    rng = np.random.default_rng(0)  # the points' sideways jitter, the same every run
+    count = len(settings)
+    fig, axes = plt.subplots(len(METRICS), 1, sharex=True, squeeze=False,
+                             figsize=(max(6.0, 1.3 * count + 3), 1.9 * len(METRICS) + 1.2))
+    for ax, metric in zip(axes[:, 0], METRICS, strict=True):
+        ax.axvspan(best - 0.45, best + 0.45, color="gold", alpha=0.25, zorder=0)
+        for k, plants in enumerate(per_plant):
+            values = np.array([m[metric] for m in plants if m[metric] is not None], float)
+            if len(values) > 1:
+                ax.boxplot([values], positions=[k], widths=0.5, showfliers=False,
+                           medianprops={"color": "tab:blue"}, manage_ticks=False)
+            if len(values):
+                ax.scatter(k + rng.uniform(-0.12, 0.12, len(values)), values, s=12,
+                           color="tab:blue", alpha=0.6, zorder=3,
+                           label="a plant" if k == 0 else None)
+            if pooled[k][metric] is not None:
+                ax.scatter([k], [pooled[k][metric]], marker="D", s=30, color="black",
+                           zorder=4, label="all plants" if k == 0 else None)
+        ax.set_ylabel(METRIC_LABELS[metric], fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="best")
+    labels = [setting_label(s) + ("\n(best)" if k == best else "")
+              for k, s in enumerate(settings)]
+    axes[-1, 0].set_xticks(range(count), labels, fontsize=7)
+    axes[-1, 0].get_xticklabels()[best].set_fontweight("bold")
+    axes[-1, 0].set_xlim(-0.6, count - 0.4)
+    fig.suptitle(f"flowerpose sweep: {len(per_plant[0])} plants per setting; best: "
+                 + ", ".join(f"{key}={value}" for key, value in settings[best].items()),
+                 fontsize=9)
     fig.tight_layout()
-    write_figure(path, fig)
-    plt.close(fig)
+    return fig
 
 
 def sweep_outputs(grid: list[tuple[str, list[str]]]) -> tuple[str, ...]:
@@ -98,8 +141,9 @@ def sweep_outputs(grid: list[tuple[str, list[str]]]) -> tuple[str, ...]:
 
 def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int, seed: int,
               out_dir: Path, workers: int | None = None) -> dict:
-    """Evaluate every combination of the grid over `plants` seeded plants; returns the best
-    row (its settings and metrics)."""
+    """Evaluate every combination of the grid over `plants` seeded plants; writes
+    sweep.csv, sweep.png and best.json, and returns best.json's "best": the best setting
+    (dotted keys, typed values), its metrics and its whole resolved config."""
     if plants < 1:
         raise InputError("--plants", f"must be at least 1, got {plants}")
     start = time.perf_counter()
@@ -121,20 +165,35 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     results = run_jobs(evaluate_cloud, jobs, workers,
                        lambda j, v: f"setting {j // len(seeds)} {v[0]['plant']}: "
                        f"{v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp")
-    rows = []
-    for k, setting in enumerate(settings):
+    # The values as the config holds them: 0.008 a number, "mask" a string, 14 an integer.
+    typed = [{key: value_at(cfg, key) for key in keys} for cfg in configs]
+    pooled, per_plant = [], []
+    for k in range(len(settings)):
         chunk = results[k * len(seeds):(k + 1) * len(seeds)]
-        rows.append(_row(setting, [e for e, _ in chunk], [t["total"] for _, t in chunk]))
+        pooled.append(_metrics([e for e, _ in chunk], [t["total"] for _, t in chunk]))
+        per_plant.append([{"plant": e["plant"], **_metrics([e], [t["total"]])}
+                          for e, t in chunk])
+    rows = [{**setting, **metrics} for setting, metrics in zip(typed, pooled, strict=True)]
+    best_index = rows.index(best_row(rows))
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=list(rows[0]))
     writer.writeheader()
     writer.writerows(rows)
     write_text(out_dir / "sweep.csv", table.getvalue())
-    _plot(out_dir / "sweep.png", rows, keys)
-    best = best_row(rows)
+    import matplotlib.pyplot as plt
+
+    figure = sweep_figure(typed, pooled, per_plant, best_index)
+    write_figure(out_dir / "sweep.png", figure)
+    plt.close(figure)
+    best = {"setting": typed[best_index], "metrics": pooled[best_index],
+            "config": to_dict(configs[best_index])}
     write_json(out_dir / "best.json",
-               {"best": best, "rows": rows, "plants": plants, "seed": seed,
-                "config": to_dict(config), "seconds": round(time.perf_counter() - start, 2)})
+               {"best": best, "grid": {key: [value_at(apply_overrides(config, {key: v}), key)
+                                             for v in values] for key, values in grid},
+                "settings": [{"setting": t, "metrics": m, "plants": p}
+                             for t, m, p in zip(typed, pooled, per_plant, strict=True)],
+                "plants": plants, "seed": seed,
+                "seconds": round(time.perf_counter() - start, 2)})
     for row in rows:
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "
               f"{row['recall_visible']}, fp_rate {row['fp_rate']}, plane "

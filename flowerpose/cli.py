@@ -19,20 +19,28 @@ from flowerpose.log import LOG
 SCAN_PLANTS = 2
 
 
-def _add_config_options(parser: argparse.ArgumentParser) -> None:
+def _add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
+                        detector: bool = True) -> None:
+    """--config and --set; --profile where the profiles' keys apply (the pipeline's), and
+    --detector where a detector runs."""
     from flowerpose.config import profile_names
 
-    parser.add_argument("--profile", choices=profile_names(), metavar="NAME",
-                        help="start from a named settings profile: upstream = the published "
-                        "method's settings (assets/configs/NAME.toml)")
+    if profile:
+        parser.add_argument("--profile", choices=profile_names(), metavar="NAME",
+                            help="start from a named settings profile: upstream = the "
+                            "published method's settings (assets/configs/NAME.toml; default: "
+                            "none, this project's defaults)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml",
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one setting by its dotted key, e.g. cluster.eps=0.008")
-    parser.add_argument("--detector", metavar="MODULE:CLASS",
-                        help="the 2D detector on the grid views: any importable class with "
-                        "the Detector interface (pipeline/detect.py), instead of the colour "
-                        "detector (the same as --set detect.detector=MODULE:CLASS)")
+                        help="override one setting by its dotted key, in the setting's own "
+                        "unit, e.g. cluster.eps=0.008 (metres); repeatable")
+    if detector:
+        parser.add_argument("--detector", metavar="MODULE:CLASS",
+                            help="the 2D detector on the grid views: any importable class "
+                            "with the Detector interface (pipeline/detect.py), the same as "
+                            "--set detect.detector=MODULE:CLASS (default: the colour "
+                            "detector)")
 
 
 @contextlib.contextmanager
@@ -58,11 +66,12 @@ def _configure(base: Any, args: argparse.Namespace) -> Any:
     from flowerpose.config import apply_overrides, load_profile, load_toml, parse_set_options
 
     config = base
-    if args.profile is not None:
+    if getattr(args, "profile", None) is not None:
         config = apply_overrides(config, load_profile(args.profile))
     if args.config is not None:
         config = apply_overrides(config, load_toml(args.config))
-    sets = args.set + ([f"detect.detector={args.detector}"] if args.detector else [])
+    detector = getattr(args, "detector", None)
+    sets = args.set + ([f"detect.detector={detector}"] if detector else [])
     return apply_overrides(config, parse_set_options(sets))
 
 
@@ -539,7 +548,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     with _owned(args.out, "sweep", args.overwrite, sweep_outputs(grid)):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
                          workers=args.workers)
-    print(f"best: {best}")
+    metrics = best["metrics"]
+    print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
+          + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
+          f"plane {metrics['plane_mean_deg']}°; its whole config in {args.out / 'best.json'})")
     return 0
 
 
@@ -620,8 +632,32 @@ CLOUD_POINTS = _at_least(100, CLOUD_POINTS_MAX, "more does not fit in memory")
 PLANTS = _at_least(1, 10_000, "a larger benchmark is several runs")
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's help, with the description's and epilog's paragraphs filled to the
+    terminal's width and a paragraph with indented lines (the examples) kept as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        import textwrap
+
+        paragraphs = []
+        for paragraph in text.split("\n\n"):
+            lines = paragraph.splitlines()
+            if any(line.startswith(" ") for line in lines):
+                paragraphs.append("\n".join(indent + line for line in lines))
+            else:
+                paragraphs.append(textwrap.fill(" ".join(paragraph.split()), width,
+                                                initial_indent=indent,
+                                                subsequent_indent=indent))
+        return "\n\n".join(paragraphs)
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors: `flowerpose: error: ...`, exit status 2."""
+    """argparse with one-line errors (`flowerpose: error: ...`, exit status 2) and help
+    whose examples keep their lines."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         command = self.prog.removeprefix("flowerpose").strip()
@@ -634,7 +670,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = _Parser(
         prog="flowerpose",
-        description="3D strawberry flower poses from point clouds, scored against exact truth.")
+        description="Estimate the 3D poses of strawberry flowers in point clouds, and score "
+        "them against exact synthetic truth or hand labels. Each command is a stage of the "
+        "method or a job made of them; `flowerpose COMMAND --help` says more.",
+        epilog="examples:\n"
+        "  flowerpose eval --source oracle --plants 2    # the pipeline on 2 synthetic plants\n"
+        "  flowerpose eval                               # the full loop: about 10 minutes")
     from flowerpose import __version__
 
     parser.add_argument("--version", action="version", version=f"flowerpose {__version__}")
@@ -642,8 +683,16 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 parser_class=_Parser)
 
-    p = sub.add_parser("eval", help="the synthetic benchmark: plants -> clouds -> flowers -> "
-                       "scores (the paper's Table I)")
+    p = sub.add_parser(
+        "eval", help="the benchmark: plants -> clouds -> flowers -> Table I",
+        description="Run the benchmark: generate seeded plants (or read labelled real plant "
+        "folders), turn each into a point cloud (--source), find its flowers and their "
+        "normals, score them against the truth and print the paper's Table I. Writes "
+        "report.json, report.md and report.html to --out, and per plant its files.",
+        epilog="examples:\n"
+        "  flowerpose eval --source oracle --plants 2 --out runs/oracle\n"
+        "  flowerpose eval --source real ../shared/real/paper-plant-3 --compare upstream\n"
+        "  flowerpose eval --suite oracle-10 --require 'recall_visible>=0.95'")
     p.add_argument("--source", choices=("scan", "oracle", "rgbd", "real"), default=None,
                    help="where clouds come from: scan = the simulated bot films each plant "
                    "and photogrammetry reconstructs it (default); oracle = the plant's "
@@ -653,30 +702,37 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--source real: labelled plant folders (labels.json and cloud.ply, "
                    "candidates/*.ply or crops/*.ply; README, \"Real plants\")")
     p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
-                   help="--source real: the factor the labelled cloud was scaled by "
+                   help="--source real: the factor the labelled cloud was scaled by, no unit "
                    "(default: each folder's source.json, else 25 for SageMaker labels)")
     p.add_argument("--compare", action="append", default=[], metavar="NAME",
                    choices=profile_names(),
                    help="also run a named profile on the same plants and print both "
-                   "(e.g. --compare upstream)")
-    p.add_argument("--plants", type=PLANTS, default=None,
-                   help=f"number of seeded plants (scan: {SCAN_PLANTS}, oracle and rgbd: 10)")
-    p.add_argument("--seed", type=SEED, default=None, help="first plant seed (0)")
+                   f"({', '.join(profile_names())}; repeatable; default: none)")
+    p.add_argument("--plants", type=PLANTS, default=None, metavar="N",
+                   help=f"number of seeded plants (default: {SCAN_PLANTS} for scan, 10 for "
+                   "oracle and rgbd)")
+    p.add_argument("--seed", type=SEED, default=None, metavar="S",
+                   help=f"first plant seed; plants are S, S+1, ... (default: "
+                   f"{EVAL_DEFAULTS['seed']})")
     p.add_argument("--preset", choices=PRESETS, default=None,
-                   help=PRESET_HELP + " (realistic)")
-    p.add_argument("--workers", type=POSITIVE, default=None, help="processes (default: all cores)")
-    p.add_argument("--out", type=Path, help="output folder (default runs/<timestamp>/)")
+                   help=f"{PRESET_HELP} (default: {EVAL_DEFAULTS['preset']})")
+    p.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
+                   help="worker processes (default: one per core)")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="output folder (default: runs/<date>-<time>/)")
     p.add_argument("--method", action="append", default=[], metavar="NAME=CMD",
                    help="also score another method on the same clouds, printed beside this "
                    "one: CMD runs once per plant with {cloud} (the plant's cloud, PLY) and "
                    "{out} (a folder to write flowers.json into), e.g. "
-                   "mine='python detect.py {cloud} {out}' (repeatable)")
+                   "mine='python detect.py {cloud} {out}', or NAME alone for a method an "
+                   "installed package registers (repeatable; default: none)")
     p.add_argument("--method-timeout", type=_positive_number, default=600.0, metavar="S",
-                   help="seconds an external method may take on one plant (600)")
+                   help="seconds an external method may take on one plant (default: "
+                   "%(default)g)")
     p.add_argument("--suite", choices=suite_names(), metavar="NAME",
                    help="a named, versioned benchmark suite that fixes the source, preset, "
                    f"plants and seeds ({', '.join(suite_names())}; assets/suites/); the report "
-                   "records its name and version")
+                   "records its name and version (default: none)")
     p.add_argument("--require", action="append", default=[], metavar="KEY>=NUMBER",
                    help="a CI gate on the report's summary, on the whole run and on each "
                    "plant, e.g. 'recall_visible>=0.95' or 'error_deg.plane.mean<=3' "
@@ -691,21 +747,38 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(p)
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("plant", help="generate one plant: plant.json (truth), mesh, oracle cloud")
-    p.add_argument("--seed", type=SEED, required=True,
+    p = sub.add_parser(
+        "plant", help="generate one plant: plant.json (truth), mesh, oracle cloud",
+        description="Generate one seeded synthetic strawberry plant and write its exact "
+        "truth (plant.json: flower centres and normals, metres, bed frame), its mesh "
+        "(plant.ply) and its oracle cloud (cloud.ply) to --out.",
+        epilog="example:\n  flowerpose plant --seed 3 --out plant3")
+    p.add_argument("--seed", type=SEED, required=True, metavar="S",
                    help="the plant's seed: the same seed and preset give the same plant")
-    p.add_argument("--points", type=CLOUD_POINTS, default=None,
-                   help="oracle cloud points (60000)")
-    p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
-    p.add_argument("--out", type=Path, required=True, help="the plant folder to write")
+    p.add_argument("--points", type=CLOUD_POINTS, default=None, metavar="N",
+                   help="points of the oracle cloud (default: the preset's, 60000; field "
+                   "100000)")
+    p.add_argument("--preset", choices=PRESETS, default="realistic",
+                   help=f"{PRESET_HELP} (default: %(default)s)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the plant folder to write")
     _add_overwrite(p)
     p.set_defaults(func=cmd_plant)
 
-    p = sub.add_parser("scan", help="scan a plant along the cylinder and dome: --sim films a "
-                       "generated plant with the simulated FarmBot; --port or --cloud a real "
-                       "plant with the physical bot and its USB camera")
+    p = sub.add_parser(
+        "scan", help="film a plant along the cylinder and dome: the simulated FarmBot "
+        "(--sim) or the physical one (--port, --cloud)",
+        description="Film a plant along the paper's cylinder-and-dome path and write a scan "
+        "folder (frames/, trajectory.csv, camera.json, scan.json): --sim with the simulated "
+        "FarmBot, --port (a Farmduino on serial) or --cloud (FarmBot's web app) with the "
+        "physical bot and its USB camera. Every move is checked before anything moves; an "
+        "interrupted scan resumes when rerun.",
+        epilog="examples:\n"
+        "  flowerpose scan --sim --plant plant3 --out scan3\n"
+        "  flowerpose scan --port /dev/ttyACM0 --plant-at 1.20,0.75 --out scan_field --dry-run")
     p.add_argument("--sim", action="store_true", help="the simulated bot (MuJoCo + renderer)")
-    p.add_argument("--plant", type=Path, help="plant folder from flowerpose plant (--sim)")
+    p.add_argument("--plant", type=Path, metavar="DIR",
+                   help="--sim: the plant folder from flowerpose plant")
     p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
                    "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
     p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
@@ -713,7 +786,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(FARMBOT_SERVER for another server), or --token-file")
     p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
                    "firmware settings as the FarmBot web app exports them (JSON); written to "
-                   "the Farmduino at connect and read back, as FarmBot OS does")
+                   "the Farmduino at connect and read back, as FarmBot OS does (default: the "
+                   "settings the board holds)")
     p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
                    "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
                    "each of 200 bins of the path, chosen while recording")
@@ -721,7 +795,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "home (put there by hand): take it as home instead of homing, for a bot "
                    "without endstops or encoders")
     p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
-                   "the repository holding a FarmBot token (its JSON or its JWT)")
+                   "the repository, readable by its owner alone, holding a FarmBot token (its "
+                   "JSON or its JWT)")
     p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
                    "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
                    "--width x --height, 30 fps, exposure and focus locked")
@@ -732,145 +807,204 @@ def build_parser() -> argparse.ArgumentParser:
                    "the plant's stem stands, metres in the bed frame: x along the bed from "
                    "FarmBot's home end, y across it, (0, 0) the soil corner at home")
     p.add_argument("--plant-height", type=float, default=0.25, metavar="H",
-                   help="the plant's height above the soil, metres (0.25)")
+                   help="--port/--cloud: the plant's height above the soil, metres (default: "
+                   "%(default)s)")
     p.add_argument("--plant-radius", type=float, default=0.15, metavar="R",
-                   help="how far the plant reaches from its stem, metres: the head keeps 4 cm "
-                   "clear of it (0.15)")
-    p.add_argument("--out", type=Path, required=True, help="scan folder (resumes a scan "
-                   "already there)")
+                   help="--port/--cloud: how far the plant reaches from its stem, metres; the "
+                   "head keeps 4 cm clear of it (default: %(default)s)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the scan folder (resumes the scan already there)")
     p.add_argument("--dry-run", action="store_true",
-                   help="print the planned moves, checked against the bot's limits; no scan")
-    p.add_argument("--frame-rate", type=float, default=0.6,
-                   help="frames rendered per second of bot time (0.6)")
-    p.add_argument("--width", type=_at_least(16), default=1280,
-                   help="frame width, pixels (1280, the paper's video)")
-    p.add_argument("--height", type=_at_least(16), default=720,
-                   help="frame height, pixels (720)")
-    p.add_argument("--workers", type=POSITIVE, default=None, help="render processes (all cores)")
+                   help="print the planned moves (FarmBot millimetres and servo commands), "
+                   "checked against the bot's limits, and stop: nothing connects or moves")
+    p.add_argument("--frame-rate", type=float, default=0.6, metavar="HZ",
+                   help="--sim: frames rendered per second of bot time (default: %(default)s)")
+    p.add_argument("--width", type=_at_least(16), default=1280, metavar="PX",
+                   help="frame width, pixels (default: %(default)s, the paper's video)")
+    p.add_argument("--height", type=_at_least(16), default=720, metavar="PX",
+                   help="frame height, pixels (default: %(default)s)")
+    p.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
+                   help="--sim: render processes (default: one per core)")
     p.add_argument("--no-preview", dest="preview", action="store_false",
-                   help="skip preview.mp4 (the gantry scanning, seen from outside)")
+                   help="--sim: skip preview.mp4 (the gantry scanning, seen from outside)")
     p.add_argument("--via-farmduino", action="store_true",
                    help="with --sim: drive the simulated bot through the serial Farmduino "
                    "backend and a virtual Farmduino (100 x real time)")
     p.set_defaults(func=cmd_scan)
 
-    p = sub.add_parser("farmduino", help="--virtual: serve a virtual Farmduino (FarmBot's "
-                       "firmware protocol over the MuJoCo gantry) and print its device path")
-    p.add_argument("--virtual", action="store_true", help="serve a virtual Farmduino")
-    p.add_argument("--time-scale", type=_positive_number, default=1.0,
-                   help="simulated seconds per wall second (1)")
+    p = sub.add_parser(
+        "farmduino", help="serve a virtual Farmduino and print its device path (--virtual)",
+        description="Serve a virtual Farmduino (FarmBot's firmware protocol over the MuJoCo "
+        "gantry) on a pseudo-terminal and print its device path, for any serial client, "
+        "until Ctrl-C.",
+        epilog="example:\n  flowerpose farmduino --virtual --time-scale 10")
+    p.add_argument("--virtual", action="store_true",
+                   help="serve a virtual Farmduino (the only kind there is)")
+    p.add_argument("--time-scale", type=_positive_number, default=1.0, metavar="K",
+                   help="simulated seconds per wall second (default: %(default)g)")
     p.add_argument("--bare", action="store_true", help="the board on the firmware's defaults: "
                    "no endstops or encoders, so it cannot find home (default: encoders on, as "
                    "FarmBot OS sets a Genesis up)")
     p.set_defaults(func=cmd_farmduino)
 
-    p = sub.add_parser("frames", help="choose the sharpest frame of each of N bins of a scan")
+    p = sub.add_parser(
+        "frames", help="choose the sharpest frame of each of N bins of a scan",
+        description="Choose the sharpest frame of each of --count bins of a scan (Laplacian "
+        "variance of a centre crop) and write them to --out with their recorded poses "
+        "(frames.json) and the camera (camera.json).",
+        epilog="example:\n  flowerpose frames scan3 --count 200 --out frames3")
     p.add_argument("scan", type=Path, metavar="SCAN_DIR",
                    help="a scan folder from flowerpose scan (frames/, trajectory.csv)")
-    p.add_argument("--count", type=POSITIVE, default=200, help="number of bins and frames (200)")
-    p.add_argument("--crop", type=_at_least(3), default=400,
-                   help="centre crop side, pixels (400)")
+    p.add_argument("--count", type=POSITIVE, default=200, metavar="N",
+                   help="number of bins, and of frames chosen (default: %(default)s)")
+    p.add_argument("--crop", type=_at_least(3), default=400, metavar="PX",
+                   help="side of the centre crop that is scored, pixels (default: "
+                   "%(default)s)")
     p.add_argument("--brightness-penalty", action="store_true",
                    help="subtract |mean V - 105| from the score, as the authors' code did")
-    p.add_argument("--out", type=Path, required=True,
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for the chosen frames, frames.json and camera.json")
     _add_overwrite(p)
     p.set_defaults(func=cmd_frames)
 
-    p = sub.add_parser("reconstruct", help="frames -> sparse poses (pycolmap) -> dense "
-                       "coloured cloud in the bed frame")
+    p = sub.add_parser(
+        "reconstruct", help="frames -> camera poses (pycolmap) -> dense coloured cloud",
+        description="Reconstruct a frames folder: pycolmap poses the frames (guided by the "
+        "recorded poses), dense stereo turns them into a coloured cloud in the bed frame "
+        "(cloud.ply, metres), and reconstruction.json says how well it went.",
+        epilog="example:\n  flowerpose reconstruct frames3 --out recon3")
     p.add_argument("frames", type=Path, metavar="FRAMES_DIR",
                    help="a folder from flowerpose frames (frames.json, frames/, camera.json)")
-    p.add_argument("--out", type=Path, required=True,
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for cloud.ply, the sparse model and reconstruction.json")
     _add_overwrite(p)
     p.add_argument("--dense-poses", choices=("refined", "recorded"), default="refined",
-                   help="camera poses for dense stereo: the sparse stage's (default) or the "
-                   "bot's recorded ones")
-    _add_config_options(p)
+                   help="camera poses for dense stereo: the sparse stage's refined ones or the "
+                   "bot's recorded ones (default: %(default)s)")
+    _add_config_options(p, profile=False, detector=False)
     p.set_defaults(func=cmd_reconstruct)
 
-    p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
+    p = sub.add_parser(
+        "detect", help="find flowers and their normals in a coloured cloud",
+        description="Find the flowers in a coloured point cloud and estimate each one's "
+        "normal three ways (plane, superellipsoid, paraboloid). Writes flowers.json, "
+        "flowers.ply and normals.ply, the grid views with their detections, each flower's "
+        "crop and report.html to --out.",
+        epilog="examples:\n"
+        "  flowerpose detect plant3/cloud.ply --out detect3\n"
+        "  flowerpose detect candidates.ply --candidates --units m --out detect")
     p.add_argument("cloud", type=Path, metavar="CLOUD.ply",
                    help="a coloured point cloud (PLY): a reconstruction, Polycam's, an oracle's")
-    p.add_argument("--out", type=Path, required=True,
-                   help="folder for flowers.json and the grid views")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="folder for flowers.json, the views, the crops and report.html")
     _add_overwrite(p)
     p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
-                   help="the cloud's unit (auto: decided from its extent)")
+                   help="the cloud's unit; auto decides from its extent (default: %(default)s)")
     p.add_argument("--candidates", action="store_true",
                    help="CLOUD.ply holds points a detector already took out of views (its "
                    "crops, merged): skip ground removal, the grid and detection")
     _add_config_options(p)
     p.set_defaults(func=cmd_detect)
 
-    p = sub.add_parser("pose", help="normals of one flower crop, printed as JSON")
+    p = sub.add_parser(
+        "pose", help="normals of one flower crop, printed as JSON",
+        description="Estimate one flower's normals from its crop and print them on standard "
+        "output as a flowers.json entry (JSON: centre, normals per method, points, box).",
+        epilog="example:\n  flowerpose pose detect3/crops/flower_00.ply")
     p.add_argument("crop", type=Path, metavar="CROP.ply", help="one flower's points (PLY)")
     p.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
-                   help="the crop's unit (auto: decided from its extent)")
-    _add_config_options(p)
+                   help="the crop's unit; auto decides from its extent (default: %(default)s)")
+    _add_config_options(p, detector=False)
     p.set_defaults(func=cmd_pose)
 
-    p = sub.add_parser("score", help="score flowers.json against truth (plant.json or "
-                       "SageMaker cuboids)")
+    p = sub.add_parser(
+        "score", help="score flowers.json against truth (plant.json or SageMaker cuboids)",
+        description="Score a flowers.json against its truth (a plant.json, or SageMaker "
+        "Ground Truth cuboids): one-to-one matches on centre distance, angle errors per "
+        "method, printed as Table I; --out also writes report.json and report.md.",
+        epilog="example:\n  flowerpose score detect3/flowers.json plant3/plant.json")
     p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
                    help="estimates, from flowerpose detect")
     p.add_argument("truth", type=Path, metavar="TRUTH.json",
                    help="the truth: a plant.json, or SageMaker Ground Truth cuboids")
     p.add_argument("--truth-format", choices=("plant", "sagemaker"), default="plant",
                    help="TRUTH.json's format: plant (the simulator's) or sagemaker (the "
-                   "authors' hand labels)")
-    p.add_argument("--truth-scale", type=float, default=25.0,
-                   help="SageMaker labels: the factor the labelled cloud was scaled by (25)")
-    p.add_argument("--max-distance", type=float, default=0.02,
-                   help="largest centre distance of a match, metres (0.02)")
-    p.add_argument("--out", type=Path, help="also write report.json and report.md here")
+                   "authors' hand labels) (default: %(default)s)")
+    p.add_argument("--truth-scale", type=float, default=25.0, metavar="K",
+                   help="sagemaker: the factor the labelled cloud was scaled by, no unit "
+                   "(default: %(default)g)")
+    p.add_argument("--max-distance", type=float, default=0.02, metavar="M",
+                   help="largest centre distance of a match, in the cloud's unit: metres "
+                   "(default: %(default)s)")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="also write report.json and report.md here (default: print only)")
     _add_overwrite(p)
     p.set_defaults(func=cmd_score)
 
-    p = sub.add_parser("sweep", help="evaluate a grid of settings over seeded plants")
+    p = sub.add_parser(
+        "sweep", help="evaluate a grid of settings over seeded plants",
+        description="Evaluate every combination of the --grid settings on the same seeded "
+        "plants' oracle clouds. Writes sweep.csv (a row per setting), sweep.png (each metric "
+        "per setting, spread over the plants) and best.json (the best setting: most visible "
+        "flowers found, then fewest false positives, then the smallest plane error).",
+        epilog="example:\n"
+        "  flowerpose sweep --grid cluster.eps=0.006,0.008 --grid grid.views=6,14 --plants 3 "
+        "--out sweep")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
-                   help="a setting and its values; repeat for a grid over several")
-    p.add_argument("--plants", type=PLANTS, default=5, help="seeded plants per setting (5)")
-    p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
-    p.add_argument("--preset", choices=PRESETS, default="realistic", help=PRESET_HELP)
-    p.add_argument("--workers", type=POSITIVE, default=None,
-                   help="processes (default: all cores)")
-    p.add_argument("--out", type=Path, required=True,
-                   help="folder for sweep.csv, best.json and sweep.png")
+                   help="a setting's dotted key and its values; repeat for a grid over several")
+    p.add_argument("--plants", type=PLANTS, default=5, metavar="N",
+                   help="seeded plants per setting (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (default: %(default)s)")
+    p.add_argument("--preset", choices=PRESETS, default="realistic",
+                   help=f"{PRESET_HELP} (default: %(default)s)")
+    p.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
+                   help="worker processes (default: one per core)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="folder for sweep.csv, sweep.png and best.json")
     _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
 
-    p = sub.add_parser("fidelity", help="the same statistics of real and synthetic flowers "
-                       "side by side (size, thickness, cupping, colours), with tolerances")
+    p = sub.add_parser(
+        "fidelity", help="the same statistics of real and synthetic flowers side by side",
+        description="Describe a real labelled plant's flowers and synthetic plants' flowers "
+        "by the same statistics (size, thickness, cupping, colours) and say which agree "
+        "within a stated tolerance. Writes fidelity.json, fidelity.md and fidelity.png.",
+        epilog="example:\n"
+        "  flowerpose fidelity ../shared/real/paper-plant-3 runs/oracle --out fidelity")
     p.add_argument("real", type=Path, metavar="REAL_DIR",
                    help="a labelled real plant folder (cloud.ply or candidates/)")
     p.add_argument("synthetic", type=Path, nargs="+", metavar="SYNTH_DIR",
                    help="plant folders from flowerpose plant, or eval runs (their plants/); a "
                    "scan or RGB-D run is described by its reconstructed cloud")
     p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
-                   help="the real labels' scale (default: source.json, else 25)")
-    p.add_argument("--out", type=Path, required=True,
+                   help="the real labels' scale, no unit (default: source.json's, else 25)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for fidelity.json, fidelity.md and fidelity.png")
     _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_fidelity)
 
-    p = sub.add_parser("bench", help="time the pipeline from cloud to flower poses")
+    p = sub.add_parser(
+        "bench", help="time the pipeline from cloud to flower poses",
+        description="Time the pipeline from cloud to flower poses on one seeded plant's "
+        "oracle cloud at each --points size: wall seconds per stage, the median of --repeat "
+        "runs, imports and file reading excluded.",
+        epilog="example:\n  flowerpose bench --points 125000 --repeat 3")
     p.add_argument("--points", type=_at_least(1000, CLOUD_POINTS_MAX, "more does not fit in "
                                                "memory"), nargs="+",
-                   default=[125_000, 1_000_000],
-                   help="cloud sizes to time (125000 1000000)")
-    p.add_argument("--repeat", type=POSITIVE, default=3,
-                   help="runs per size; the median is reported (3)")
-    p.add_argument("--seed", type=SEED, default=3,
-                   help="plant seed (3: a realistic plant with 18 open flowers)")
-    p.add_argument("--out", type=Path, help="also write bench.json here")
+                   default=[125_000, 1_000_000], metavar="N",
+                   help="cloud sizes to time, points (default: 125000 1000000)")
+    p.add_argument("--repeat", type=POSITIVE, default=3, metavar="N",
+                   help="runs per size; the median is reported (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=3, metavar="S",
+                   help="plant seed (default: %(default)s, a realistic plant with 18 open "
+                   "flowers)")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="also write bench.json here (default: print only)")
     p.set_defaults(func=cmd_bench)
-    for action in sub._choices_actions:  # each command's --help says what it does
-        command = sub.choices[action.dest]
-        command.description = command.description or f"{action.help[0].upper()}{action.help[1:]}."
+    for command in sub.choices.values():
         _add_verbosity(command, default=argparse.SUPPRESS)
     return parser
 
@@ -885,6 +1019,7 @@ def _add_verbosity(parser: argparse.ArgumentParser, default: Any) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from flowerpose.log import configure as configure_log
+    from flowerpose.log import third_party
     from flowerpose.processes import Terminated, terminate_cleanly
 
     parser = build_parser()
@@ -895,7 +1030,8 @@ def main(argv: list[str] | None = None) -> int:
     configure_log(args.verbose - args.quiet)
     terminate_cleanly()
     try:
-        return args.func(args)
+        with third_party():  # other libraries' warnings: debug lines (-v), not the user's
+            return args.func(args)
     except (InputError, BotError) as err:
         # BotError: a fault of the bot or its link, said in one line that names the device.
         print(f"flowerpose: error: {err}", file=sys.stderr)

@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from flowerpose.atomic import write_file
+from flowerpose.atomic import write_file, write_text
 from flowerpose.errors import InputError
-from flowerpose.log import LOG
+from flowerpose.log import LOG, library_output, open3d
 
 #: Largest extent (metres) a single-plant scan in metres can plausibly have.
 MAX_METRIC_EXTENT_M = 5.0
@@ -43,13 +44,6 @@ class Cloud:
         return np.sort(np.unique(self.points, axis=0, return_index=True)[1])
 
 
-def _o3d():
-    import open3d as o3d
-
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    return o3d
-
-
 def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = False) -> Cloud:
     """Read a coloured cloud (.ply or .pcd) and check it is usable.
 
@@ -75,9 +69,9 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
         if head[:3] != b"ply":
             raise InputError(path, "not a PLY file (no 'ply' header)")
         header = ply_header(path)
-    cloud = _o3d().io.read_point_cloud(str(path))
-    points = np.asarray(cloud.points, dtype=np.float64)
-    if len(points) == 0:
+    cloud = None if header is not None and header.vertices == 0 else _read_o3d(path)
+    points = np.zeros((0, 3)) if cloud is None else np.asarray(cloud.points, dtype=np.float64)
+    if cloud is None or len(points) == 0:
         if allow_empty:
             return Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
         raise InputError(path, "the cloud has no points (empty or unreadable file)")
@@ -93,6 +87,34 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
         colors = colors * 255.0
     colors = np.clip(colors + 0.5, 0, 255).astype(np.uint8)
     return Cloud(to_metres(points, units, path), colors)
+
+
+def _read_o3d(path: Path):
+    """Open3D's point cloud of a file. Open3D reads what it can of a damaged file and says
+    so only in its log, in its words: that is one error line here, naming the file."""
+    o3d = open3d()
+    with library_output(r"^(RPly: |\[Open3D )") as said, o3d.utility.VerbosityContextManager(
+            o3d.utility.VerbosityLevel.Warning):
+        cloud = o3d.io.read_point_cloud(str(path))
+    problem = _read_problem(said)
+    if problem is not None:
+        raise InputError(path, f"cannot be read: {problem}")
+    return cloud
+
+
+def _read_problem(said: list[str]) -> str | None:
+    """Why a read failed, from what Open3D and RPly (its PLY parser) said meanwhile:
+    RPly's reason where it gave one ("error reading 'z' of 'vertex' number 1"), else
+    Open3D's ("unable to parse header"); None when the read did not fail."""
+    failed = [line for line in said if re.search(r"Read P[A-Z]+ failed", line)]
+    for line in said:
+        if line.startswith("RPly: "):
+            reason = line.removeprefix("RPly: ").strip().rstrip(".")
+            return reason[:1].lower() + reason[1:]
+    if failed:
+        return failed[0].split("failed:", 1)[-1].split(":")[0].strip().rstrip(".") or \
+            "unreadable"
+    return None
 
 
 def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarray:
@@ -187,9 +209,20 @@ def ply_header(path: Path) -> PlyHeader:
 
 
 def write_cloud(path: str | Path, cloud: Cloud) -> Path:
-    """Write a binary PLY (float64 xyz, uint8 rgb as Open3D stores it), whole."""
-    o3d = _o3d()
+    """Write a binary PLY (float64 xyz, uint8 rgb as Open3D stores it), whole; an empty
+    cloud as a PLY of no points (Open3D writes no empty geometry)."""
+    if len(cloud) == 0:
+        return write_text(path, empty_ply(colours=True))
+    o3d = open3d()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(cloud.points, np.float64)))
     pcd.colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors, np.float64) / 255.0)
     return write_file(path, lambda tmp: o3d.io.write_point_cloud(str(tmp), pcd,
                                                                  write_ascii=False))
+
+
+def empty_ply(colours: bool = False, faces: bool = False) -> str:
+    """A PLY file of no points (and no faces), which every reader opens as empty."""
+    rgb = "property uchar red\nproperty uchar green\nproperty uchar blue\n" if colours else ""
+    face = "element face 0\nproperty list uchar int vertex_indices\n" if faces else ""
+    return ("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+            f"property double z\n{rgb}{face}end_header\n")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import functools
 import tomllib
 import typing
 from pathlib import Path
@@ -27,6 +28,13 @@ def _plain(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_plain(v) for v in value]
     return value
+
+
+def value_at(config: Any, key: str) -> Any:
+    """The value of a dotted key ("cluster.eps") in a config, typed as the field is and
+    JSON-ready (tuples as lists, a section as a dict)."""
+    value = functools.reduce(getattr, key.split("."), config)
+    return to_dict(value) if dataclasses.is_dataclass(value) else _plain(value)
 
 
 def _field_types(cls: type) -> dict[str, Any]:

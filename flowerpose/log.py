@@ -8,14 +8,27 @@ and for the worker processes it starts. `Tally` counts the parts of a long job (
 plants): a line per part with the time left (`eta`), under a tqdm bar on a terminal,
 nothing with `-q`. Errors are not logged: the command line prints them as one line whatever the
 verbosity. Used as a library without `configure`, only warnings show.
+
+Other libraries speak in their own words, and not to this project's users: while a command
+runs (`third_party`, and in its workers), Python warnings (numpy's RuntimeWarnings among
+them) and other libraries' log records become debug lines, shown with -v only; Open3D's own
+log is kept to errors (`open3d`), and what a C library prints where it matters (Open3D's and
+RPly's complaints about a file being read) is taken (`library_output`) and said by the
+reader in its own words, as one error line naming the file.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import os
+import re
 import sys
+import tempfile
 import time
+import warnings
+from collections.abc import Iterator
 
 LOG = logging.getLogger("flowerpose")
 
@@ -60,9 +73,104 @@ def _install() -> None:
 
 
 def configure_worker() -> None:
-    """In a worker process: the verbosity its command was given (`configure`)."""
+    """In a worker process: the verbosity its command was given (`configure`), and other
+    libraries' warnings as debug lines (`third_party`) for as long as it lives."""
     if VERBOSITY_ENV in os.environ:
         configure(int(os.environ[VERBOSITY_ENV]))
+    warnings.showwarning = _warning_as_debug
+    logging.getLogger().addHandler(_LIBRARY_HANDLER)
+
+
+def _warning_as_debug(message, category, filename, lineno, file=None, line=None) -> None:
+    LOG.debug(f"{category.__name__} ({filename}:{lineno}): {message}")
+
+
+class _LibraryRecords(logging.Handler):
+    """Other libraries' log records (matplotlib's font cache, trimesh, paho) as debug
+    lines of this logger, where Python would print their warnings to stderr."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        LOG.debug(f"{record.name}: {record.getMessage()}")
+
+
+_LIBRARY_HANDLER = _LibraryRecords()
+
+
+@contextlib.contextmanager
+def third_party() -> Iterator[None]:
+    """While a command runs: Python warnings (each once per place, as Python's filters
+    say) and other libraries' log records become this logger's debug lines (-v); the code
+    that knows when one matters catches it and says so in its own words."""
+    root = logging.getLogger()
+    with warnings.catch_warnings():
+        warnings.showwarning = _warning_as_debug
+        root.addHandler(_LIBRARY_HANDLER)
+        try:
+            yield
+        finally:
+            root.removeHandler(_LIBRARY_HANDLER)
+
+
+def open3d():
+    """The open3d module, its own log kept to errors (which it raises as exceptions too),
+    its warnings only with -v: where one matters (a file that cannot be read or written)
+    the reader or writer says so itself (`library_output`)."""
+    import open3d as o3d
+
+    level = (o3d.utility.VerbosityLevel.Warning if LOG.isEnabledFor(logging.DEBUG)
+             else o3d.utility.VerbosityLevel.Error)
+    o3d.utility.set_verbosity_level(level)
+    return o3d
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+@contextlib.contextmanager
+def library_output(taken: str) -> Iterator[list[str]]:
+    """The lines libraries print meanwhile that match the regular expression `taken`,
+    colour codes removed, given to the caller instead of shown: Open3D's log (printed
+    through Python's sys.stdout) and what C code prints on the descriptors (RPly, on
+    stderr). Whatever else was printed meanwhile (another thread's lines) is passed on."""
+    lines: list[str] = []
+    streams = {1: sys.stdout, 2: sys.stderr}
+    try:
+        for stream in streams.values():
+            stream.flush()
+        saved = {fd: os.dup(fd) for fd in streams}
+    except (OSError, ValueError):
+        saved = {}
+    captures = {fd: tempfile.TemporaryFile() for fd in saved}
+    for fd, capture in captures.items():
+        os.dup2(capture.fileno(), fd)
+    python = {1: io.StringIO(), 2: io.StringIO()}
+    try:
+        with contextlib.redirect_stdout(python[1]), contextlib.redirect_stderr(python[2]):
+            yield lines
+    finally:
+        _flush_c_streams()
+        printed: dict[int, str] = {fd: text.getvalue() for fd, text in python.items()}
+        for fd, capture in captures.items():
+            os.dup2(saved[fd], fd)
+            os.close(saved[fd])
+            capture.seek(0)
+            printed[fd] += capture.read().decode("utf-8", "replace")
+            capture.close()
+        pattern = re.compile(taken)
+        for fd, text in printed.items():
+            said = _ANSI.sub("", text).splitlines()
+            lines.extend(line for line in said if pattern.search(line))
+            rest = [line for line in said if not pattern.search(line)]
+            if rest:
+                streams[fd].write("\n".join(rest) + "\n")
+
+
+def _flush_c_streams() -> None:
+    """fflush(NULL): what C code wrote to its stdio buffers reaches the descriptors now."""
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None).fflush(None)
 
 
 def eta(start: float, done: int, total: int) -> str:

@@ -52,7 +52,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
-from flowerpose.log import LOG
+from flowerpose.log import LOG, open3d
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
 
@@ -939,9 +939,7 @@ def _fuse_and_filter(views: list[_View], k: np.ndarray, config: DenseConfig, thr
     """The views' depth maps to one cloud: multi-view fusion, the crop to the scene sphere,
     voxel down-sampling, the free-space check, statistical outlier removal. Returns (cloud,
     point counts after each step, seconds per step)."""
-    import open3d as o3d
-
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    o3d = open3d()
     seconds: dict[str, float] = {}
     last = [time.perf_counter()]
 

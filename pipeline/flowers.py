@@ -14,10 +14,10 @@ from typing import Literal
 
 import numpy as np
 
-from flowerpose.cloudio import Cloud
+from flowerpose.cloudio import Cloud, empty_ply
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
-from flowerpose.log import LOG
+from flowerpose.log import LOG, open3d
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
@@ -216,8 +216,7 @@ def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
     per flower at its centre with the normal as nx ny nz, and `normals.ply`, a mesh of one
     arrow per flower from its centre along the normal, as long as the flower's box (the
     cloud's frame and unit, as flowers.json). Flowers without that normal are left out."""
-    import open3d as o3d
-
+    o3d = open3d()
     from flowerpose.atomic import write_file, write_text
 
     oriented = [f for f in flowers if f.pose.normals.get(method) is not None]
@@ -236,9 +235,8 @@ def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
         arrow.rotate(_rotation_from_z(normal), center=(0.0, 0.0, 0.0))
         arrows += arrow.translate(centre)
     if not oriented:  # Open3D writes no empty geometry; an empty PLY still says "none"
-        return (write_text(folder / "flowers.ply", _EMPTY_PLY.format(faces="")),
-                write_text(folder / "normals.ply", _EMPTY_PLY.format(
-                    faces="element face 0\nproperty list uchar int vertex_indices\n")))
+        return (write_text(folder / "flowers.ply", empty_ply()),
+                write_text(folder / "normals.ply", empty_ply(faces=True)))
     arrows.paint_uniform_color(np.array(NORMAL_COLOUR) / 255.0)
     arrows.compute_vertex_normals()
     cloud_path = write_file(folder / "flowers.ply", lambda tmp: o3d.io.write_point_cloud(
@@ -246,10 +244,6 @@ def write_normals_ply(folder: Path, flowers: list[Flower], method: str = "plane"
     mesh_path = write_file(folder / "normals.ply", lambda tmp: o3d.io.write_triangle_mesh(
         str(tmp), arrows, write_ascii=False))
     return cloud_path, mesh_path
-
-
-_EMPTY_PLY = ("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
-              "property double z\n{faces}end_header\n")
 
 
 def _rotation_from_z(direction: np.ndarray) -> np.ndarray:

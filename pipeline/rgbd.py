@@ -21,6 +21,7 @@ from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
+from flowerpose.log import open3d
 from flowerpose.scanio import Intrinsics, read_intrinsics, read_trajectory
 
 DEPTH_PATTERN = "depth_{:06d}.png"
@@ -98,8 +99,7 @@ def voxel_fuse(points: np.ndarray, colours: np.ndarray, views: np.ndarray, voxel
 
 def fuse_rgbd_scan(scan_dir: Path, config: FusionConfig = FusionConfig()) -> tuple[Cloud, dict]:
     """The fused cloud of an RGB-D scan folder (bed frame, metres) and a report."""
-    import open3d as o3d
-
+    o3d = open3d()
     start = time.perf_counter()
     scan_dir = Path(scan_dir)
     intrinsics = read_intrinsics(scan_dir / "camera.json")

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
+from flowerpose.log import open3d
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.fit import principal_axes
 
@@ -205,8 +206,7 @@ def remove_ground(cloud: Cloud, config: GroundConfig, seed: int = 0) -> np.ndarr
 
 def _soil_plane(points: np.ndarray, config: GroundConfig, seed: int):
     """(unit normal pointing up, offset) of the soil plane, or None when there is none."""
-    import open3d as o3d
-
+    o3d = open3d()
     rng = np.random.default_rng(seed)
     sample = points if len(points) <= config.sample_points else points[
         rng.choice(len(points), config.sample_points, replace=False)]
@@ -232,7 +232,7 @@ def _soil_plane(points: np.ndarray, config: GroundConfig, seed: int):
 def remove_outliers(points: np.ndarray, config: OutlierConfig) -> np.ndarray:
     """Indices of points (N, 3) kept by statistical and radius outlier removal, in the
     configured order."""
-    import open3d as o3d
+    o3d = open3d()
 
     def statistical(keep: np.ndarray) -> np.ndarray:
         if len(keep) <= 2 or config.statistical_neighbours == 0:
@@ -258,8 +258,7 @@ def remove_outliers(points: np.ndarray, config: OutlierConfig) -> np.ndarray:
 
 def dbscan(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     """(N,) int cluster labels of points (N, 3), -1 for noise (Open3D's DBSCAN)."""
-    import open3d as o3d
-
+    o3d = open3d()
     if len(points) == 0:
         return np.zeros(0, np.int64)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
+
+from flowerpose.log import open3d
+
+o3d = open3d()
 
 #: Rays per Open3D call: bounds the memory of one batch (6 float32 per ray).
 RAY_BATCH = 2_000_000

@@ -37,10 +37,10 @@ from dataclasses import dataclass  # noqa: E402
 from enum import IntFlag  # noqa: E402
 
 import numpy as np  # noqa: E402
-import open3d as o3d  # noqa: E402
 import OpenGL.error  # noqa: E402
 import pyrender  # noqa: E402
 
+from flowerpose.log import open3d  # noqa: E402
 from flowerpose.sim import colours  # noqa: E402
 from flowerpose.sim.camera import CameraConfig, Intrinsics, opencv_to_opengl  # noqa: E402
 from flowerpose.sim.pieces import Part  # noqa: E402
@@ -48,6 +48,8 @@ from flowerpose.sim.plant import Plant  # noqa: E402
 from flowerpose.sim.raycast import make_scene  # noqa: E402
 from flowerpose.sim.render_config import RenderConfig  # noqa: E402
 from flowerpose.sim.shapes import grid_faces  # noqa: E402
+
+o3d = open3d()
 
 TRANSLUCENCY = {Part.PETAL: 0.35, Part.LEAF: 0.12, Part.SEPAL: 0.08}
 """Share of the light on one side of a thin part that its other side shows (other parts:

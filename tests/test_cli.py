@@ -1,7 +1,9 @@
 """The command line: each job end to end on a small plant, and every error path."""
 
+import argparse
 import json
 import re
+import shlex
 import subprocess
 import sys
 
@@ -240,15 +242,53 @@ def test_python_dash_m_runs_the_command_line():
     assert result.returncode == 0 and result.stdout.strip() == f"flowerpose {__version__}"
 
 
-def test_every_command_says_what_it_does_and_every_option_has_help():
-    import argparse
-
+def _commands() -> dict:
     from flowerpose.cli import build_parser
 
-    commands = next(a for a in build_parser()._actions
-                    if isinstance(a, argparse._SubParsersAction)).choices
-    assert len(commands) >= 12
-    for name, command in commands.items():
-        assert command.description, name
-        bare = [a.dest for a in command._actions if not a.help]
-        assert not bare, (name, bare)
+    return next(a for a in build_parser()._actions
+                if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _examples(epilog: str) -> list[str]:
+    """The example command lines of a help's epilog, without their comments."""
+    return [line.split("  #")[0].strip() for line in epilog.splitlines()
+            if line.strip().startswith("flowerpose")]
+
+
+@pytest.mark.parametrize("name", sorted(_commands()))
+def test_every_command_says_what_it_does_and_ends_with_an_example(name, capsys):
+    from flowerpose.cli import build_parser
+
+    command = _commands()[name]
+    description = command.description or ""
+    # One sentence of what it does first: a capital, and a full stop ending it.
+    assert description[:1].isupper() and "." in description, (name, description)
+    epilog = command.epilog or ""
+    assert epilog.startswith(("example:", "examples:")), (name, epilog)
+    examples = _examples(epilog)
+    assert examples and all(e.startswith(f"flowerpose {name}") for e in examples), (name, epilog)
+    for example in examples:  # each example is a command that parses as written
+        build_parser().parse_args(shlex.split(example)[1:])
+    for action in command._actions:
+        if isinstance(action, argparse._HelpAction):
+            continue
+        assert action.help and action.help.strip(), (name, action.dest)
+        if action.default not in (None, False, [], argparse.SUPPRESS) and action.nargs != 0:
+            # A default the help states by hand goes stale when the code's changes.
+            shows = "default: " if isinstance(action.default, list) else "%(default"
+            assert shows in action.help, (name, action.dest)
+    with pytest.raises(SystemExit) as done:
+        build_parser().parse_args([name, "--help"])
+    shown = capsys.readouterr().out
+    assert done.value.code == 0 and shown.rstrip().endswith(examples[-1])
+
+
+def test_the_command_list_has_a_description_and_examples():
+    from flowerpose.cli import build_parser
+
+    parser = build_parser()
+    assert parser.description and parser.description[0].isupper()
+    examples = _examples(parser.epilog or "")
+    assert examples
+    for example in examples:
+        build_parser().parse_args(shlex.split(example)[1:] or ["eval"])

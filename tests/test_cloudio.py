@@ -88,3 +88,31 @@ def test_a_unit_the_extent_contradicts_is_refused(tmp_path):
     millimetres = _write(tmp_path / "mm.ply", RNG.random((50, 3)) * 400.0)
     with pytest.raises(InputError, match="in metres: not a plant"):
         read_cloud(millimetres, units="m")
+
+
+_ASCII_HEADER = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                 "property float z\nproperty uchar red\nproperty uchar green\n"
+                 "property uchar blue\nend_header\n")
+
+
+@pytest.mark.parametrize("name, text, problem", [
+    # Open3D would return the first point alone, and RPly print its complaint.
+    ("letter.ply", _ASCII_HEADER + "0 0 0 1 2 3\n1 1 x 1 2 3\n",
+     "cannot be read: error reading 'z' of 'vertex' number 1"),
+    ("noformat.ply", "ply\nelement vertex 1\nend_header\n", "cannot be read: invalid file format"),
+    ("garbage.pcd", "not a pcd\n", "cannot be read: unable to parse header"),
+])
+def test_what_open3d_and_rply_say_of_a_bad_file_is_one_line_of_ours(tmp_path, capfd, name, text,
+                                                                   problem):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(InputError, match=problem) as err:
+        read_cloud(path)
+    assert str(err.value).startswith(str(path))
+    assert capfd.readouterr() == ("", "")  # nothing in their words, on either stream
+
+
+def test_an_empty_cloud_is_written_as_a_ply_of_no_points(tmp_path, capfd):
+    path = write_cloud(tmp_path / "none.ply", Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8)))
+    assert len(read_cloud(path, allow_empty=True)) == 0
+    assert capfd.readouterr() == ("", "")

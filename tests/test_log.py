@@ -33,3 +33,63 @@ def test_verbosity_sets_what_is_said_here_and_in_workers(monkeypatch, capsys):
         assert os.environ[VERBOSITY_ENV] == "1"  # what spawned workers read
     finally:
         configure(0)
+
+
+def test_other_libraries_warnings_are_debug_lines_during_a_command(monkeypatch, capfd):
+    """Python warnings (numpy's RuntimeWarnings) and other libraries' log records, raised
+    while a command runs, are shown with -v only, as this logger's lines."""
+    import warnings
+
+    import numpy as np
+
+    from flowerpose import cli
+
+    def noisy(args):
+        np.log(np.zeros(1))  # RuntimeWarning: divide by zero
+        logging.getLogger("matplotlib.font_manager").warning("building the font cache")
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_bench", noisy)
+    showwarning = warnings.showwarning
+    try:
+        assert cli.main(["bench"]) == 0
+        assert capfd.readouterr().err == ""
+        assert cli.main(["bench", "-v"]) == 0
+        said = capfd.readouterr().err.splitlines()
+        assert any(line.startswith("RuntimeWarning (") and "divide by zero" in line
+                   for line in said), said
+        assert "matplotlib.font_manager: building the font cache" in said
+    finally:
+        configure(0)
+    assert warnings.showwarning is showwarning  # Python's own again after the command
+    assert not any(type(h).__name__ == "_LibraryRecords" for h in logging.getLogger().handlers)
+
+
+def test_open3d_keeps_its_warnings_to_itself_unless_asked(capfd):
+    from flowerpose.log import open3d
+
+    def empty_search():
+        o3d = open3d()  # as every module of the project takes it
+        o3d.geometry.PointCloud().remove_radius_outlier(3, 0.01)  # "Failed due to no data"
+
+    try:
+        configure(0)
+        empty_search()
+        assert capfd.readouterr() == ("", "")
+        configure(1)
+        empty_search()
+        assert "Failed due to no data" in capfd.readouterr().out
+    finally:
+        configure(0)
+
+
+def test_library_output_takes_what_matches_and_passes_on_the_rest(capfd):
+    import os
+
+    from flowerpose.log import library_output
+
+    with library_output(r"^RPly: ") as said:
+        os.write(2, b"RPly: Unexpected end of file\nsomeone else's line\n")
+        os.write(1, b"RPly: on stdout too\n")
+    assert sorted(said) == ["RPly: Unexpected end of file", "RPly: on stdout too"]
+    assert capfd.readouterr() == ("", "someone else's line\n")

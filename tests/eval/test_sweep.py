@@ -1,0 +1,71 @@
+"""Sweeps: best.json's typed setting and whole config, and sweep.png's figure."""
+
+import csv
+import json
+
+import numpy as np
+
+from flowerpose.config import apply_overrides
+from flowerpose.eval.harness import eval_config
+from flowerpose.eval.sweep import METRICS, parse_grid, run_sweep, sweep_figure
+
+
+def test_a_tiny_sweep_names_the_best_setting_with_its_whole_typed_config(tmp_path):
+    # The base asks 2000 points of a cluster (no flower has them); the grid tries it and 20.
+    base = apply_overrides(eval_config("realistic"), {"cluster.min_points": "2000"})
+    grid = parse_grid(["cluster.min_points=2000,20", "detect.backproject=mask"], base)
+    best = run_sweep(base, grid, plants=2, seed=0, out_dir=tmp_path, workers=1)
+    saved = json.loads((tmp_path / "best.json").read_text())
+    assert saved["best"] == best
+    assert best["setting"] == {"cluster.min_points": 20, "detect.backproject": "mask"}
+    assert type(best["setting"]["cluster.min_points"]) is int  # as the config holds it
+    # The winner's own config, not the base the grid started from.
+    assert best["config"]["cluster"]["min_points"] == 20
+    assert saved["grid"] == {"cluster.min_points": [2000, 20], "detect.backproject": ["mask"]}
+    assert [s["setting"]["cluster.min_points"] for s in saved["settings"]] == [2000, 20]
+    assert [p["plant"] for p in saved["settings"][1]["plants"]] == ["seed-0", "seed-1"]
+    assert best["metrics"]["recall_visible"] == 1.0
+    assert saved["settings"][0]["metrics"]["recall_visible"] == 0.0
+    rows = list(csv.DictReader((tmp_path / "sweep.csv").open()))
+    assert [r["cluster.min_points"] for r in rows] == ["2000", "20"]
+    assert (tmp_path / "sweep.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _plant_metrics(rng, plants):
+    return [{metric: float(v) for metric, v in zip(METRICS, rng.random(len(METRICS)),
+                                                   strict=True)} for _ in range(plants)]
+
+
+def test_the_sweep_figure_shows_each_settings_spread_as_a_category_and_marks_the_best():
+    import matplotlib.collections
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(0)
+    settings = [{"detect.backproject": b, "cluster.eps": e}
+                for b in ("box", "mask") for e in (0.008, 0.01)]
+    per_plant = [_plant_metrics(rng, 3) for _ in settings]
+    pooled = [{m: float(np.mean([p[m] for p in plants])) for m in METRICS}
+              for plants in per_plant]
+    pooled[0]["plane_mean_deg"] = None  # a metric nobody could measure is left out
+    figure = sweep_figure(settings, pooled, per_plant, best=2)
+    try:
+        axes = figure.axes
+        assert len(axes) == len(METRICS)
+        labels = [t.get_text() for t in axes[-1].get_xticklabels()]
+        assert labels[0] == "detect.backproject=box\ncluster.eps=0.008"  # full names
+        assert labels[2].endswith("(best)") and "(best)" not in "".join(labels[:2] + labels[3:])
+        assert axes[-1].get_xticklabels()[2].get_fontweight() == "bold"
+        for ax in axes:
+            # Categories: no line runs from one setting to another.
+            for line in ax.get_lines():
+                x = np.asarray(line.get_xdata(), float)
+                assert np.ptp(x) < 1.0, ax.get_ylabel()
+            points = [c for c in ax.collections
+                      if isinstance(c, matplotlib.collections.PathCollection)]
+            plants = sum(len(c.get_offsets()) for c in points if c.get_sizes()[0] == 12)
+            assert plants == 3 * len(settings)  # every plant's value is there
+            shaded = [p for p in ax.patches if p.get_facecolor()[:3] != (1.0, 1.0, 1.0)]
+            assert any(abs(p.get_x() + p.get_width() / 2 - 2) < 1e-9 for p in shaded
+                       if hasattr(p, "get_x"))
+    finally:
+        plt.close(figure)
