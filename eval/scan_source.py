@@ -47,6 +47,38 @@ class ScanSourceConfig:
         require(self.frames >= 3, "scan.frames", "photogrammetry needs at least 3 frames")
 
 
+def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
+               via_farmduino: bool = False, progress: bool = False) -> dict:
+    """The simulated scan, as `flowerpose scan --sim` and `eval --source scan` both run it:
+    the simulated bot (through the serial backend and a virtual Farmduino when
+    `via_farmduino`) flies `plan` (`sim_bot.plan_plant_scan`) round the plant in plant_dir
+    with the camera `config` gives, recording the scan folder out_dir; then out_dir/plant.json
+    holds the truth with this scan's own visibility. Returns scan.json's content."""
+    from flowerpose.hardware.scan import run_scan
+    from flowerpose.hardware.sim_bot import (
+        SimBot,
+        SimBotConfig,
+        SimCameraConfig,
+        write_scan_truth,
+    )
+
+    bot_config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=config.frame_rate_hz,
+                                                     workers=config.workers,
+                                                     sensor=config.sensor, render=config.render),
+                              width=config.width, height=config.height)
+    if via_farmduino:
+        from flowerpose.hardware.virtual_farmduino import SimulatedSerialBot
+
+        bot = SimulatedSerialBot([plant_dir], bot_config)
+    else:
+        bot = SimBot([plant_dir], bot_config)
+    with bot:
+        manifest = run_scan(bot, plan, out_dir, progress=progress,
+                            source={**bot.describe(), "plants": [str(Path(plant_dir).resolve())]})
+    write_scan_truth(out_dir, plant_dir)
+    return manifest
+
+
 def capture_scan(plant_dir: Path, config: ScanSourceConfig,
                  path: ScanPathConfig | None = None) -> dict:
     """Scan, choose frames and reconstruct the plant in plant_dir; returns the frame and
@@ -54,14 +86,7 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
     and seconds per step. The cloud is plant_dir/reconstruction/cloud.ply, the truth with
     the scan's visibility plant_dir/scan/plant.json."""
     from flowerpose.eval.quality import reconstruction_quality
-    from flowerpose.hardware.scan import run_scan
-    from flowerpose.hardware.sim_bot import (
-        SimBot,
-        SimBotConfig,
-        SimCameraConfig,
-        plan_plant_scan,
-        write_scan_truth,
-    )
+    from flowerpose.hardware.sim_bot import plan_plant_scan
     from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
     from flowerpose.pipeline.reconstruct import reconstruct
     from flowerpose.sim.export import read_plant
@@ -69,16 +94,8 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
     seconds: dict[str, float] = {}
     tick = time.perf_counter()
     plant = read_plant(plant_dir)
-    plan = plan_plant_scan(plant, path)
-    bot_config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=config.frame_rate_hz,
-                                                     workers=config.workers,
-                                                     sensor=config.sensor, render=config.render),
-                              width=config.width, height=config.height)
     scan_dir = plant_dir / "scan"
-    with SimBot([plant_dir], bot_config) as bot:
-        manifest = run_scan(bot, plan, scan_dir, progress=False,
-                            source={**bot.describe(), "plants": [str(plant_dir.resolve())]})
-    write_scan_truth(scan_dir, plant_dir)
+    manifest = scan_plant(plant_dir, scan_dir, config, plan_plant_scan(plant, path))
     seconds["scan"] = time.perf_counter() - tick
 
     tick = time.perf_counter()

@@ -18,9 +18,16 @@ from flowerpose.log import LOG
 #: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
 SCAN_PLANTS = 2
 
+#: What `flowerpose scan --sim` reads of a config: the path (the oracle's cameras) and the
+#: simulated camera; the four settings in SCAN_FLAGS are its flags instead.
+SCAN_SETTINGS = ("sim.viewpoints.", "scan.sensor.", "scan.render.")
+SCAN_FLAGS = {"scan.frame_rate_hz": "--frame-rate", "scan.workers": "--workers",
+              "scan.width": "--width", "scan.height": "--height"}
+
 
 def _add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
-                        detector: bool = True) -> None:
+                        detector: bool = True,
+                        example: str = "cluster.eps=0.008 (metres)") -> None:
     """--config and --set; --profile where the profiles' keys apply (the pipeline's), and
     --detector where a detector runs."""
     from flowerpose.config import profile_names
@@ -34,7 +41,7 @@ def _add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting by its dotted key, in the setting's own "
-                        "unit, e.g. cluster.eps=0.008 (metres); repeatable")
+                        f"unit, e.g. {example}; repeatable")
     if detector:
         parser.add_argument("--detector", metavar="MODULE:CLASS",
                             help="the 2D detector on the grid views: any importable class "
@@ -280,40 +287,36 @@ def cmd_scan(args: argparse.Namespace) -> int:
         return _scan_field(args)
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
-    from flowerpose.hardware.scan import run_scan
+    import dataclasses
+
+    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.eval.scan_source import scan_plant
     from flowerpose.hardware.sim_bot import plan_plant_scan
     from flowerpose.sim.export import read_plant
 
+    for key in (item.split("=")[0].strip() for item in args.set):
+        if key in SCAN_FLAGS:
+            raise InputError(f"--set {key}", f"scan sets it with {SCAN_FLAGS[key]}")
+        if not key.startswith(SCAN_SETTINGS):
+            raise InputError(f"--set {key}", "scan takes the settings of the path and "
+                             f"camera: {', '.join(k + '*' for k in SCAN_SETTINGS)}")
+    config = _configure(EvalConfig(), args)
+    camera = dataclasses.replace(config.scan, frame_rate_hz=args.frame_rate,
+                                 workers=args.workers, width=args.width, height=args.height)
     plant = read_plant(args.plant)
-    plan = plan_plant_scan(plant)
+    plan = plan_plant_scan(plant, config.sim.viewpoints)  # the oracle's cameras, flown
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
           f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
           "of bot time; reach and collisions checked")
     if args.dry_run:
         _print_plan(plan)
         return 0
-    from flowerpose.hardware.sim_bot import (
-        SimBot,
-        SimBotConfig,
-        SimCameraConfig,
-        write_preview,
-        write_scan_truth,
-    )
+    from flowerpose.hardware.sim_bot import write_preview
 
-    config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=args.frame_rate,
-                                                 workers=args.workers),
-                          width=args.width, height=args.height)
-    if args.via_farmduino:
-        from flowerpose.hardware.virtual_farmduino import SimulatedSerialBot
-
-        bot = SimulatedSerialBot([args.plant], config)
-    else:
-        bot = SimBot([args.plant], config)
-    with bot:
-        manifest = run_scan(bot, plan, args.out,
-                            source={**bot.describe(), "plants": [str(args.plant.resolve())]})
+    manifest = scan_plant(args.plant, args.out, camera, plan, args.via_farmduino,
+                          progress=True)
     frames = len(frame_files(args.out))  # on disk: a killed session never counted its own
-    truth = write_scan_truth(args.out, args.plant)
+    truth = args.out / "plant.json"
     print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
           f"waypoints, {frames} frames -> {args.out} (truth with the scan's visibility: "
           f"{truth})")
@@ -830,6 +833,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--via-farmduino", action="store_true",
                    help="with --sim: drive the simulated bot through the serial Farmduino "
                    "backend and a virtual Farmduino (100 x real time)")
+    _add_config_options(p, profile=False, detector=False,
+                        example="sim.viewpoints.azimuth_step_deg=30 (degrees; --sim reads "
+                        "sim.viewpoints.*, scan.sensor.* and scan.render.*)")
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser(

@@ -196,3 +196,20 @@ def test_a_board_on_its_defaults_scans_with_the_bots_settings_or_homed_by_hand(t
         assert code == 0, err
         assert "--home-here" in err and "scan complete: 6/6 waypoints" in out
         assert any(line.startswith("F84") for line in device.received)
+
+
+def test_the_simulated_scan_flies_the_path_its_settings_give(plant0, tmp_path, capsys):
+    """scan --sim and eval's scan source plan with the same sim.viewpoints: the path the bot
+    flies is the one whose cameras decide the oracle's visibility."""
+    _, plant_dir = plant0
+    base = ["scan", "--sim", "--plant", plant_dir, "--out", tmp_path / "scan", "--dry-run"]
+    code, out, _ = _run(capsys, *base)
+    default = sum(line.strip()[:1].isdigit() for line in out.splitlines())
+    code_wide, out, _ = _run(capsys, *base, "--set", "sim.viewpoints.azimuth_step_deg=60")
+    wide = sum(line.strip()[:1].isdigit() for line in out.splitlines())
+    assert code == code_wide == 0 and 0 < wide < default
+    for key, words in (("cluster.eps=0.1", "settings of the path and camera"),
+                       ("scan.width=64", "scan sets it with --width")):
+        code, _, err = _run(capsys, *base, "--set", key)
+        assert code == 2 and words in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "scan").exists()
