@@ -29,10 +29,13 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting by its dotted key, e.g. cluster.eps=0.008")
-    parser.add_argument("--detector", metavar="MODULE:CLASS",
-                        help="the 2D detector on the grid views: any importable class with "
-                        "the Detector interface (pipeline/detect.py), instead of the colour "
-                        "detector (the same as --set detect.detector=MODULE:CLASS)")
+    parser.add_argument("--detector", metavar="MODULE:CLASS|onnx:MODEL.onnx",
+                        help="the 2D detector on the grid views instead of the colour "
+                        "detector: onnx:MODEL.onnx, a box or segmentation model exported to "
+                        "ONNX (the [onnx] extra; input, output and class in "
+                        "pipeline/onnx_detector.py), or any importable class with the "
+                        "Detector interface (pipeline/detect.py); the same as --set "
+                        "detect.detector=...")
 
 
 @contextlib.contextmanager
