@@ -19,7 +19,7 @@ from flowerpose.log import LOG
 SCAN_PLANTS = 2
 
 
-def _add_config_options(parser: argparse.ArgumentParser) -> None:
+def _add_config_options(parser: argparse.ArgumentParser, detector: bool = True) -> None:
     from flowerpose.config import profile_names
 
     parser.add_argument("--profile", choices=profile_names(), metavar="NAME",
@@ -29,13 +29,14 @@ def _add_config_options(parser: argparse.ArgumentParser) -> None:
                         help="settings file (TOML, sections as in report.json's config)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting by its dotted key, e.g. cluster.eps=0.008")
-    parser.add_argument("--detector", metavar="MODULE:CLASS|onnx:MODEL.onnx",
-                        help="the 2D detector on the grid views instead of the colour "
-                        "detector: onnx:MODEL.onnx, a box or segmentation model exported to "
-                        "ONNX (the [onnx] extra; input, output and class in "
-                        "pipeline/onnx_detector.py), or any importable class with the "
-                        "Detector interface (pipeline/detect.py); the same as --set "
-                        "detect.detector=...")
+    if detector:
+        parser.add_argument("--detector", metavar="MODULE:CLASS|onnx:MODEL.onnx",
+                            help="the 2D detector on the grid views instead of the colour "
+                            "detector: onnx:MODEL.onnx, a box or segmentation model exported "
+                            "to ONNX (the [onnx] extra; input, output and class in "
+                            "pipeline/onnx_detector.py), or any importable class with the "
+                            "Detector interface (pipeline/detect.py); the same as --set "
+                            "detect.detector=...")
 
 
 @contextlib.contextmanager
@@ -64,7 +65,8 @@ def _configure(base: Any, args: argparse.Namespace) -> Any:
         config = apply_overrides(config, load_profile(args.profile))
     if args.config is not None:
         config = apply_overrides(config, load_toml(args.config))
-    sets = args.set + ([f"detect.detector={args.detector}"] if args.detector else [])
+    detector = getattr(args, "detector", None)
+    sets = args.set + ([f"detect.detector={detector}"] if detector else [])
     return apply_overrides(config, parse_set_options(sets))
 
 
@@ -173,6 +175,24 @@ def cmd_plant(args: argparse.Namespace) -> int:
     visible = int(sum(bundle.visible))
     print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
           f"{visible} visible, {len(bundle.cloud)} cloud points -> {args.out}")
+    return 0
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from flowerpose.eval.dataset import DatasetConfig, write_dataset
+    from flowerpose.eval.harness import eval_config
+
+    dataset = DatasetConfig(format=args.format, views=args.views,
+                            val_fraction=args.val_fraction, split_seed=args.split_seed,
+                            min_pixels=args.min_pixels, frames_per_plant=args.frames)
+    config = eval_config(args.preset, lambda base: _configure(base, args))
+    seeds = list(range(args.seed, args.seed + args.plants))
+    manifest = write_dataset(args.out, seeds, config, dataset, args.overwrite)
+    split = manifest["split"]
+    print(f"{manifest['images']} images, {manifest['instances']} flower instances of "
+          f"{len(seeds)} plants ({len(split['train'])} train, {len(split['val'])} val: seeds "
+          f"{', '.join(map(str, split['val'])) or 'none'}) as {args.format} -> "
+          f"{args.out / 'dataset.json'}")
     return 0
 
 
@@ -787,6 +807,35 @@ def build_parser() -> argparse.ArgumentParser:
                    "bot's recorded ones")
     _add_config_options(p)
     p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser("dataset", help="training data for a 2D detector: seeded plants' grid "
+                       "views (or scan frames) with exact per-flower masks and boxes, as COCO "
+                       "or YOLO, split into train and val by plant")
+    p.add_argument("--plants", type=PLANTS, required=True, help="number of seeded plants")
+    p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
+    p.add_argument("--preset", choices=PRESETS, default="realistic",
+                   help=PRESET_HELP + " (realistic)")
+    p.add_argument("--format", choices=("coco", "yolo"), default="coco",
+                   help="coco: images/ and annotations/instances_{train,val}.json (RLE masks; "
+                   "Detectron2, MMDetection, pycocotools); yolo: images/, labels/ (polygons) "
+                   "and data.yaml (Ultralytics) (coco)")
+    p.add_argument("--views", choices=("grid", "frames"), default="grid",
+                   help="grid: the views the detect stage sees (the oracle cloud projected); "
+                   "frames: the scan camera's images at waypoints of the planned scan (grid)")
+    p.add_argument("--val-fraction", type=float, default=0.2, metavar="F",
+                   help="share of the plants in the val split, at least one when above 0; "
+                   "0: train only (0.2)")
+    p.add_argument("--split-seed", type=SEED, default=0,
+                   help="seed of the shuffle that picks the val plants (0)")
+    p.add_argument("--frames", type=POSITIVE, default=24, metavar="N",
+                   help="--views frames: frames per plant, evenly along its scan (24)")
+    p.add_argument("--min-pixels", type=POSITIVE, default=20, metavar="N",
+                   help="a flower showing fewer pixels gets no annotation (20)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="the dataset folder (dataset.json says how it was made)")
+    _add_overwrite(p)
+    _add_config_options(p, detector=False)
+    p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("detect", help="find flowers and their normals in a coloured cloud")
     p.add_argument("cloud", type=Path, metavar="CLOUD.ply",
