@@ -1,8 +1,11 @@
 """`flowerpose dataset`: COCO and YOLO exports read back with their formats' own readers
-(pycocotools; YAML and Ultralytics' label rules), masks checked against the plants'
-truth."""
+(pycocotools; YAML and Ultralytics' label rules), masks checked against the plants' truth,
+and the loop closed: a model trained on the export runs as the ONNX detector."""
 
+import dataclasses
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -25,6 +28,7 @@ from flowerpose.pipeline.flowers import find_flowers, grid_views
 # pycocotools' mask decoding under NumPy 2.
 pytestmark = pytest.mark.filterwarnings("ignore:__array__ implementation:DeprecationWarning")
 
+ROOT = Path(__file__).resolve().parents[2]
 SEEDS = [0, 1]
 #: Six views keep the tests short; the plants are the default (realistic) ones.
 CONFIG = apply_overrides(eval_config("realistic"), {"grid.views": "6"})
@@ -196,3 +200,25 @@ def test_bad_requests_are_one_line_before_any_work(tmp_path, capsys):
         assert words in err and err.count("\n") == 1, err
     assert (foreign / "notes.txt").read_text() == "keep"
     assert not (tmp_path / "d").exists()
+
+
+def test_a_model_trained_on_the_export_runs_as_the_onnx_detector(exports, tmp_path):
+    folder, manifest = exports["coco"]
+    model = tmp_path / "flower.onnx"
+    trained = subprocess.run([sys.executable, str(ROOT / "scripts" / "train_pixel_model.py"),
+                              str(folder), "--out", str(model)], capture_output=True,
+                             text=True, timeout=300)
+    assert trained.returncode == 0, trained.stderr
+    iou = float(trained.stdout.rsplit("IoU", 1)[1])
+    assert iou > 0.8  # on the val plant's pixels
+    from flowerpose.sim.bundle import make_plant
+
+    val = manifest["split"]["val"][0]
+    plant = make_plant(val, config=CONFIG.sim, out_dir=tmp_path / "plant")
+    onnx = dataclasses.replace(CONFIG, detect=dataclasses.replace(
+        CONFIG.detect, detector=f"onnx:{model}"))
+    found = find_flowers(read_cloud(tmp_path / "plant" / "cloud.ply"), onnx).flowers
+    centres = np.array([f.pose.center for f in found])
+    truth = np.array([f.center for f in plant.plant.flowers if plant.visible[f.id]])
+    near = np.linalg.norm(truth[:, None] - centres[None], axis=2).min(1) < 0.01
+    assert near.mean() >= 0.8
