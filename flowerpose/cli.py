@@ -811,8 +811,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("dataset", help="training data for a 2D detector: seeded plants' grid "
                        "views (or scan frames) with exact per-flower masks and boxes, as COCO "
                        "or YOLO, split into train and val by plant")
-    p.add_argument("--plants", type=PLANTS, required=True, help="number of seeded plants")
-    p.add_argument("--seed", type=SEED, default=0, help="first plant seed (0)")
+    p.add_argument("--plants", type=PLANTS, required=True, metavar="N",
+                   help="number of seeded plants")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (0): the plants are seeds S to S+N-1")
     p.add_argument("--preset", choices=PRESETS, default="realistic",
                    help=PRESET_HELP + " (realistic)")
     p.add_argument("--format", choices=("coco", "yolo"), default="coco",
@@ -825,13 +827,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val-fraction", type=float, default=0.2, metavar="F",
                    help="share of the plants in the val split, at least one when above 0; "
                    "0: train only (0.2)")
-    p.add_argument("--split-seed", type=SEED, default=0,
+    p.add_argument("--split-seed", type=SEED, default=0, metavar="S",
                    help="seed of the shuffle that picks the val plants (0)")
     p.add_argument("--frames", type=POSITIVE, default=24, metavar="N",
                    help="--views frames: frames per plant, evenly along its scan (24)")
     p.add_argument("--min-pixels", type=POSITIVE, default=20, metavar="N",
                    help="a flower showing fewer pixels gets no annotation (20)")
-    p.add_argument("--out", type=Path, required=True,
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the dataset folder (dataset.json says how it was made)")
     _add_overwrite(p)
     _add_config_options(p, detector=False)
