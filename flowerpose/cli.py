@@ -101,6 +101,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if (args.junit or args.summary) and not requirements:
         raise InputError("--junit" if args.junit else "--summary", "needs --require")
     config = eval_config(args.preset, lambda base: _configure(base, args))
+    from flowerpose.pipeline.detect import make_detector
+
+    make_detector(config.detect, config.colour)  # one that cannot load says so before any work
     # A compared profile shares the run's settings (scoring, plants) but for its own keys.
     compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
     out = args.out or _default_out()

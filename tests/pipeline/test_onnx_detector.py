@@ -155,3 +155,8 @@ def test_detect_runs_an_onnx_model_in_place_of_the_colour_detector(plant0, tmp_p
                  f"onnx:{tmp_path / 'missing.onnx'}"]) == 2
     err = capsys.readouterr().err
     assert "missing.onnx: no such ONNX model file" in err and err.count("\n") == 1
+    # eval says so before it makes any plant.
+    assert main(["eval", "--source", "oracle", "--plants", "1", "--out", str(tmp_path / "ev"),
+                 "--detector", f"onnx:{tmp_path / 'missing.onnx'}"]) == 2
+    assert "no such ONNX model file" in capsys.readouterr().err
+    assert not (tmp_path / "ev" / "plants").exists()
