@@ -43,11 +43,13 @@ def _add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
                         help="override one setting by its dotted key, in the setting's own "
                         f"unit, e.g. {example}; repeatable")
     if detector:
-        parser.add_argument("--detector", metavar="MODULE:CLASS",
-                            help="the 2D detector on the grid views: any importable class "
-                            "with the Detector interface (pipeline/detect.py), the same as "
-                            "--set detect.detector=MODULE:CLASS (default: the colour "
-                            "detector)")
+        parser.add_argument("--detector", metavar="MODULE:CLASS|onnx:MODEL.onnx",
+                            help="the 2D detector on the grid views instead of the colour "
+                            "detector: onnx:MODEL.onnx, a box or segmentation model exported "
+                            "to ONNX (the [onnx] extra; input, output and class in "
+                            "pipeline/onnx_detector.py), or any importable class with the "
+                            "Detector interface (pipeline/detect.py); the same as --set "
+                            "detect.detector=... (default: the colour detector)")
 
 
 @contextlib.contextmanager
@@ -113,6 +115,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if (args.junit or args.summary) and not requirements:
         raise InputError("--junit" if args.junit else "--summary", "needs --require")
     config = eval_config(args.preset, lambda base: _configure(base, args))
+    from flowerpose.pipeline.detect import make_detector
+
+    make_detector(config.detect, config.colour)  # one that cannot load says so before any work
     # A compared profile shares the run's settings (scoring, plants) but for its own keys.
     compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
     out = args.out or _default_out()
@@ -191,6 +196,24 @@ def cmd_plant(args: argparse.Namespace) -> int:
     visible = int(sum(bundle.visible))
     print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
           f"{visible} visible, {len(bundle.cloud)} cloud points -> {args.out}")
+    return 0
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from flowerpose.eval.dataset import DatasetConfig, write_dataset
+    from flowerpose.eval.harness import eval_config
+
+    dataset = DatasetConfig(format=args.format, views=args.views,
+                            val_fraction=args.val_fraction, split_seed=args.split_seed,
+                            min_pixels=args.min_pixels, frames_per_plant=args.frames)
+    config = eval_config(args.preset, lambda base: _configure(base, args))
+    seeds = list(range(args.seed, args.seed + args.plants))
+    manifest = write_dataset(args.out, seeds, config, dataset, args.overwrite)
+    split = manifest["split"]
+    print(f"{manifest['images']} images, {manifest['instances']} flower instances of "
+          f"{len(seeds)} plants ({len(split['train'])} train, {len(split['val'])} val: seeds "
+          f"{', '.join(map(str, split['val'])) or 'none'}) as {args.format} -> "
+          f"{args.out / 'dataset.json'}")
     return 0
 
 
@@ -889,6 +912,37 @@ def build_parser() -> argparse.ArgumentParser:
                    "bot's recorded ones (default: %(default)s)")
     _add_config_options(p, profile=False, detector=False)
     p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser("dataset", help="training data for a 2D detector: seeded plants' grid "
+                       "views (or scan frames) with exact per-flower masks and boxes, as COCO "
+                       "or YOLO, split into train and val by plant")
+    p.add_argument("--plants", type=PLANTS, required=True, metavar="N",
+                   help="number of seeded plants")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (0): the plants are seeds S to S+N-1")
+    p.add_argument("--preset", choices=PRESETS, default="realistic",
+                   help=PRESET_HELP + " (realistic)")
+    p.add_argument("--format", choices=("coco", "yolo"), default="coco",
+                   help="coco: images/ and annotations/instances_{train,val}.json (RLE masks; "
+                   "Detectron2, MMDetection, pycocotools); yolo: images/, labels/ (polygons) "
+                   "and data.yaml (Ultralytics) (coco)")
+    p.add_argument("--views", choices=("grid", "frames"), default="grid",
+                   help="grid: the views the detect stage sees (the oracle cloud projected); "
+                   "frames: the scan camera's images at waypoints of the planned scan (grid)")
+    p.add_argument("--val-fraction", type=float, default=0.2, metavar="F",
+                   help="share of the plants in the val split, at least one when above 0; "
+                   "0: train only (0.2)")
+    p.add_argument("--split-seed", type=SEED, default=0, metavar="S",
+                   help="seed of the shuffle that picks the val plants (0)")
+    p.add_argument("--frames", type=POSITIVE, default=24, metavar="N",
+                   help="--views frames: frames per plant, evenly along its scan (24)")
+    p.add_argument("--min-pixels", type=POSITIVE, default=20, metavar="N",
+                   help="a flower showing fewer pixels gets no annotation (20)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the dataset folder (dataset.json says how it was made)")
+    _add_overwrite(p)
+    _add_config_options(p, detector=False)
+    p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser(
         "detect", help="find flowers and their normals in a coloured cloud",

@@ -2,14 +2,16 @@
 
 The paper fine-tuned YOLOv10 through a hosted API whose weights were never published; the
 default here needs no weights: white petal pixels around a yellow centre, grouped into
-connected components, each giving a box and a mask. Any other detector (a local YOLO, say)
-plugs in by implementing `Detector`.
+connected components, each giving a box and a mask. A user's exported model runs through
+the built-in ONNX detector (`onnx:MODEL.onnx`, `pipeline/onnx_detector.py`), and any other
+detector (a local YOLO, say) plugs in by implementing `Detector`.
 """
 
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal, Protocol
 
 import cv2
@@ -19,15 +21,48 @@ from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 
+#: The `detect.detector` prefix of the built-in ONNX detector: "onnx:MODEL.onnx".
+ONNX_PREFIX = "onnx:"
+
+
+@dataclass(frozen=True)
+class OnnxConfig:
+    """The built-in ONNX detector (`detect.detector=onnx:MODEL.onnx`): how a user's model
+    is fed and read (`pipeline/onnx_detector.py` documents the contract)."""
+
+    input_px: int = 640
+    """Side of the square input, pixels, for a model whose input size is not fixed (a
+    fixed-size model gets its own size); each view is letterboxed to it (Ultralytics'
+    default image size)."""
+    score_threshold: float = 0.25
+    """A box model's rows scoring below this are dropped (Ultralytics' default
+    confidence)."""
+    mask_threshold: float = 0.5
+    """A segmentation model's pixels count as flower from this probability on."""
+    flower_class: int = 0
+    """The flower's class index: a box row's class, or a segmentation output's channel. 0
+    for a model trained on `flowerpose dataset` (YOLO class 0; COCO category 1, class 0 of
+    a model trained with contiguous class indices)."""
+
+    def __post_init__(self):
+        require(self.input_px >= 32, "detect.onnx.input_px", "must be at least 32 pixels")
+        require(0 <= self.score_threshold <= 1, "detect.onnx.score_threshold",
+                "must be within 0-1")
+        require(0 < self.mask_threshold <= 1, "detect.onnx.mask_threshold",
+                "must be above 0, at most 1")
+        require(self.flower_class >= 0, "detect.onnx.flower_class", "must be 0 or more")
+
 
 @dataclass(frozen=True)
 class DetectConfig:
     """Which detector runs and how its detections return to 3D."""
 
     detector: str = "colour"
-    """The detector: "colour" (white petals around a yellow centre; needs no weights), or
-    "MODULE:CLASS", any importable class with the `Detector` interface (made with no
-    arguments, called once per view), e.g. a YOLO model wrapped in a few lines."""
+    """The detector: "colour" (white petals around a yellow centre; needs no weights),
+    "onnx:MODEL.onnx" (a user's exported box or segmentation model on onnxruntime, the
+    [onnx] extra; `detect.onnx`), or "MODULE:CLASS", any importable class with the
+    `Detector` interface (made with no arguments, called once per view), e.g. a YOLO model
+    wrapped in a few lines."""
     backproject: Literal["mask", "box"] = "mask"
     """What returns to 3D: the detection's pixel mask (the paper's suggested improvement;
     default) or every pixel of its box (the paper)."""
@@ -40,10 +75,12 @@ class DetectConfig:
     min_white_fraction: float = 0.5
     """A component's share of white (petal) pixels, at least this: yellow alone is a bud or
     a stem, not a flower."""
+    onnx: OnnxConfig = field(default_factory=OnnxConfig)
 
     def __post_init__(self):
-        require(self.detector == "colour" or _plugin_name(self.detector) is not None,
-                "detect.detector", 'must be "colour" or MODULE:CLASS')
+        require(self.detector == "colour" or _onnx_model(self.detector) is not None
+                or _plugin_name(self.detector) is not None, "detect.detector",
+                'must be "colour", onnx:MODEL.onnx or MODULE:CLASS')
         require(0 <= self.min_white_fraction <= 1, "detect.min_white_fraction",
                 "must be within 0-1")
         require(self.close_radius_px >= 0, "detect.close_radius_px", "must be 0 or more")
@@ -91,31 +128,48 @@ class ColourDetector:
             size = 2 * cfg.close_radius_px + 1
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
             flower = cv2.morphologyEx(flower, cv2.MORPH_CLOSE, kernel) & occupied
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(flower, connectivity=8)
-        if count <= 1:
-            return []
-        white_per_label = np.bincount(labels.ravel(), weights=white.ravel(), minlength=count)
-        area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-        pixel_area = pixel_size_m**2
-        share = white_per_label / np.maximum(area, 1)
-        keep = ((area * pixel_area >= cfg.min_area_m2) & (area * pixel_area <= cfg.max_area_m2)
-                & (share >= cfg.min_white_fraction))
-        keep[0] = False
-        detections = []
-        for label in np.flatnonzero(keep):
-            x, y, w, h = stats[label, :4]
-            mask = labels[y:y + h, x:x + w] == label
-            detections.append(Detection((int(x), int(y), int(x + w), int(y + h)), mask,
-                                        float(share[label])))
-        return detections
+        return components(flower.astype(bool), white, pixel_size_m, cfg, cfg.min_white_fraction)
+
+
+def components(mask: np.ndarray, weights: np.ndarray, pixel_size_m: float,
+               config: DetectConfig, min_score: float = 0.0) -> list[Detection]:
+    """The 8-connected components of `mask` within the config's area limits, each a
+    Detection scored by the mean of `weights` over it; those scoring below `min_score`
+    are left out.
+
+    mask: (H, W) bool; weights: (H, W) float or bool in 0-1; pixel_size_m: metres per
+    pixel (the limits are in square metres)."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
+                                                                connectivity=8)
+    if count <= 1:
+        return []
+    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
+    score = np.bincount(labels.ravel(), weights=np.asarray(weights, np.float64).ravel(),
+                        minlength=count) / np.maximum(area, 1)
+    pixel_area = pixel_size_m**2
+    keep = ((area * pixel_area >= config.min_area_m2)
+            & (area * pixel_area <= config.max_area_m2) & (score >= min_score))
+    keep[0] = False
+    detections = []
+    for label in np.flatnonzero(keep):
+        x, y, w, h = stats[label, :4]
+        detections.append(Detection((int(x), int(y), int(x + w), int(y + h)),
+                                    labels[y:y + h, x:x + w] == label, float(score[label])))
+    return detections
 
 
 def make_detector(config: DetectConfig, colour: ColourConfig) -> Detector:
     """The detector the config names; `colour` is the colour model the built-in one reads.
-    A plug-in (MODULE:CLASS) is imported and made here; its detections are checked as
-    they come (`_Checked`), so a wrong one is one clear line naming it."""
+    An ONNX model is loaded here (`OnnxDetector`); a plug-in (MODULE:CLASS) is imported and
+    made here, and its detections are checked as they come (`_Checked`), so a wrong one is
+    one clear line naming it."""
     if config.detector == "colour":
         return ColourDetector(config, colour)
+    model = _onnx_model(config.detector)
+    if model is not None:
+        from flowerpose.pipeline.onnx_detector import OnnxDetector
+
+        return OnnxDetector(model, config)
     module_name, class_name = _plugin_name(config.detector)
     try:
         factory = getattr(importlib.import_module(module_name), class_name)
@@ -125,6 +179,13 @@ def make_detector(config: DetectConfig, colour: ColourConfig) -> Detector:
     except Exception as err:  # noqa: BLE001 - the plug-in's own failure, said in one line
         raise InputError("detect.detector", f"{config.detector}: making it failed "
                          f"({type(err).__name__}: {err})") from None
+
+
+def _onnx_model(name: str) -> Path | None:
+    """The model file of an "onnx:MODEL.onnx" detector name (the prefix is the ONNX
+    detector's, whatever follows), or None for another name."""
+    model = name.removeprefix(ONNX_PREFIX)
+    return Path(model) if name.startswith(ONNX_PREFIX) and model else None
 
 
 def _plugin_name(name: str) -> tuple[str, str] | None:

@@ -106,11 +106,8 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     up: the frame's up, for the direction prior (`PoseConfig.up_prior`); None for a cloud
     whose up is not known (a phone scan's own frame)."""
     timer = _Timer()
-    above_ground = remove_ground(cloud, config.ground)
+    above_ground, projections = grid_views(cloud, config, timer)
     plant = cloud.subset(above_ground)
-    timer.lap("ground")
-    projections = project_all(plant, config.grid)
-    timer.lap("grid")
     detector = make_detector(config.detect, config.colour)
     detections = [detector(p.image, p.occupied, p.pixel_size_m) for p in projections]
     timer.lap("detect")
@@ -125,6 +122,20 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     return FlowerResult(flowers, projections, detections, timer.total(),
                         [[_owner_of(owner[above_ground[points]]) for points in view]
                          for view in picked])
+
+
+def grid_views(cloud: Cloud, config: PipelineConfig, timer: _Timer | None = None
+               ) -> tuple[np.ndarray, list[Projection]]:
+    """The views the detector sees: the indices of `cloud`'s points above the ground (metres,
+    bed frame, z up), and the grid's projections of those points (their `index` maps pixels
+    into them)."""
+    above_ground = remove_ground(cloud, config.ground)
+    if timer is not None:
+        timer.lap("ground")
+    projections = project_all(cloud.subset(above_ground), config.grid)
+    if timer is not None:
+        timer.lap("grid")
+    return above_ground, projections
 
 
 def _owner_of(ids: np.ndarray) -> int | None:

@@ -27,6 +27,9 @@ def test_detect_runs_on_the_core_install_and_the_extras_are_named(tmp_path):
     done = _core("detect", cloud, "--out", tmp_path / "det")
     assert done.returncode == 0 and (tmp_path / "det" / "flowers.json").exists(), done.stderr
     for args, extra in ((["plant", "--seed", "1", "--out", tmp_path / "p"], "sim"),
+                        (["dataset", "--plants", "2", "--out", tmp_path / "d"], "sim"),
+                        (["detect", cloud, "--out", tmp_path / "o", "--detector",
+                          "onnx:model.onnx"], "onnx"),
                         (["farmduino", "--virtual"], "bot")):
         done = _core(*args)
         assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
