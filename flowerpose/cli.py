@@ -913,35 +913,47 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(p, profile=False, detector=False)
     p.set_defaults(func=cmd_reconstruct)
 
-    p = sub.add_parser("dataset", help="training data for a 2D detector: seeded plants' grid "
-                       "views (or scan frames) with exact per-flower masks and boxes, as COCO "
-                       "or YOLO, split into train and val by plant")
+    p = sub.add_parser(
+        "dataset", help="training data for a 2D detector: seeded plants' grid views (or scan "
+        "frames) with exact per-flower masks and boxes, as COCO or YOLO",
+        description="Write training data for a 2D flower detector from seeded synthetic "
+        "plants. Each image is a grid view the detect stage sees (or a scan frame) with every "
+        "flower's exact instance mask and box, as COCO or YOLO, split into train and val by "
+        "plant; dataset.json records the seeds and settings.",
+        epilog="examples:\n"
+        "  flowerpose dataset --plants 20 --out flowers-coco\n"
+        "  flowerpose dataset --plants 20 --format yolo --views frames --out flowers-yolo")
     p.add_argument("--plants", type=PLANTS, required=True, metavar="N",
                    help="number of seeded plants")
     p.add_argument("--seed", type=SEED, default=0, metavar="S",
-                   help="first plant seed (0): the plants are seeds S to S+N-1")
+                   help="first plant seed: the plants are seeds S to S+N-1 (default: "
+                   "%(default)s)")
     p.add_argument("--preset", choices=PRESETS, default="realistic",
-                   help=PRESET_HELP + " (realistic)")
+                   help=PRESET_HELP + " (default: %(default)s)")
     p.add_argument("--format", choices=("coco", "yolo"), default="coco",
                    help="coco: images/ and annotations/instances_{train,val}.json (RLE masks; "
                    "Detectron2, MMDetection, pycocotools); yolo: images/, labels/ (polygons) "
-                   "and data.yaml (Ultralytics) (coco)")
+                   "and data.yaml (Ultralytics) (default: %(default)s)")
     p.add_argument("--views", choices=("grid", "frames"), default="grid",
                    help="grid: the views the detect stage sees (the oracle cloud projected); "
-                   "frames: the scan camera's images at waypoints of the planned scan (grid)")
+                   "frames: the scan camera's images at waypoints of the planned scan "
+                   "(default: %(default)s)")
     p.add_argument("--val-fraction", type=float, default=0.2, metavar="F",
                    help="share of the plants in the val split, at least one when above 0; "
-                   "0: train only (0.2)")
+                   "0: train only (default: %(default)s)")
     p.add_argument("--split-seed", type=SEED, default=0, metavar="S",
-                   help="seed of the shuffle that picks the val plants (0)")
+                   help="seed of the shuffle that picks the val plants (default: %(default)s)")
     p.add_argument("--frames", type=POSITIVE, default=24, metavar="N",
-                   help="--views frames: frames per plant, evenly along its scan (24)")
+                   help="--views frames: frames per plant, evenly along its scan (default: "
+                   "%(default)s)")
     p.add_argument("--min-pixels", type=POSITIVE, default=20, metavar="N",
-                   help="a flower showing fewer pixels gets no annotation (20)")
+                   help="a flower showing fewer pixels gets no annotation (default: "
+                   "%(default)s)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the dataset folder (dataset.json says how it was made)")
     _add_overwrite(p)
-    _add_config_options(p, detector=False)
+    _add_config_options(p, profile=False, detector=False,
+                        example="sim.plant.flower_diameter_m=[0.03,0.05] (metres)")
     p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser(
