@@ -1,11 +1,16 @@
 """Speed benchmark: a cloud to flower poses, per stage, at the paper's phone-scan density
-(125,000 points) and beyond. Imports, plant generation and file reading are excluded."""
+(125,000 points) and beyond (imports, plant generation and file reading excluded); and the
+simulator's own steps for one realistic plant, against their budgets. Speed is measured
+here, not asserted in unit tests, since this machine is shared."""
 
 from __future__ import annotations
 
 import os
 import statistics
+import time
 from pathlib import Path
+
+import numpy as np
 
 from flowerpose.config import to_dict
 from flowerpose.jsonio import write_json
@@ -15,6 +20,34 @@ from flowerpose.sim.bundle import make_plant
 
 #: The published code's time per plant (upstream.md), for the printed comparison.
 UPSTREAM_SECONDS = (78, 105)
+
+#: Seconds each simulator step may take for one realistic plant on this 2-core machine: a
+#: 10-plant oracle benchmark then generates its plants in well under a minute.
+SIMULATOR_BUDGET_S = {"plant": 2.0, "visibility": 3.0, "oracle_cloud": 5.0}
+
+
+def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
+    """Median wall seconds of the simulator's steps for realistic plant `seed`: generating
+    the plant, its flowers' visibility from the scan path, and its oracle cloud."""
+    from flowerpose.scanpath import path_cameras
+    from flowerpose.sim.config import OracleCloudConfig, preset
+    from flowerpose.sim.oracle import sample_oracle_cloud
+    from flowerpose.sim.plant import generate_plant
+    from flowerpose.sim.visibility import flower_visibility
+
+    runs: dict[str, list[float]] = {name: [] for name in SIMULATOR_BUDGET_S}
+    for _ in range(repeat):
+        tick = time.perf_counter()
+        plant = generate_plant(seed, preset("realistic"))
+        runs["plant"].append(time.perf_counter() - tick)
+        views = path_cameras(plant.center[:2], plant.height)[1]
+        tick = time.perf_counter()
+        flower_visibility(plant, views)
+        runs["visibility"].append(time.perf_counter() - tick)
+        tick = time.perf_counter()
+        sample_oracle_cloud(plant, OracleCloudConfig(), views, np.random.default_rng(seed))
+        runs["oracle_cloud"].append(time.perf_counter() - tick)
+    return {name: round(statistics.median(values), 4) for name, values in runs.items()}
 
 
 def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
@@ -41,8 +74,14 @@ def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
               + " | ".join(f"{r['median_s'][s]:.3f}" for s in stages) + " |")
     print(f"seconds, median of {repeat} runs on {os.cpu_count()} cores; the published code: "
           f"{UPSTREAM_SECONDS[0]}-{UPSTREAM_SECONDS[1]} s a plant")
-    report = {"results": results, "repeat": repeat, "seed": seed, "cpu_count": os.cpu_count(),
-              "config": to_dict(config)}
+    simulator = simulator_seconds(seed, repeat)
+    print("| simulator step | seconds | budget |\n|---|---|---|")
+    for name, seconds in simulator.items():
+        budget = SIMULATOR_BUDGET_S[name]
+        print(f"| {name} | {seconds:.3f} | {budget:g}{'' if seconds <= budget else ' (over)'} |")
+    report = {"results": results, "simulator_s": simulator,
+              "simulator_budget_s": SIMULATOR_BUDGET_S, "repeat": repeat, "seed": seed,
+              "cpu_count": os.cpu_count(), "config": to_dict(config)}
     if out is not None:
         write_json(out / "bench.json", report)
         print(f"bench: {out / 'bench.json'}")

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from simhelpers import box, cached_plant, handmade_plant
 
@@ -43,12 +41,10 @@ def test_sideways_flower_seen_from_both_faces():
     assert visible[0] and fraction[0] > 0.8
 
 
-def test_generated_plant_fractions_and_speed():
+def test_generated_plant_fractions():
     plant = cached_plant(0, "realistic")
     views = path_cameras(plant.center[:2], plant.height)[1]
-    start = time.perf_counter()
     visible, fraction = flower_visibility(plant, views)
-    assert time.perf_counter() - start < 3.0
     assert visible.shape == fraction.shape == (len(plant.flowers),)
     assert ((fraction >= 0.0) & (fraction <= 1.0)).all()
     assert np.array_equal(visible, fraction >= 0.5)
