@@ -7,10 +7,13 @@ pipeline's are, and printed beside it. A command that fails, runs past its timeo
 a bad file is reported for that plant (its entry says why, with nothing found), never a
 traceback, and the other plants go on. An installed package can register a method by name
 (entry points, group `flowerpose.methods`): `--method NAME` runs it the same way.
+`--compare` takes any kind of method (`parse_compare`): a settings profile, an external or
+registered method, or a 2D detector in place of the colour detector.
 """
 
 from __future__ import annotations
 
+import re
 import shlex
 import subprocess
 import sys
@@ -117,3 +120,30 @@ def _run_registered(argv: list[str]) -> int:
 
 if __name__ == "__main__":
     sys.exit(_run_registered(sys.argv[1:]))
+
+
+def parse_compare(text: str, config: Any, timeout_s: float = DEFAULT_TIMEOUT_S
+                  ) -> tuple[str, Any]:
+    """--compare's value as (name, what runs): a settings profile (`upstream`) or a 2D
+    detector (`onnx:MODEL.onnx`, `MODULE:CLASS`) as the run's config with it applied, or an
+    external method (`NAME='CMD {cloud} {out}'`, or a registered method's name) as an
+    `ExternalMethod`. A detector that cannot load is one line before any work."""
+    from flowerpose.config import apply_overrides, load_profile, profile_names
+    from flowerpose.pipeline.detect import make_detector
+
+    text = text.strip()
+    if text in profile_names():
+        return text, apply_overrides(config, load_profile(text))
+    if "=" in text or text in registered_methods():
+        method = parse_method(text, timeout_s)
+        return method.name, method
+    if ":" in text:
+        compared = apply_overrides(config, {"detect.detector": text})
+        make_detector(compared.detect, compared.colour)
+        kind, _, spec = text.partition(":")
+        label = Path(spec).stem if kind == "onnx" else spec
+        return "detector-" + re.sub(r"[^A-Za-z0-9_.-]+", "_", label), compared
+    known = ", ".join(profile_names())
+    raise InputError("--compare", f"'{text}': a profile ({known}), a registered method, "
+                     "NAME='CMD {cloud} {out}', or a detector (onnx:MODEL.onnx or "
+                     "MODULE:CLASS)")

@@ -93,7 +93,6 @@ EVAL_DEFAULTS = {"source": "scan", "preset": "realistic", "seed": 0}
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from flowerpose.config import apply_overrides, load_profile
     from flowerpose.eval.harness import eval_config, run_eval
 
     suite = _apply_suite(args) if args.suite else None
@@ -105,21 +104,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.truth_scale is not None and args.source != "real":
         raise InputError("--truth-scale", "is for --source real")
     from flowerpose.eval.gates import parse_requirements
-    from flowerpose.eval.methods import parse_method
+    from flowerpose.eval.methods import ExternalMethod, parse_compare, parse_method
 
     requirements = parse_requirements(args.require)  # a bad gate says so before any work
-    methods = [parse_method(text, args.method_timeout) for text in args.method]
-    names = [m.name for m in methods] + list(args.compare)
-    if len(set(names)) < len(names):
-        raise InputError("--method", "each compared method needs a name of its own")
     if (args.junit or args.summary) and not requirements:
         raise InputError("--junit" if args.junit else "--summary", "needs --require")
     config = eval_config(args.preset, lambda base: _configure(base, args))
     from flowerpose.pipeline.detect import make_detector
 
     make_detector(config.detect, config.colour)  # one that cannot load says so before any work
-    # A compared profile shares the run's settings (scoring, plants) but for its own keys.
-    compare = {name: apply_overrides(config, load_profile(name)) for name in args.compare}
+    # A compared profile or detector shares the run's settings (scoring, plants) but its own.
+    compared = [parse_compare(text, config, args.method_timeout) for text in args.compare]
+    methods = [parse_method(text, args.method_timeout) for text in args.method] + [
+        what for _, what in compared if isinstance(what, ExternalMethod)]
+    compare = {name: what for name, what in compared if not isinstance(what, ExternalMethod)}
+    names = [m.name for m in methods] + list(compare)
+    if len(set(names)) < len(names):
+        raise InputError("--compare", "each compared method needs a name of its own")
     out = args.out or _default_out()
     plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
     from flowerpose.eval.harness import eval_outputs
@@ -730,10 +731,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-scale", type=_positive_number, default=None, metavar="K",
                    help="--source real: the factor the labelled cloud was scaled by, no unit "
                    "(default: each folder's source.json, else 25 for SageMaker labels)")
-    p.add_argument("--compare", action="append", default=[], metavar="NAME",
-                   choices=profile_names(),
-                   help="also run a named profile on the same plants and print both "
-                   f"({', '.join(profile_names())}; repeatable; default: none)")
+    p.add_argument("--compare", action="append", default=[], metavar="METHOD",
+                   help="also run another method on the same plants and print them side by "
+                   f"side: a settings profile ({', '.join(profile_names())}), a 2D detector "
+                   "(onnx:MODEL.onnx or MODULE:CLASS), an external command "
+                   "(NAME='CMD {cloud} {out}', as --method) or a registered method's name "
+                   "(repeatable; default: none)")
     p.add_argument("--plants", type=PLANTS, default=None, metavar="N",
                    help=f"number of seeded plants (default: {SCAN_PLANTS} for scan, 10 for "
                    "oracle and rgbd)")

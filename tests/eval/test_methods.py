@@ -79,3 +79,47 @@ def test_a_package_registers_a_method_by_name(tmp_path, monkeypatch):
     assert nothing["summary"]["detections"] == 0 and "error" not in nothing["plants"][0]
     with pytest.raises(InputError, match="registered method .*nothing"):
         parse_method("unknown")
+
+
+SAME_DETECTOR = '''
+from flowerpose.pipeline.colour import ColourConfig
+from flowerpose.pipeline.detect import ColourDetector, DetectConfig
+
+
+class Same:
+    def __init__(self):
+        self.inner = ColourDetector(DetectConfig(), ColourConfig())
+
+    def __call__(self, image, occupied, pixel_size_m):
+        return self.inner(image, occupied, pixel_size_m)
+'''
+
+
+def test_compare_takes_a_profile_a_detector_and_a_command_side_by_side(tmp_path, capsys,
+                                                                      monkeypatch):
+    (tmp_path / "my_detectors.py").write_text(SAME_DETECTOR)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    script = tmp_path / "method.py"
+    script.write_text(SCRIPT)
+    plant = write_real_plant(tmp_path / "one", "cloud")
+    code = main(["eval", "-q", "--source", "real", str(plant), "--workers", "1",
+                 "--out", str(tmp_path / "out"), "--compare", "upstream",
+                 "--compare", "my_detectors:Same",
+                 "--compare", f"itself={sys.executable} {script} {{cloud}} {{out}} itself"])
+    out = capsys.readouterr().out
+    assert code == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert set(report["compare"]) == {"upstream", "detector-Same", "itself"}
+    for same in ("detector-Same", "itself"):  # the pipeline under other names: its scores
+        assert report["compare"][same]["summary"] == report["summary"]
+    assert report["compare"]["upstream"]["config"]["cluster"]["candidates"] == "all"
+    assert report["config"]["cluster"]["candidates"] != "all"
+    assert all(name in out for name in ("upstream", "detector-Same", "itself"))
+    for bad, words in (("nothing-known", "a profile (upstream)"),
+                       ("no_such_module:X", "cannot load it")):
+        assert main(["eval", "--source", "real", str(plant), "--out", str(tmp_path / "bad"),
+                     "--compare", bad]) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, err
+    assert not (tmp_path / "bad").exists()
