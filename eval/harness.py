@@ -34,7 +34,7 @@ from flowerpose.eval.report import (
     write_report,
 )
 from flowerpose.eval.rgbd_source import RgbdConfig
-from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan
+from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
 from flowerpose.log import Tally
 from flowerpose.pipeline.flowers import (
@@ -215,7 +215,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
              out_dir: Path = Path("runs/eval"), workers: int | None = None,
              folders: Iterable[Path] = (), truth_scale: float | None = None,
              compare: dict[str, EvalConfig] | None = None,
-             suite: dict | None = None, methods: Iterable[ExternalMethod] = ()) -> dict:
+             suite: dict | None = None, methods: Iterable[ExternalMethod] = (),
+             cache: Path | None = None) -> dict:
     """The benchmark: returns report.json's content and writes report.json, report.md and,
     per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
 
@@ -225,6 +226,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     summaries and plants go under report["compare"] and their files under out_dir/NAME/.
     `suite` (name, version, description) is recorded as report["suite"]. Each external
     method (`methods.py`) runs on the same clouds and is scored and compared the same way.
+    `cache`: the stage cache's folder (`flowerpose.cache`), which the scan and RGB-D sources'
+    captures are taken from and put into; None runs every stage.
     """
     if source not in SOURCES:
         raise InputError("--source", f"'{source}': one of {', '.join(SOURCES)}")
@@ -238,7 +241,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     else:
         if plants < 1:
             raise InputError("--plants", f"must be at least 1, got {plants}")
-        jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers)
+        jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers,
+                                              cache)
         run_config = {"source": source, "plants": plants, "seed": seed, **to_dict(config)}
         title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
     entries, stage_timing = _score_jobs(jobs, config, out_dir, workers)
@@ -370,41 +374,80 @@ def eval_outputs(source: str, folders: Iterable[Path] = (), compared: Iterable[s
 
 
 def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,
-                    workers: int | None) -> tuple[list[tuple], dict, dict]:
+                    workers: int | None, cache: Path | None = None
+                    ) -> tuple[list[tuple], dict, dict]:
     """Generate the seeded plants (and, for the scan and RGB-D sources, film and
-    reconstruct them); the scoring jobs, timings and reconstruction reports."""
+    reconstruct them, or take that from the stage cache at `cache`); the scoring jobs,
+    timings and reconstruction reports."""
     seeds = list(range(seed, seed + plants))
     plants_dir = out_dir / "plants"
     generation = generate_plants(seeds, config.sim, plants_dir, workers)
-    timing = {"plant": round(sum(generation), 4)}
     folders = {s: plants_dir / f"seed-{s}" for s in seeds}
+    clouds, timing, extra = capture_clouds(config, source, folders, workers, cache)
+    timing = {"plant": round(sum(generation), 4), **timing}
+    return [("synthetic", f"seed-{s}", *clouds[s]) for s in seeds], timing, extra
+
+
+def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
+                   workers: int | None, cache: Path | None = None
+                   ) -> tuple[dict[int, tuple[Path, Path]], dict, dict]:
+    """The cloud and truth each generated plant (seed -> folder) has from `source`: its
+    oracle cloud as generated, or for the scan and RGB-D sources one filmed and
+    reconstructed now or taken from the stage cache at `cache`. Returns (seed -> (cloud,
+    truth)), seconds per stage, and the reconstruction report ("reconstruction", "cache")."""
+    seeds = list(folders)
     clouds = {s: (folders[s] / "cloud.ply", folders[s] / "plant.json") for s in seeds}
+    timing: dict[str, float] = {}
     extra: dict = {}
+    if source == "oracle":
+        return clouds, timing, extra
     if source == "rgbd":
-        captured = run_jobs(capture_rgbd, [(folders[s], config) for s in seeds], workers,
+        captured = run_jobs(capture_rgbd_cached, [(folders[s], config, cache) for s in seeds],
+                            workers,
                             lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
-                            f"fused into {v['points']} points ({v['seconds']:.1f} s)")
+                            f"fused into {v['points']} points "
+                            + ("(from the cache)" if v.get("cached") else
+                               f"({v['seconds']:.1f} s)"))
         timing["rgbd"] = round(sum(c["seconds"] for c in captured), 4)
         clouds = {s: (folders[s] / "rgbd" / "cloud.ply", folders[s] / "rgbd" / "plant.json")
                   for s in seeds}
-        extra["reconstruction"] = {f"seed-{s}": c["quality"]
-                                   for s, c in zip(seeds, captured, strict=True)}
-    if source == "scan":
+    else:
         # One plant at a time: rendering, matching and stereo each use every core.
-        captured = run_jobs(capture_scan, [(folders[s], config.scan, config.sim.viewpoints)
-                                           for s in seeds], 1,
+        captured = run_jobs(capture_scan_cached, [(folders[s], config.scan,
+                                                   config.sim.viewpoints, cache)
+                                                  for s in seeds], 1,
                             lambda k, v: f"seed-{seeds[k]}: scan of {v['recorded']} frames, "
                             f"{v['registered']}/{v['frames']} chosen frames registered, "
                             f"{v['points']} points, petal F-score at 5 mm "
                             f"{v['quality']['petals']['fscore_5mm']:.2f} "
-                            f"({', '.join(f'{k} {t:.0f} s' for k, t in v['seconds'].items())})")
+                            + ("(from the cache)" if v.get("cached") else
+                               f"({', '.join(f'{k} {t:.0f} s' for k, t in v['seconds'].items())})"))
         for stage in ("scan", "frames", "reconstruct"):
             timing[stage] = round(sum(c["seconds"][stage] for c in captured), 4)
         clouds = {s: (folders[s] / "reconstruction" / "cloud.ply",
                       folders[s] / "scan" / "plant.json") for s in seeds}
-        extra["reconstruction"] = {f"seed-{s}": c["quality"]
-                                   for s, c in zip(seeds, captured, strict=True)}
-    return [("synthetic", f"seed-{s}", *clouds[s]) for s in seeds], timing, extra
+    extra["reconstruction"] = {f"seed-{s}": c["quality"]
+                               for s, c in zip(seeds, captured, strict=True)}
+    if cache is not None:
+        extra["cache"] = {"dir": str(cache), "reused": [
+            f"seed-{s}" for s, c in zip(seeds, captured, strict=True) if c.get("cached")]}
+    return clouds, timing, extra
+
+
+def capture_rgbd_cached(plant_dir: Path, config: EvalConfig, cache_root: Path | None) -> dict:
+    """`capture_rgbd`, or its earlier result for the same plant files, settings and code from
+    the stage cache at cache_root (None: no cache), its cloud and truth copied back."""
+    if cache_root is None:
+        return capture_rgbd(plant_dir, config)
+    from flowerpose.cache import StageCache
+
+    settings = {"rgbd": to_dict(config.rgbd), "fusion": to_dict(config.fusion),
+                "viewpoints": to_dict(config.sim.viewpoints)}
+    inputs = [plant_dir / name for name in ("plant.json", "plant.ply", "plant_labels.npz")]
+    result, cached = StageCache(cache_root).run(
+        "rgbd", settings, inputs, plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
+        lambda: capture_rgbd(plant_dir, config))
+    return {**result, "cached": True, "seconds": 0.0} if cached else result
 
 
 def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:

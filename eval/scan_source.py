@@ -8,11 +8,13 @@ visibility), frames/ (`flowerpose frames`), reconstruction/ (`flowerpose reconst
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from flowerpose.config import require
+from flowerpose.cache import StageCache
+from flowerpose.config import require, to_dict
 from flowerpose.pipeline.reconstruct import ReconstructConfig
 from flowerpose.scanpath import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
@@ -117,3 +119,29 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
             "frames": len(chosen["frames"]), "registered": report["images_registered"],
             "points": report["points"], "quality": quality,
             "seconds": {k: round(v, 3) for k, v in seconds.items()}}
+
+
+#: What later steps read of a plant's scan (the report, scoring, the camera path), kept in
+#: the stage cache; the frames' images stay out of it.
+CAPTURE_FILES = ("scan/plant.json", "scan/scan.json", "scan/trajectory.csv",
+                 "frames/frames.json", "frames/camera.json", "reconstruction/cloud.ply",
+                 "reconstruction/reconstruction.json")
+
+
+def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
+                        path: ScanPathConfig | None = None,
+                        cache_root: Path | None = None) -> dict:
+    """`capture_scan`, or its earlier result for the same plant files, camera, path and code
+    from the stage cache at cache_root (None: no cache). A result taken from the cache says
+    "cached": true, and its seconds are this run's (none spent scanning)."""
+    if cache_root is None:
+        return capture_scan(plant_dir, config, path)
+    settings = {"scan": to_dict(dataclasses.replace(config, workers=None)),
+                "viewpoints": to_dict(path or ScanPathConfig())}
+    inputs = [plant_dir / name for name in ("plant.json", "plant.ply", "plant_labels.npz")]
+    result, cached = StageCache(cache_root).run("scan", settings, inputs, plant_dir,
+                                                CAPTURE_FILES,
+                                                lambda: capture_scan(plant_dir, config, path))
+    if cached:
+        result = {**result, "cached": True, "seconds": {k: 0.0 for k in result["seconds"]}}
+    return result

@@ -17,7 +17,13 @@ from pathlib import Path
 from flowerpose.atomic import write_figure, write_text
 from flowerpose.config import apply_overrides, to_dict, value_at
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import EvalConfig, evaluate_cloud, generate_plants, run_jobs
+from flowerpose.eval.harness import (
+    EvalConfig,
+    capture_clouds,
+    evaluate_cloud,
+    generate_plants,
+    run_jobs,
+)
 from flowerpose.eval.report import summarise
 from flowerpose.jsonio import write_json
 
@@ -128,39 +134,57 @@ def sweep_figure(settings: list[dict], pooled: list[dict], per_plant: list[list[
     return fig
 
 
-def sweep_outputs(grid: list[tuple[str, list[str]]]) -> tuple[str, ...]:
+#: Settings whose change gives a source other clouds: those of its capture and the plants.
+_CAPTURE_KEYS = {"oracle": ("sim.",), "scan": ("sim.", "scan."),
+                 "rgbd": ("sim.", "rgbd.", "fusion.")}
+
+
+def _separate_plants(keys: list[str], source: str) -> bool:
+    """Whether each setting needs plants (and clouds) of its own."""
+    return any(key.startswith(_CAPTURE_KEYS[source]) for key in keys)
+
+
+def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle") -> tuple[str, ...]:
     """The top-level entries `run_sweep` writes for `grid` (`outputs.OutputFolder`)."""
     count = 1
     for _, values in grid:
         count *= len(values)
-    plants = ([f"plants-{k}" for k in range(count)] if any(k.startswith("sim.") for k, _ in grid)
-              else ["plants"])
+    plants = ([f"plants-{k}" for k in range(count)]
+              if _separate_plants([k for k, _ in grid], source) else ["plants"])
     return ("sweep.csv", "sweep.png", "best.json", *plants,
             *(f"setting-{k}" for k in range(count)))
 
 
 def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int, seed: int,
-              out_dir: Path, workers: int | None = None) -> dict:
-    """Evaluate every combination of the grid over `plants` seeded plants; writes
-    sweep.csv, sweep.png and best.json, and returns best.json's "best": the best setting
-    (dotted keys, typed values), its metrics and its whole resolved config."""
+              out_dir: Path, workers: int | None = None, source: str = "oracle",
+              cache: Path | None = None) -> dict:
+    """Evaluate every combination of the grid over `plants` seeded plants' clouds from
+    `source` (oracle, scan or rgbd); writes sweep.csv, sweep.png and best.json, and returns
+    best.json's "best": the best setting (dotted keys, typed values), its metrics and its
+    whole resolved config. Plants are generated, and for scan and rgbd filmed and
+    reconstructed, once for all settings unless a setting changes them; `cache` is the
+    stage cache's folder those captures are taken from and put into (None: none)."""
     if plants < 1:
         raise InputError("--plants", f"must be at least 1, got {plants}")
+    if source not in _CAPTURE_KEYS:
+        raise InputError("--source", f"'{source}': the sweep's sources are "
+                         f"{', '.join(_CAPTURE_KEYS)}")
     start = time.perf_counter()
     keys = [key for key, _ in grid]
     settings = [dict(zip(keys, combo, strict=True))
                 for combo in itertools.product(*(values for _, values in grid))]
     configs = [apply_overrides(config, s) for s in settings]
     seeds = list(range(seed, seed + plants))
-    sim_varies = any(k.startswith("sim.") for k in keys)
-    plant_dirs = []
+    separate = _separate_plants(keys, source)
+    clouds: list[dict[int, tuple[Path, Path]]] = []
     for k, cfg in enumerate(configs):
-        if k == 0 or sim_varies:
-            base = out_dir / (f"plants-{k}" if sim_varies else "plants")
+        if k == 0 or separate:
+            base = out_dir / (f"plants-{k}" if separate else "plants")
             generate_plants(seeds, cfg.sim, base, workers)
-        plant_dirs.append(base)
-    jobs = [(plant_dirs[k] / f"seed-{s}" / "cloud.ply", plant_dirs[k] / f"seed-{s}" / "plant.json",
-             cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}")
+            shared = capture_clouds(cfg, source, {s: base / f"seed-{s}" for s in seeds},
+                                    workers, cache)[0]
+        clouds.append(shared)
+    jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}")
             for k, cfg in enumerate(configs) for s in seeds]
     results = run_jobs(evaluate_cloud, jobs, workers,
                        lambda j, v: f"setting {j // len(seeds)} {v[0]['plant']}: "
@@ -192,7 +216,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
                                              for v in values] for key, values in grid},
                 "settings": [{"setting": t, "metrics": m, "plants": p}
                              for t, m, p in zip(typed, pooled, per_plant, strict=True)],
-                "plants": plants, "seed": seed,
+                "plants": plants, "seed": seed, "source": source,
                 "seconds": round(time.perf_counter() - start, 2)})
     for row in rows:
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "

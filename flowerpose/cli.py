@@ -64,6 +64,24 @@ def _owned(folder: Path, stage: str, overwrite: bool, writes: tuple[str, ...]):
     output.finish()
 
 
+def _add_cache_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cache", type=Path, metavar="DIR",
+                        help="the stage cache: scans and reconstructions of the same plant "
+                        "with the same settings and code are taken from it, not run again "
+                        "(default: $FLOWERPOSE_CACHE, else ~/.cache/flowerpose)")
+    parser.add_argument("--no-cache", action="store_true",
+                        help="run every stage, reading and filling no cache")
+
+
+def _cache(args: argparse.Namespace) -> Path | None:
+    """The stage cache's folder the command's --cache / --no-cache choose."""
+    from flowerpose.cache import default_cache_dir
+
+    if args.no_cache and args.cache is not None:
+        raise InputError("--no-cache", "and --cache contradict each other: choose one")
+    return None if args.no_cache else (args.cache or default_cache_dir())
+
+
 def _add_overwrite(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder that holds files this command did not "
@@ -118,6 +136,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     methods = [parse_method(text, args.method_timeout) for text in args.method] + [
         what for _, what in compared if isinstance(what, ExternalMethod)]
     compare = {name: what for name, what in compared if not isinstance(what, ExternalMethod)}
+    cache = _cache(args)
     names = [m.name for m in methods] + list(compare)
     if len(set(names)) < len(names):
         raise InputError("--compare", "each compared method needs a name of its own")
@@ -130,7 +149,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
                           truth_scale=args.truth_scale, compare=compare, suite=suite,
-                          methods=methods)
+                          methods=methods, cache=cache)
     from flowerpose.eval.report import comparison_table, summary_lines, table
 
     print(table(report))
@@ -572,9 +591,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     config = eval_config(args.preset, lambda base: _configure(base, args))
     grid = parse_grid(args.grid, config)
-    with _owned(args.out, "sweep", args.overwrite, sweep_outputs(grid)):
+    cache = _cache(args)
+    with _owned(args.out, "sweep", args.overwrite, sweep_outputs(grid, args.source)):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
-                         workers=args.workers)
+                         workers=args.workers, source=args.source, cache=cache)
     metrics = best["metrics"]
     print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
           + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
@@ -758,6 +778,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method-timeout", type=_positive_number, default=600.0, metavar="S",
                    help="seconds an external method may take on one plant (default: "
                    "%(default)g)")
+    _add_cache_options(p)
     p.add_argument("--suite", choices=suite_names(), metavar="NAME",
                    help="a named, versioned benchmark suite that fixes the source, preset, "
                    f"plants and seeds ({', '.join(suite_names())}; assets/suites/); the report "
@@ -1019,14 +1040,21 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "sweep", help="evaluate a grid of settings over seeded plants",
         description="Evaluate every combination of the --grid settings on the same seeded "
-        "plants' oracle clouds. Writes sweep.csv (a row per setting), sweep.png (each metric "
+        "plants' clouds (oracle, or filmed and reconstructed once for all settings). "
+        "Writes sweep.csv (a row per setting), sweep.png (each metric "
         "per setting, spread over the plants) and best.json (the best setting: most visible "
         "flowers found, then fewest false positives, then the smallest plane error).",
-        epilog="example:\n"
+        epilog="examples:\n"
         "  flowerpose sweep --grid cluster.eps=0.006,0.008 --grid grid.views=6,14 --plants 3 "
-        "--out sweep")
+        "--out sweep\n"
+        "  flowerpose sweep --source scan --plants 3 --grid cluster.eps=0.006,0.008,0.01,0.012 "
+        "--out sweep-scan")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting's dotted key and its values; repeat for a grid over several")
+    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
+                   help="where the clouds come from, as for eval; scan and rgbd film each "
+                   "plant once for every setting that does not change the plants or the "
+                   "capture (default: %(default)s)")
     p.add_argument("--plants", type=PLANTS, default=5, metavar="N",
                    help="seeded plants per setting (default: %(default)s)")
     p.add_argument("--seed", type=SEED, default=0, metavar="S",
@@ -1038,6 +1066,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for sweep.csv, sweep.png and best.json")
     _add_overwrite(p)
+    _add_cache_options(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
 
