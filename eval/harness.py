@@ -38,8 +38,10 @@ from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_
 from flowerpose.log import Tally
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
+    Start,
     find_flowers,
     read_flowers,
+    sections_run,
     write_flowers,
     write_normals_ply,
 )
@@ -204,6 +206,22 @@ def _describe_entry(k: int, value: tuple[dict, dict]) -> str:
             f"{entry['found']} found, {entry['fp']} fp{plane_text} ({timing['total']:.2f} s)")
 
 
+#: The sections of an EvalConfig each source reads besides the pipeline's: the synthetic
+#: world and the scoring, and the simulated camera and its reconstruction or fusion.
+SOURCE_SECTIONS: dict[str, tuple[str, ...]] = {
+    "oracle": ("sim", "score"), "rgbd": ("sim", "score", "rgbd", "fusion"),
+    "scan": ("sim", "score", "scan"), "real": ("score",)}
+
+
+def settings_run(config: EvalConfig, source: str, starts: Iterable[Start] = ("cloud",)) -> dict:
+    """The settings of the stages a run ran, as report.json's `config` records them: the
+    pipeline's from where it started (`flowers.sections_run`), then the source's own
+    (`SOURCE_SECTIONS`); an oracle run carries no scan, RGB-D or fusion settings, a run
+    from candidates no ground, grid or detection settings."""
+    return {**sections_run(config, starts),
+            **{name: to_dict(getattr(config, name)) for name in SOURCE_SECTIONS[source]}}
+
+
 #: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
 #: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
 #: labelled plants (`real_source.py`).
@@ -231,14 +249,17 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     if source == "real":
         jobs, described = _real_jobs(list(folders), truth_scale)
         timing, extra = {}, {}
-        run_config = {"source": source, "folders": described, **to_dict(pipeline_part(config)),
-                      "score": to_dict(config.score)}
+        starts = [plant["stage"] for plant in described]
+        run_config = {"source": source, "folders": described,
+                      **settings_run(config, source, starts)}
         title = f"flowerpose eval: {len(jobs)} real plants"
     else:
         if plants < 1:
             raise InputError("--plants", f"must be at least 1, got {plants}")
         jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers)
-        run_config = {"source": source, "plants": plants, "seed": seed, **to_dict(config)}
+        starts = ["cloud"]
+        run_config = {"source": source, "plants": plants, "seed": seed,
+                      **settings_run(config, source, starts)}
         title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
     entries, stage_timing = _score_jobs(jobs, config, out_dir, workers)
     timing.update(stage_timing)
@@ -247,7 +268,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         for name, other in compare.items():
             others, _ = _score_jobs(jobs, other, out_dir / name, workers)
             extra["compare"][name] = {"summary": summarise(others), "plants": others,
-                                      "config": to_dict(pipeline_part(other))}
+                                      "config": sections_run(other, starts)}
     for method in methods:
         results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
                            workers, _describe_entry)

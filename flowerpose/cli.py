@@ -184,7 +184,6 @@ def cmd_plant(args: argparse.Namespace) -> int:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud, write_cloud
-    from flowerpose.config import to_dict
     from flowerpose.jsonio import write_json
     from flowerpose.outputs import OutputFolder, check_output
     from flowerpose.pipeline.flowers import (
@@ -192,6 +191,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         find_flowers,
         find_flowers_in_candidates,
         read_flowers,
+        sections_run,
         write_flowers,
         write_normals_ply,
     )
@@ -209,7 +209,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     output.record(write_flowers(out / "flowers.json", result, args.cloud,
                                 "cloud" if args.candidates else "bed"),
                   *write_normals_ply(out, result.flowers),
-                  write_json(out / "config.json", to_dict(config)))
+                  write_json(out / "config.json", sections_run(
+                      config, ["candidates" if args.candidates else "cloud"])))
     if result.projections:
         output.record(*write_views(out / "views", result.projections, result.detections,
                                    result.detection_flowers))
