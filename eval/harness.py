@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from flowerpose.cloudio import read_cloud
 from flowerpose.config import require, to_dict
 from flowerpose.errors import InputError
@@ -281,23 +283,48 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         extra["suite"] = suite
     report = build_report(run_config, entries, timing, extra)
     write_report(out_dir, report, title)
-    write_html_report(out_dir / "report.html", title, report, _plant_views(jobs, config, out_dir))
+    write_html_report(out_dir / "report.html", title, report,
+                      _plant_views(jobs, config, out_dir, source))
     return report
 
 
-def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path) -> list[PlantView]:
-    """Each scored plant's cloud, flowers and truth (as it was scored) for report.html."""
+def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:
+    """(K, 4, 4) camera-to-bed poses (metres) of the frames a plant's cloud was made from,
+    in the order they were taken: the scan source's chosen frames (frames/frames.json,
+    the frames photogrammetry got), the RGB-D source's views (rgbd/trajectory.csv); None
+    for a source without a camera."""
+    if source == "scan":
+        from flowerpose.pipeline.frames import read_frames
+
+        frames = read_frames(plant_dir / "frames")
+        return np.array([f.pose for f in frames]).reshape(-1, 4, 4)
+    if source == "rgbd":
+        from flowerpose.scanio import read_trajectory
+
+        trajectory = read_trajectory(plant_dir / "rgbd" / "trajectory.csv")
+        poses = np.tile(np.eye(4), (len(trajectory), 1, 1))
+        poses[:, :3, :3], poses[:, :3, 3] = trajectory.camera_rotation, trajectory.camera_position
+        return poses
+    return None
+
+
+def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path,
+                 source: str) -> list[PlantView]:
+    """Each scored plant's cloud, flowers, truth (as it was scored) and camera path for
+    report.html."""
     views = []
     for job in jobs:
         kind, name, *inputs = job
+        cameras = None
         if kind == "real":
             from flowerpose.eval.real_source import plant_cloud
 
             cloud, flowers = plant_cloud(inputs[0]), out_dir / name
         else:
             cloud, flowers = read_cloud(inputs[0]), out_dir / "plants" / name
+            cameras = camera_path(out_dir / "plants" / name, source)
         views.append(PlantView(name, cloud, read_flowers(flowers / "flowers.json"),
-                               _job_truth(job, config)))
+                               _job_truth(job, config), cameras=cameras))
     return views
 
 
