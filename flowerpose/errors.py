@@ -38,7 +38,8 @@ class InputError(PicklableError):
 
 #: The optional packages, by the extra that installs them (pyproject.toml).
 EXTRAS = {"mujoco": "sim", "pyrender": "sim", "trimesh": "sim", "OpenGL": "sim",
-          "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot"}
+          "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot",
+          "jwt": "bot"}
 
 
 def missing_extra(module: str, needed_for: str) -> InputError | None:
