@@ -112,8 +112,8 @@ def third_party() -> Iterator[None]:
 
 def open3d():
     """The open3d module, its own log kept to errors (which it raises as exceptions too),
-    its warnings only with -v: where one matters (a file that cannot be read or written)
-    the reader or writer says so itself (`library_output`)."""
+    its warnings only with -v: where one matters (a file that cannot be read) the reader
+    says so itself (`library_output`)."""
     import open3d as o3d
 
     level = (o3d.utility.VerbosityLevel.Warning if LOG.isEnabledFor(logging.DEBUG)
