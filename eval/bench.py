@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.config import to_dict
+from flowerpose.eval.report import markdown_table
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
@@ -67,11 +68,9 @@ def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
                         "median_s": median,
                         "runs_total_s": [round(r.timing_s["total"], 4) for r in runs]})
     stages = list(results[0]["median_s"])
-    print("| points | flowers | " + " | ".join(stages) + " |")
-    print("|---|---|" + "---|" * len(stages))
-    for r in results:
-        print(f"| {r['points']:,} | {r['flowers']} | "
-              + " | ".join(f"{r['median_s'][s]:.3f}" for s in stages) + " |")
+    print(markdown_table(["points", "flowers", *stages],
+                         [[f"{r['points']:,}", str(r["flowers"]),
+                           *(f"{r['median_s'][s]:.3f}" for s in stages)] for r in results]))
     print(f"seconds, median of {repeat} runs on {os.cpu_count()} cores; the published code: "
           f"{UPSTREAM_SECONDS[0]}-{UPSTREAM_SECONDS[1]} s a plant")
     simulator = simulator_seconds(seed, repeat)

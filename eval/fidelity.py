@@ -28,6 +28,7 @@ from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.match import match_flowers
 from flowerpose.eval.real_source import RealPlant, merged_candidates, read_real_plant, real_truth
+from flowerpose.eval.report import markdown_table
 from flowerpose.eval.truth import TruthFlower, read_plant_truth
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
@@ -301,18 +302,18 @@ def _plot(path: Path, real: dict[str, Any], synthetic: dict[str, Any], names: tu
 
 def table(report: dict[str, Any]) -> str:
     """The comparison as a Markdown table."""
-    header = "| statistic | real | synthetic | gap | tolerance | holds |"
-    lines = [header, "|---|---|---|---|---|---|"]
+    def show(value: float | None) -> str:
+        return "-" if value is None else f"{value:.4g}"
+
+    rows = []
     for row in report["comparison"]:
-        def show(value: float | None) -> str:
-            return "-" if value is None else f"{value:.4g}"
-        tolerance = (f"x{row['tolerance']:g}" if row["compared"] == "ratio"
-                     else f"±{row['tolerance']:g}")
-        gap = "-" if row["gap"] is None else (f"x{row['gap']:.3g}" if row["compared"] == "ratio"
+        ratio = row["compared"] == "ratio"
+        tolerance = f"x{row['tolerance']:g}" if ratio else f"±{row['tolerance']:g}"
+        gap = "-" if row["gap"] is None else (f"x{row['gap']:.3g}" if ratio
                                               else f"{row['gap']:.3g}")
-        lines.append(f"| {row['statistic']} | {show(row['real'])} | {show(row['synthetic'])} | "
-                     f"{gap} | {tolerance} | {'yes' if row['holds'] else 'no'} |")
-    return "\n".join(lines)
+        rows.append([row["statistic"], show(row["real"]), show(row["synthetic"]), gap,
+                     tolerance, "yes" if row["holds"] else "no"])
+    return markdown_table(["statistic", "real", "synthetic", "gap", "tolerance", "holds"], rows)
 
 
 #: What `run_fidelity` writes into its folder.

@@ -22,7 +22,7 @@ from typing import Any
 
 from flowerpose.atomic import write_file, write_text
 from flowerpose.errors import InputError
-from flowerpose.eval.report import aligned_table, summarise
+from flowerpose.eval.report import markdown_table, summarise
 
 _OPERATORS = {">=": operator.ge, "<=": operator.le, "==": operator.eq, ">": operator.gt,
               "<": operator.lt}
@@ -96,7 +96,7 @@ def outcome_table(outcomes: list[Outcome], failed_only: bool = False) -> str:
     """The requirements as a table: scope, requirement, measured, verdict."""
     rows = [[o.scope, o.requirement.text, _format(o.measured), "pass" if o.passed else "FAIL"]
             for o in outcomes if not (failed_only and o.passed)]
-    return aligned_table(["Scope", "Requirement", "Measured", "Verdict"], rows)
+    return markdown_table(["Scope", "Requirement", "Measured", "Verdict"], rows)
 
 
 def write_summary(path: Path, outcomes: list[Outcome], title: str) -> Path:

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from flowerpose.cloudio import read_cloud
 from flowerpose.config import require, to_dict
 from flowerpose.errors import InputError
@@ -39,8 +41,10 @@ from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_
 from flowerpose.log import Tally
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
+    Start,
     find_flowers,
     read_flowers,
+    sections_run,
     write_flowers,
     write_normals_ply,
 )
@@ -205,6 +209,22 @@ def _describe_entry(k: int, value: tuple[dict, dict]) -> str:
             f"{entry['found']} found, {entry['fp']} fp{plane_text} ({timing['total']:.2f} s)")
 
 
+#: The sections of an EvalConfig each source reads besides the pipeline's: the synthetic
+#: world and the scoring, and the simulated camera and its reconstruction or fusion.
+SOURCE_SECTIONS: dict[str, tuple[str, ...]] = {
+    "oracle": ("sim", "score"), "rgbd": ("sim", "score", "rgbd", "fusion"),
+    "scan": ("sim", "score", "scan"), "real": ("score",)}
+
+
+def settings_run(config: EvalConfig, source: str, starts: Iterable[Start] = ("cloud",)) -> dict:
+    """The settings of the stages a run ran, as report.json's `config` records them: the
+    pipeline's from where it started (`flowers.sections_run`), then the source's own
+    (`SOURCE_SECTIONS`); an oracle run carries no scan, RGB-D or fusion settings, a run
+    from candidates no ground, grid or detection settings."""
+    return {**sections_run(config, starts),
+            **{name: to_dict(getattr(config, name)) for name in SOURCE_SECTIONS[source]}}
+
+
 #: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
 #: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
 #: labelled plants (`real_source.py`).
@@ -235,15 +255,18 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     if source == "real":
         jobs, described = _real_jobs(list(folders), truth_scale)
         timing, extra = {}, {}
-        run_config = {"source": source, "folders": described, **to_dict(pipeline_part(config)),
-                      "score": to_dict(config.score)}
+        starts = [plant["stage"] for plant in described]
+        run_config = {"source": source, "folders": described,
+                      **settings_run(config, source, starts)}
         title = f"flowerpose eval: {len(jobs)} real plants"
     else:
         if plants < 1:
             raise InputError("--plants", f"must be at least 1, got {plants}")
         jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers,
                                               cache)
-        run_config = {"source": source, "plants": plants, "seed": seed, **to_dict(config)}
+        starts = ["cloud"]
+        run_config = {"source": source, "plants": plants, "seed": seed,
+                      **settings_run(config, source, starts)}
         title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
     entries, stage_timing = _score_jobs(jobs, config, out_dir, workers)
     timing.update(stage_timing)
@@ -252,7 +275,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         for name, other in compare.items():
             others, _ = _score_jobs(jobs, other, out_dir / name, workers)
             extra["compare"][name] = {"summary": summarise(others), "plants": others,
-                                      "config": to_dict(pipeline_part(other))}
+                                      "config": sections_run(other, starts)}
     for method in methods:
         results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
                            workers, _describe_entry)
@@ -265,23 +288,48 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         extra["suite"] = suite
     report = build_report(run_config, entries, timing, extra)
     write_report(out_dir, report, title)
-    write_html_report(out_dir / "report.html", title, report, _plant_views(jobs, config, out_dir))
+    write_html_report(out_dir / "report.html", title, report,
+                      _plant_views(jobs, config, out_dir, source))
     return report
 
 
-def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path) -> list[PlantView]:
-    """Each scored plant's cloud, flowers and truth (as it was scored) for report.html."""
+def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:
+    """(K, 4, 4) camera-to-bed poses (metres) of the frames a plant's cloud was made from,
+    in the order they were taken: the scan source's chosen frames (frames/frames.json,
+    the frames photogrammetry got), the RGB-D source's views (rgbd/trajectory.csv); None
+    for a source without a camera."""
+    if source == "scan":
+        from flowerpose.pipeline.frames import read_frames
+
+        frames = read_frames(plant_dir / "frames")
+        return np.array([f.pose for f in frames]).reshape(-1, 4, 4)
+    if source == "rgbd":
+        from flowerpose.scanio import read_trajectory
+
+        trajectory = read_trajectory(plant_dir / "rgbd" / "trajectory.csv")
+        poses = np.tile(np.eye(4), (len(trajectory), 1, 1))
+        poses[:, :3, :3], poses[:, :3, 3] = trajectory.camera_rotation, trajectory.camera_position
+        return poses
+    return None
+
+
+def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path,
+                 source: str) -> list[PlantView]:
+    """Each scored plant's cloud, flowers, truth (as it was scored) and camera path for
+    report.html."""
     views = []
     for job in jobs:
         kind, name, *inputs = job
+        cameras = None
         if kind == "real":
             from flowerpose.eval.real_source import plant_cloud
 
             cloud, flowers = plant_cloud(inputs[0]), out_dir / name
         else:
             cloud, flowers = read_cloud(inputs[0]), out_dir / "plants" / name
+            cameras = camera_path(out_dir / "plants" / name, source)
         views.append(PlantView(name, cloud, read_flowers(flowers / "flowers.json"),
-                               _job_truth(job, config)))
+                               _job_truth(job, config), cameras=cameras))
     return views
 
 

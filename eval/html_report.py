@@ -2,7 +2,8 @@
 
 Table I, the per-flower table, the error histograms and, per plant, an interactive 3D view
 of the cloud (subsampled) with each flower's estimated normal (red) and true normal
-(green) drawn from its centre and its id beside it, and the grid views with their numbered
+(green) drawn from its centre and its id beside it, the camera path of a scanned plant
+(blue: the frames its cloud was made from), and the grid views with their numbered
 detections. The figures are plotly's (the standard for interactive figures from Python);
 its JavaScript is embedded once in the page, so it opens from disk with no server and no
 network.
@@ -32,6 +33,7 @@ from flowerpose.eval.truth import TruthFlower
 #: Most cloud points a plant's 3D view draws (a seeded subsample above it).
 MAX_VIEW_POINTS = 12000
 ESTIMATE_COLOUR, TRUTH_COLOUR = "rgb(220,30,30)", "rgb(20,160,60)"
+CAMERA_COLOUR = "rgb(40,90,210)"
 
 
 @dataclass
@@ -45,6 +47,10 @@ class PlantView:
     truth: list[TruthFlower] | None = None
     views_png: Path | None = None
     """The grid views with their detections (`views/views.png`), when the run made them."""
+    cameras: np.ndarray | None = None
+    """(K, 4, 4) camera-to-cloud poses (metres; OpenCV axes: z the viewing direction) of the
+    frames the cloud was made from, in the order they were taken; None for a cloud made
+    without a camera (oracle, real)."""
 
 
 def write_html_report(path: Path, title: str, report: dict | None,
@@ -156,12 +162,41 @@ def _view_3d(plant: PlantView):
         traces += _arrows([t.center for t in visible],
                           [t.center + length * t.normal for t in visible], TRUTH_COLOUR,
                           "true normal", [str(t.id) for t in visible])
+    cameras = plant.cameras is not None and len(plant.cameras) > 0
+    if cameras:
+        traces += _camera_path(plant.cameras)
     figure = go.Figure(traces)
     figure.update_layout(height=640, margin={"l": 0, "r": 0, "t": 30, "b": 0},
                          scene={"aspectmode": "data"}, legend={"x": 0, "y": 1},
                          title=f"{plant.name}: cloud and estimated normals (red)"
-                         + (", true normals (green)" if plant.truth else ""))
+                         + (", true normals (green)" if plant.truth else "")
+                         + (", camera path (blue)" if cameras else ""))
     return figure
+
+
+#: How far each camera's viewing direction is drawn, metres.
+CAMERA_RAY_M = 0.04
+
+
+def _camera_path(cameras: np.ndarray) -> list:
+    """The camera path: each frame's camera centre, joined in the order they were taken,
+    and a short ray along its viewing direction (OpenCV's z axis)."""
+    import plotly.graph_objects as go
+
+    centres = cameras[:, :3, 3]
+    tips = centres + CAMERA_RAY_M * cameras[:, :3, 2]
+    rays: list[list[float | None]] = [[], [], []]
+    for centre, tip in zip(centres, tips, strict=True):
+        for axis in range(3):
+            rays[axis] += [float(centre[axis]), float(tip[axis]), None]
+    return [go.Scatter3d(x=centres[:, 0], y=centres[:, 1], z=centres[:, 2],
+                         mode="lines+markers", name=f"camera path ({len(cameras)} frames)",
+                         legendgroup="cameras", line={"color": CAMERA_COLOUR, "width": 2},
+                         marker={"size": 2, "color": CAMERA_COLOUR},
+                         text=[f"frame {k}" for k in range(len(cameras))], hoverinfo="text"),
+            go.Scatter3d(x=rays[0], y=rays[1], z=rays[2], mode="lines", showlegend=False,
+                         name="viewing directions", legendgroup="cameras",
+                         line={"color": CAMERA_COLOUR, "width": 1}, hoverinfo="skip")]
 
 
 def _arrows(starts, ends, colour: str, name: str, labels: list[str]) -> list:

@@ -44,14 +44,13 @@ from flowerpose.eval.truth import (
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
+    Start,
     find_flowers,
     find_flowers_in_candidates,
     flowers_document,
     pose_crops,
     write_flowers,
 )
-
-Stage = Literal["cloud", "candidates", "crops"]
 
 #: The authors' labelling scale (their clouds were scaled by 25 for SageMaker).
 DEFAULT_TRUTH_SCALE = 25.0
@@ -66,7 +65,7 @@ class RealPlant:
     name: str
     labels: Path
     label_format: Literal["sagemaker", "plant"]
-    stage: Stage
+    stage: Start
     clouds: tuple[Path, ...]
     """cloud.ply, or the candidates/*.ply or crops/*.ply files, sorted."""
     truth_scale: float
@@ -120,7 +119,7 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     else:
         raise InputError(labels, "neither SageMaker Ground Truth cuboid labels "
                          '("boundingCuboids") nor a plant.json ("flowers")')
-    stage: Stage | None = None
+    stage: Start | None = None
     clouds: tuple[Path, ...] = ()
     if (folder / "cloud.ply").is_file():
         stage, clouds = "cloud", (folder / "cloud.ply",)

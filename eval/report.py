@@ -7,10 +7,12 @@ import json
 import math
 import shlex
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tabulate import SEPARATING_LINE, tabulate
 
 from flowerpose.atomic import write_text
 from flowerpose.jsonio import write_json
@@ -103,29 +105,25 @@ def _deg(value: float | None) -> str:
         else f"{value:.1f}°"
 
 
-def aligned_table(header: list[str], rows: list[list[str]],
-                  rules_before: list[int] = ()) -> str:
-    """A Markdown table with padded columns; a rule under the header and before each row
-    index in `rules_before` (the paper's Table I separates its totals)."""
-    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)) + " |"
-
-    rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-    body = [line(header), rule]
+def markdown_table(header: list[str], rows: list[list[str]],
+                   rules_before: Iterable[int] = ()) -> str:
+    """A Markdown table (GitHub's), columns padded, the cells as given (no number
+    parsing); a rule before each row index in `rules_before` (the paper's Table I separates
+    its totals)."""
+    rules = set(rules_before)
+    body: list = []
     for k, row in enumerate(rows):
-        if k in rules_before:
-            body.append(rule)
-        body.append(line(row))
-    return "\n".join(body)
+        if k in rules:
+            body.append(SEPARATING_LINE)
+        body.append(row)
+    return tabulate(body, headers=header, tablefmt="github", disable_numparse=True)
 
 
 def table(report: dict) -> str:
     """The paper's Table I for a report (Markdown): per plant, then total, mean, median,
     std."""
     header, rows, rule = table_rows(report)
-    return aligned_table(header, rows, rules_before=[rule])
+    return markdown_table(header, rows, rules_before=[rule])
 
 
 def table_rows(report: dict) -> tuple[list[str], list[list[str]], int]:
@@ -160,7 +158,7 @@ def comparison_table(report: dict, name: str = "default") -> str:
     """This run's configuration beside each compared one (report["compare"]) on the same
     plants: found, false positives, the error means, and the plane error over the flowers
     every row found (paired, so a profile that finds fewer, easier flowers gains nothing)."""
-    return aligned_table(*comparison_rows(report, name))
+    return markdown_table(*comparison_rows(report, name))
 
 
 def comparison_rows(report: dict, name: str = "default") -> tuple[list[str], list[list[str]]]:
@@ -225,8 +223,8 @@ def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
           *[f"- {line}" for line in summary_lines(report)]]
     if report.get("compare"):
         md += ["", "## Compared on the same plants", "", comparison_table(report)]
-    md += ["", "## Timing (seconds)", "", "| stage | seconds |", "|---|---|"]
-    md += [f"| {k} | {v:.3f} |" for k, v in report["timing_s"].items()]
+    md += ["", "## Timing (seconds)", "", markdown_table(
+        ["stage", "seconds"], [[k, f"{v:.3f}"] for k, v in report["timing_s"].items()])]
     md += ["", "## Configuration", "", "```json", json.dumps(report["config"], indent=1), "```", ""]
     md_path = write_text(out_dir / "report.md", "\n".join(md))
     return json_path, md_path

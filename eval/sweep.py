@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from flowerpose.atomic import write_figure, write_text
-from flowerpose.config import apply_overrides, to_dict, value_at
+from flowerpose.config import apply_overrides, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.harness import (
     EvalConfig,
@@ -23,6 +23,7 @@ from flowerpose.eval.harness import (
     evaluate_cloud,
     generate_plants,
     run_jobs,
+    settings_run,
 )
 from flowerpose.eval.report import summarise
 from flowerpose.jsonio import write_json
@@ -210,7 +211,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     write_figure(out_dir / "sweep.png", figure)
     plt.close(figure)
     best = {"setting": typed[best_index], "metrics": pooled[best_index],
-            "config": to_dict(configs[best_index])}
+            "config": settings_run(configs[best_index], "oracle")}
     write_json(out_dir / "best.json",
                {"best": best, "grid": {key: [value_at(apply_overrides(config, {key: v}), key)
                                              for v in values] for key, values in grid},

@@ -239,7 +239,6 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud, write_cloud
-    from flowerpose.config import to_dict
     from flowerpose.jsonio import write_json
     from flowerpose.outputs import OutputFolder, check_output
     from flowerpose.pipeline.flowers import (
@@ -247,6 +246,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         find_flowers,
         find_flowers_in_candidates,
         read_flowers,
+        sections_run,
         write_flowers,
         write_normals_ply,
     )
@@ -264,7 +264,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     output.record(write_flowers(out / "flowers.json", result, args.cloud,
                                 "cloud" if args.candidates else "bed"),
                   *write_normals_ply(out, result.flowers),
-                  write_json(out / "config.json", to_dict(config)))
+                  write_json(out / "config.json", sections_run(
+                      config, ["candidates" if args.candidates else "cloud"])))
     if result.projections:
         output.record(*write_views(out / "views", result.projections, result.detections,
                                    result.detection_flowers))
@@ -598,7 +599,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     metrics = best["metrics"]
     print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
           + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
-          f"plane {metrics['plane_mean_deg']}°; its whole config in {args.out / 'best.json'})")
+          f"plane {metrics['plane_mean_deg']}°; its settings in {args.out / 'best.json'})")
     return 0
 
 

@@ -39,7 +39,7 @@ class InputError(PicklableError):
 #: The optional packages, by the extra that installs them (pyproject.toml).
 EXTRAS = {"mujoco": "sim", "pyrender": "sim", "trimesh": "sim", "OpenGL": "sim",
           "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot",
-          "onnxruntime": "onnx"}
+          "onnxruntime": "onnx", "jwt": "bot"}
 
 
 def missing_extra(module: str, needed_for: str) -> InputError | None:

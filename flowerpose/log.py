@@ -25,7 +25,6 @@ import logging
 import os
 import re
 import sys
-import tempfile
 import time
 import warnings
 from collections.abc import Iterator
@@ -113,8 +112,8 @@ def third_party() -> Iterator[None]:
 
 def open3d():
     """The open3d module, its own log kept to errors (which it raises as exceptions too),
-    its warnings only with -v: where one matters (a file that cannot be read or written)
-    the reader or writer says so itself (`library_output`)."""
+    its warnings only with -v: where one matters (a file that cannot be read) the reader
+    says so itself (`library_output`)."""
     import open3d as o3d
 
     level = (o3d.utility.VerbosityLevel.Warning if LOG.isEnabledFor(logging.DEBUG)
@@ -131,46 +130,26 @@ def library_output(taken: str) -> Iterator[list[str]]:
     """The lines libraries print meanwhile that match the regular expression `taken`,
     colour codes removed, given to the caller instead of shown: Open3D's log (printed
     through Python's sys.stdout) and what C code prints on the descriptors (RPly, on
-    stderr). Whatever else was printed meanwhile (another thread's lines) is passed on."""
+    stderr; taken by wurlitzer). Whatever else was printed meanwhile (another thread's
+    lines) is passed on."""
+    from wurlitzer import pipes
+
     lines: list[str] = []
-    streams = {1: sys.stdout, 2: sys.stderr}
+    python_out, python_err = io.StringIO(), io.StringIO()
+    c_out = c_err = io.StringIO()
     try:
-        for stream in streams.values():
-            stream.flush()
-        saved = {fd: os.dup(fd) for fd in streams}
-    except (OSError, ValueError):
-        saved = {}
-    captures = {fd: tempfile.TemporaryFile() for fd in saved}
-    for fd, capture in captures.items():
-        os.dup2(capture.fileno(), fd)
-    python = {1: io.StringIO(), 2: io.StringIO()}
-    try:
-        with contextlib.redirect_stdout(python[1]), contextlib.redirect_stderr(python[2]):
+        with pipes() as (c_out, c_err), contextlib.redirect_stdout(python_out), \
+                contextlib.redirect_stderr(python_err):
             yield lines
     finally:
-        _flush_c_streams()
-        printed: dict[int, str] = {fd: text.getvalue() for fd, text in python.items()}
-        for fd, capture in captures.items():
-            os.dup2(saved[fd], fd)
-            os.close(saved[fd])
-            capture.seek(0)
-            printed[fd] += capture.read().decode("utf-8", "replace")
-            capture.close()
         pattern = re.compile(taken)
-        for fd, text in printed.items():
-            said = _ANSI.sub("", text).splitlines()
-            lines.extend(line for line in said if pattern.search(line))
-            rest = [line for line in said if not pattern.search(line)]
+        for said, stream in ((python_out.getvalue() + c_out.read(), sys.stdout),
+                             (python_err.getvalue() + c_err.read(), sys.stderr)):
+            printed = _ANSI.sub("", said).splitlines()
+            lines.extend(line for line in printed if pattern.search(line))
+            rest = [line for line in printed if not pattern.search(line)]
             if rest:
-                streams[fd].write("\n".join(rest) + "\n")
-
-
-def _flush_c_streams() -> None:
-    """fflush(NULL): what C code wrote to its stdio buffers reaches the descriptors now."""
-    import ctypes
-
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None).fflush(None)
+                stream.write("\n".join(rest) + "\n")
 
 
 def eta(start: float, done: int, total: int) -> str:

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -15,6 +16,7 @@ from typing import Literal
 import numpy as np
 
 from flowerpose.cloudio import Cloud, empty_ply
+from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
 from flowerpose.log import LOG, open3d
@@ -49,6 +51,25 @@ class PipelineConfig:
     outliers: OutlierConfig = field(default_factory=OutlierConfig)
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
+
+
+#: Where the pipeline starts: a whole cloud, a detector's candidate points (the cluster
+#: stage), or one flower's crop a file (the pose stage).
+Start = Literal["cloud", "candidates", "crops"]
+
+#: The config sections each start reads: the stages that run from there.
+SECTIONS_FROM: dict[str, tuple[str, ...]] = {
+    "cloud": ("colour", "ground", "grid", "detect", "outliers", "cluster", "pose"),
+    "candidates": ("colour", "outliers", "cluster", "pose"),
+    "crops": ("colour", "cluster", "pose"),
+}
+
+
+def sections_run(config: PipelineConfig, starts: Iterable[Start]) -> dict:
+    """The config's sections that runs from these starts read, JSON-ready, in the
+    config's order: what a report records of the settings (a skipped stage's are not)."""
+    read = {name for start in starts for name in SECTIONS_FROM[start]}
+    return {name: value for name, value in to_dict(config).items() if name in read}
 
 
 @dataclass

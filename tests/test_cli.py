@@ -98,6 +98,10 @@ def test_eval_writes_the_report_contract(tmp_path, capsys):
                                       "recall_visible", "extra", "fp", "error_deg"}
     assert set(report["summary"]["error_deg"]["plane"]) == {"mean", "median", "std", "n"}
     assert report["config"]["cluster"]["eps"] == 0.01
+    # An oracle run's settings: the pipeline's, the plants' and the scoring; no scan, RGB-D
+    # or fusion settings, which it never used.
+    assert set(report["config"]) == {"source", "plants", "seed", "colour", "ground", "grid",
+                                     "detect", "outliers", "cluster", "pose", "sim", "score"}
     assert report["timing_s"]["total"] > 0
     assert report["summary"]["recall_visible"] >= 0.9
     assert (out / "report.md").read_text().startswith("# flowerpose eval")

@@ -38,7 +38,13 @@ def test_each_stage_finds_every_labelled_flower_and_its_normal(tmp_path, stage):
     assert max(plant["error_deg"]["plane"]) < 2.0
     assert sorted(m["truth"] for m in plant["matches"]) == [f"Flower:{k}" for k in range(1, 5)]
     assert (tmp_path / "out" / stage / "flowers.json").exists()
-    assert json.loads((tmp_path / "out" / "report.json").read_text())["config"]["source"] == "real"
+    config = json.loads((tmp_path / "out" / "report.json").read_text())["config"]
+    assert config["source"] == "real"
+    # The settings of the stages that ran from where the folder's data starts, no others.
+    assert set(config) == {"source", "folders", "score", *{
+        "crops": ("colour", "cluster", "pose"),
+        "candidates": ("colour", "outliers", "cluster", "pose"),
+        "cloud": ("colour", "ground", "grid", "detect", "outliers", "cluster", "pose")}[stage]}
 
 
 def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_path):
@@ -57,6 +63,7 @@ def test_the_upstream_profile_runs_beside_the_default(tmp_path):
     report = run_eval(EvalConfig(), source="real", folders=[folder], out_dir=tmp_path / "out",
                       workers=1, compare={"upstream": EvalConfig()})
     assert report["compare"]["upstream"]["summary"]["found"] == 4
+    assert set(report["compare"]["upstream"]["config"]) == {"colour", "cluster", "pose"}
     assert (tmp_path / "out" / "upstream" / "plant" / "flowers.json").exists()
 
 

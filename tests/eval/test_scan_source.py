@@ -30,6 +30,13 @@ def test_a_small_scan_finds_the_flowers_and_their_normals(small_eval):
     assert summary["error_deg"]["plane"]["median"] < 5.0
 
 
+def test_the_report_holds_the_scans_settings_and_draws_its_camera_path(small_eval):
+    report, out = small_eval
+    assert "scan" in report["config"] and not {"rgbd", "fusion"} & set(report["config"])
+    assert report["config"]["scan"]["frames"] == 80
+    assert "camera path (80 frames)" in (out / "report.html").read_text()
+
+
 def test_the_cloud_is_metric_and_on_the_truth(small_eval):
     report, out = small_eval
     quality = report["reconstruction"]["seed-0"]

@@ -11,7 +11,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-SECRET_JWT_SIGNATURE = "s3cr3t-signature-never-to-be-seen"
+#: A JWT signature is base64url text; this one is as secret as a real one.
+SECRET_JWT_SIGNATURE = "s3cr3t-signature-never-to-be-seen-ok"
 PASSWORD = "hunter2-password-never-to-be-seen"
 EMAIL = "grower@example.org"
 

@@ -240,6 +240,22 @@ def test_token_files_outside_the_repository_only(tmp_path, capsys):
     assert parse_token(json.dumps(make_token()["token"]), "x") == make_token()
 
 
+@pytest.mark.parametrize("text", ["not-a-jwt", "a.b.c", "eyJhbGciOiJIUzI1NiJ9.bm90IGpzb24.c2ln",
+                                  '{"token": {"encoded": "x"}}'])
+def test_a_token_that_is_not_one_is_one_line_naming_where_it_came_from(text):
+    with pytest.raises(InputError, match="FARMBOT_TOKEN: not a FarmBot token") as raised:
+        parse_token(text, "FARMBOT_TOKEN")
+    assert text not in str(raised.value)
+
+
+def test_a_jwt_without_the_bots_claims_is_refused():
+    import jwt
+
+    token = jwt.encode({"sub": "someone"}, "a-key-long-enough-for-hs256-signing-0123", "HS256")
+    with pytest.raises(InputError, match="it names no bot, mqtt and iss"):
+        parse_token(token, "FARMBOT_TOKEN")
+
+
 def test_credentials_never_appear_in_reprs_errors_output_or_scan_files(tmp_path, capsys,
                                                                        caplog):
     environ = {"FARMBOT_EMAIL": EMAIL, "FARMBOT_PASSWORD": PASSWORD}
