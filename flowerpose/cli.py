@@ -377,10 +377,10 @@ def cmd_farmduino(args: argparse.Namespace) -> int:
 
     params = {} if args.bare else FEEDBACK_PARAMETERS
     with VirtualFarmduino(time_scale=args.time_scale, params=params) as device:
-        print(device.path, flush=True)
-        LOG.info(f"virtual Farmduino on {device.path} (now {device.device}) at "
-                 f"{args.time_scale:g} x real time; connect at 115200 baud; Ctrl-C stops it")
-        try:
+        try:  # from the moment its path is out, Ctrl-C is the way to stop it
+            print(device.path, flush=True)
+            LOG.info(f"virtual Farmduino on {device.path} (now {device.device}) at "
+                     f"{args.time_scale:g} x real time; connect at 115200 baud; Ctrl-C stops it")
             device.wait()
         except KeyboardInterrupt:
             LOG.info("virtual Farmduino stopped")
