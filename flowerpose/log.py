@@ -173,7 +173,8 @@ def _duration(seconds: float) -> str:
 
 class Tally:
     """Finished parts of a job that ends in `total` of them (plants of an eval, settings of
-    a sweep), each said in one line with the time left, under a bar on a terminal."""
+    a sweep, a scan's waypoints, images of a matching), said in lines with the time left,
+    under a bar on a terminal."""
 
     def __init__(self, total: int, what: str = ""):
         self.total, self.done, self.start = total, 0, time.perf_counter()
@@ -192,11 +193,19 @@ class Tally:
 
     def finished(self, message: str) -> None:
         """One more part is done: `message` says what came of it."""
-        self.done += 1
-        line = f"[{self.done}/{self.total}] {message} {eta(self.start, self.done, self.total)}"
+        self.advance(1, f"[{self.done + 1}/{self.total}] {message}")
+
+    def advance(self, parts: int, message: str | None = None) -> None:
+        """`parts` more are done (frames, pairs, waypoints of a loop that reports now and
+        then); `message`, when given, is said with the time left."""
+        self.done += parts
+        if self._bar is not None:
+            self._bar.update(parts)
+        if message is None:
+            return
+        line = f"{message} {eta(self.start, self.done, self.total)}"
         if self._bar is not None:
             self._bar.write(line, file=sys.stderr)
-            self._bar.update(1)
         else:
             LOG.info(line)
 

@@ -25,7 +25,7 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot
 from flowerpose.hardware.scan_plan import ScanPlan
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.log import LOG
+from flowerpose.log import LOG, Tally
 
 
 def plan_id(plan: ScanPlan) -> str:
@@ -146,20 +146,21 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         write_json(out_dir / "camera.json", intrinsics)
         bot.camera.start_recording(out_dir / "video.mp4")
         recording = True
-        for waypoint in plan.waypoints[start:]:
-            bot.move_to(waypoint.pose.gantry)
-            bot.set_head(float(waypoint.pose.yaw), float(waypoint.pose.pitch))
-            bot.dwell(plan.config.pause_s)
-            ends.append(bot.now())
-            # Done only once its frames are on disk with their poses: the camera may still
-            # hold some in a queue or an open bin, which a power cut would lose.
-            manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
-            write_json(manifest_path, manifest)
-            LOG.debug(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
-                      f"({waypoint.kind}) at bot clock {bot.now():.1f} s")
-            if progress and (waypoint.index + 1) % 20 == 0:
-                _progress(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
-                          f"(bot clock {bot.now():.0f} s, {time.perf_counter() - wall:.1f} s)")
+        with Tally(len(plan.waypoints) - start if progress else 0, "waypoints") as tally:
+            for waypoint in plan.waypoints[start:]:
+                bot.move_to(waypoint.pose.gantry)
+                bot.set_head(float(waypoint.pose.yaw), float(waypoint.pose.pitch))
+                bot.dwell(plan.config.pause_s)
+                ends.append(bot.now())
+                # Done only once its frames are on disk with their poses: the camera may still
+                # hold some in a queue or an open bin, which a power cut would lose.
+                manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
+                write_json(manifest_path, manifest)
+                LOG.debug(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
+                          f"({waypoint.kind}) at bot clock {bot.now():.1f} s")
+                tally.advance(1, f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} at "
+                              f"bot clock {bot.now():.0f} s" if progress
+                              and (waypoint.index + 1) % 20 == 0 else None)
         manifest["status"] = "complete"
     except BaseException as err:
         manifest["status"] = "interrupted"

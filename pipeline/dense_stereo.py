@@ -4,12 +4,14 @@ and every pair on a thread pool. Camera matrices are OpenCV's (pixel centres at 
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+from flowerpose.log import eta
 from flowerpose.pipeline.dense_config import SGBM_MODES, DenseConfig
 from flowerpose.pipeline.dense_pairs import apply_matrix
 
@@ -224,6 +226,7 @@ def stereo_all(views: list[View], pairs: list[tuple[int, int]], k: np.ndarray,
     index); returns (skipped pairs by reason, matched share per used pair)."""
     skipped: dict[str, int] = {}
     matched: list[float] = []
+    start = time.perf_counter()
     with ThreadPoolExecutor(threads) as pool:
         results = pool.map(lambda p: _stereo_pair(views[p[0]], views[p[1]], k, config), pairs)
         for done, ((i, j), result) in enumerate(zip(pairs, results, strict=True), 1):
@@ -235,5 +238,5 @@ def stereo_all(views: list[View], pairs: list[tuple[int, int]], k: np.ndarray,
             views[j].depths.append((i, result[1]))
             matched.append(result[2])
             if done % 50 == 0:
-                say(f"stereo {done}/{len(pairs)} pairs")
+                say(f"stereo {done}/{len(pairs)} pairs {eta(start, done, len(pairs))}")
     return skipped, matched

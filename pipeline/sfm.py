@@ -44,7 +44,7 @@ from flowerpose.atomic import write_text
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError, missing_extra
 from flowerpose.jsonio import write_json
-from flowerpose.log import LOG
+from flowerpose.log import LOG, Tally
 from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, read_frames
 from flowerpose.processes import reclaim_sigterm
@@ -232,14 +232,15 @@ def _extract(database: Path, frames_dir: Path, names: list[str],
         else (0 if mode == "poses" else -1)
     options.sift.peak_threshold = config.peak_threshold
     chunk = 25
-    start = time.perf_counter()
-    for first in range(0, len(names), chunk):
-        pycolmap.extract_features(database, frames_dir, image_names=names[first:first + chunk],
-                                  camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=options,
-                                  device=pycolmap.Device.cpu)
-        done = min(len(names), first + chunk)
-        _progress(f"features {done}/{len(names)} images ({time.perf_counter() - start:.1f} s)")
+    with Tally(len(names), "features") as tally:
+        for first in range(0, len(names), chunk):
+            batch = names[first:first + chunk]
+            pycolmap.extract_features(database, frames_dir, image_names=batch,
+                                      camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=options,
+                                      device=pycolmap.Device.cpu)
+            tally.advance(len(batch), f"sfm: features {tally.done + len(batch)}/{len(names)} "
+                          "images")
 
 
 def _write_pairs(path: Path, names: list[str], pairs: list[tuple[int, int]]) -> Path:
@@ -255,16 +256,17 @@ def _match_ransac(database: Path, work_dir: Path, names: list[str],
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = config.seed
     chunk = 200
-    start = time.perf_counter()
     part = work_dir / "pairs_part.txt"
-    for first in range(0, len(pairs), chunk):
-        _write_pairs(part, names, pairs[first:first + chunk])
-        pycolmap.match_image_pairs(
-            database, matching_options=matching,
-            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=part),
-            verification_options=verification, device=pycolmap.Device.cpu)
-        done = min(len(pairs), first + chunk)
-        _progress(f"matched {done}/{len(pairs)} pairs ({time.perf_counter() - start:.1f} s)")
+    with Tally(len(pairs), "matching") as tally:
+        for first in range(0, len(pairs), chunk):
+            batch = pairs[first:first + chunk]
+            _write_pairs(part, names, batch)
+            pycolmap.match_image_pairs(
+                database, matching_options=matching,
+                pairing_options=pycolmap.ImportedPairingOptions(match_list_path=part),
+                verification_options=verification, device=pycolmap.Device.cpu)
+            tally.advance(len(batch), f"sfm: matched {tally.done + len(batch)}/{len(pairs)} "
+                          "pairs")
     part.unlink()
 
 
@@ -384,15 +386,14 @@ def _match_with_poses(database: Path, names: list[str],
             geometry.inlier_matches = found.astype(np.uint32)
             return id1, id2, geometry
 
-        start = time.perf_counter()
-        with ThreadPoolExecutor(_threads(config)) as pool:
+        with ThreadPoolExecutor(_threads(config)) as pool, \
+                Tally(len(pairs), "matching") as tally:
             for done, (id1, id2, geometry) in enumerate(pool.map(match, pairs), 1):
                 if geometry is not None:
                     db.write_matches(id1, id2, geometry.inlier_matches)
                     db.write_two_view_geometry(id1, id2, geometry)
-                if done % 200 == 0 or done == len(pairs):
-                    _progress(f"matched {done}/{len(pairs)} pairs on the recorded poses "
-                              f"({time.perf_counter() - start:.1f} s)")
+                tally.advance(1, f"sfm: matched {done}/{len(pairs)} pairs on the recorded poses"
+                              if done % 200 == 0 or done == len(pairs) else None)
     finally:
         db.close()
 

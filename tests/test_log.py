@@ -93,3 +93,18 @@ def test_library_output_takes_what_matches_and_passes_on_the_rest(capfd):
         os.write(1, b"RPly: on stdout too\n")
     assert sorted(said) == ["RPly: Unexpected end of file", "RPly: on stdout too"]
     assert capfd.readouterr() == ("", "someone else's line\n")
+
+
+def test_a_loop_that_reports_now_and_then_says_its_count_and_time_left(capsys):
+    try:
+        configure(0)
+        with Tally(300, "pairs") as tally:
+            for done in range(1, 301):
+                tally.advance(1, f"matched {done}/300 pairs" if done % 100 == 0 else None)
+        lines = capsys.readouterr().err.splitlines()
+        assert [line.split(" (")[0] for line in lines] == [
+            "matched 100/300 pairs", "matched 200/300 pairs", "matched 300/300 pairs"]
+        assert all("left)" in line for line in lines[:-1]) and tally.done == 300
+        assert lines[-1].endswith("(0 s)")  # done: the time it took
+    finally:
+        configure(0)
