@@ -121,10 +121,12 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
             "seconds": {k: round(v, 3) for k, v in seconds.items()}}
 
 
-#: What later steps read of a plant's scan (the report, scoring, the camera path), kept in
-#: the stage cache; the frames' images stay out of it.
-CAPTURE_FILES = ("scan/plant.json", "scan/scan.json", "scan/trajectory.csv",
-                 "frames/frames.json", "frames/camera.json", "reconstruction/cloud.ply",
+#: What the stage cache keeps of a plant's scan: the chosen frames as `flowerpose frames`
+#: wrote them (a reconstruction can be run again from them) and what later steps read (the
+#: truth with the scan's visibility, the trajectory, the cloud and its report); the scan's
+#: other recorded frames stay out of it.
+CAPTURE_FILES = ("scan/plant.json", "scan/scan.json", "scan/camera.json",
+                 "scan/trajectory.csv", "frames", "reconstruction/cloud.ply",
                  "reconstruction/reconstruction.json")
 
 

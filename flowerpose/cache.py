@@ -120,17 +120,24 @@ class StageCache:
             write_file(target, lambda tmp, name=name: shutil.copyfile(entry / name, tmp))
 
     def run(self, stage: str, settings: Mapping, inputs: Iterable[Path], folder: Path,
-            files: Iterable[str], compute: Callable[[], dict]) -> tuple[dict, bool]:
-        """(result, whether it came from the cache) of a stage that writes `files` (names
-        relative to `folder`, those it wrote kept) and returns a JSON-able result: from
-        the entry for its key, its files copied back into folder, or computed and stored."""
+            outputs: Iterable[str], compute: Callable[[], dict]) -> tuple[dict, bool]:
+        """(result, whether it came from the cache) of a stage that writes `outputs` (files
+        or folders, relative to `folder`; those it wrote are kept) and returns a JSON-able
+        result: from the entry for its key, its files copied back into folder, or computed
+        and stored."""
         key = stage_key(stage, settings, inputs)
-        names = list(files)
         entry = self.entry(stage, key)
         if entry is not None:
-            self.restore(entry, {n: folder / n for n in names if (entry / n).is_file()})
-            return self.about(entry)["result"], True
+            about = self.about(entry)
+            self.restore(entry, {name: folder / name for name in about["files"]})
+            return about["result"], True
         result = compute()
-        self.store(stage, key, {n: folder / n for n in names if (folder / n).is_file()},
-                   {"result": result, "settings": settings})
+        files = {}
+        for name in outputs:
+            path = folder / name
+            found = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else (
+                [path] if path.is_file() else [])
+            files.update({p.relative_to(folder).as_posix(): p for p in found})
+        self.store(stage, key, files, {"result": result, "settings": settings,
+                                       "files": sorted(files)})
         return result, False

@@ -189,7 +189,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
                          "view); the frames need camera centres apart across the view")
     say(f"{len(pairs)} pairs from {len(views)} views")
 
-    skipped, matched = stereo_all(views, pairs, k, config, threads, say)
+    skipped, matched = stereo_all(views, pairs, k, config, threads, progress)
     skipped["degenerate_geometry"] = counts["degenerate"]
     step("stereo")
     used = len(matched)

@@ -4,14 +4,13 @@ and every pair on a thread pool. Camera matrices are OpenCV's (pixel centres at 
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from flowerpose.log import eta
+from flowerpose.log import Tally
 from flowerpose.pipeline.dense_config import SGBM_MODES, DenseConfig
 from flowerpose.pipeline.dense_pairs import apply_matrix
 
@@ -221,15 +220,19 @@ def _left_right_check(disp_l: np.ndarray, disp_r: np.ndarray, max_diff: float
 
 
 def stereo_all(views: list[View], pairs: list[tuple[int, int]], k: np.ndarray,
-                config: DenseConfig, threads: int, say) -> tuple[dict[str, int], list[float]]:
+               config: DenseConfig, threads: int, progress: bool = False
+               ) -> tuple[dict[str, int], list[float]]:
     """Every pair's two depth maps appended to its views' `depths` (with the partner's
-    index); returns (skipped pairs by reason, matched share per used pair)."""
+    index); returns (skipped pairs by reason, matched share per used pair). `progress`:
+    the pairs counted, with the time left."""
     skipped: dict[str, int] = {}
     matched: list[float] = []
-    start = time.perf_counter()
-    with ThreadPoolExecutor(threads) as pool:
+    with ThreadPoolExecutor(threads) as pool, \
+            Tally(len(pairs) if progress else 0, "stereo") as tally:
         results = pool.map(lambda p: _stereo_pair(views[p[0]], views[p[1]], k, config), pairs)
         for done, ((i, j), result) in enumerate(zip(pairs, results, strict=True), 1):
+            tally.advance(1, f"dense: stereo {done}/{len(pairs)} pairs"
+                          if progress and done % 50 == 0 else None)
             if isinstance(result, str):
                 reason = f"{result}_rectification"
                 skipped[reason] = skipped.get(reason, 0) + 1
@@ -237,6 +240,4 @@ def stereo_all(views: list[View], pairs: list[tuple[int, int]], k: np.ndarray,
             views[i].depths.append((j, result[0]))
             views[j].depths.append((i, result[1]))
             matched.append(result[2])
-            if done % 50 == 0:
-                say(f"stereo {done}/{len(pairs)} pairs {eta(start, done, len(pairs))}")
     return skipped, matched

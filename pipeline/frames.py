@@ -21,7 +21,7 @@ from flowerpose.atomic import write_bytes, write_image
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, write_json
-from flowerpose.log import LOG, eta
+from flowerpose.log import LOG, Tally
 from flowerpose.outputs import OutputFolder, check_output
 from flowerpose.scanio import (
     FRAME_PATTERN,
@@ -212,6 +212,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     best: dict[int, tuple[float, float, float, int, np.ndarray | None]] = {}
     start = time.perf_counter()
     sources = {int(p.stem.split("_")[-1]): p for p in frame_files(scan_dir)}
+    tally = Tally(total if progress else 0, "frames")
 
     def keep(seen: int, index: int, scored: tuple[float, float, float],
              image: np.ndarray | None) -> None:
@@ -219,35 +220,36 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
         b = int(bin_of_row[row])
         if b not in best or scored[0] > best[b][0]:
             best[b] = (*scored, row, image)
-        if progress and seen % 500 == 0:
-            LOG.info(f"frames: scored {seen}/{total} {eta(start, seen, total)}")
+        tally.advance(1, f"frames: scored {seen}/{total}" if progress and seen % 500 == 0
+                      else None)
 
-    if sources:
-        # Recorded images: score them on every core (decoding releases the GIL) and copy the
-        # winners' files as they are, so no image needs keeping.
-        indices = [i for i in sorted(sources) if i in row_of]
-        if len(indices) < len(sources):
-            LOG.warning(f"note: {scan_dir}: {len(sources) - len(indices)} recorded frames have "
-                        "no trajectory.csv row (their poses are unknown) and are left out")
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-            scores = pool.map(lambda i: _score_file(sources[i], config, intrinsics), indices)
-            damaged = []
-            for seen, (index, scored) in enumerate(zip(indices, scores, strict=True), 1):
-                if scored is None:
-                    damaged.append(sources[index].name)
-                else:
-                    keep(seen, index, scored, None)
-        if damaged:
-            LOG.warning(f"note: {scan_dir}: {len(damaged)} damaged frames (empty or cut off: "
-                        f"{', '.join(damaged[:3])}{', ...' if len(damaged) > 3 else ''}) "
-                        "left out")
-    else:
-        seen = 0
-        for index, image in iter_frames(scan_dir):
-            if index in row_of:
-                seen += 1
-                _check_size(image, scan_dir / f"video frame {index}", intrinsics)
-                keep(seen, index, frame_score(image, config), image)
+    with tally:
+        if sources:
+            # Recorded images: score them on every core (decoding releases the GIL) and copy the
+            # winners' files as they are, so no image needs keeping.
+            indices = [i for i in sorted(sources) if i in row_of]
+            if len(indices) < len(sources):
+                LOG.warning(f"note: {scan_dir}: {len(sources) - len(indices)} recorded frames have "
+                            "no trajectory.csv row (their poses are unknown) and are left out")
+            with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+                scores = pool.map(lambda i: _score_file(sources[i], config, intrinsics), indices)
+                damaged = []
+                for seen, (index, scored) in enumerate(zip(indices, scores, strict=True), 1):
+                    if scored is None:
+                        damaged.append(sources[index].name)
+                    else:
+                        keep(seen, index, scored, None)
+            if damaged:
+                LOG.warning(f"note: {scan_dir}: {len(damaged)} damaged frames (empty or cut off: "
+                            f"{', '.join(damaged[:3])}{', ...' if len(damaged) > 3 else ''}) "
+                            "left out")
+        else:
+            seen = 0
+            for index, image in iter_frames(scan_dir):
+                if index in row_of:
+                    seen += 1
+                    _check_size(image, scan_dir / f"video frame {index}", intrinsics)
+                    keep(seen, index, frame_score(image, config), image)
     if len(best) < config.count:
         raise InputError(scan_dir, f"frames for only {len(best)} of {config.count} bins: the "
                          "video or frames/ holds fewer frames than trajectory.csv")

@@ -66,7 +66,9 @@ def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monk
 
     def capture(plant_dir, config, path):
         runs.append(config)
-        for name in CAPTURE_FILES:
+        names = [n for n in CAPTURE_FILES if n != "frames"] + [
+            "frames/frames.json", "frames/frames/frame_000004.jpg", "scan/frames/frame_000004.jpg"]
+        for name in names:
             (plant_dir / name).parent.mkdir(parents=True, exist_ok=True)
             (plant_dir / name).write_text(f"{name} of run {len(runs)}")
         return {"recorded": 10, "seconds": {"scan": 5.0, "frames": 1.0, "reconstruct": 9.0}}
@@ -76,12 +78,16 @@ def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monk
     first = capture_scan_cached(plant, config, None, root)
     assert len(runs) == 1 and "cached" not in first
     (plant / "reconstruction" / "cloud.ply").unlink()
+    (plant / "frames" / "frames" / "frame_000004.jpg").unlink()
     # Workers change no output: the entry is reused, its files put back.
     again = capture_scan_cached(plant, dataclasses.replace(config, workers=1), None, root)
     assert len(runs) == 1 and again["cached"] and again["recorded"] == 10
     assert again["seconds"] == {"scan": 0.0, "frames": 0.0, "reconstruct": 0.0}
     assert (plant / "reconstruction" / "cloud.ply").read_text() == \
         "reconstruction/cloud.ply of run 1"
+    assert (plant / "frames" / "frames" / "frame_000004.jpg").is_file()  # the chosen frames
+    entry = next((root / "scan").iterdir())
+    assert not (entry / "scan" / "frames").exists()  # not the scan's every frame
     capture_scan_cached(plant, dataclasses.replace(config, frames=100), None, root)
     capture_scan_cached(plant, config, ScanPathConfig(azimuth_step_deg=30.0), root)
     assert len(runs) == 3  # another frame count, another path: scanned again
