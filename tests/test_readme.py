@@ -166,12 +166,18 @@ def _environment() -> dict:
             f"{os.environ.get('PATH', '')}", "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl"}
 
 
+def _interruptible() -> None:
+    """Ctrl-C as a terminal gives it: a job started in the background (a CI runner's, a
+    shell's `&`) has SIGINT ignored, its children too, and the signal would never arrive."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _serve(command: Command, cwd: Path) -> str | None:
     """A command that serves until stopped (the virtual Farmduino): it must print its
     device path, then stop cleanly at Ctrl-C; the problem, or None."""
     process = subprocess.Popen(["bash", "-c", f"exec {command.text}"], cwd=cwd,
                                env=_environment(), stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True, preexec_fn=_interruptible)
     try:
         path = process.stdout.readline().strip()
         if not path or not Path(path).exists():

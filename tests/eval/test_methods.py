@@ -97,7 +97,9 @@ class Same:
 
 def test_compare_takes_a_profile_a_detector_and_a_command_side_by_side(tmp_path, capsys,
                                                                       monkeypatch):
-    (tmp_path / "my_detectors.py").write_text(SAME_DETECTOR)
+    # A module name of its own: test_detect's plug-ins are `my_detectors`, and a module,
+    # once imported, stays in sys.modules for the session.
+    (tmp_path / "compared_detectors.py").write_text(SAME_DETECTOR)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setenv("PYTHONPATH", str(tmp_path))
     script = tmp_path / "method.py"
@@ -105,7 +107,7 @@ def test_compare_takes_a_profile_a_detector_and_a_command_side_by_side(tmp_path,
     plant = write_real_plant(tmp_path / "one", "cloud")
     code = main(["eval", "-q", "--source", "real", str(plant), "--workers", "1",
                  "--out", str(tmp_path / "out"), "--compare", "upstream",
-                 "--compare", "my_detectors:Same",
+                 "--compare", "compared_detectors:Same",
                  "--compare", f"itself={sys.executable} {script} {{cloud}} {{out}} itself"])
     out = capsys.readouterr().out
     assert code == 0
