@@ -208,11 +208,17 @@ def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config
     from flowerpose.sim.bundle import make_plant
     from flowerpose.sim.export import PLANT_FILES
 
+    for key in (item.split("=")[0].strip() for item in args.set):
+        if not key.startswith("sim."):
+            raise InputError(f"--set {key}", "plant takes the synthetic world's settings: "
+                             "sim.plant.*, sim.oracle.*, sim.viewpoints.*")
+    sim = eval_config(args.preset, lambda base: _configure(base, args)).sim
     with _owned(args.out, "plant", args.overwrite, PLANT_FILES):
-        bundle = make_plant(args.seed, preset=args.preset, points=args.points, out_dir=args.out)
+        bundle = make_plant(args.seed, points=args.points, out_dir=args.out, config=sim)
     visible = int(sum(bundle.visible))
     print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
           f"{visible} visible, {len(bundle.cloud)} cloud points -> {args.out}")
@@ -621,8 +627,10 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from flowerpose.eval.bench import run_bench
+    from flowerpose.pipeline.flowers import PipelineConfig
 
-    run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out)
+    run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out,
+              config=_configure(PipelineConfig(), args))
     return 0
 
 
@@ -814,6 +822,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the plant folder to write")
     _add_overwrite(p)
+    _add_config_options(p, profile=False, detector=False,
+                        example="sim.plant.flower_diameter_m=[0.03,0.05] (metres; plant reads "
+                        "sim.plant.*, sim.oracle.* and sim.viewpoints.*)")
     p.set_defaults(func=cmd_plant)
 
     p = sub.add_parser(
@@ -1108,6 +1119,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "flowers)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="also write bench.json here (default: print only)")
+    _add_config_options(p, detector=False)
     p.set_defaults(func=cmd_bench)
     for command in sub.choices.values():
         _add_verbosity(command, default=argparse.SUPPRESS)

@@ -14,3 +14,22 @@ def test_bench_times_every_pipeline_stage_and_simulator_step(tmp_path, capsys):
     assert all(seconds > 0 for seconds in report["simulator_s"].values())
     assert read_json(tmp_path / "bench.json")["simulator_s"] == report["simulator_s"]
     assert "| simulator step | seconds | budget |" in capsys.readouterr().out
+
+
+def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
+    import json
+
+    from flowerpose.cli import main
+
+    assert main(["bench", "--points", "20000", "--repeat", "1", "--out", str(tmp_path),
+                 "--set", "cluster.eps=0.008"]) == 0
+    assert read_json(tmp_path / "bench.json")["config"]["cluster"]["eps"] == 0.008
+    assert main(["plant", "--seed", "0", "--points", "5000", "--out", str(tmp_path / "big"),
+                 "--set", "sim.plant.flower_diameter_m=[0.04,0.05]"]) == 0
+    flowers = json.loads((tmp_path / "big" / "plant.json").read_text())["flowers"]
+    assert min(2 * f["radius"] for f in flowers) >= 0.04  # the default is 20-35 mm
+    capsys.readouterr()
+    assert main(["plant", "--seed", "0", "--out", str(tmp_path / "no"), "--set",
+                 "cluster.eps=0.1"]) == 2
+    assert "plant takes the synthetic world's settings" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
