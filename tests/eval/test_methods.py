@@ -4,6 +4,7 @@ plant and the run goes on."""
 
 import json
 import sys
+from pathlib import Path
 
 import pytest
 from realplants import write_real_plant
@@ -81,33 +82,15 @@ def test_a_package_registers_a_method_by_name(tmp_path, monkeypatch):
         parse_method("unknown")
 
 
-SAME_DETECTOR = '''
-from flowerpose.pipeline.colour import ColourConfig
-from flowerpose.pipeline.detect import ColourDetector, DetectConfig
-
-
-class Same:
-    def __init__(self):
-        self.inner = ColourDetector(DetectConfig(), ColourConfig())
-
-    def __call__(self, image, occupied, pixel_size_m):
-        return self.inner(image, occupied, pixel_size_m)
-'''
-
-
 def test_compare_takes_a_profile_a_detector_and_a_command_side_by_side(tmp_path, capsys,
                                                                       monkeypatch):
-    # A module name of its own: test_detect's plug-ins are `my_detectors`, and a module,
-    # once imported, stays in sys.modules for the session.
-    (tmp_path / "compared_detectors.py").write_text(SAME_DETECTOR)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent.parent))  # for the workers
     script = tmp_path / "method.py"
     script.write_text(SCRIPT)
     plant = write_real_plant(tmp_path / "one", "cloud")
     code = main(["eval", "-q", "--source", "real", str(plant), "--workers", "1",
                  "--out", str(tmp_path / "out"), "--compare", "upstream",
-                 "--compare", "compared_detectors:Same",
+                 "--compare", "detector_plugins:Same",
                  "--compare", f"itself={sys.executable} {script} {{cloud}} {{out}} itself"])
     out = capsys.readouterr().out
     assert code == 0

@@ -76,45 +76,21 @@ def test_each_detection_is_numbered_with_the_flower_it_became(plant0):
     assert (plain != numbered).any()  # the numbers are drawn
 
 
-PLUGIN = '''
-from flowerpose.pipeline.colour import ColourConfig
-from flowerpose.pipeline.detect import ColourDetector, DetectConfig
-
-
-class Same:
-    """Another detector: here, the colour detector under another name."""
-
-    def __init__(self):
-        self.inner = ColourDetector(DetectConfig(), ColourConfig())
-
-    def __call__(self, image, occupied, pixel_size_m):
-        return self.inner(image, occupied, pixel_size_m)
-
-
-class Garbage:
-    def __call__(self, image, occupied, pixel_size_m):
-        return [(0, 0, 5, 5)]
-'''
-
-
-def test_a_plugin_detector_runs_in_place_of_the_colour_detector(plant0, tmp_path, monkeypatch,
-                                                               capsys):
+def test_a_plugin_detector_runs_in_place_of_the_colour_detector(plant0, tmp_path, capsys):
     import json
 
     from flowerpose.cli import main
 
-    (tmp_path / "my_detectors.py").write_text(PLUGIN)
-    monkeypatch.syspath_prepend(str(tmp_path))
     _, folder = plant0
     assert main(["detect", str(folder / "cloud.ply"), "--out", str(tmp_path / "a")]) == 0
     assert main(["detect", str(folder / "cloud.ply"), "--out", str(tmp_path / "b"),
-                 "--detector", "my_detectors:Same"]) == 0
+                 "--detector", "detector_plugins:Same"]) == 0
     flowers = [json.loads((tmp_path / d / "flowers.json").read_text())["flowers"]
                for d in ("a", "b")]
     assert [f["center"] for f in flowers[0]] == [f["center"] for f in flowers[1]]
     capsys.readouterr()
-    for name, words in (("my_detectors:Garbage", "returned a bad detection"),
-                        ("my_detectors:Missing", "cannot load it"),
+    for name, words in (("detector_plugins:Garbage", "returned a bad detection"),
+                        ("detector_plugins:Missing", "cannot load it"),
                         ("no_such_module:X", "cannot load it"), ("not a name", "MODULE:CLASS")):
         assert main(["detect", str(folder / "cloud.ply"), "--out", str(tmp_path / "c"),
                      "--detector", name]) == 2
