@@ -36,7 +36,7 @@ from flowerpose.eval.report import (
     write_report,
 )
 from flowerpose.eval.rgbd_source import RgbdConfig
-from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached
+from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached, plant_inputs
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
 from flowerpose.log import Tally
 from flowerpose.pipeline.flowers import (
@@ -491,9 +491,8 @@ def capture_rgbd_cached(plant_dir: Path, config: EvalConfig, cache_root: Path | 
 
     settings = {"rgbd": to_dict(config.rgbd), "fusion": to_dict(config.fusion),
                 "viewpoints": to_dict(config.sim.viewpoints)}
-    inputs = [plant_dir / name for name in ("plant.json", "plant.ply", "plant_labels.npz")]
     result, cached = StageCache(cache_root).run(
-        "rgbd", settings, inputs, plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
+        "rgbd", settings, plant_inputs(plant_dir), plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
         lambda: capture_rgbd(plant_dir, config))
     return {**result, "cached": True, "seconds": 0.0} if cached else result
 

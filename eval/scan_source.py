@@ -130,6 +130,12 @@ CAPTURE_FILES = ("scan/plant.json", "scan/scan.json", "scan/camera.json",
                  "reconstruction/reconstruction.json")
 
 
+def plant_inputs(plant_dir: Path) -> list[Path]:
+    """The files of a generated plant that a capture of it depends on (its truth, mesh and
+    face labels; not its oracle cloud): the stage cache's inputs."""
+    return [plant_dir / name for name in ("plant.json", "plant.ply", "plant_labels.npz")]
+
+
 def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
                         path: ScanPathConfig | None = None,
                         cache_root: Path | None = None) -> dict:
@@ -140,8 +146,8 @@ def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
         return capture_scan(plant_dir, config, path)
     settings = {"scan": to_dict(dataclasses.replace(config, workers=None)),
                 "viewpoints": to_dict(path or ScanPathConfig())}
-    inputs = [plant_dir / name for name in ("plant.json", "plant.ply", "plant_labels.npz")]
-    result, cached = StageCache(cache_root).run("scan", settings, inputs, plant_dir,
+    result, cached = StageCache(cache_root).run("scan", settings, plant_inputs(plant_dir),
+                                                plant_dir,
                                                 CAPTURE_FILES,
                                                 lambda: capture_scan(plant_dir, config, path))
     if cached:
