@@ -25,6 +25,7 @@ from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, mak
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
 from flowerpose.pipeline.segment import (
+    SIZE_PASSES,
     ClusterConfig,
     GroundConfig,
     OrientedBox,
@@ -32,7 +33,9 @@ from flowerpose.pipeline.segment import (
     cluster_flowers,
     corolla,
     crop_flowers,
+    limit_scale,
     remove_ground,
+    scaled_limits,
     typical_radius,
 )
 
@@ -183,21 +186,41 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     """Clusters, crops and poses of the flowers among `candidates` (indices into `plant`);
     `original` maps plant indices to those of the caller's cloud; `up` is the frame's up
     where it is known (`PoseConfig.up_prior`)."""
-    clusters, flower_radius = cluster_flowers(plant, candidates, config.outliers,
-                                              config.cluster, config.colour)
-    boxes, crops = crop_flowers(plant, clusters, config.cluster)
+    grouping = cluster_flowers(plant, candidates, config.outliers, config.cluster,
+                               config.colour)
+    boxes, crops = crop_flowers(plant, grouping.clusters, grouping.config)
     timer.lap("cluster")
     flowers = []
     for box, crop in zip(boxes, crops, strict=True):
-        pose = estimate_pose(plant.subset(crop), config.pose, config.colour, config.cluster,
-                             flower_radius, up)
+        pose = estimate_pose(plant.subset(crop), config.pose, config.colour, grouping.config,
+                             grouping.typical_radius, up)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
         flowers.append(Flower(len(flowers), pose, box, original[crop]))
     timer.lap("pose")
-    LOG.debug(f"detect: {len(candidates)} candidate points, {len(clusters)} clusters, typical "
-              f"flower radius {flower_radius}, {len(flowers)} flowers")
+    _say_sizes("detect", grouping.size, grouping.scale, config.cluster)
+    LOG.debug(f"detect: {len(candidates)} candidate points, {len(grouping.clusters)} clusters, "
+              f"{len(flowers)} flowers")
     return flowers
+
+
+#: Limits rescaled by more than this factor either way are said at the info level: the
+#: cloud is probably not in metres (smaller rescales are routine: debug).
+NOTABLE_RESCALE = 2.0
+
+
+def _say_sizes(stage: str, size: float | None, scale: float, config: ClusterConfig) -> None:
+    """Say the flower size measured and how the metric limits were scaled to it; a user
+    should know when the cloud is far from the size the limits are stated for."""
+    if scale == 1.0:
+        LOG.debug(f"{stage}: flower radius {size}")
+        return
+    low, high = config.size_band_m
+    line = (f"{stage}: the flowers' radius is {size:.4g} in the cloud's unit, outside the "
+            f"{low:g}-{high:g} the limits are stated for (cluster.size_band_m): limits in "
+            f"metres scaled by {scale:.3g}")
+    notable = not 1 / NOTABLE_RESCALE <= scale <= NOTABLE_RESCALE
+    (LOG.info if notable else LOG.debug)(line)
 
 
 def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
@@ -206,16 +229,33 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
     the crops' typical flower (`segment.typical_radius`, their median corolla radius when
     none passes the coverage test); returns the poses and the stage timings."""
     timer = _Timer()
-    shapes = []
+    masks = []
     for crop in crops:
         hsv = rgb_to_hsv(crop.colors)
-        shapes.append(corolla(crop.points, petal_mask(hsv, config.colour),
-                              pistil_mask(hsv, config.colour), config.cluster))
-    radius = typical_radius(shapes, config.cluster)
-    if radius is None and shapes:
-        radius = float(np.median([s.radius for s in shapes]))
-    poses = [estimate_pose(crop, config.pose, config.colour, config.cluster, radius)
-             for crop in crops]
+        masks.append((petal_mask(hsv, config.colour), pistil_mask(hsv, config.colour)))
+
+    def crops_radius(cluster: ClusterConfig) -> float | None:
+        shapes = [corolla(crop.points, petal, pistil, cluster)
+                  for crop, (petal, pistil) in zip(crops, masks, strict=True)]
+        radius = typical_radius(shapes, cluster)
+        return float(np.median([s.radius for s in shapes])) if radius is None and shapes \
+            else radius
+
+    # The pistil search's limit is metric: sized to the crops' flowers as the cluster stage
+    # sizes its limits (`ClusterConfig.size_band_m`).
+    scale, cluster = 1.0, config.cluster
+    radius = crops_radius(cluster)
+    for _ in range(SIZE_PASSES):
+        wanted = limit_scale(radius, config.cluster.size_band_m)
+        if np.isclose(wanted, scale, rtol=1e-3):
+            break
+        resized = scaled_limits(config.outliers, config.cluster, wanted)[1]
+        resized_radius = crops_radius(resized)
+        if resized_radius is None:
+            break
+        scale, cluster, radius = wanted, resized, resized_radius
+    _say_sizes("pose", radius, scale, config.cluster)
+    poses = [estimate_pose(crop, config.pose, config.colour, cluster, radius) for crop in crops]
     timer.lap("pose")
     return poses, timer.total()
 

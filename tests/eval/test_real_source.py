@@ -2,16 +2,20 @@
 stage the folder allows, unlabelled flowers, and bad folders as one line and exit 2."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
-from realplants import CENTRES, NORMALS, SCALE, cuboids, write_real_plant
+from realplants import CENTRES, NORMALS, SCALE, cuboids, flower, write_real_plant
 
 from flowerpose.cli import main
+from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.harness import EvalConfig, run_eval
 from flowerpose.eval.real_source import read_real_plant, real_truth
 from flowerpose.eval.truth import read_sagemaker_truth
+from flowerpose.pipeline.flowers import PipelineConfig, pose_crops
+from flowerpose.pipeline.segment import cluster_flowers
 
 
 def test_labels_come_back_in_the_cloud_units_with_the_authors_euler_convention(tmp_path):
@@ -121,3 +125,45 @@ def test_detect_takes_a_detectors_candidates_and_counts_a_point_once(tmp_path, c
     flowers = json.loads((tmp_path / "d" / "flowers.json").read_text())["flowers"]
     assert len(flowers) == 4 and not (tmp_path / "d" / "views").exists()
     assert "4 flowers (4 with a normal)" in capsys.readouterr().out
+
+
+def _disc_flowers(scale: float) -> Cloud:
+    rng = np.random.default_rng(0)
+    flowers = [flower(c, n, rng) for c, n in zip(CENTRES, NORMALS, strict=True)]
+    return Cloud(np.vstack([f.points for f in flowers]) * scale,
+                 np.vstack([f.colors for f in flowers]))
+
+
+def test_limits_are_sized_to_flowers_outside_the_size_band():
+    """A cloud whose flowers measure outside `cluster.size_band_m` is grouped as the cloud
+    shrunk to the band would be at the limits as stated; inside the band nothing changes."""
+    config = PipelineConfig()
+    inside = _disc_flowers(1.0)
+    kept = cluster_flowers(inside, np.arange(len(inside)), config.outliers, config.cluster,
+                           config.colour)
+    assert kept.scale == 1.0 and kept.config == config.cluster and len(kept.clusters) == 4
+    big = _disc_flowers(3.0)
+    grouping = cluster_flowers(big, np.arange(len(big)), config.outliers, config.cluster,
+                               config.colour)
+    low, high = config.cluster.size_band_m
+    assert grouping.size > high
+    assert grouping.scale == pytest.approx(grouping.size / high)
+    assert grouping.config.eps == pytest.approx(config.cluster.eps * grouping.scale)
+    shrunk = Cloud(big.points / grouping.scale, big.colors)
+    stated = cluster_flowers(shrunk, np.arange(len(shrunk)), config.outliers,
+                             replace(config.cluster, size_band_m=None), config.colour)
+    assert stated.scale == 1.0
+    assert [c.tolist() for c in grouping.clusters] == [c.tolist() for c in stated.clusters]
+    unsized = cluster_flowers(big, np.arange(len(big)), config.outliers,
+                              replace(config.cluster, size_band_m=None), config.colour)
+    assert unsized.scale == 1.0 and unsized.config.eps == config.cluster.eps
+
+
+def test_the_pose_of_crops_holds_whatever_the_unit_of_the_cloud():
+    for scale in (0.3, 1.0, 4.0):
+        rng = np.random.default_rng(1)
+        crops = [flower(c, n, rng) for c, n in zip(CENTRES, NORMALS, strict=True)]
+        poses, _ = pose_crops([Cloud(c.points * scale, c.colors) for c in crops],
+                              PipelineConfig())
+        for pose, normal in zip(poses, NORMALS, strict=True):
+            assert np.degrees(np.arccos(min(1.0, abs(pose.normals["plane"] @ normal)))) < 3.0
