@@ -25,7 +25,6 @@ from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, mak
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
 from flowerpose.pipeline.segment import (
-    SIZE_PASSES,
     ClusterConfig,
     GroundConfig,
     OrientedBox,
@@ -33,9 +32,9 @@ from flowerpose.pipeline.segment import (
     cluster_flowers,
     corolla,
     crop_flowers,
-    limit_scale,
     remove_ground,
     scaled_limits,
+    sized_to_band,
     typical_radius,
 )
 
@@ -234,26 +233,18 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
         hsv = rgb_to_hsv(crop.colors)
         masks.append((petal_mask(hsv, config.colour), pistil_mask(hsv, config.colour)))
 
-    def crops_radius(cluster: ClusterConfig) -> float | None:
+    def pistil_limits(scale: float) -> tuple[ClusterConfig, float | None]:
+        cluster = scaled_limits(config.outliers, config.cluster, scale)[1]
         shapes = [corolla(crop.points, petal, pistil, cluster)
                   for crop, (petal, pistil) in zip(crops, masks, strict=True)]
         radius = typical_radius(shapes, cluster)
-        return float(np.median([s.radius for s in shapes])) if radius is None and shapes \
-            else radius
+        if radius is None and shapes:
+            radius = float(np.median([s.radius for s in shapes]))
+        return cluster, radius
 
     # The pistil search's limit is metric: sized to the crops' flowers as the cluster stage
     # sizes its limits (`ClusterConfig.size_band_m`).
-    scale, cluster = 1.0, config.cluster
-    radius = crops_radius(cluster)
-    for _ in range(SIZE_PASSES):
-        wanted = limit_scale(radius, config.cluster.size_band_m)
-        if np.isclose(wanted, scale, rtol=1e-3):
-            break
-        resized = scaled_limits(config.outliers, config.cluster, wanted)[1]
-        resized_radius = crops_radius(resized)
-        if resized_radius is None:
-            break
-        scale, cluster, radius = wanted, resized, resized_radius
+    scale, cluster, radius = sized_to_band(pistil_limits, config.cluster.size_band_m)
     _say_sizes("pose", radius, scale, config.cluster)
     poses = [estimate_pose(crop, config.pose, config.colour, cluster, radius) for crop in crops]
     timer.lap("pose")

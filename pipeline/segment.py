@@ -7,8 +7,9 @@ per flower whose contents in the full cloud become the flower's crop.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 from scipy.sparse.csgraph import dijkstra
@@ -385,6 +386,9 @@ def typical_radius(corollas: list[Corolla], config: ClusterConfig) -> float | No
 #: each at the typical radius the grouping before measured.
 SIZE_PASSES = 3
 
+Result = TypeVar("Result")
+
+
 def limit_scale(typical: float | None, band: tuple[float, float] | None) -> float:
     """What the metric limits are multiplied by for flowers of this typical radius: the
     radius over the band's nearer edge outside the band, 1 inside it (or without a band or
@@ -453,20 +457,32 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     centre[candidates] = pistil_mask(hsv, colour)
     if config.candidates == "flower_colour":
         candidates = candidates[white[candidates] | centre[candidates]]
-    def at(scale: float) -> tuple[list[np.ndarray], float | None, float | None]:
-        return _group(plant, candidates, white, centre, *scaled_limits(outliers, config, scale))
+    def at(scale: float) -> tuple[tuple[list[np.ndarray], float | None], float | None]:
+        clusters, typical, size = _group(plant, candidates, white, centre,
+                                         *scaled_limits(outliers, config, scale))
+        return (clusters, typical), size
 
+    scale, (clusters, typical), size = sized_to_band(at, config.size_band_m)
+    return Grouping(clusters, typical, size, scale, scaled_limits(outliers, config, scale)[1])
+
+
+def sized_to_band(run: Callable[[float], tuple[Result, float | None]],
+                  band: tuple[float, float] | None) -> tuple[float, Result, float | None]:
+    """`run(scale)` (a stage at its metric limits times `scale`, returning its result and
+    the flower radius it measured) at the limits as stated, then again at the scale its
+    measured radius asks for (`limit_scale`), up to SIZE_PASSES times; a rescaled run that
+    measures no flower keeps the run before. Returns the scale, the result and its radius."""
     scale = 1.0
-    clusters, typical, size = at(scale)
+    result, size = run(scale)
     for _ in range(SIZE_PASSES):
-        wanted = limit_scale(size, config.size_band_m)
+        wanted = limit_scale(size, band)
         if np.isclose(wanted, scale, rtol=1e-3):
             break
-        resized = at(wanted)
-        if resized[1] is None:  # the resized limits find no flower: keep what was found
+        resized, resized_size = run(wanted)
+        if resized_size is None:
             break
-        scale, (clusters, typical, size) = wanted, resized
-    return Grouping(clusters, typical, size, scale, scaled_limits(outliers, config, scale)[1])
+        scale, result, size = wanted, resized, resized_size
+    return scale, result, size
 
 
 def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.ndarray,
