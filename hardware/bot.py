@@ -65,6 +65,7 @@ from flowerpose.hardware.bot_errors import (
 )
 from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry
 from flowerpose.hardware.motion import (
+    END_OF_MOVE_S,
     MotionProfile,
     axis_durations,
     axis_motions,
@@ -467,7 +468,9 @@ class KinematicBot(Bot):
                     error = injected
                 else:
                     error = error_for_code(injected, command)
-            activity = _Activity(time.monotonic(), stop_at, start, target, profile)
+            # A move that arrives ends as the firmware's do: END_OF_MOVE_S at the target.
+            ending = END_OF_MOVE_S if error is None else 0.0
+            activity = _Activity(time.monotonic(), stop_at + ending, start, target, profile)
             self._activity = activity
         elapsed, stopped = self._run(activity)
         with self._lock:

@@ -318,7 +318,12 @@ class FarmduinoBot(Bot):
         nothing moves on settings the board does not hold. None: the board runs on what it
         holds (its defaults, unless stored in EEPROM).
     wall_clock: the seconds the bot's clock scales (a simulation pauses it while it
-        renders); command timeouts always run on the real monotonic clock.
+        renders, and while the board waits for the host); command timeouts always run on
+        the real monotonic clock.
+    skip_time: moves `wall_clock` on by this many of its seconds at once; a simulation
+        whose clock stands still while the board waits for the host passes its clock's,
+        so a dwell or the head's settling takes exactly its time. None (a real bot): they
+        are waited out.
     """
 
     def __init__(self, port: str, *,
@@ -326,7 +331,8 @@ class FarmduinoBot(Bot):
                  observer: Callable[[Activity], None] | None = None,
                  info: BotInfo | None = None, clock_scale: float = 1.0,
                  connect_timeout_s: float = 15.0, settings: dict[int, float] | None = None,
-                 wall_clock: Callable[[], float] = time.monotonic):
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 skip_time: Callable[[float], None] | None = None):
         if not (math.isfinite(clock_scale) and clock_scale > 0):
             raise InputError("clock_scale", f"must be a positive number, got {clock_scale!r}")
         if not (math.isfinite(connect_timeout_s) and connect_timeout_s > 0):
@@ -339,6 +345,7 @@ class FarmduinoBot(Bot):
         self._scale = float(clock_scale)
         self._connect_timeout_s = float(connect_timeout_s)
         self._wall_clock = wall_clock
+        self._skip_time = skip_time
         self._origin = wall_clock()
         self._write_lock = threading.Lock()
         self._state_lock = threading.Lock()
@@ -451,7 +458,7 @@ class FarmduinoBot(Bot):
             # The head takes the whole-degree commands, not the angles asked for.
             pose = from_servo_commands(servo[0], servo[1], xyz)
             self._head = (float(pose.yaw), float(pose.pitch))
-            stopped = self._locked.wait(HEAD_SETTLE_S / self._scale)
+            stopped = self._hold(HEAD_SETTLE_S)
             self._notify(Activity("head", t0, self.now() - t0, xyz, xyz, head_start,
                                   self._head))
             if stopped:
@@ -463,11 +470,20 @@ class FarmduinoBot(Bot):
             if self._locked.is_set():
                 raise LockedError(command)
             t0, xyz = self.now(), self.position()
-            stopped = self._locked.wait(seconds / self._scale)
+            stopped = self._hold(seconds)
             self._notify(Activity("dwell", t0, self.now() - t0, xyz, xyz, self._head,
                                   self._head))
             if stopped:
                 raise EmergencyStopError(command, 1)
+
+    def _hold(self, seconds: float) -> bool:
+        """Let `seconds` of the bot's clock pass with the gantry still; returns whether an
+        emergency stop came meanwhile."""
+        if self._skip_time is not None:
+            if not self._locked.is_set():
+                self._skip_time(seconds / self._scale)
+            return self._locked.is_set()
+        return self._locked.wait(seconds / self._scale)
 
     def emergency_stop(self) -> None:
         with self._state_lock:

@@ -33,7 +33,7 @@ interrupt, trunc(15625 / v) of them, which cruises at 411 steps/s instead of 400
 own step timing the firmware would be up to 2.6 % faster than this model (a 500 mm X move
 8.18 s against 8.31 s). The real firmware, run in an AVR simulator, is slower instead:
 8.8-8.9 s for that move. About 0.3 s of it is the end-of-move reports before the final
-R02 (the virtual Farmduino's END_OF_MOVE_S); the other 0.2-0.3 s (3-4 %) is time the step
+R02 (END_OF_MOVE_S below); the other 0.2-0.3 s (3-4 %) is time the step
 timing does not explain (interrupt ticks lost to the board's other work, its main loop
 updating v(s) late) and is not modelled. A client that waits for the reply is not
 misled by it; a prediction of when the gantry passes a point can be off by that much.
@@ -231,6 +231,14 @@ def axis_motions(start_xyz, end_xyz, profile: MotionProfile) -> tuple[AxisMotion
     start, end = _endpoints(start_xyz, end_xyz)
     return tuple(profile.axis(i, home) for i, home in enumerate(_toward_home(start, end)))
 
+
+
+END_OF_MOVE_S = 0.3
+"""Seconds a move's end takes after the motors stop, before the firmware's final R02: it
+reports `R99 stopped`, motors, endstops and encoders (R05, R81, R84, R85), then R82 (about
+0.3 s on farmbot-arduino-firmware 6.6.23 in an AVR simulator). The gantry stands at its
+target meanwhile. The virtual Farmduino takes it, and so does `KinematicBot`, so the direct
+and the serial backends' scans keep the same time."""
 
 def axis_durations(start_xyz, end_xyz, profile: MotionProfile) -> np.ndarray:
     """(3,) seconds each axis (X, Y, Z) takes for the move from `start_xyz` to `end_xyz`."""

@@ -25,7 +25,12 @@ from flowerpose.hardware.kinematics import (
     forward,
     look_at,
 )
-from flowerpose.hardware.motion import MotionProfile, move_duration, move_trajectory
+from flowerpose.hardware.motion import (
+    END_OF_MOVE_S,
+    MotionProfile,
+    move_duration,
+    move_trajectory,
+)
 from flowerpose.scanpath import ScanPathConfig, path_cameras
 
 
@@ -112,7 +117,7 @@ def plan_scan(plant_center, plant_height: float, config: ScanConfig = ScanConfig
                           HeadPose(poses.gantry[i], poses.yaw[i], poses.pitch[i]))
                  for i, kind in enumerate(kinds)]
     duration = len(waypoints) * config.pause_s + sum(
-        move_duration(a.pose.gantry, b.pose.gantry, profile)
+        move_duration(a.pose.gantry, b.pose.gantry, profile) + END_OF_MOVE_S
         for a, b in zip(waypoints, waypoints[1:], strict=False))
     if obstacles is not None and len(obstacles):
         _check_collisions(waypoints, np.asarray(obstacles, float), config, geometry, profile,

@@ -42,6 +42,7 @@ from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicB
 from flowerpose.hardware.bot_errors import CameraError
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.hardware.motion import move_duration
 from flowerpose.hardware.scan_plan import ScanConfig, ScanPlan, plan_scan
 from flowerpose.hardware.trajectory import (
     SERVO_SPEED_RAD_S,
@@ -271,7 +272,9 @@ class SimCamera(Camera):
         end = activity.t0 + activity.elapsed
         moving_until = activity.t0
         if activity.kind == "move" and np.any(activity.gantry_start != activity.gantry_end):
-            moving_until = end
+            # The motors stop before the move's end (END_OF_MOVE_S at the target).
+            moving_until = end if activity.profile is None else min(end, activity.t0 + (
+                move_duration(activity.gantry_start, activity.gantry_end, activity.profile)))
         elif activity.kind == "head":
             moving_until = activity.t0 + head_turn_time(activity,
                                                         self.config.servo_speed_rad_s)

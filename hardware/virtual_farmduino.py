@@ -88,16 +88,19 @@ import numpy as np
 from flowerpose.errors import InputError
 from flowerpose.hardware.farmduino import FarmduinoBot
 from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT
-from flowerpose.hardware.motion import MotionProfile, axis_durations, axis_motions, move_trajectory
+from flowerpose.hardware.motion import (
+    END_OF_MOVE_S,
+    MotionProfile,
+    axis_durations,
+    axis_motions,
+    move_trajectory,
+)
 from flowerpose.hardware.protocol import BANNER, ENCODERS, ENDSTOPS, PARAMETERS, SERVO_PINS
 
 FIRMWARE_VERSION = "6.6.23.V.virtual"
 REPORT_PERIOD_S = 0.5
 """Simulated seconds between periodic reports by default (Farmduino v1.4 and later: 500 ms;
 the firmware built for the ATmega2560 as FARMDUINO_V10 reports every 5 s)."""
-END_OF_MOVE_S = 0.3
-"""Simulated seconds a move's end takes after the motors stop: the real firmware reports
-`R99 stopped`, motors, endstops and encoders (R05, R81, R84, R85) before its R82 and R02."""
 MIN_REPORT_WALL_S = 0.02
 """Least wall seconds between periodic reports, whatever the time scale."""
 BOOT_S = 1.0
@@ -210,13 +213,21 @@ class VirtualFarmduino:
         removed on close).
     start_mm: where the gantry stands at power-on, FarmBot millimetres from the physical
         home (Z <= 0); the counters start at 0 there, as on a real board.
+    wall_clock: the seconds simulated time scales (time.monotonic; a simulation's clock).
+    report_period_s: simulated seconds between periodic reports.
+    on_idle: called with (True, since) when the board is left waiting for the host
+        (booted, the port open, no command, stop or boot under way), since the
+        `wall_clock` reading its last answer was due at (None: now), and with (False,
+        None) when that ends, from the device's thread: a simulation stops its clock
+        meanwhile (`PausableClock.host_turn`).
     Use as a context manager, or `start()` then `close()`.
     """
 
     def __init__(self, *, time_scale: float = 1.0, params: dict[int, float] | None = None,
                  link_dir: str | Path | None = None, start_mm=(0.0, 0.0, 0.0),
                  wall_clock: Callable[[], float] = time.monotonic,
-                 report_period_s: float = REPORT_PERIOD_S):
+                 report_period_s: float = REPORT_PERIOD_S,
+                 on_idle: Callable[[bool, float | None], None] | None = None):
         import mujoco
 
         if not (math.isfinite(time_scale) and time_scale > 0):
@@ -247,6 +258,9 @@ class VirtualFarmduino:
         self._error: BaseException | None = None
         self._wall_clock = wall_clock
         self._wall0 = wall_clock()
+        self._on_idle = on_idle
+        self._idle = False
+        self._answered_at: float | None = None  # simulated time the last timed answer was due
         self._master: int | None = None
         self.device: str | None = None
         """The current pty's slave path (changes at a simulated reconnect)."""
@@ -487,6 +501,7 @@ class VirtualFarmduino:
                     self._relink_at = None
                     self._open_link()
                 self._advance()
+                self._say_idle()
             return
         poller = select.poll()
         poller.register(master, select.POLLIN)
@@ -513,8 +528,20 @@ class VirtualFarmduino:
             if data:
                 self._feed(data)
             self._advance()
+            self._say_idle()
         if hung_up:
             time.sleep(min(wait, 0.005))  # POLLHUP stays set until the host opens again
+
+    def _say_idle(self) -> None:
+        """Tell `on_idle` when the board starts or stops waiting for the host (lock held)."""
+        idle = (self._host_open and self._booted_at is None and self._running is None
+                and self._closing is None and self._stopping is None and self._drop_at is None)
+        if self._on_idle is not None and idle != self._idle:
+            due = self._answered_at if idle else None
+            # The loop wakes a little after an answer is due: the wait starts when it was.
+            self._on_idle(idle, None if due is None else self._wall0 + due / self.time_scale)
+        self._answered_at = None
+        self._idle = idle
 
     def _wait_s(self) -> float:
         """Wall seconds until the next event (at most 50 ms, so faults set from other
@@ -584,9 +611,10 @@ class VirtualFarmduino:
         if self._stopping is not None:
             self._advance_stop(now)
         if self._closing is not None and now >= self._closing[1]:
-            q, self._closing = self._closing[0], None
+            (q, due), self._closing = self._closing, None
             self._say(self._position_report(q))
             self._say(f"R02 Q{q}")
+            self._answered_at = due
             self._next_report = now + self._report_period()
         running = self._running
         if running is not None:
@@ -815,9 +843,12 @@ class VirtualFarmduino:
         self._running = _Running(q, stages)
         self._start_stage(self._running, first=True)
 
-    def _start_stage(self, running: _Running, first: bool = False) -> None:
+    def _start_stage(self, running: _Running, first: bool = False,
+                     at: float | None = None) -> None:
+        """Start the running command's next stage at simulated time `at` (now: None); a
+        stage that follows another starts when that one ended, however late the loop woke."""
         stage = running.stages[0]
-        running.t0, running.start = self.now(), self._physical()
+        running.t0, running.start = self.now() if at is None else at, self._physical()
         durations = axis_durations(running.start, stage.end, stage.profile)
         running.stop_at, running.error, running.reset = float(durations.max()), 0, False
         timeouts = [a.timeout_s for a in axis_motions(running.start, stage.end, stage.profile)]
@@ -856,7 +887,7 @@ class VirtualFarmduino:
         self._say(f"R7{stage.home_axis + 1} Q{running.q}")
         self._say(f"R99 timeout {axis} axis")
         self._say(f"R99 homing displaced {axis} axis")
-        self._start_stage(running)
+        self._start_stage(running, at=running.t0 + running.stop_at)
 
     def _arrive(self, running: _Running, stage: _Stage) -> None:
         if stage.home_axis is not None:
@@ -867,15 +898,17 @@ class VirtualFarmduino:
                           * self._profile().axis(axis, False).steps_per_mm)
             self._say(f"R23 P{21 + axis} V0 Q{running.q}")  # the home end is not inverted
             self._say(f"R23 P{801 + axis} V{float(abs(steps)):.2f} Q{running.q}")
+        arrived = running.t0 + running.stop_at
         running.stages.pop(0)
         if running.stages:
-            self._start_stage(running)
+            self._start_stage(running, at=arrived)
         else:
-            self._end_move(running)
+            self._end_move(running, arrived)
 
-    def _end_move(self, running: _Running) -> None:
-        """The motors have stopped at the target: the end-of-move reports, then (after
-        END_OF_MOVE_S) the position and R02; input meanwhile is discarded."""
+    def _end_move(self, running: _Running, arrived: float) -> None:
+        """The motors stopped at the target at simulated time `arrived`: the end-of-move
+        reports, then (END_OF_MOVE_S after it) the position and R02; input meanwhile is
+        discarded."""
         q, mm = running.q, self.firmware_position_mm()
         xyz = " ".join(f"{a}{v:.2f}" for a, v in zip("XYZ", mm, strict=True))
         self._running = None
@@ -883,7 +916,7 @@ class VirtualFarmduino:
         for line in (f"R05 X0 Y0 Z0 Q{q}", f"R81 XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}",
                      f"R84 {xyz} Q{q}", f"R85 {xyz} Q{q}"):
             self._say(line)
-        self._closing = (q, self.now() + END_OF_MOVE_S)
+        self._closing = (q, arrived + END_OF_MOVE_S)
 
     def _stalled_or_timed_out(self, running: _Running) -> None:
         if running.error != _ERR_TIMEOUT:
@@ -907,6 +940,7 @@ class VirtualFarmduino:
                                                       running.stop_at)))
         self._say(self._position_report(running.q))
         self._say(f"R03 V{error} Q{running.q}" if error else f"R02 Q{running.q}")
+        self._answered_at = min(self.now(), running.t0 + running.stop_at)
         self._next_report = self.now() + self._report_period()
 
     def _emergency_stop(self) -> None:
@@ -939,6 +973,7 @@ class VirtualFarmduino:
             self._stopping = None
             self._say(self._position_report(stop.q))
             self._say(f"R03 V{_ERR_EMERGENCY_STOP} Q{stop.q}")
+            self._answered_at = stop.at + STOP_DONE_S
             self._input.clear()
             self._next_report = now + self._report_period()
             return
@@ -952,34 +987,60 @@ class VirtualFarmduino:
 
 
 class PausableClock:
-    """Monotonic seconds that stand still inside `paused()`: the simulated world's time, so
-    rendering frames takes none of it, as with the direct backend's virtual clock."""
+    """Monotonic seconds of a simulated world that stand still while frames render
+    (`paused()`) and while the board waits for the host (`host_turn(True)`); the host's
+    own waits on the bot's time (a dwell, the head settling) move it on at once (`skip`).
+    So neither rendering nor the host's latency between commands, which the time scale
+    would multiply, takes any of the bot's time, as with the direct backend's clock."""
 
     def __init__(self):
         self._lock = threading.Lock()
         self._paused_for = 0.0
         self._since: float | None = None
-        self._depth = 0
+        self._rendering = 0
+        self._host_turn = False
 
     def __call__(self) -> float:
         with self._lock:
             now = time.monotonic() if self._since is None else self._since
             return now - self._paused_for
 
+    def _update(self) -> None:
+        """Stop or restart the clock for the state just changed (lock held)."""
+        stopped = self._rendering > 0 or self._host_turn
+        if stopped and self._since is None:
+            self._since = time.monotonic()
+        elif not stopped and self._since is not None:
+            self._paused_for += time.monotonic() - self._since
+            self._since = None
+
     @contextlib.contextmanager
     def paused(self) -> Iterator[None]:
+        """Frames render inside: the clock stands still."""
         with self._lock:
-            self._depth += 1
-            if self._depth == 1:
-                self._since = time.monotonic()
+            self._rendering += 1
+            self._update()
         try:
             yield
         finally:
             with self._lock:
-                self._depth -= 1
-                if self._depth == 0:
-                    self._paused_for += time.monotonic() - self._since
-                    self._since = None
+                self._rendering -= 1
+                self._update()
+
+    def skip(self, seconds: float) -> None:
+        """Move the clock on by `seconds` at once."""
+        with self._lock:
+            self._paused_for -= max(0.0, float(seconds))
+
+    def host_turn(self, waiting: bool, since: float | None = None) -> None:
+        """The board has answered and waits for the host's next command (True), or has
+        work of its own again (False). since: the reading the answer was due at, when it
+        came late (the board's loop wakes after it): the clock stops there."""
+        with self._lock:
+            self._host_turn = bool(waiting)
+            self._update()
+            if waiting and since is not None and self._since is not None:
+                self._paused_for += max(0.0, self._since - self._paused_for - since)
 
 
 class SimulatedSerialBot(FarmduinoBot):
@@ -1000,11 +1061,12 @@ class SimulatedSerialBot(FarmduinoBot):
         clock = PausableClock()
         camera = sim_camera(plant_dirs, self.sim_config, self._current, pause=clock.paused)
         self.device = VirtualFarmduino(time_scale=time_scale, params=FEEDBACK_PARAMETERS,
-                                       wall_clock=clock).start()
+                                       wall_clock=clock, on_idle=clock.host_turn).start()
         try:
             super().__init__(self.device.path, camera=camera,
                              observer=lambda activity: self.camera.observe(activity),
-                             clock_scale=time_scale, wall_clock=clock)
+                             clock_scale=time_scale, wall_clock=clock,
+                             skip_time=clock.skip)
             self.home()
         except BaseException:
             self.device.close()

@@ -32,7 +32,13 @@ from flowerpose.hardware.bot_errors import (
     error_for_code,
 )
 from flowerpose.hardware.geometry import PAPER_BOT
-from flowerpose.hardware.motion import AxisMotion, MotionProfile, move_duration, move_trajectory
+from flowerpose.hardware.motion import (
+    END_OF_MOVE_S,
+    AxisMotion,
+    MotionProfile,
+    move_duration,
+    move_trajectory,
+)
 
 COMMAND = "G00 X100.00 Y200.00 Z-50.00 Q7"
 HOME = PAPER_BOT.home  # the KinematicBot's default: the paper's bot, starting at home
@@ -72,7 +78,7 @@ def test_unknown_code_and_the_replies_without_one():
     assert issubclass(OutOfRangeError, InputError)
 
 
-def test_move_blocks_until_arrival_and_the_clock_advances_by_the_move():
+def test_move_blocks_until_arrival_and_the_clock_advances_by_the_move_and_its_end():
     bot = KinematicBot()
     assert isinstance(bot, Bot)
     start, t0 = bot.position(), bot.now()
@@ -82,12 +88,13 @@ def test_move_blocks_until_arrival_and_the_clock_advances_by_the_move():
     bot.move_to(target)
     np.testing.assert_array_equal(bot.position(), target)
     expected = move_duration(start, target, MotionProfile())
-    assert bot.now() - t0 == pytest.approx(expected, rel=1e-12)
+    # The motion, then the firmware's end-of-move reports with the gantry at the target.
+    assert bot.now() - t0 == pytest.approx(expected + END_OF_MOVE_S, rel=1e-12)
     assert expected == pytest.approx(14.56476, abs=1e-5)  # X's 1 m is the slowest axis here
     t1, further = bot.now(), target + [1.0, 0.0, 0.0]
     bot.move_to(further, speed_fraction=0.5)
     slow = move_duration(target, further, MotionProfile().at_speed(0.5))
-    assert bot.now() - t1 == pytest.approx(slow) and slow > expected
+    assert bot.now() - t1 == pytest.approx(slow + END_OF_MOVE_S) and slow > expected
     with pytest.raises(OutOfRangeError, match="x = 3.0000 m is outside"):
         bot.move_to([3.0, 0.4, 0.3])
     with pytest.raises(OutOfRangeError, match="speed_fraction"):

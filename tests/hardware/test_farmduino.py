@@ -471,10 +471,12 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     waypoints = np.array([w.pose.gantry for w in plan.waypoints])
     gap = np.linalg.norm(trajectory.gantry[:, None] - waypoints[None], axis=2).min(0)
     assert gap.max() < 3e-4
-    # Rendering stops the simulated world's clock, so the scan takes the direct backend's
-    # time but for the serial link's latency, scaled by the time scale (a few ms of wall
-    # time a command, more on a loaded machine: a few tenths of a second of bot time a
-    # waypoint at 20 x). Without the pause: 62 frames against 68, 366 s against 236 s.
+    # The simulated world's clock stands still while frames render and while the board
+    # waits for the host, a dwell moves it on at once, and the board's late wake-ups are
+    # taken back, so the scan takes the direct backend's time whatever the link's latency
+    # and the machine's load (which the time scale multiplies), both backends ending every
+    # move with the firmware's END_OF_MOVE_S. Measured: 68 and 68 frames, 242.2 and 242.2 s;
+    # before the host's turn stood still, 69 against 68 and 246.6 against 236.2 s.
     from flowerpose.hardware.sim_bot import SimBot
 
     with SimBot([plant], config) as direct:
@@ -482,8 +484,8 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     expected = read_trajectory(tmp_path / "direct" / "trajectory.csv")
     print(f"serial against direct: {len(trajectory)} and {len(expected)} frames, scans of "
           f"{trajectory.t[-1]:.1f} and {expected.t[-1]:.1f} s")
-    assert abs(len(trajectory) - len(expected)) <= 0.05 * len(expected)
-    assert abs(trajectory.t[-1] - expected.t[-1]) < 0.08 * expected.t[-1]
+    assert abs(len(trajectory) - len(expected)) <= 1
+    assert abs(trajectory.t[-1] - expected.t[-1]) < 0.005 * expected.t[-1]
 
 
 def test_via_farmduino_needs_the_simulator(capsys):

@@ -14,12 +14,13 @@ import pytest
 import serial
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.motion import MotionProfile, move_duration
+from flowerpose.hardware.motion import END_OF_MOVE_S, MotionProfile, move_duration
 from flowerpose.hardware.protocol import BANNER
 from flowerpose.hardware.virtual_farmduino import (
     DEFAULT_PARAMETERS,
     FEEDBACK_PARAMETERS,
     FIRMWARE_VERSION,
+    PausableClock,
     VirtualFarmduino,
 )
 
@@ -415,3 +416,35 @@ def test_command_line_serves_until_ctrl_c():
     bad = subprocess.run([sys.executable, "-m", "flowerpose.cli", "farmduino"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--virtual" in bad.stderr
+
+
+def test_a_simulated_worlds_clock_stands_still_while_the_board_waits_for_the_host():
+    """With a PausableClock, the board's time passes only for its own work: a move takes
+    its motion and END_OF_MOVE_S exactly, however late the host or the board's loop, and
+    a host's wait moves the clock on at once by what it asks."""
+    clock = PausableClock()
+    with VirtualFarmduino(time_scale=SCALE, params=FEEDBACK_PARAMETERS, wall_clock=clock,
+                          on_idle=clock.host_turn) as device:
+        link = Link(device.path)
+        try:
+            link.until(lambda line: line == BANNER)
+            _approve(link)
+            start = device.now()
+            time.sleep(0.05)  # 5 s of simulated time, were the clock running
+            assert device.now() == start
+            assert link.command("G00 X100.00 Y0.00 Z0.00 Q5")[-1] == "R02 Q5"
+            motion = move_duration([0.0, 0.0, 0.0], [0.1, 0.0, 0.0],
+                                   MotionProfile.from_firmware(device_parameters(device)))
+            assert device.now() - start == pytest.approx(motion + END_OF_MOVE_S, abs=1e-3)
+            answered = device.now()
+            time.sleep(0.05)
+            assert device.now() == answered
+            clock.skip(2.0 / SCALE)
+            assert device.now() - answered == pytest.approx(2.0, abs=1e-9)
+        finally:
+            link.close()
+
+
+def device_parameters(device: VirtualFarmduino) -> dict[int, float]:
+    """The board's current parameter values."""
+    return {pid: device.parameter(pid) for pid in DEFAULT_PARAMETERS}
