@@ -10,11 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import multiprocessing
-import os
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,9 +33,9 @@ from flowerpose.eval.report import (
     write_report,
 )
 from flowerpose.eval.rgbd_source import RgbdConfig
+from flowerpose.eval.runner import run_jobs
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached, plant_inputs
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
-from flowerpose.log import Tally
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
     Start,
@@ -49,7 +46,6 @@ from flowerpose.pipeline.flowers import (
     write_normals_ply,
 )
 from flowerpose.pipeline.rgbd import FusionConfig
-from flowerpose.processes import quiet_worker
 from flowerpose.sim.config import PresetName, SimConfig, sim_preset
 
 #: The paper's estimate of its hand labels' error, degrees (the field preset's).
@@ -141,47 +137,9 @@ def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_d
     return plant_entry(name, score), timing
 
 
-def _pool(workers: int | None) -> ProcessPoolExecutor | None:
-    workers = workers or os.cpu_count() or 1
-    if workers <= 1:
-        return None
-    # Spawned workers: forking a process that already runs Open3D's threads is unsafe.
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=quiet_worker)
-
-
-def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
-             describe: Callable[[int, Any], str] | None = None) -> list[Any]:
-    """function(*job) for every job, in a process pool, results in job order; with
-    `describe`, a line per finished job with the time left (`log.Tally`)."""
-    results: list[Any] = [None] * len(jobs)
-    pool = _pool(min(workers or os.cpu_count() or 1, len(jobs)))
-    with Tally(len(jobs) if describe is not None else 0) as tally:
-
-        def report(k: int, value: Any) -> None:
-            if describe is not None:
-                tally.finished(describe(k, value))
-
-        if pool is None:
-            for k, job in enumerate(jobs):
-                results[k] = function(*job)
-                report(k, results[k])
-            return results
-        from concurrent.futures import as_completed
-
-        try:
-            futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
-            for future in as_completed(futures):
-                k = futures[future]
-                results[k] = future.result()
-                report(k, results[k])
-        except BaseException:
-            # Ctrl-C, SIGTERM or a failed job: no new job starts, and the workers, which
-            # ignore Ctrl-C, end with this process (`processes.die_with_parent`).
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-    pool.shutdown()
-    return results
+#: Cores a capture job (render, match, stereo: each multi-threaded) asks of a Ray node, at
+#: most the largest node's.
+CAPTURE_CPUS = 2
 
 
 def sum_timings(timings: Iterable[dict[str, float]]) -> dict[str, float]:
@@ -198,7 +156,8 @@ def generate_plants(seeds: list[int], sim: SimConfig, plants_dir: Path,
     """Every plant's files under plants_dir/seed-<s>/; seconds per plant."""
     return run_jobs(generate_plant_files,
                     [(s, sim, plants_dir / f"seed-{s}") for s in seeds], workers,
-                    lambda k, sec: f"plant seed-{seeds[k]} generated ({sec:.1f} s)")
+                    lambda k, sec: f"plant seed-{seeds[k]} generated ({sec:.1f} s)",
+                    stage="plant", labels=[f"seed-{s}" for s in seeds])
 
 
 def _describe_entry(k: int, value: tuple[dict, dict]) -> str:
@@ -278,7 +237,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
                                       "config": sections_run(other, starts)}
     for method in methods:
         results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
-                           workers, _describe_entry)
+                           workers, _describe_entry, stage=f"method {method.name}",
+                           labels=[job[1] for job in jobs])
         others = [entry for entry, _ in results]
         extra.setdefault("compare", {})[method.name] = {
             "summary": summarise(others), "plants": others,
@@ -371,7 +331,7 @@ def _score_jobs(jobs: list[tuple], config: EvalConfig, out_dir: Path,
     """Every job (function, its input, its output folder's name) run with `config`; the
     plant entries and summed stage timings."""
     results = run_jobs(_score_job, [(job, config, out_dir) for job in jobs], workers,
-                       _describe_entry)
+                       _describe_entry, stage="score", labels=[job[1] for job in jobs])
     return [entry for entry, _ in results], sum_timings(t for _, t in results)
 
 
@@ -455,12 +415,15 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                             lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
                             f"fused into {v['points']} points "
                             + ("(from the cache)" if v.get("cached") else
-                               f"({v['seconds']:.1f} s)"))
+                               f"({v['seconds']:.1f} s)"),
+                            stage="RGB-D capture", labels=[f"seed-{s}" for s in seeds],
+                            cpus=CAPTURE_CPUS)
         timing["rgbd"] = round(sum(c["seconds"] for c in captured), 4)
         clouds = {s: (folders[s] / "rgbd" / "cloud.ply", folders[s] / "rgbd" / "plant.json")
                   for s in seeds}
     else:
-        # One plant at a time: rendering, matching and stereo each use every core.
+        # One plant at a time in the pool: rendering, matching and stereo each use every
+        # core. On Ray, one a node (CAPTURE_CPUS), so a cluster's nodes scan in parallel.
         captured = run_jobs(capture_scan_cached, [(folders[s], config.scan,
                                                    config.sim.viewpoints, cache)
                                                   for s in seeds], 1,
@@ -469,7 +432,9 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                             f"{v['points']} points, petal F-score at 5 mm "
                             f"{v['quality']['petals']['fscore_5mm']:.2f} "
                             + ("(from the cache)" if v.get("cached") else
-                               f"({', '.join(f'{k} {t:.0f} s' for k, t in v['seconds'].items())})"))
+                               f"({', '.join(f'{k} {t:.0f} s' for k, t in v['seconds'].items())})"),
+                            stage="scan capture", labels=[f"seed-{s}" for s in seeds],
+                            cpus=CAPTURE_CPUS)
         for stage in ("scan", "frames", "reconstruct"):
             timing[stage] = round(sum(c["seconds"][stage] for c in captured), 4)
         clouds = {s: (folders[s] / "reconstruction" / "cloud.ply",

@@ -22,10 +22,10 @@ from flowerpose.eval.harness import (
     capture_clouds,
     evaluate_cloud,
     generate_plants,
-    run_jobs,
     settings_run,
 )
 from flowerpose.eval.report import summarise
+from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import write_json
 
 METRICS = ("recall", "recall_visible", "fp_rate", "plane_mean_deg", "superellipsoid_mean_deg",
@@ -189,7 +189,10 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
             for k, cfg in enumerate(configs) for s in seeds]
     results = run_jobs(evaluate_cloud, jobs, workers,
                        lambda j, v: f"setting {j // len(seeds)} {v[0]['plant']}: "
-                       f"{v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp")
+                       f"{v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp",
+                       stage="sweep evaluation",
+                       labels=[f"setting {k} seed-{s}" for k in range(len(configs))
+                               for s in seeds])
     # The values as the config holds them: 0.008 a number, "mask" a string, 14 an integer.
     typed = [{key: value_at(cfg, key) for key in keys} for cfg in configs]
     pooled, per_plant = [], []

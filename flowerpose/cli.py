@@ -11,7 +11,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from flowerpose.errors import InputError, missing_extra
+from flowerpose.errors import InputError, JobsFailed, missing_extra
 from flowerpose.hardware.bot_errors import BotError
 from flowerpose.log import LOG
 
@@ -71,6 +71,23 @@ def _add_cache_options(parser: argparse.ArgumentParser) -> None:
                         "(default: $FLOWERPOSE_CACHE, else ~/.cache/flowerpose)")
     parser.add_argument("--no-cache", action="store_true",
                         help="run every stage, reading and filling no cache")
+
+
+def _add_ray_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="run the plants' jobs as Ray tasks: on a local Ray without an "
+                        "address, else on the cluster at ADDRESS (host:port, ray://..., or "
+                        "auto); a job that fails is tried once more, then reported by plant "
+                        "(needs the [ray] extra; default: a local process pool)")
+
+
+def _jobs_on(args: argparse.Namespace) -> contextlib.AbstractContextManager:
+    """Where the command's jobs run: Ray (`--ray`), or the process pool."""
+    if args.ray is None:
+        return contextlib.nullcontext()
+    from flowerpose.eval.runner import on_ray
+
+    return on_ray(None if args.ray == "local" else args.ray)
 
 
 def _cache(args: argparse.Namespace) -> Path | None:
@@ -145,7 +162,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_outputs
 
     writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
-    with _owned(out, "eval", args.overwrite, writes):
+    with _owned(out, "eval", args.overwrite, writes), _jobs_on(args):
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
                           truth_scale=args.truth_scale, compare=compare, suite=suite,
@@ -599,7 +616,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     config = eval_config(args.preset, lambda base: _configure(base, args))
     grid = parse_grid(args.grid, config)
     cache = _cache(args)
-    with _owned(args.out, "sweep", args.overwrite, sweep_outputs(grid, args.source)):
+    with _owned(args.out, "sweep", args.overwrite, sweep_outputs(grid, args.source)), \
+            _jobs_on(args):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
                          workers=args.workers, source=args.source, cache=cache)
     metrics = best["metrics"]
@@ -788,6 +806,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds an external method may take on one plant (default: "
                    "%(default)g)")
     _add_cache_options(p)
+    _add_ray_option(p)
     p.add_argument("--suite", choices=suite_names(), metavar="NAME",
                    help="a named, versioned benchmark suite that fixes the source, preset, "
                    f"plants and seeds ({', '.join(suite_names())}; assets/suites/); the report "
@@ -1079,6 +1098,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folder for sweep.csv, sweep.png and best.json")
     _add_overwrite(p)
     _add_cache_options(p)
+    _add_ray_option(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_sweep)
 
@@ -1153,6 +1173,10 @@ def main(argv: list[str] | None = None) -> int:
         # BotError: a fault of the bot or its link, said in one line that names the device.
         print(f"flowerpose: error: {err}", file=sys.stderr)
         return 2
+    except JobsFailed as err:
+        # Plants whose jobs failed on every try (Ray); the others' results are kept.
+        print(f"flowerpose: error: {err}", file=sys.stderr)
+        return 2 if err.user_error else 1
     except ModuleNotFoundError as err:
         # An optional package of an extra the install left out: say which extra.
         missing = missing_extra(err.name or "", f"flowerpose {args.command}")

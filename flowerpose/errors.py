@@ -36,10 +36,29 @@ class InputError(PicklableError):
         super().__init__(f"{self.source}: {problem}")
 
 
+class JobsFailed(PicklableError):
+    """Jobs of one stage that failed on every try, named by plant, once the stage's other
+    jobs have finished (their results are kept). `user_error`: every cause was bad input,
+    so the command line says exit 2, as for one; else 1."""
+
+    def __init__(self, stage: str, failures: list[tuple[str, BaseException]]):
+        self.stage = stage
+        self.failures = [(label, one_line(error)) for label, error in failures]
+        self.user_error = all(isinstance(error, InputError) for _, error in failures)
+        super().__init__(f"{len(failures)} {stage} job(s) failed after a retry: "
+                         + "; ".join(f"{label}: {line}" for label, line in self.failures))
+
+
+def one_line(error: BaseException) -> str:
+    """An exception as one line: its type and its first line of text."""
+    text = str(error).strip()
+    return f"{type(error).__name__}: {text.splitlines()[0]}" if text else type(error).__name__
+
+
 #: The optional packages, by the extra that installs them (pyproject.toml).
 EXTRAS = {"mujoco": "sim", "pyrender": "sim", "trimesh": "sim", "OpenGL": "sim",
           "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot",
-          "onnxruntime": "onnx", "jwt": "bot"}
+          "onnxruntime": "onnx", "jwt": "bot", "ray": "ray"}
 
 
 def missing_extra(module: str, needed_for: str) -> InputError | None:

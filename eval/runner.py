@@ -1,0 +1,177 @@
+"""Where eval's and sweep's jobs run: a local process pool (the default), or Ray tasks
+inside `on_ray()` (`flowerpose eval|sweep --ray [ADDRESS]`: a local Ray without an
+address, an existing cluster with one, or "auto").
+
+Every job is one plant's work at one stage (generate, capture: scan + frames +
+reconstruction, score, a sweep setting's evaluation), so the plants' scans,
+reconstructions and detections overlap wherever there are cores for them. On Ray a job
+that raises is tried once more; one that fails again is reported by plant and stage
+(`JobsFailed`) after every other job has finished, so their results, written by the
+jobs themselves into the run's folder and the stage cache, are kept.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+from collections import Counter
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from typing import Any
+
+from flowerpose.errors import InputError, JobsFailed, one_line
+from flowerpose.log import LOG, Tally
+from flowerpose.processes import quiet_worker
+
+#: Times a Ray task that raised is run again before it counts as failed.
+TASK_RETRIES = 1
+
+#: Environment a Ray worker needs that a cluster's own shell may not set (headless
+#: rendering).
+WORKER_ENVIRONMENT = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "FLOWERPOSE_CACHE")
+
+
+@dataclass
+class RayJobs:
+    """The Ray session eval and sweep run their jobs on (inside `on_ray`)."""
+
+    address: str | None
+    tasks_by_node: Counter = field(default_factory=Counter)
+    """Finished tasks per Ray node id: where the work landed."""
+
+    def largest_node_cpus(self) -> int:
+        import ray
+
+        return max(int(n["Resources"].get("CPU", 1)) for n in ray.nodes() if n["Alive"])
+
+
+_session: RayJobs | None = None
+
+
+@contextlib.contextmanager
+def on_ray(address: str | None) -> Iterator[RayJobs]:
+    """Run every `run_jobs` inside on Ray: a local Ray with this machine's cores when
+    `address` is None, else the cluster at `address` ("auto": the one this machine
+    belongs to). One line, exit 2, where Ray is not installed or not reachable."""
+    global _session
+    try:
+        import ray
+    except ModuleNotFoundError:
+        raise InputError("--ray", "needs the [ray] extra (ray is not installed): "
+                         "pip install 'flowerpose[ray]'") from None
+    environment = {name: os.environ[name] for name in WORKER_ENVIRONMENT if name in os.environ}
+    # A local Ray is this command's own: no dashboard. A cluster keeps its own settings.
+    own = {"include_dashboard": False} if address is None else {}
+    try:
+        ray.init(address=address, log_to_driver=False, logging_level="ERROR",
+                 runtime_env={"env_vars": environment}, **own)
+    except (ConnectionError, ValueError, RuntimeError) as error:
+        raise InputError("--ray", f"cannot reach Ray at {address or 'a local Ray'}: "
+                         f"{str(error).splitlines()[0]}") from None
+    session = _session = RayJobs(address)
+    try:
+        yield session
+    finally:
+        _session = None
+        ray.shutdown()
+        counts = sorted(session.tasks_by_node.values(), reverse=True)
+        LOG.info(f"ray: {sum(counts)} tasks on {len(counts)} node(s) "
+                 f"({', '.join(map(str, counts))})")
+
+
+def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
+             describe: Callable[[int, Any], str] | None = None, *,
+             stage: str = "job", labels: list[str] | None = None,
+             cpus: int = 1) -> list[Any]:
+    """function(*job) for every job, results in job order: in a process pool of `workers`
+    (default: every core; 1 runs them here, one after another), or as Ray tasks of `cpus`
+    cores each inside `on_ray` (`workers` is then Ray's to choose). With `describe`, a
+    line per finished job with the time left (`log.Tally`). stage, labels: what each job
+    is (the stage, and the plant of each job), for the report of a job that failed."""
+    if _session is not None:
+        return _run_on_ray(_session, function, jobs, describe, stage,
+                           labels or [f"job {k}" for k in range(len(jobs))], cpus)
+    results: list[Any] = [None] * len(jobs)
+    pool = _pool(min(workers or os.cpu_count() or 1, len(jobs)))
+    with Tally(len(jobs) if describe is not None else 0) as tally:
+
+        def report(k: int, value: Any) -> None:
+            if describe is not None:
+                tally.finished(describe(k, value))
+
+        if pool is None:
+            for k, job in enumerate(jobs):
+                results[k] = function(*job)
+                report(k, results[k])
+            return results
+        try:
+            futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
+            for future in as_completed(futures):
+                k = futures[future]
+                results[k] = future.result()
+                report(k, results[k])
+        except BaseException:
+            # Ctrl-C, SIGTERM or a failed job: no new job starts, and the workers, which
+            # ignore Ctrl-C, end with this process (`processes.die_with_parent`).
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+    pool.shutdown()
+    return results
+
+
+def _pool(workers: int) -> ProcessPoolExecutor | None:
+    if workers <= 1:
+        return None
+    # Spawned workers: forking a process that already runs Open3D's threads is unsafe.
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=quiet_worker)
+
+
+def _ray_task(function: Callable, job: tuple) -> tuple[Any, str]:
+    """One job in a Ray worker: its result and the node that ran it."""
+    import ray
+
+    from flowerpose.log import configure_worker
+
+    configure_worker()
+    return function(*job), ray.get_runtime_context().get_node_id()
+
+
+def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
+                describe: Callable[[int, Any], str] | None, stage: str, labels: list[str],
+                cpus: int) -> list[Any]:
+    import ray
+
+    task = ray.remote(_ray_task).options(
+        num_cpus=min(cpus, session.largest_node_cpus()), max_retries=TASK_RETRIES,
+        retry_exceptions=True)
+    refs = {task.remote(function, job): k for k, job in enumerate(jobs)}
+    results: list[Any] = [None] * len(jobs)
+    failures: list[tuple[str, BaseException]] = []
+    pending = list(refs)
+    with Tally(len(jobs) if describe is not None else 0) as tally:
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                k = refs[done[0]]
+                try:
+                    results[k], node = ray.get(done[0])
+                except ray.exceptions.RayError as error:
+                    cause = getattr(error, "cause", None) or error
+                    failures.append((labels[k], cause))
+                    LOG.warning(f"{labels[k]}: {stage} failed on every try: {one_line(cause)}")
+                    continue
+                session.tasks_by_node[node] += 1
+                if describe is not None:
+                    tally.finished(describe(k, results[k]))
+        except BaseException:
+            # Ctrl-C, SIGTERM: the tasks not yet done are cancelled, their workers stopped.
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
+    if failures:
+        raise JobsFailed(stage, failures)
+    return results
+

@@ -1,0 +1,66 @@
+"""Eval and sweep jobs on Ray (`--ray`): the same report as the process pool, a failing job
+retried once and then named by plant and stage with the other jobs' work kept, and one
+line without Ray."""
+
+import csv
+import sys
+from pathlib import Path
+
+import pytest
+
+from flowerpose.cli import main
+from flowerpose.errors import JobsFailed
+from flowerpose.eval.harness import eval_config
+from flowerpose.eval.runner import TASK_RETRIES, run_jobs
+from flowerpose.eval.sweep import parse_grid, run_sweep
+
+ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowerpose[ray]')")
+
+
+def _rows(folder: Path) -> list[dict]:
+    """sweep.csv's rows without their timings (which differ run to run)."""
+    with open(folder / "sweep.csv", newline="") as handle:
+        return [{k: v for k, v in row.items() if "seconds" not in k}
+                for row in csv.DictReader(handle)]
+
+
+def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
+    config = eval_config("realistic")
+    grid = parse_grid(["cluster.min_points=10,20"], config)
+    run_sweep(config, grid, plants=2, seed=0, out_dir=tmp_path / "pool", workers=2)
+    from flowerpose.eval.runner import on_ray
+
+    with on_ray(None) as session:
+        run_sweep(config, grid, plants=2, seed=0, out_dir=tmp_path / "ray")
+    assert _rows(tmp_path / "ray") == _rows(tmp_path / "pool")
+    assert len(_rows(tmp_path / "pool")) == 2
+    assert sum(session.tasks_by_node.values()) == 2 + 2 * 2  # plants, then evaluations
+
+
+def test_a_failing_job_is_tried_again_then_named_and_the_others_are_kept(tmp_path):
+    from flowerpose.eval.runner import on_ray
+
+    def job(name: str, folder: Path) -> str:
+        with open(folder / f"{name}.tries", "a") as tries:
+            tries.write("try\n")
+        if name == "seed-1":
+            raise RuntimeError("the reconstruction diverged")
+        (folder / f"{name}.done").write_text("ok")
+        return name
+
+    names = ["seed-0", "seed-1", "seed-2"]
+    with on_ray(None), pytest.raises(JobsFailed) as failed:
+        run_jobs(job, [(n, tmp_path) for n in names], None, stage="scan capture",
+                 labels=names)
+    assert failed.value.failures == [("seed-1", "RuntimeError: the reconstruction diverged")]
+    assert "1 scan capture job(s) failed" in str(failed.value) and not failed.value.user_error
+    assert (tmp_path / "seed-1.tries").read_text().count("try") == 1 + TASK_RETRIES
+    assert (tmp_path / "seed-0.done").exists() and (tmp_path / "seed-2.done").exists()
+
+
+def test_ray_without_the_extra_is_one_line(monkeypatch, capsys, tmp_path):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now fails as if absent
+    assert main(["sweep", "--source", "oracle", "--plants", "1", "--grid",
+                 "cluster.eps=0.01", "--out", str(tmp_path / "s"), "--ray"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pip install 'flowerpose[ray]'" in err
