@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import socket
 from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -61,6 +62,8 @@ def on_ray(address: str | None) -> Iterator[RayJobs]:
     except ModuleNotFoundError:
         raise InputError("--ray", "needs the [ray] extra (ray is not installed): "
                          "pip install 'flowerpose[ray]'") from None
+    if address is not None:
+        _check_listening(address)
     environment = {name: os.environ[name] for name in WORKER_ENVIRONMENT if name in os.environ}
     # A local Ray is this command's own: no dashboard. A cluster keeps its own settings.
     own = {"include_dashboard": False} if address is None else {}
@@ -79,6 +82,19 @@ def on_ray(address: str | None) -> Iterator[RayJobs]:
         counts = sorted(session.tasks_by_node.values(), reverse=True)
         LOG.info(f"ray: {sum(counts)} tasks on {len(counts)} node(s) "
                  f"({', '.join(map(str, counts))})")
+
+
+def _check_listening(address: str) -> None:
+    """One line, at once, for a host:port where nothing listens: Ray itself retries such an
+    address for minutes. "auto" and ray:// addresses are left to Ray."""
+    host, _, port = address.rpartition(":")
+    if "://" in address or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=3.0).close()
+    except OSError as error:
+        raise InputError("--ray", f"nothing answers at {address} ({error.strerror or error}): "
+                         "start the cluster (ray start --head) or give its address") from None
 
 
 def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,

@@ -64,3 +64,10 @@ def test_ray_without_the_extra_is_one_line(monkeypatch, capsys, tmp_path):
                  "cluster.eps=0.01", "--out", str(tmp_path / "s"), "--ray"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "pip install 'flowerpose[ray]'" in err
+
+
+def test_a_ray_address_where_nothing_listens_is_one_line_at_once(capsys, tmp_path):
+    assert main(["sweep", "--source", "oracle", "--plants", "1", "--grid",
+                 "cluster.eps=0.01", "--out", str(tmp_path / "s"), "--ray", "127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nothing answers at 127.0.0.1:1" in err
