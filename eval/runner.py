@@ -38,7 +38,6 @@ WORKER_ENVIRONMENT = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "FLOWERPOSE_CACHE")
 class RayJobs:
     """The Ray session eval and sweep run their jobs on (inside `on_ray`)."""
 
-    address: str | None
     tasks_by_node: Counter = field(default_factory=Counter)
     """Finished tasks per Ray node id: where the work landed."""
 
@@ -73,7 +72,7 @@ def on_ray(address: str | None) -> Iterator[RayJobs]:
     except (ConnectionError, ValueError, RuntimeError) as error:
         raise InputError("--ray", f"cannot reach Ray at {address or 'a local Ray'}: "
                          f"{str(error).splitlines()[0]}") from None
-    session = _session = RayJobs(address)
+    session = _session = RayJobs()
     try:
         yield session
     finally:

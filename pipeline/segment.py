@@ -457,13 +457,15 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     centre[candidates] = pistil_mask(hsv, colour)
     if config.candidates == "flower_colour":
         candidates = candidates[white[candidates] | centre[candidates]]
-    def at(scale: float) -> tuple[tuple[list[np.ndarray], float | None], float | None]:
-        clusters, typical, size = _group(plant, candidates, white, centre,
-                                         *scaled_limits(outliers, config, scale))
-        return (clusters, typical), size
+    def at(scale: float) -> tuple[tuple[list[np.ndarray], float | None, ClusterConfig],
+                                  float | None]:
+        scaled_outliers, scaled = scaled_limits(outliers, config, scale)
+        clusters, typical, size = _group(plant, candidates, white, centre, scaled_outliers,
+                                         scaled)
+        return (clusters, typical, scaled), size
 
-    scale, (clusters, typical), size = sized_to_band(at, config.size_band_m)
-    return Grouping(clusters, typical, size, scale, scaled_limits(outliers, config, scale)[1])
+    scale, (clusters, typical, applied), size = sized_to_band(at, config.size_band_m)
+    return Grouping(clusters, typical, size, scale, applied)
 
 
 def sized_to_band(run: Callable[[float], tuple[Result, float | None]],
