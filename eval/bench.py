@@ -30,7 +30,7 @@ SIMULATOR_BUDGET_S = {"plant": 2.0, "visibility": 3.0, "oracle_cloud": 5.0}
 def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
     """Median wall seconds of the simulator's steps for realistic plant `seed`: generating
     the plant, its flowers' visibility from the scan path, and its oracle cloud."""
-    from flowerpose.scanpath import path_cameras
+    from flowerpose.scan_geometry import path_cameras
     from flowerpose.sim.config import OracleCloudConfig, preset
     from flowerpose.sim.oracle import sample_oracle_cloud
     from flowerpose.sim.plant import generate_plant

@@ -16,7 +16,7 @@ from pathlib import Path
 from flowerpose.cache import StageCache
 from flowerpose.config import require, to_dict
 from flowerpose.pipeline.reconstruct import ReconstructConfig
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
 

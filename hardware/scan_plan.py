@@ -31,7 +31,7 @@ from flowerpose.hardware.motion import (
     move_duration,
     move_trajectory,
 )
-from flowerpose.scanpath import ScanPathConfig, path_cameras
+from flowerpose.scan_geometry import ScanPathConfig, path_cameras
 
 
 @dataclass(frozen=True)

@@ -60,7 +60,7 @@ from flowerpose.scanio import (
     open_rows,
     trajectory_row,
 )
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
 from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.cloudio import Cloud
-from flowerpose.scanpath import path_cameras
+from flowerpose.scan_geometry import path_cameras
 from flowerpose.sim.config import PresetName, SimConfig, sim_preset
 from flowerpose.sim.export import write_plant
 from flowerpose.sim.oracle import sample_oracle_cloud

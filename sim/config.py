@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from flowerpose.errors import InputError
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 
 PresetName = Literal["easy", "realistic", "hard", "field"]
 

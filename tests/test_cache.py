@@ -11,7 +11,7 @@ from flowerpose import cache as cache_module
 from flowerpose.cache import StageCache, stage_key
 from flowerpose.eval import scan_source
 from flowerpose.eval.scan_source import CAPTURE_FILES, ScanSourceConfig, capture_scan_cached
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 
 
 def _inputs(tmp_path, text="plant"):

@@ -42,7 +42,7 @@ from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_
 from flowerpose.hardware.motion import move_duration
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 
 TOKEN_ENV = {"FARMBOT_TOKEN": json.dumps(make_token())}
 SECRETS = (SECRET_JWT_SIGNATURE, PASSWORD, EMAIL, make_token()["token"]["encoded"])

@@ -20,7 +20,7 @@ from flowerpose.hardware.geometry import bed_to_farmbot_mm
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 
 farmbot = pytest.importorskip("farmbot")
 pytestmark = pytest.mark.skipif(mosquitto_binary() is None,

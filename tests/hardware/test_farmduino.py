@@ -39,7 +39,7 @@ from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 from flowerpose.jsonio import read_json
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 
 SCALE = 1000.0  # simulated seconds per wall second
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,

@@ -9,7 +9,7 @@ from flowerpose.hardware.bot_errors import StallError
 from flowerpose.hardware.scan import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,
                                   dome_polar_deg=(50.0,)))

@@ -4,7 +4,7 @@ import pytest
 from flowerpose.errors import InputError
 from flowerpose.hardware.kinematics import UnreachableError, forward
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
-from flowerpose.scanpath import ScanPathConfig, path_cameras
+from flowerpose.scan_geometry import ScanPathConfig, path_cameras
 
 MID_BED = np.array([1.5, 0.75])
 

@@ -15,7 +15,7 @@ from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, w
 from flowerpose.jsonio import read_json
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_frames
 from flowerpose.scanio import frame_files, read_trajectory
-from flowerpose.scanpath import ScanPathConfig
+from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.sim.bundle import make_plant
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig

@@ -9,7 +9,7 @@ import pytest
 from simhelpers import box, cached_plant, handmade_plant
 
 from flowerpose.pipeline.colour import rgb_to_hsv
-from flowerpose.scanpath import path_cameras
+from flowerpose.scan_geometry import path_cameras
 from flowerpose.sim.config import OracleCloudConfig
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.pieces import Part

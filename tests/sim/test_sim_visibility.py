@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from simhelpers import box, cached_plant, handmade_plant
 
-from flowerpose.scanpath import path_cameras
+from flowerpose.scan_geometry import path_cameras
 from flowerpose.sim.visibility import flower_visibility
 
 UP = np.array([0.0, 0.0, 1.0])
