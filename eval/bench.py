@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import statistics
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
 from flowerpose.sim.bundle import make_plant
+from flowerpose.stopwatch import Stopwatch
 
 #: The published code's time per plant (upstream.md), for the printed comparison.
 UPSTREAM_SECONDS = (78, 105)
@@ -38,16 +38,16 @@ def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
 
     runs: dict[str, list[float]] = {name: [] for name in SIMULATOR_BUDGET_S}
     for _ in range(repeat):
-        tick = time.perf_counter()
-        plant = generate_plant(seed, preset("realistic"))
-        runs["plant"].append(time.perf_counter() - tick)
+        watch = Stopwatch()
+        with watch.step("plant"):
+            plant = generate_plant(seed, preset("realistic"))
         views = path_cameras(plant.center[:2], plant.height)[1]
-        tick = time.perf_counter()
-        flower_visibility(plant, views)
-        runs["visibility"].append(time.perf_counter() - tick)
-        tick = time.perf_counter()
-        sample_oracle_cloud(plant, OracleCloudConfig(), views, np.random.default_rng(seed))
-        runs["oracle_cloud"].append(time.perf_counter() - tick)
+        with watch.step("visibility"):
+            flower_visibility(plant, views)
+        with watch.step("oracle_cloud"):
+            sample_oracle_cloud(plant, OracleCloudConfig(), views, np.random.default_rng(seed))
+        for name, seconds in watch.seconds.items():
+            runs[name].append(seconds)
     return {name: round(statistics.median(values), 4) for name, values in runs.items()}
 
 

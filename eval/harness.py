@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +46,7 @@ from flowerpose.pipeline.flowers import (
 )
 from flowerpose.pipeline.rgbd import FusionConfig
 from flowerpose.sim.config import PresetName, SimConfig, sim_preset
+from flowerpose.stopwatch import Stopwatch
 
 #: The paper's estimate of its hand labels' error, degrees (the field preset's).
 FIELD_LABEL_ERROR_DEG = 5.0
@@ -114,9 +114,9 @@ def generate_plant_files(seed: int, sim: SimConfig, plant_dir: Path) -> float:
     """Write plant `seed`'s truth, mesh and oracle cloud into plant_dir; wall seconds."""
     from flowerpose.sim.bundle import make_plant
 
-    start = time.perf_counter()
+    watch = Stopwatch()
     make_plant(seed, out_dir=plant_dir, config=sim)
-    return time.perf_counter() - start
+    return watch.elapsed()
 
 
 def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_dir: Path,
@@ -127,13 +127,12 @@ def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_d
     result = find_flowers(cloud, pipeline_part(config))
     write_flowers(out_dir / "flowers.json", result, cloud_path)
     write_normals_ply(out_dir, result.flowers)
-    start = time.perf_counter()
+    watch = Stopwatch()
     truth = read_plant_truth(truth_path)
     if config.score.label_error_deg > 0:
         truth = as_labelled(truth, config.score.label_error_deg, name)
     score = score_plant([f.pose for f in result.flowers], truth, config.score.max_distance_m)
-    timing = dict(result.timing_s)
-    timing["score"] = time.perf_counter() - start
+    timing = {**result.timing_s, "score": watch.elapsed()}
     return plant_entry(name, score), timing
 
 
@@ -209,8 +208,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     captures are taken from and put into; None runs every stage.
     """
     if source not in SOURCES:
-        raise InputError("--source", f"'{source}': one of {', '.join(SOURCES)}")
-    start = time.perf_counter()
+        raise InputError("source", f"'{source}': one of {', '.join(SOURCES)}")
+    watch = Stopwatch()
     if source == "real":
         jobs, described = _real_jobs(list(folders), truth_scale)
         timing, extra = {}, {}
@@ -220,7 +219,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         title = f"flowerpose eval: {len(jobs)} real plants"
     else:
         if plants < 1:
-            raise InputError("--plants", f"must be at least 1, got {plants}")
+            raise InputError("plants", f"must be at least 1, got {plants}")
         jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers,
                                               cache)
         starts = ["cloud"]
@@ -243,7 +242,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         extra.setdefault("compare", {})[method.name] = {
             "summary": summarise(others), "plants": others,
             "config": {"method": method.command, "timeout_s": method.timeout_s}}
-    timing["total"] = round(time.perf_counter() - start, 4)
+    timing["total"] = round(watch.elapsed(), 4)
     if suite is not None:
         extra["suite"] = suite
     report = build_report(run_config, entries, timing, extra)
@@ -353,7 +352,7 @@ def _real_jobs(folders: list[Path],
     from flowerpose.eval.real_source import read_real_plant
 
     if not folders:
-        raise InputError("--source real", "needs at least one labelled plant folder: "
+        raise InputError("source", "real needs at least one labelled plant folder: "
                          "flowerpose eval --source real DIR [DIR ...]")
     plants = [read_real_plant(folder, truth_scale) for folder in folders]
     jobs = [("real", name, plant)
@@ -471,7 +470,7 @@ def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:
     from flowerpose.pipeline.rgbd import fuse_rgbd_scan
     from flowerpose.sim.export import read_plant
 
-    start = time.perf_counter()
+    watch = Stopwatch()
     scan_dir = plant_dir / "rgbd"
     recorded = record_rgbd_scan(plant_dir, scan_dir, config.rgbd, config.sim.viewpoints)
     cloud, fusion = fuse_rgbd_scan(scan_dir, config.fusion)
@@ -479,23 +478,23 @@ def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:
     plant = read_plant(plant_dir)
     quality = reconstruction_quality(cloud.points, plant.mesh, plant.face_part, samples=100_000)
     return {"frames": recorded["frames"], "points": fusion["points"], "quality": quality,
-            "seconds": time.perf_counter() - start}
+            "seconds": watch.elapsed()}
 
 
 def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant",
                 truth_scale: float = 25.0, max_distance: float = MAX_MATCH_DISTANCE) -> dict:
     """A one-plant report for a flowers.json against plant.json or SageMaker labels."""
     if not (truth_scale > 0 and math.isfinite(truth_scale)):
-        raise InputError("--truth-scale", f"must be positive, got {truth_scale}")
+        raise InputError("truth_scale", f"must be positive, got {truth_scale}")
     if not (max_distance > 0 and math.isfinite(max_distance)):
-        raise InputError("--max-distance", f"must be positive, got {max_distance}")
+        raise InputError("score.max_distance_m", f"must be positive, got {max_distance}")
     estimates = read_flowers(flowers_path)
     truth = (read_plant_truth(truth_path) if truth_format == "plant"
              else read_sagemaker_truth(truth_path, truth_scale))
-    start = time.perf_counter()
+    watch = Stopwatch()
     score = score_plant(estimates, truth, max_distance)
     config = {"truth_format": truth_format, "truth_scale": truth_scale,
               "max_distance_m": max_distance}
+    seconds = round(watch.elapsed(), 6)
     return build_report(config, [plant_entry(flowers_path.parent.name or "plant", score)],
-                        {"score": round(time.perf_counter() - start, 6),
-                         "total": round(time.perf_counter() - start, 6)})
+                        {"score": seconds, "total": seconds})

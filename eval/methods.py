@@ -17,7 +17,6 @@ import re
 import shlex
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -27,6 +26,7 @@ from flowerpose.errors import InputError
 from flowerpose.eval.match import score_plant
 from flowerpose.eval.report import plant_entry
 from flowerpose.eval.truth import TruthFlower
+from flowerpose.stopwatch import Stopwatch
 
 #: Seconds an external method may take on one plant unless told otherwise.
 DEFAULT_TIMEOUT_S = 600.0
@@ -66,14 +66,14 @@ def parse_method(text: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> ExternalMet
                               f"{shlex.quote(name)} {{cloud}} {{out}}", timeout_s)
     if not sep or not name.replace("-", "").replace("_", "").isalnum():
         known = ", ".join(sorted(registered_methods())) or "none installed"
-        raise InputError("--method", f"'{text}': expected NAME='CMD {{cloud}} {{out}}', or "
+        raise InputError("method", f"'{text}': expected NAME='CMD {{cloud}} {{out}}', or "
                          f"the name of a registered method ({known})")
     try:
         parts = shlex.split(command)
     except ValueError as err:
-        raise InputError("--method", f"'{text}': {err}") from None
+        raise InputError("method", f"'{text}': {err}") from None
     if not parts or "{cloud}" not in command or "{out}" not in command:
-        raise InputError("--method", f"'{text}': the command must name {{cloud}} (the plant's "
+        raise InputError("method", f"'{text}': the command must name {{cloud}} (the plant's "
                          "cloud) and {out} (the folder for its flowers.json)")
     return ExternalMethod(name, command, timeout_s)
 
@@ -85,7 +85,7 @@ def run_method(method: ExternalMethod, cloud: Path, truth: list[TruthFlower], ou
     from flowerpose.pipeline.flowers import read_flowers
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
+    watch = Stopwatch()
     error = None
     try:
         done = subprocess.run(method.argv(cloud, out_dir), capture_output=True, text=True,
@@ -97,7 +97,7 @@ def run_method(method: ExternalMethod, cloud: Path, truth: list[TruthFlower], ou
         error = f"ran past its timeout of {method.timeout_s:g} s and was stopped"
     except OSError as err:
         error = f"could not start: {err.strerror or err}"
-    seconds = time.perf_counter() - start
+    seconds = watch.elapsed()
     estimates = []
     if error is None:
         try:
@@ -144,6 +144,6 @@ def parse_compare(text: str, config: Any, timeout_s: float = DEFAULT_TIMEOUT_S
         label = Path(spec).stem if kind == "onnx" else spec
         return "detector-" + re.sub(r"[^A-Za-z0-9_.-]+", "_", label), compared
     known = ", ".join(profile_names())
-    raise InputError("--compare", f"'{text}': a profile ({known}), a registered method, "
+    raise InputError("compare", f"'{text}': a profile ({known}), a registered method, "
                      "NAME='CMD {cloud} {out}', or a detector (onnx:MODEL.onnx or "
                      "MODULE:CLASS)")

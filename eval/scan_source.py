@@ -9,7 +9,7 @@ visibility), frames/ (`flowerpose frames`), reconstruction/ (`flowerpose reconst
 from __future__ import annotations
 
 import dataclasses
-import time
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +19,7 @@ from flowerpose.pipeline.reconstruct import ReconstructConfig
 from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
+from flowerpose.stopwatch import Stopwatch
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,10 @@ class ScanSourceConfig:
         require(self.width >= 16 and self.height >= 16, "scan.width",
                 "width and height must be at least 16 pixels")
         require(self.frames >= 3, "scan.frames", "photogrammetry needs at least 3 frames")
+        require(self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz),
+                "scan.frame_rate_hz", f"must be positive, got {self.frame_rate_hz}")
+        require(self.workers is None or self.workers >= 1, "scan.workers",
+                f"must be at least 1, got {self.workers}")
 
 
 def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
@@ -93,22 +98,17 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
     from flowerpose.pipeline.reconstruct import reconstruct
     from flowerpose.sim.export import read_plant
 
-    seconds: dict[str, float] = {}
-    tick = time.perf_counter()
+    watch = Stopwatch()
     plant = read_plant(plant_dir)
     scan_dir = plant_dir / "scan"
     manifest = scan_plant(plant_dir, scan_dir, config, plan_plant_scan(plant, path))
-    seconds["scan"] = time.perf_counter() - tick
-
-    tick = time.perf_counter()
+    watch.lap("scan")
     chosen = select_frames(scan_dir, plant_dir / "frames", FrameSelectConfig(count=config.frames),
                            progress=False)
-    seconds["frames"] = time.perf_counter() - tick
-
-    tick = time.perf_counter()
+    watch.lap("frames")
     result = reconstruct(plant_dir / "frames", plant_dir / "reconstruction", config.reconstruct,
                          progress=False)
-    seconds["reconstruct"] = time.perf_counter() - tick
+    watch.lap("reconstruct")
     quality = reconstruction_quality(result.cloud.points, plant.mesh, plant.face_part,
                                      samples=100_000)
     report = result.report
@@ -118,7 +118,7 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
     return {"recorded": sum(s.get("frames", 0) for s in manifest["sessions"]),
             "frames": len(chosen["frames"]), "registered": report["images_registered"],
             "points": report["points"], "quality": quality,
-            "seconds": {k: round(v, 3) for k, v in seconds.items()}}
+            "seconds": watch.report(digits=3, total=None)}
 
 
 #: What the stage cache keeps of a plant's scan: the chosen frames as `flowerpose frames`

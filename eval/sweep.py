@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import io
 import itertools
-import time
 from pathlib import Path
 
 from flowerpose.atomic import write_figure, write_text
@@ -27,6 +26,7 @@ from flowerpose.eval.harness import (
 from flowerpose.eval.report import summarise
 from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import write_json
+from flowerpose.stopwatch import Stopwatch
 
 METRICS = ("recall", "recall_visible", "fp_rate", "plane_mean_deg", "superellipsoid_mean_deg",
            "paraboloid_mean_deg", "seconds_per_plant")
@@ -40,9 +40,9 @@ def parse_grid(items: list[str], config: EvalConfig) -> list[tuple[str, list[str
         key, sep, values = item.partition("=")
         choices = [v.strip() for v in values.split(",") if v.strip()]
         if not sep or not key.strip() or not choices:
-            raise InputError("--grid", f"expected key=v1,v2,..., got {item!r}")
+            raise InputError("grid", f"expected key=v1,v2,..., got {item!r}")
         if key.strip() in (k for k, _ in grid):
-            raise InputError("--grid", f"{key.strip()} is given twice; put all its values in "
+            raise InputError("grid", f"{key.strip()} is given twice; put all its values in "
                              "one --grid")
         for value in choices:
             apply_overrides(config, {key.strip(): value})
@@ -166,11 +166,11 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     reconstructed, once for all settings unless a setting changes them; `cache` is the
     stage cache's folder those captures are taken from and put into (None: none)."""
     if plants < 1:
-        raise InputError("--plants", f"must be at least 1, got {plants}")
+        raise InputError("plants", f"must be at least 1, got {plants}")
     if source not in _CAPTURE_KEYS:
-        raise InputError("--source", f"'{source}': the sweep's sources are "
+        raise InputError("source", f"'{source}': the sweep's sources are "
                          f"{', '.join(_CAPTURE_KEYS)}")
-    start = time.perf_counter()
+    watch = Stopwatch()
     keys = [key for key, _ in grid]
     settings = [dict(zip(keys, combo, strict=True))
                 for combo in itertools.product(*(values for _, values in grid))]
@@ -221,7 +221,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
                 "settings": [{"setting": t, "metrics": m, "plants": p}
                              for t, m, p in zip(typed, pooled, per_plant, strict=True)],
                 "plants": plants, "seed": seed, "source": source,
-                "seconds": round(time.perf_counter() - start, 2)})
+                "seconds": round(watch.elapsed(), 2)})
     for row in rows:
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "
               f"{row['recall_visible']}, fp_rate {row['fp_rate']}, plane "

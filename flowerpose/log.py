@@ -25,9 +25,10 @@ import logging
 import os
 import re
 import sys
-import time
 import warnings
 from collections.abc import Iterator
+
+from flowerpose.stopwatch import Stopwatch
 
 LOG = logging.getLogger("flowerpose")
 
@@ -152,10 +153,9 @@ def library_output(taken: str) -> Iterator[list[str]]:
                 stream.write("\n".join(rest) + "\n")
 
 
-def eta(start: float, done: int, total: int) -> str:
-    """"(12 s, about 30 s left)": the time since `start` (perf_counter) and, at the rate so
-    far, the time the rest of `total` will take."""
-    elapsed = time.perf_counter() - start
+def eta(elapsed: float, done: int, total: int) -> str:
+    """"(12 s, about 30 s left)": the `elapsed` seconds and, at the rate so far, the time
+    the rest of `total` will take."""
     left = elapsed / done * (total - done) if done else float("nan")
     return f"({_duration(elapsed)}" + (f", about {_duration(left)} left)" if done < total
                                        else ")")
@@ -177,7 +177,7 @@ class Tally:
     under a bar on a terminal."""
 
     def __init__(self, total: int, what: str = ""):
-        self.total, self.done, self.start = total, 0, time.perf_counter()
+        self.total, self.done, self.watch = total, 0, Stopwatch()
         self._bar = None
         if total and LOG.isEnabledFor(logging.INFO) and sys.stderr.isatty():
             from tqdm import tqdm
@@ -203,7 +203,7 @@ class Tally:
             self._bar.update(parts)
         if message is None:
             return
-        line = f"{message} {eta(self.start, self.done, self.total)}"
+        line = f"{message} {eta(self.watch.elapsed(), self.done, self.total)}"
         if self._bar is not None:
             self._bar.write(line, file=sys.stderr)
         else:

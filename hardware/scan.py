@@ -26,6 +26,7 @@ from flowerpose.hardware.bot import Bot
 from flowerpose.hardware.scan_plan import ScanPlan
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG, Tally
+from flowerpose.stopwatch import Stopwatch
 
 
 def plan_id(plan: ScanPlan) -> str:
@@ -55,7 +56,7 @@ def scan_lock(out_dir: Path) -> Iterator[None]:
             lock.seek(0)
             holder = lock.read().strip() or "another process"
             raise InputError(out_dir, f"another scan ({holder}) is recording into this folder;"
-                             " wait for it to end or choose another --out") from None
+                             " wait for it to end or choose another scan folder") from None
         lock.seek(0)
         lock.truncate()
         lock.write(f"pid {os.getpid()}")
@@ -106,7 +107,7 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         previous = read_json(manifest_path)
         if previous.get("plan_id") != fingerprint:
             raise InputError(out_dir, "holds a different scan (another plant or path); "
-                             "choose a new --out folder")
+                             "choose a new scan folder")
         manifest.update(completed=int(previous.get("completed", 0)),
                         sessions=list(previous.get("sessions", [])),
                         source=previous.get("source", source))  # the first session's
@@ -121,7 +122,7 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
     if start >= len(plan.waypoints):
         if progress:
             _progress(f"scan: {out_dir} holds this plan's scan, complete: nothing recorded "
-                      "(choose a new --out to scan again)")
+                      "(choose a new scan folder to scan again)")
         manifest["status"] = "complete"
         return manifest
     if start and progress:
@@ -134,14 +135,14 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         if any(not np.isclose(float(recorded.get(k, np.nan)), float(v))
                for k, v in intrinsics.items() if isinstance(v, int | float)):
             raise InputError(out_dir / "camera.json", "the scan was recorded with other camera "
-                             "settings; resume with the same ones or choose a new --out folder")
+                             "settings; resume with the same ones or choose a new scan folder")
     session = {"started_waypoint": start, "bot_time_start": bot.now(),
                "wall_start": time.time(), "source": source}
     manifest["sessions"].append(session)
     write_json(manifest_path, manifest)  # first: a folder with anything in it is a scan
     ends: list[float] = []  # bot-clock end of each waypoint flown in this session
     recording = False
-    wall = time.perf_counter()
+    wall = Stopwatch()
     try:
         write_json(out_dir / "camera.json", intrinsics)
         bot.camera.start_recording(out_dir / "video.mp4")
@@ -176,6 +177,29 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
             raise
         finally:
             manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
-            session.update(bot_time_end=bot.now(), wall_s=round(time.perf_counter() - wall, 3))
+            session.update(bot_time_end=bot.now(), wall_s=round(wall.elapsed(), 3))
             write_json(manifest_path, manifest)
     return manifest
+
+
+def approach_start(bot: Bot, plan: ScanPlan, out_dir: Path) -> None:
+    """Lift the head to the top of Z where the bot stands, then travel over the waypoint the
+    scan starts (or resumes) at: the scan's first move then only descends, where a direct
+    move from wherever the bot stood might sweep through the plant."""
+    start = 0
+    if (out_dir / "scan.json").exists():
+        manifest = read_json(out_dir / "scan.json")
+        if manifest.get("plan_id") != plan_id(plan):
+            raise InputError(out_dir, "holds a different scan (another plant or path); "
+                             "choose a new scan folder")
+        start = int(manifest.get("completed", 0))
+    if start >= len(plan.waypoints):
+        return
+    here = bot.position()
+    if not np.all(np.isfinite(here)):
+        raise InputError(bot.info.name, "the gantry's position is unknown: home the bot "
+                         "before scanning")
+    top = bot.info.travel_max[2]
+    target = plan.waypoints[start].pose.gantry
+    bot.move_to([here[0], here[1], top])
+    bot.move_to([target[0], target[1], top])

@@ -28,7 +28,6 @@ import contextlib  # noqa: E402
 import functools  # noqa: E402
 import math
 import multiprocessing
-import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
@@ -53,6 +52,7 @@ from flowerpose.hardware.trajectory import (
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG
 from flowerpose.processes import quiet_worker
+from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.scanio import (
     FRAME_PATTERN,
     TRAJECTORY_COLUMNS,
@@ -60,10 +60,10 @@ from flowerpose.scanio import (
     open_rows,
     trajectory_row,
 )
-from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
 from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
+from flowerpose.stopwatch import Stopwatch
 
 TRUTH_COLUMNS = ("frame", "t", "speed_px_s", "since_stop_s", "motion_blur_px", "defocus_px",
                  "noise_sigma", "sharpness")
@@ -105,9 +105,9 @@ class SimCameraConfig:
 
     def __post_init__(self):
         if not (self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz)):
-            raise InputError("--frame-rate", f"must be positive, got {self.frame_rate_hz}")
+            raise InputError("frame_rate_hz", f"must be positive, got {self.frame_rate_hz}")
         if self.workers is not None and self.workers < 1:
-            raise InputError("--workers", f"must be at least 1, got {self.workers}")
+            raise InputError("workers", f"must be at least 1, got {self.workers}")
         if self.visibility_width < 16 or self.visibility_samples < 1:
             raise InputError("visibility", "needs at least 16 pixels and 1 sample per flower")
 
@@ -342,7 +342,7 @@ class _FrameWriter:
         self._next_row = last_recorded(scan_dir)[0]
         self._render = functools.partial(_render_frame, frames_dir=str(scan_dir / "frames"),
                                          sensor_seed=config.seed, sensor=config.sensor)
-        self._started, self._count = time.perf_counter(), 0
+        self._watch, self._count = Stopwatch(), 0
 
     def write(self, tasks: list[FrameTask], settled: np.ndarray | None) -> int:
         """Render and append `tasks`; with a settled camera pose, also merge what it sees
@@ -365,7 +365,7 @@ class _FrameWriter:
             self._count += 1
             if self._count % 100 == 0:
                 LOG.info(f"scan: rendered {self._count} frames "
-                         f"({time.perf_counter() - self._started:.0f} s)")
+                         f"({self._watch.elapsed():.0f} s)")
         if visibility is not None:
             _merge_visibility(self.scan_dir / "visibility.json", [visibility.result()])
         return len(tasks)
@@ -406,7 +406,7 @@ class SimBotConfig:
 
     def __post_init__(self):
         if self.width < 16 or self.height < 16:
-            raise InputError("--width/--height", f"{self.width} x {self.height} pixels: both "
+            raise InputError("width", f"{self.width} x {self.height} pixels: both "
                              "must be at least 16")
 
 

@@ -42,7 +42,6 @@ Poses are camera-to-bed (4, 4) matrices in metres with OpenCV camera axes.
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
@@ -60,6 +59,7 @@ from flowerpose.pipeline.dense_pairs import depth_ranges, select_pairs
 from flowerpose.pipeline.dense_stereo import View, stereo_all
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
+from flowerpose.stopwatch import Stopwatch
 
 __all__ = ["DenseConfig", "reconstruct_dense", "select_pairs"]
 
@@ -135,18 +135,11 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
     after fusion and filtering, seconds per step, and the config.
     """
     config = config or DenseConfig()
-    start = time.perf_counter()
-    seconds: dict[str, float] = {}
-    lap = [start]
-
-    def step(name: str) -> None:
-        now = time.perf_counter()
-        seconds[name] = round(now - lap[0], 3)
-        lap[0] = now
+    watch = Stopwatch()
 
     def say(message: str) -> None:
         if progress:
-            LOG.info(f"dense: {message} ({time.perf_counter() - start:.1f} s)")
+            LOG.info(f"dense: {message} ({watch.elapsed():.1f} s)")
 
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():
@@ -168,7 +161,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
         loaded = list(pool.map(
             lambda n: _load_image(frames_dir / frames[n].file, size,
                                   (intrinsics.width, intrinsics.height)), posed))
-    step("load")
+    watch.lap("load")
     say(f"loaded {len(posed)} frames at {size[0]}x{size[1]}")
 
     pose_array = np.stack([frame_poses[n] for n in posed])
@@ -181,7 +174,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
              for (grey, rgb, _), pose, r in zip(loaded, pose_array, ranges, strict=True)]
     del loaded
     pairs, counts = select_pairs(pose_array, config, expected_depth=ranges.mean(axis=1))
-    step("pairs")
+    watch.lap("pairs")
     if not pairs:
         raise InputError(frames_dir, f"no usable stereo pairs among {len(views)} views "
                          f"({counts['candidates']} neighbouring pairs, {counts['degenerate']} "
@@ -191,7 +184,7 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
 
     skipped, matched = stereo_all(views, pairs, k, config, threads, progress)
     skipped["degenerate_geometry"] = counts["degenerate"]
-    step("stereo")
+    watch.lap("stereo")
     used = len(matched)
     if used == 0:
         raise InputError(frames_dir, f"all {len(pairs)} stereo pairs were degenerate")
@@ -201,8 +194,8 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
         raise InputError(frames_dir, f"no point passed fusion and filtering (points after "
                          f"each step: {point_counts}); the frames overlap too little or "
                          "their poses are wrong")
-    seconds.update(fusion_seconds)
-    seconds["total"] = round(time.perf_counter() - start, 3)
+    seconds = {**watch.report(digits=3, total=None), **fusion_seconds,
+               "total": round(watch.elapsed(), 3)}
     say(f"{len(cloud)} points")
     report = {
         "frames": len(frames), "posed": len(posed), "views": len(views),

@@ -4,7 +4,6 @@ Points are metres, bed frame."""
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -15,6 +14,7 @@ from flowerpose.log import open3d
 from flowerpose.pipeline.dense_config import DenseConfig
 from flowerpose.pipeline.dense_pairs import angle_deg, apply_matrix
 from flowerpose.pipeline.dense_stereo import View
+from flowerpose.stopwatch import Stopwatch
 
 
 def _merge_depths(depths: list[np.ndarray], tolerance: float, min_support: int
@@ -233,19 +233,12 @@ def fuse_and_filter(views: list[View], k: np.ndarray, config: DenseConfig, threa
     voxel down-sampling, the free-space check, statistical outlier removal. Returns (cloud,
     point counts after each step, seconds per step)."""
     o3d = open3d()
-    seconds: dict[str, float] = {}
-    last = [time.perf_counter()]
-
-    def step(name: str) -> None:
-        now = time.perf_counter()
-        seconds[name] = round(now - last[0], 3)
-        last[0] = now
-
+    watch = Stopwatch()
     fused, depth_maps, depth_pixels = _fuse_all(views, k, config, threads)
     points = np.concatenate([f[0] for f in fused])
     colors = np.concatenate([f[1] for f in fused])
     del fused
-    step("fusion")
+    watch.lap("fusion")
     fused_count = len(points)
     if scene_centre is not None and config.scene_radius_m is not None:
         inside = np.einsum("ij,ij->i", points - scene_centre, points - scene_centre) <= (
@@ -259,7 +252,7 @@ def fuse_and_filter(views: list[View], k: np.ndarray, config: DenseConfig, threa
     pcd.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) / 255.0)
     del points, colors
     voxel_count = len(pcd.points)
-    step("voxel")
+    watch.lap("voxel")
     if config.max_free_space_violations is not None and voxel_count:
         violations = _free_space_violations(np.asarray(pcd.points), views, depth_maps, k,
                                             config.free_space_tolerance,
@@ -268,14 +261,14 @@ def fuse_and_filter(views: list[View], k: np.ndarray, config: DenseConfig, threa
             np.flatnonzero(violations <= config.max_free_space_violations).tolist())
     free_count = len(pcd.points)
     del depth_maps
-    step("free_space")
+    watch.lap("free_space")
     if config.outlier_neighbours > 0 and free_count > config.outlier_neighbours:
         pcd, _ = pcd.remove_statistical_outlier(config.outlier_neighbours,
                                                 config.outlier_std_ratio)
     cloud = Cloud(np.asarray(pcd.points, np.float64).copy(),
                   np.clip(np.asarray(pcd.colors) * 255.0 + 0.5, 0, 255).astype(np.uint8))
-    step("outliers")
+    watch.lap("outliers")
     counts = {"depth_pixels": depth_pixels, "fused": fused_count, "in_scene": scene_count,
               "voxel": voxel_count,
               "free_space": free_count, "final": len(cloud)}
-    return cloud, counts, seconds
+    return cloud, counts, watch.report(digits=3, total=None)

@@ -7,7 +7,6 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from flowerpose.pipeline.segment import (
     sized_to_band,
     typical_radius,
 )
+from flowerpose.stopwatch import Stopwatch
 
 #: Up in the bed frame a whole plant's cloud is in (DESIGN.md: metres, z up).
 BED_UP = np.array([0.0, 0.0, 1.0])
@@ -107,28 +107,12 @@ class FlowerResult:
         return {"flowers": [f.to_json() for f in self.flowers], "timing_s": self.timing_s}
 
 
-class _Timer:
-    def __init__(self):
-        self.timing: dict[str, float] = {}
-        self._start = time.perf_counter()
-        self._last = self._start
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.timing[stage] = round(self.timing.get(stage, 0.0) + now - self._last, 6)
-        self._last = now
-
-    def total(self) -> dict[str, float]:
-        self.timing["total"] = round(time.perf_counter() - self._start, 6)
-        return self.timing
-
-
 def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
                  up: np.ndarray | None = BED_UP) -> FlowerResult:
     """Flowers and their normals in a whole plant's coloured cloud (metres, bed frame, z up).
     up: the frame's up, for the direction prior (`PoseConfig.up_prior`); None for a cloud
     whose up is not known (a phone scan's own frame)."""
-    timer = _Timer()
+    timer = Stopwatch()
     above_ground, projections = grid_views(cloud, config, timer)
     plant = cloud.subset(above_ground)
     detector = make_detector(config.detect, config.colour)
@@ -142,12 +126,12 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     owner = np.full(len(cloud), -1, np.int64)
     for flower in flowers:
         owner[flower.crop] = flower.id
-    return FlowerResult(flowers, projections, detections, timer.total(),
+    return FlowerResult(flowers, projections, detections, timer.report(digits=6),
                         [[_owner_of(owner[above_ground[points]]) for points in view]
                          for view in picked])
 
 
-def grid_views(cloud: Cloud, config: PipelineConfig, timer: _Timer | None = None
+def grid_views(cloud: Cloud, config: PipelineConfig, timer: Stopwatch | None = None
                ) -> tuple[np.ndarray, list[Projection]]:
     """The views the detector sees: the indices of `cloud`'s points above the ground (metres,
     bed frame, z up), and the grid's projections of those points (their `index` maps pixels
@@ -173,15 +157,15 @@ def find_flowers_in_candidates(candidates: Cloud,
     detector's crops, merged): outlier removal, clustering and pose, no ground removal,
     grid or detection. candidates: metres (or the cloud's unit), any frame; a point that
     several views took counts once (crops index the first copy)."""
-    timer = _Timer()
+    timer = Stopwatch()
     first = candidates.first_copies()
     points = candidates.subset(first)
     flowers = _flowers_among(points, np.arange(len(points)), first, config, timer, None)
-    return FlowerResult(flowers, [], [], timer.total())
+    return FlowerResult(flowers, [], [], timer.report(digits=6))
 
 
 def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
-                   config: PipelineConfig, timer: _Timer, up: np.ndarray | None) -> list[Flower]:
+                   config: PipelineConfig, timer: Stopwatch, up: np.ndarray | None) -> list[Flower]:
     """Clusters, crops and poses of the flowers among `candidates` (indices into `plant`);
     `original` maps plant indices to those of the caller's cloud; `up` is the frame's up
     where it is known (`PoseConfig.up_prior`)."""
@@ -227,7 +211,7 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
     """The pose of each flower crop (one flower a crop, as a detector cut it out), sized by
     the crops' typical flower (`segment.typical_radius`, their median corolla radius when
     none passes the coverage test); returns the poses and the stage timings."""
-    timer = _Timer()
+    timer = Stopwatch()
     masks = []
     for crop in crops:
         hsv = rgb_to_hsv(crop.colors)
@@ -248,7 +232,7 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
     _say_sizes("pose", radius, scale, config.cluster)
     poses = [estimate_pose(crop, config.pose, config.colour, cluster, radius) for crop in crops]
     timer.lap("pose")
-    return poses, timer.total()
+    return poses, timer.report(digits=6)
 
 
 Frame = Literal["bed", "cloud"]

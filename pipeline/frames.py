@@ -9,7 +9,6 @@ scan fits.
 from __future__ import annotations
 
 import os
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from flowerpose.scanio import (
     read_intrinsics,
     read_trajectory,
 )
+from flowerpose.stopwatch import Stopwatch
 
 
 @dataclass(frozen=True)
@@ -49,8 +49,8 @@ class FrameSelectConfig:
     """Mean HSV value (0-255) the brightness penalty prefers."""
 
     def __post_init__(self):
-        require(self.count >= 1, "--count", f"must be at least 1, got {self.count}")
-        require(self.crop_px >= 3, "--crop", f"must be at least 3 pixels, got {self.crop_px}")
+        require(self.count >= 1, "count", f"must be at least 1, got {self.count}")
+        require(self.crop_px >= 3, "crop_px", f"must be at least 3 pixels, got {self.crop_px}")
 
 
 @dataclass(frozen=True)
@@ -201,8 +201,6 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     trajectory = read_trajectory(scan_dir / "trajectory.csv")
     intrinsics = read_intrinsics(scan_dir / "camera.json")
     total = len(trajectory)
-    if config.count < 1:
-        raise InputError("--count", f"must be at least 1, got {config.count}")
     if total < config.count:
         raise InputError(scan_dir, f"{total} frames recorded, fewer than the {config.count} "
                          "bins asked for")
@@ -210,7 +208,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
     edges = bin_edges(total, config.count)
     bin_of_row = np.searchsorted(edges, np.arange(total), side="right") - 1
     best: dict[int, tuple[float, float, float, int, np.ndarray | None]] = {}
-    start = time.perf_counter()
+    watch = Stopwatch()
     sources = {int(p.stem.split("_")[-1]): p for p in frame_files(scan_dir)}
     tally = Tally(total if progress else 0, "frames")
 
@@ -278,7 +276,7 @@ def select_frames(scan_dir: Path, out_dir: Path, config: FrameSelectConfig,
               "config": {"count": config.count, "crop_px": config.crop_px,
                          "brightness_penalty": config.brightness_penalty,
                          "brightness_target": config.brightness_target},
-              "seconds": round(time.perf_counter() - start, 3), "frames": chosen}
+              "seconds": round(watch.elapsed(), 3), "frames": chosen}
     output.record(write_json(out_dir / "frames.json", result))
     output.finish()
     return result

@@ -14,7 +14,6 @@ from __future__ import annotations
 import cv2  # noqa: F401  # isort: skip
 
 import shutil
-import time
 from pathlib import Path
 
 try:
@@ -25,6 +24,7 @@ except ImportError:  # the [recon] extra is not installed: the settings still lo
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
 from flowerpose.processes import reclaim_sigterm
+from flowerpose.stopwatch import Stopwatch
 
 # Importing pycolmap gave SIGTERM to glog, which prints a C stack dump and kills the process.
 reclaim_sigterm()
@@ -43,22 +43,19 @@ def reconstruct_patch_match(frames_dir: Path, sparse_dir: Path, work_dir: Path,
         raise InputError("reconstruct.dense_method", "patch_match needs pycolmap built with "
                          "CUDA (pip install pycolmap-cuda12 on a machine with an NVIDIA GPU); "
                          "use sgbm on the CPU")
-    seconds: dict[str, float] = {}
-    tick = time.perf_counter()
+    watch = Stopwatch()
     if work_dir.exists():
         shutil.rmtree(work_dir)
     pycolmap.undistort_images(work_dir, sparse_dir, frames_dir)
-    seconds["undistort"] = time.perf_counter() - tick
-    tick = time.perf_counter()
+    watch.lap("undistort")
     options = pycolmap.PatchMatchOptions()
     options.max_image_size = max_image_size
     options.geom_consistency = True
     pycolmap.patch_match_stereo(work_dir, options=options)
-    seconds["patch_match"] = time.perf_counter() - tick
-    tick = time.perf_counter()
+    watch.lap("patch_match")
     fused = work_dir / "fused.ply"
     pycolmap.stereo_fusion(fused, work_dir, output_type="ply")
-    seconds["fusion"] = time.perf_counter() - tick
+    watch.lap("fusion")
     cloud = read_cloud(fused, units="m")  # an empty fusion is refused there, by name
     return cloud, {"method": "patch_match", "points": len(cloud),
-                   "seconds": {k: round(v, 3) for k, v in seconds.items()}}
+                   "seconds": watch.report(digits=3, total=None)}

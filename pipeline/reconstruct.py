@@ -21,7 +21,6 @@ import cv2  # noqa: F401  # isort: skip
 
 import dataclasses
 import shutil
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -41,6 +40,7 @@ from flowerpose.pipeline.sfm import (
     reconstruct_sparse,
 )
 from flowerpose.scanio import Intrinsics
+from flowerpose.stopwatch import Stopwatch
 
 
 @dataclass(frozen=True)
@@ -132,9 +132,9 @@ def reconstruct(frames_dir: str | Path, out_dir: str | Path,
 def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: ReconstructConfig,
                  progress: bool) -> Reconstruction:
     """`reconstruct`'s work in work_dir, its report naming where the files will be."""
-    started = time.perf_counter()
+    watch = Stopwatch()
     sparse = reconstruct_sparse(frames_dir, work_dir, config.sfm)
-    sparse_s = time.perf_counter() - started
+    watch.lap("sparse")
     method = config.dense_method
     if method == "auto":
         method = "patch_match" if cuda_available() else "sgbm"
@@ -148,7 +148,7 @@ def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: Recons
                                                 intrinsics=sparse_intrinsics(sparse),
                                                 config=config.dense, progress=progress)
     write_cloud(work_dir / "cloud.ply", cloud)
-    total_s = time.perf_counter() - started
+    watch.lap("dense")
     sparse_report = {k: v for k, v in sparse.report.items() if k != "config"}
     report = {
         "frames": str(frames_dir),
@@ -160,8 +160,7 @@ def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: Recons
         "alignment": sparse_report["alignment"],
         "dense_method": method,
         "dense_poses": config.dense_poses if method == "sgbm" else "refined",
-        "seconds": {"sparse": round(sparse_s, 3), "dense": round(total_s - sparse_s, 3),
-                    "total": round(total_s, 3)},
+        "seconds": watch.report(digits=3),
         "sparse": sparse_report,
         "dense": {k: v for k, v in dense_report.items() if k != "config"},
         "config": dataclasses.asdict(config),

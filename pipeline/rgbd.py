@@ -10,7 +10,6 @@ and cleaned of stray points.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
 from flowerpose.log import open3d
 from flowerpose.scanio import Intrinsics, read_intrinsics, read_trajectory
+from flowerpose.stopwatch import Stopwatch
 
 DEPTH_PATTERN = "depth_{:06d}.png"
 
@@ -100,7 +100,7 @@ def voxel_fuse(points: np.ndarray, colours: np.ndarray, views: np.ndarray, voxel
 def fuse_rgbd_scan(scan_dir: Path, config: FusionConfig = FusionConfig()) -> tuple[Cloud, dict]:
     """The fused cloud of an RGB-D scan folder (bed frame, metres) and a report."""
     o3d = open3d()
-    start = time.perf_counter()
+    watch = Stopwatch()
     scan_dir = Path(scan_dir)
     intrinsics = read_intrinsics(scan_dir / "camera.json")
     unit = float(read_json(scan_dir / "camera.json").get("depth_unit_m", 0.001))
@@ -144,5 +144,5 @@ def fuse_rgbd_scan(scan_dir: Path, config: FusionConfig = FusionConfig()) -> tup
     cloud = Cloud(np.asarray(pcd.points), np.clip(np.asarray(pcd.colors) * 255 + 0.5, 0,
                                                   255).astype(np.uint8))
     report = {"frames": used, "raw_points": raw, "points": len(cloud),
-              "seconds": round(time.perf_counter() - start, 3)}
+              "seconds": round(watch.elapsed(), 3)}
     return cloud, report

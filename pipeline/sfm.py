@@ -26,7 +26,6 @@ import contextlib
 import dataclasses
 import os
 import shutil
-import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -49,6 +48,7 @@ from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, read_frames
 from flowerpose.processes import reclaim_sigterm
 from flowerpose.scanio import Intrinsics, read_intrinsics
+from flowerpose.stopwatch import Stopwatch
 
 # Importing pycolmap gave SIGTERM to glog, which prints a C stack dump and kills the process.
 reclaim_sigterm()
@@ -486,14 +486,14 @@ def _bundle_adjust(reconstruction: pycolmap.Reconstruction, frames: dict[str, Ch
 
 def _map_incremental(database: Path, frames_dir: Path, output: Path, total: int,
                      config: SfmConfig, intrinsics_known: bool) -> pycolmap.Reconstruction:
-    start = time.perf_counter()
+    watch = Stopwatch()
     registered = [0]
 
     def next_image() -> None:
         registered[0] += 1
         if registered[0] % 20 == 0:
             _progress(f"mapping: {registered[0]} registrations, {total} images "
-                      f"({time.perf_counter() - start:.1f} s)")
+                      f"({watch.elapsed():.1f} s)")
 
     options = _mapper_options(config, intrinsics_known)
     models = pycolmap.incremental_mapping(database, frames_dir, output, options,
@@ -530,35 +530,33 @@ def _cloud(reconstruction: pycolmap.Reconstruction) -> Cloud:
 
 def _model(mode: str, database: Path, frames_dir: Path, sparse_dir: Path,
            frames: dict[str, ChosenFrame], config: SfmConfig, intrinsics_known: bool,
-           seconds: dict[str, float]) -> pycolmap.Reconstruction:
-    """Poses and filtered points from the matched database, by `mode`; adds the seconds
-    of each step to `seconds`."""
-    tick = time.perf_counter()
+           watch: Stopwatch) -> pycolmap.Reconstruction:
+    """Poses and filtered points from the matched database, by `mode`; times each step
+    on `watch`."""
     if mode == "incremental":
         _progress(f"incremental mapping of {len(frames)} images")
-        reconstruction = _map_incremental(database, frames_dir, sparse_dir, len(frames),
-                                          config, intrinsics_known)
-        _filter_points(reconstruction, config)
-        seconds["mapping"] = time.perf_counter() - tick
+        with watch.step("mapping"):
+            reconstruction = _map_incremental(database, frames_dir, sparse_dir, len(frames),
+                                              config, intrinsics_known)
+            _filter_points(reconstruction, config)
         return reconstruction
     _progress(f"triangulating with the {len(frames)} recorded poses")
-    reconstruction = _triangulate(_posed_reconstruction(database, frames), database,
-                                  frames_dir, sparse_dir, config)
-    seconds["triangulation"] = time.perf_counter() - tick
+    with watch.step("triangulation"):
+        reconstruction = _triangulate(_posed_reconstruction(database, frames), database,
+                                      frames_dir, sparse_dir, config)
     if config.refine_poses:
-        tick = time.perf_counter()
-        # Two-view points are mostly wrong matches: keep them out of the adjustment.
-        pycolmap.ObservationManager(reconstruction).filter_points3D_with_short_tracks(
-            config.min_track_length)
-        _progress(f"bundle adjustment of {reconstruction.num_points3D()} points and "
-                  f"{reconstruction.num_reg_images()} poses")
-        _bundle_adjust(reconstruction, frames, config)
-        seconds["bundle_adjustment"] = time.perf_counter() - tick
-        tick = time.perf_counter()
-        # Matches the recorded poses were too far off to triangulate fit the refined ones.
-        reconstruction = _triangulate(reconstruction, database, frames_dir, sparse_dir,
-                                      config)
-        seconds["triangulation"] += time.perf_counter() - tick
+        with watch.step("bundle_adjustment"):
+            # Two-view points are mostly wrong matches: keep them out of the adjustment.
+            pycolmap.ObservationManager(reconstruction).filter_points3D_with_short_tracks(
+                config.min_track_length)
+            _progress(f"bundle adjustment of {reconstruction.num_points3D()} points and "
+                      f"{reconstruction.num_reg_images()} poses")
+            _bundle_adjust(reconstruction, frames, config)
+        with watch.step("triangulation"):
+            # Matches the recorded poses were too far off to triangulate fit the refined
+            # ones.
+            reconstruction = _triangulate(reconstruction, database, frames_dir, sparse_dir,
+                                          config)
     _filter_points(reconstruction, config)
     return reconstruction
 
@@ -598,7 +596,7 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     frames_dir, work_dir = Path(frames_dir), Path(work_dir)
     if not frames_dir.is_dir():
         raise InputError(frames_dir, "frames folder not found")
-    started = time.perf_counter()
+    watch = Stopwatch()
     given = read_frames(frames_dir)
     frames = _distinct_frames(frames_dir, given, config)
     names = [f.file for f in frames]
@@ -622,31 +620,27 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
         elif stale.exists():
             stale.unlink()
     sparse_dir.mkdir()
-    seconds: dict[str, float] = {}
     pycolmap.set_random_seed(config.seed)
     with _colmap_logging(config.colmap_log):
-        tick = time.perf_counter()
-        _extract(database, frames_dir, names, intrinsics, mode, config)
-        seconds["features"] = time.perf_counter() - tick
-
-        tick = time.perf_counter()
-        positions = np.array([f.position for f in frames])
-        rotations = np.array([f.rotation for f in frames])
-        pairs = sorted(sequential_pairs(len(frames), config.sequential_overlap)
-                       | pairs_from_poses(positions, rotations, config.pose_neighbours,
-                                          config.max_view_angle_deg))
-        if mode == "poses":
-            # Without a baseline the epipolar geometry checks nothing.
-            pairs = [(i, j) for i, j in pairs if np.linalg.norm(
-                positions[i] - positions[j]) >= config.min_baseline_m]
-            _match_with_poses(database, names, pairs, frames, config)
-        else:
-            _match_ransac(database, work_dir, names, pairs, config)
-        _write_pairs(work_dir / "pairs.txt", names, pairs)
-        seconds["matching"] = time.perf_counter() - tick
+        with watch.step("features"):
+            _extract(database, frames_dir, names, intrinsics, mode, config)
+        with watch.step("matching"):
+            positions = np.array([f.position for f in frames])
+            rotations = np.array([f.rotation for f in frames])
+            pairs = sorted(sequential_pairs(len(frames), config.sequential_overlap)
+                           | pairs_from_poses(positions, rotations, config.pose_neighbours,
+                                              config.max_view_angle_deg))
+            if mode == "poses":
+                # Without a baseline the epipolar geometry checks nothing.
+                pairs = [(i, j) for i, j in pairs if np.linalg.norm(
+                    positions[i] - positions[j]) >= config.min_baseline_m]
+                _match_with_poses(database, names, pairs, frames, config)
+            else:
+                _match_ransac(database, work_dir, names, pairs, config)
+            _write_pairs(work_dir / "pairs.txt", names, pairs)
 
         reconstruction = _model(mode, database, frames_dir, sparse_dir, by_name, config,
-                                intrinsics is not None, seconds)
+                                intrinsics is not None, watch)
 
     registered = [im for im in reconstruction.images.values()
                   if im.has_pose and im.num_points3D >= MIN_IMAGE_POINTS]
@@ -657,16 +651,15 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
                          f"(need {wanted}): too blurry, too little texture or too little "
                          "overlap between frames")
 
-    tick = time.perf_counter()
-    similarity, alignment = _to_bed_frame(reconstruction, by_name, config, frames_dir)
-    seconds["alignment"] = time.perf_counter() - tick
+    with watch.step("alignment"):
+        similarity, alignment = _to_bed_frame(reconstruction, by_name, config, frames_dir)
     for stale in sparse_dir.iterdir():
         if stale.is_dir():
             shutil.rmtree(stale)
     reconstruction.write(sparse_dir)
     cloud = _cloud(reconstruction)
     write_cloud(work_dir / "sparse.ply", cloud)
-    seconds["total"] = time.perf_counter() - started
+    seconds = watch.report(digits=3)
     camera = next(iter(reconstruction.cameras.values()))
     report = {
         "frames": str(frames_dir), "mode": mode,
@@ -682,7 +675,7 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
         "alignment": {**alignment, "scale": similarity.scale,
                       "threshold_m": config.align_threshold_m},
         "alignment_rms_m": alignment["rms_m"],
-        "seconds": {k: round(v, 3) for k, v in seconds.items()},
+        "seconds": seconds,
         "config": dataclasses.asdict(config),
     }
     write_json(work_dir / "sparse.json", report)
