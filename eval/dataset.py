@@ -71,9 +71,9 @@ class DatasetConfig:
     """Frames of each plant's scan with `views="frames"`, evenly spaced along it."""
 
     def __post_init__(self):
-        require(0 <= self.val_fraction < 1, "--val-fraction", "must be 0 or more, below 1")
-        require(self.min_pixels >= 1, "--min-pixels", "must be at least 1")
-        require(self.frames_per_plant >= 1, "--frames", "must be at least 1")
+        require(0 <= self.val_fraction < 1, "val_fraction", "must be 0 or more, below 1")
+        require(self.min_pixels >= 1, "min_pixels", "must be at least 1")
+        require(self.frames_per_plant >= 1, "frames_per_plant", "must be at least 1")
 
 
 @dataclass(frozen=True)
@@ -95,9 +95,9 @@ def split_plants(seeds: list[int], val_fraction: float, seed: int) -> dict[str, 
     count = len(seeds)
     val = 0 if val_fraction == 0 else max(1, int(round(val_fraction * count)))
     if val >= count:
-        raise InputError("--plants", f"{count} plant(s) leave none to train on with "
-                         f"--val-fraction {val_fraction:g}: give more plants, or "
-                         "--val-fraction 0")
+        raise InputError("plants", f"{count} plant(s) leave none to train on with a val "
+                         f"fraction of {val_fraction:g}: give more plants, or a val "
+                         "fraction of 0")
     order = np.random.default_rng(seed).permutation(count)
     chosen = set(order[:val].tolist())
     return {"train": sorted(s for k, s in enumerate(seeds) if k not in chosen),

@@ -63,21 +63,21 @@ def parse_requirements(texts: list[str]) -> list[Requirement]:
     for text in texts:
         match = _PATTERN.match(text)
         if match is None:
-            raise InputError("--require", f"'{text}': expected KEY>=NUMBER (or <=, >, <, ==),"
+            raise InputError("require", f"'{text}': expected KEY>=NUMBER (or <=, >, <, ==),"
                              " e.g. 'error_deg.plane.mean<=3'")
         key, op, number = match.groups()
         try:
             value = float(number)
         except ValueError:
-            raise InputError("--require", f"'{text}': {number!r} is not a number") from None
+            raise InputError("require", f"'{text}': {number!r} is not a number") from None
         if not math.isfinite(value):
-            raise InputError("--require", f"'{text}': the bound must be finite")
+            raise InputError("require", f"'{text}': the bound must be finite")
         try:
             leaf = _lookup(template, key)
         except KeyError:
             leaf = {}
         if isinstance(leaf, dict):
-            raise InputError("--require", f"'{text}': {key} is not a number of the report's "
+            raise InputError("require", f"'{text}': {key} is not a number of the report's "
                              f"summary (its numbers: {', '.join(_leaves(template))})")
         requirements.append(Requirement(key, op, value, text))
     return requirements

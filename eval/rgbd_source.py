@@ -21,8 +21,8 @@ import numpy as np
 from flowerpose.atomic import write_image, write_text
 from flowerpose.config import require
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
 from flowerpose.scan_geometry import ScanPathConfig
+from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
 from flowerpose.sim.depth import DepthSensorConfig
 
 

@@ -59,7 +59,7 @@ def on_ray(address: str | None) -> Iterator[RayJobs]:
     try:
         import ray
     except ModuleNotFoundError:
-        raise InputError("--ray", "needs the [ray] extra (ray is not installed): "
+        raise InputError("ray", "needs the [ray] extra (ray is not installed): "
                          "pip install 'flowerpose[ray]'") from None
     if address is not None:
         _check_listening(address)
@@ -70,7 +70,7 @@ def on_ray(address: str | None) -> Iterator[RayJobs]:
         ray.init(address=address, log_to_driver=False, logging_level="ERROR",
                  runtime_env={"env_vars": environment}, **own)
     except (ConnectionError, ValueError, RuntimeError) as error:
-        raise InputError("--ray", f"cannot reach Ray at {address or 'a local Ray'}: "
+        raise InputError("ray", f"cannot reach Ray at {address or 'a local Ray'}: "
                          f"{str(error).splitlines()[0]}") from None
     session = _session = RayJobs()
     try:
@@ -92,7 +92,7 @@ def _check_listening(address: str) -> None:
     try:
         socket.create_connection((host or "127.0.0.1", int(port)), timeout=3.0).close()
     except OSError as error:
-        raise InputError("--ray", f"nothing answers at {address} ({error.strerror or error}): "
+        raise InputError("ray", f"nothing answers at {address} ({error.strerror or error}): "
                          "start the cluster (ray start --head) or give its address") from None
 
 

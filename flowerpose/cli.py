@@ -11,6 +11,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from flowerpose.cli_flags import SettingHelp, add_setting_flags, flag_for
 from flowerpose.errors import InputError, JobsFailed, missing_extra
 from flowerpose.hardware.bot_errors import BotError
 from flowerpose.log import LOG
@@ -19,10 +20,59 @@ from flowerpose.log import LOG
 SCAN_PLANTS = 2
 
 #: What `flowerpose scan --sim` reads of a config: the path (the oracle's cameras) and the
-#: simulated camera; the four settings in SCAN_FLAGS are its flags instead.
-SCAN_SETTINGS = ("sim.viewpoints.", "scan.sensor.", "scan.render.")
-SCAN_FLAGS = {"scan.frame_rate_hz": "--frame-rate", "scan.workers": "--workers",
-              "scan.width": "--width", "scan.height": "--height"}
+#: simulated camera (SCAN_FLAGS gives four of them flags).
+SCAN_SETTINGS = ("sim.viewpoints.", "scan.sensor.", "scan.render.", "scan.frame_rate_hz",
+                 "scan.workers", "scan.width", "scan.height")
+SCAN_FLAGS = {"--frame-rate": "scan.frame_rate_hz", "--width": "scan.width",
+              "--height": "scan.height", "--workers": "scan.workers"}
+#: `scan --sim`'s frames per second of bot time: twice an eval's, for a user filming one
+#: plant to choose frames from.
+SCAN_SIM_FRAME_RATE_HZ = 0.6
+
+
+def _scan_base():
+    """`flowerpose scan`'s starting settings: an eval's, at SCAN_SIM_FRAME_RATE_HZ."""
+    import dataclasses
+
+    from flowerpose.eval.harness import EvalConfig
+
+    config = EvalConfig()
+    return dataclasses.replace(config, scan=dataclasses.replace(
+        config.scan, frame_rate_hz=SCAN_SIM_FRAME_RATE_HZ))
+
+
+def _frames_base():
+    from flowerpose.pipeline.frames import FrameSelectConfig
+
+    return FrameSelectConfig()
+
+
+def _eval_base():
+    from flowerpose.eval.harness import EvalConfig
+
+    return EvalConfig()
+
+
+def _reconstruct_base():
+    from flowerpose.pipeline.reconstruct import ReconstructConfig
+
+    return ReconstructConfig()
+
+
+def _dataset_base():
+    from flowerpose.eval.dataset import DatasetConfig
+
+    return DatasetConfig()
+
+
+def _only_settings(args: argparse.Namespace, command: str, prefixes: tuple[str, ...]) -> None:
+    """Refuse --set keys the command does not read (they would be silently ignored)."""
+    from flowerpose.config import parse_set_options
+
+    for key in parse_set_options(args.set):
+        if not key.startswith(prefixes):
+            raise InputError(f"--set {key}", f"{command} takes "
+                             f"{', '.join(k + '*' if k.endswith('.') else k for k in prefixes)}")
 
 
 def _add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
@@ -105,8 +155,10 @@ def _add_overwrite(parser: argparse.ArgumentParser) -> None:
                         "write (they are kept; only its own earlier output is replaced)")
 
 
-def _configure(base: Any, args: argparse.Namespace) -> Any:
-    """`base` with the --profile, then the --config file, then each --set, applied."""
+def _configure(base: Any, args: argparse.Namespace, flags: bool = True) -> Any:
+    """`base` with the --profile, then the --config file, then the settings' flags
+    (`flags`), then each --set, applied."""
+    from flowerpose.cli_flags import given_settings
     from flowerpose.config import apply_overrides, load_profile, load_toml, parse_set_options
 
     config = base
@@ -115,7 +167,8 @@ def _configure(base: Any, args: argparse.Namespace) -> Any:
     if args.config is not None:
         config = apply_overrides(config, load_toml(args.config))
     detector = getattr(args, "detector", None)
-    sets = args.set + ([f"detect.detector={detector}"] if detector else [])
+    sets = ((given_settings(args) if flags else []) + args.set
+            + ([f"detect.detector={detector}"] if detector else []))
     return apply_overrides(config, parse_set_options(sets))
 
 
@@ -243,19 +296,19 @@ def cmd_plant(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
+    from flowerpose.cli_flags import given_settings
+    from flowerpose.config import apply_overrides, parse_set_options
     from flowerpose.eval.dataset import DatasetConfig, write_dataset
     from flowerpose.eval.harness import eval_config
 
-    dataset = DatasetConfig(format=args.format, views=args.views,
-                            val_fraction=args.val_fraction, split_seed=args.split_seed,
-                            min_pixels=args.min_pixels, frames_per_plant=args.frames)
-    config = eval_config(args.preset, lambda base: _configure(base, args))
+    dataset = apply_overrides(DatasetConfig(), parse_set_options(given_settings(args)))
+    config = eval_config(args.preset, lambda base: _configure(base, args, flags=False))
     seeds = list(range(args.seed, args.seed + args.plants))
     manifest = write_dataset(args.out, seeds, config, dataset, args.overwrite)
     split = manifest["split"]
     print(f"{manifest['images']} images, {manifest['instances']} flower instances of "
           f"{len(seeds)} plants ({len(split['train'])} train, {len(split['val'])} val: seeds "
-          f"{', '.join(map(str, split['val'])) or 'none'}) as {args.format} -> "
+          f"{', '.join(map(str, split['val'])) or 'none'}) as {dataset.format} -> "
           f"{args.out / 'dataset.json'}")
     return 0
 
@@ -323,10 +376,12 @@ def cmd_pose(args: argparse.Namespace) -> int:
 
 
 def cmd_score(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import score_files
+    from flowerpose.eval.harness import EvalConfig, score_files
 
+    _only_settings(args, "score", ("score.",))
+    config = _configure(EvalConfig(), args)
     report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,
-                         args.max_distance)
+                         config.score.max_distance_m)
     from flowerpose.eval.report import REPORT_FILES, summary_lines, table, write_report
 
     print(table(report))
@@ -354,29 +409,21 @@ def cmd_scan(args: argparse.Namespace) -> int:
         return _scan_field(args)
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
-    import dataclasses
-
-    from flowerpose.eval.harness import EvalConfig
     from flowerpose.eval.scan_source import scan_plant
+    from flowerpose.hardware.scan_plan import plan_table
     from flowerpose.hardware.sim_bot import plan_plant_scan
     from flowerpose.sim.export import read_plant
 
-    for key in (item.split("=")[0].strip() for item in args.set):
-        if key in SCAN_FLAGS:
-            raise InputError(f"--set {key}", f"scan sets it with {SCAN_FLAGS[key]}")
-        if not key.startswith(SCAN_SETTINGS):
-            raise InputError(f"--set {key}", "scan takes the settings of the path and "
-                             f"camera: {', '.join(k + '*' for k in SCAN_SETTINGS)}")
-    config = _configure(EvalConfig(), args)
-    camera = dataclasses.replace(config.scan, frame_rate_hz=args.frame_rate,
-                                 workers=args.workers, width=args.width, height=args.height)
+    _only_settings(args, "scan --sim", SCAN_SETTINGS)
+    config = _configure(_scan_base(), args)
+    camera = config.scan
     plant = read_plant(args.plant)
     plan = plan_plant_scan(plant, config.sim.viewpoints)  # the oracle's cameras, flown
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
           f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
           "of bot time; reach and collisions checked")
     if args.dry_run:
-        _print_plan(plan)
+        print("\n".join(plan_table(plan)))
         return 0
     from flowerpose.hardware.sim_bot import write_preview
 
@@ -410,33 +457,17 @@ def cmd_farmduino(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_plan(plan) -> None:
-    """The planned moves in FarmBot's own units (what a physical bot would be sent)."""
-    from flowerpose.hardware.geometry import bed_to_farmbot_mm
-    from flowerpose.hardware.kinematics import servo_commands
-
-    print("waypoint kind      X mm     Y mm     Z mm   yaw cmd  pitch cmd")
-    for w in plan.waypoints:
-        x, y, z = bed_to_farmbot_mm(w.pose.gantry)
-        yaw, pitch = servo_commands(w.pose)
-        print(f"{w.index:8d} {w.kind:8s} {x:8.2f} {y:8.2f} {z:8.2f} {float(yaw):8.1f} "
-              f"{float(pitch):9.1f}")
-
-
 def _scan_field(args: argparse.Namespace) -> int:
     """scan --port / --cloud: the physical bot films a real plant with its USB camera."""
-    import math
-
-    import numpy as np
-
-    from flowerpose.hardware.geometry import PAPER_BOT
-    from flowerpose.hardware.scan import run_scan
-    from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
+    from flowerpose.hardware.scan import approach_start, run_scan
+    from flowerpose.hardware.scan_plan import plan_field_scan, plan_table
     from flowerpose.scanio import frame_files
 
     if args.plant_at is None:
         raise InputError("--plant-at", "needed with --port and --cloud: where the plant's stem "
                          "stands, X,Y in metres in the bed frame")
+    _only_settings(args, "scan --port/--cloud", ("scan.width", "scan.height"))
+    size = _configure(_scan_base(), args).scan
     if args.token_file is not None and not args.cloud:
         raise InputError("--token-file", "is for --cloud")
     for flag, value in (("--firmware-params", args.firmware_params),
@@ -444,23 +475,14 @@ def _scan_field(args: argparse.Namespace) -> int:
         if value and args.port is None:
             raise InputError(flag, "is for --port (with --cloud, FarmBot OS holds the "
                              "bot's settings and finds home)")
+    plan = plan_field_scan(args.plant_at, args.plant_height, args.plant_radius)
     x, y = args.plant_at
-    length, width = PAPER_BOT.bed_size_m
-    if not (0 <= x <= length and 0 <= y <= width):
-        raise InputError("--plant-at", f"({x:g}, {y:g}) m is outside the bed: x 0..{length:g} m "
-                         f"along it, y 0..{width:g} m across")
-    for name, value in (("--plant-height", args.plant_height),
-                        ("--plant-radius", args.plant_radius)):
-        if not (math.isfinite(value) and value > 0):
-            raise InputError(name, f"must be a positive number of metres, got {value:g}")
-    plan = plan_scan(np.array([x, y]), args.plant_height, ScanConfig(),
-                     obstacles=_plant_envelope(x, y, args.plant_height, args.plant_radius))
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at ({x:.3f}, {y:.3f}) m, "
           f"{plan.duration_s / 60:.1f} min of bot time; the paper's bot's travel and servo "
           f"range, and clearance from a {args.plant_radius:g} m x {args.plant_height:g} m plant "
           "envelope, checked")
     if args.dry_run:
-        _print_plan(plan)
+        print("\n".join(plan_table(plan)))
         return 0
     if args.camera is None:
         raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
@@ -480,7 +502,7 @@ def _scan_field(args: argparse.Namespace) -> int:
     if args.calibration is not None:
         read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
     choose = None if args.keep_all else FrameChoice(plan.duration_s)
-    camera = UsbCameraConfig(width=args.width, height=args.height, calibration=args.calibration,
+    camera = UsbCameraConfig(width=size.width, height=size.height, calibration=args.calibration,
                              choose=choose)
     check_disk_space(args.out, camera, plan.duration_s)
     recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
@@ -509,7 +531,7 @@ def _scan_field(args: argparse.Namespace) -> int:
         def connect():
             return FarmduinoBot(args.port, camera=recorder.bind, observer=recorder.observe,
                                 settings=settings)
-    source["camera"] = {"device": args.camera, "width": args.width, "height": args.height,
+    source["camera"] = {"device": args.camera, "width": size.width, "height": size.height,
                         "intrinsics": str(args.calibration or "estimated from the field of view"),
                         "frames": "every frame" if choose is None else
                         f"the {choose.keep} sharpest of each of {choose.bins} bins of the path"}
@@ -524,7 +546,7 @@ def _scan_field(args: argparse.Namespace) -> int:
                 # Opening the port reset the board, which lost the position: home, Z first.
                 LOG.info(f"homing {bot.info.name} (Z, Y, X)")
                 bot.home()
-            _approach(bot, plan, args.out)
+            approach_start(bot, plan, args.out)
             manifest = run_scan(bot, plan, args.out, source={
                 **source, "bot": bot.info.name, "firmware": bot.info.firmware})
     finally:
@@ -536,56 +558,10 @@ def _scan_field(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plant_envelope(x: float, y: float, height: float, radius: float,
-                    spacing: float = 0.01):
-    """(N, 3) points on the side and top of a cylinder standing for a real plant, metres,
-    bed frame, `spacing` apart: what the scan path keeps clear of."""
-    import numpy as np
-
-    angles = np.linspace(0.0, 2 * np.pi, max(12, int(np.ceil(2 * np.pi * radius / spacing))),
-                         endpoint=False)
-    heights = np.linspace(0.0, height, max(2, int(np.ceil(height / spacing)) + 1))
-    radii = np.linspace(0.0, radius, max(2, int(np.ceil(radius / spacing)) + 1))
-    side = np.stack(np.broadcast_arrays(x + radius * np.cos(angles), y + radius * np.sin(angles),
-                                        heights[:, None]), -1)
-    top = np.stack(np.broadcast_arrays(x + radii[:, None] * np.cos(angles),
-                                       y + radii[:, None] * np.sin(angles), height), -1)
-    return np.concatenate([side.reshape(-1, 3), top.reshape(-1, 3)])
-
-
-def _approach(bot, plan, out_dir: Path) -> None:
-    """Lift the head to the top of Z where the bot stands, then travel over the waypoint the
-    scan starts (or resumes) at: the scan's first move then only descends, where a direct
-    move from wherever the bot stood might sweep through the plant."""
-    import numpy as np
-
-    from flowerpose.hardware.scan import plan_id
-    from flowerpose.jsonio import read_json
-
-    start = 0
-    if (out_dir / "scan.json").exists():
-        manifest = read_json(out_dir / "scan.json")
-        if manifest.get("plan_id") != plan_id(plan):
-            raise InputError(out_dir, "holds a different scan (another plant or path); "
-                             "choose a new --out folder")
-        start = int(manifest.get("completed", 0))
-    if start >= len(plan.waypoints):
-        return
-    here = bot.position()
-    if not np.all(np.isfinite(here)):
-        raise InputError(bot.info.name, "the gantry's position is unknown: home the bot "
-                         "before scanning")
-    top = bot.info.travel_max[2]
-    target = plan.waypoints[start].pose.gantry
-    bot.move_to([here[0], here[1], top])
-    bot.move_to([target[0], target[1], top])
-
-
 def cmd_frames(args: argparse.Namespace) -> int:
-    from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
+    from flowerpose.pipeline.frames import select_frames
 
-    config = FrameSelectConfig(count=args.count, crop_px=args.crop,
-                               brightness_penalty=args.brightness_penalty)
+    config = _configure(_frames_base(), args)
     result = select_frames(args.scan, args.out, config, overwrite=args.overwrite)
     sharp = [f["sharpness"] for f in result["frames"]]
     print(f"{len(result['frames'])} of {result['recorded']} frames chosen in "
@@ -595,9 +571,9 @@ def cmd_frames(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from flowerpose.pipeline.reconstruct import ReconstructConfig, reconstruct
+    from flowerpose.pipeline.reconstruct import reconstruct
 
-    config = _configure(ReconstructConfig(dense_poses=args.dense_poses), args)
+    config = _configure(_reconstruct_base(), args)
     result = reconstruct(args.frames, args.out, config, overwrite=args.overwrite)
     report = result.report
     rms = report["alignment_rms_m"]
@@ -708,7 +684,13 @@ PLANTS = _at_least(1, 10_000, "a larger benchmark is several runs")
 
 class _HelpFormatter(argparse.HelpFormatter):
     """argparse's help, with the description's and epilog's paragraphs filled to the
-    terminal's width and a paragraph with indented lines (the examples) kept as written."""
+    terminal's width, a paragraph with indented lines (the examples) kept as written, and a
+    setting's flag explained by the setting's own docstring."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if isinstance(action.help, SettingHelp):
+            return action.help.expanded()
+        return super()._get_help_string(action)
 
     def _fill_text(self, text: str, width: int, indent: str) -> str:
         import textwrap
@@ -898,14 +880,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true",
                    help="print the planned moves (FarmBot millimetres and servo commands), "
                    "checked against the bot's limits, and stop: nothing connects or moves")
-    p.add_argument("--frame-rate", type=float, default=0.6, metavar="HZ",
-                   help="--sim: frames rendered per second of bot time (default: %(default)s)")
-    p.add_argument("--width", type=_at_least(16), default=1280, metavar="PX",
-                   help="frame width, pixels (default: %(default)s, the paper's video)")
-    p.add_argument("--height", type=_at_least(16), default=720, metavar="PX",
-                   help="frame height, pixels (default: %(default)s)")
-    p.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
-                   help="--sim: render processes (default: one per core)")
+    add_setting_flags(p, _scan_base, SCAN_FLAGS,
+                      metavars={"--frame-rate": "HZ", "--width": "PX", "--height": "PX",
+                                "--workers": "N"},
+                      extra={"--frame-rate": "--sim: ", "--workers": "--sim: "})
     p.add_argument("--no-preview", dest="preview", action="store_false",
                    help="--sim: skip preview.mp4 (the gantry scanning, seen from outside)")
     p.add_argument("--via-farmduino", action="store_true",
@@ -913,7 +891,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "backend and a virtual Farmduino (100 x real time)")
     _add_config_options(p, profile=False, detector=False,
                         example="sim.viewpoints.azimuth_step_deg=30 (degrees; --sim reads "
-                        "sim.viewpoints.*, scan.sensor.* and scan.render.*)")
+                        "sim.viewpoints.*, scan.sensor.*, scan.render.* and the four scan.* "
+                        "its flags set; --port and --cloud scan.width and scan.height)")
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser(
@@ -939,16 +918,16 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example:\n  flowerpose frames scan3 --count 200 --out frames3")
     p.add_argument("scan", type=Path, metavar="SCAN_DIR",
                    help="a scan folder from flowerpose scan (frames/, trajectory.csv)")
-    p.add_argument("--count", type=POSITIVE, default=200, metavar="N",
-                   help="number of bins, and of frames chosen (default: %(default)s)")
-    p.add_argument("--crop", type=_at_least(3), default=400, metavar="PX",
-                   help="side of the centre crop that is scored, pixels (default: "
-                   "%(default)s)")
-    p.add_argument("--brightness-penalty", action="store_true",
-                   help="subtract |mean V - 105| from the score, as the authors' code did")
+    add_setting_flags(p, _frames_base, {"--count": "count", "--crop": "crop_px",
+                                        "--brightness-penalty": "brightness_penalty"},
+                      metavars={"--count": "N", "--crop": "PX"},
+                      switches=("--brightness-penalty",))
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for the chosen frames, frames.json and camera.json")
     _add_overwrite(p)
+    _add_config_options(p, profile=False, detector=False,
+                        example="brightness_target=110 (HSV value, 0-255; the keys of "
+                        "frames.json's config)")
     p.set_defaults(func=cmd_frames)
 
     p = sub.add_parser(
@@ -962,9 +941,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for cloud.ply, the sparse model and reconstruction.json")
     _add_overwrite(p)
-    p.add_argument("--dense-poses", choices=("refined", "recorded"), default="refined",
-                   help="camera poses for dense stereo: the sparse stage's refined ones or the "
-                   "bot's recorded ones (default: %(default)s)")
+    add_setting_flags(p, _reconstruct_base, {"--dense-poses": "dense_poses"},
+                      metavars={"--dense-poses": "{refined,recorded}"})
     _add_config_options(p, profile=False, detector=False)
     p.set_defaults(func=cmd_reconstruct)
 
@@ -985,25 +963,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "%(default)s)")
     p.add_argument("--preset", choices=PRESETS, default="realistic",
                    help=PRESET_HELP + " (default: %(default)s)")
-    p.add_argument("--format", choices=("coco", "yolo"), default="coco",
-                   help="coco: images/ and annotations/instances_{train,val}.json (RLE masks; "
-                   "Detectron2, MMDetection, pycocotools); yolo: images/, labels/ (polygons) "
-                   "and data.yaml (Ultralytics) (default: %(default)s)")
-    p.add_argument("--views", choices=("grid", "frames"), default="grid",
-                   help="grid: the views the detect stage sees (the oracle cloud projected); "
-                   "frames: the scan camera's images at waypoints of the planned scan "
-                   "(default: %(default)s)")
-    p.add_argument("--val-fraction", type=float, default=0.2, metavar="F",
-                   help="share of the plants in the val split, at least one when above 0; "
-                   "0: train only (default: %(default)s)")
-    p.add_argument("--split-seed", type=SEED, default=0, metavar="S",
-                   help="seed of the shuffle that picks the val plants (default: %(default)s)")
-    p.add_argument("--frames", type=POSITIVE, default=24, metavar="N",
-                   help="--views frames: frames per plant, evenly along its scan (default: "
-                   "%(default)s)")
-    p.add_argument("--min-pixels", type=POSITIVE, default=20, metavar="N",
-                   help="a flower showing fewer pixels gets no annotation (default: "
-                   "%(default)s)")
+    add_setting_flags(p, _dataset_base, {
+        "--format": "format", "--views": "views", "--val-fraction": "val_fraction",
+        "--split-seed": "split_seed", "--frames": "frames_per_plant",
+        "--min-pixels": "min_pixels"},
+        metavars={"--format": "{coco,yolo}", "--views": "{grid,frames}", "--val-fraction": "F",
+                  "--split-seed": "S", "--frames": "N", "--min-pixels": "N"})
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the dataset folder (dataset.json says how it was made)")
     _add_overwrite(p)
@@ -1060,12 +1025,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-scale", type=float, default=25.0, metavar="K",
                    help="sagemaker: the factor the labelled cloud was scaled by, no unit "
                    "(default: %(default)g)")
-    p.add_argument("--max-distance", type=float, default=0.02, metavar="M",
-                   help="largest centre distance of a match, in the cloud's unit: metres "
-                   "(default: %(default)s)")
+    add_setting_flags(p, _eval_base, {"--max-distance": "score.max_distance_m"},
+                      metavars={"--max-distance": "M"})
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="also write report.json and report.md here (default: print only)")
     _add_overwrite(p)
+    _add_config_options(p, profile=False, detector=False,
+                        example="score.max_distance_m=0.01 (metres; score reads score.*)")
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser(
@@ -1169,8 +1135,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with third_party():  # other libraries' warnings: debug lines (-v), not the user's
             return args.func(args)
-    except (InputError, BotError) as err:
-        # BotError: a fault of the bot or its link, said in one line that names the device.
+    except InputError as err:
+        # Library code names the setting or argument; say the flag the user typed for it.
+        flag = flag_for(parser, args, err.source)
+        print(f"flowerpose: error: {f'{flag}: {err.problem}' if flag else err}",
+              file=sys.stderr)
+        return 2
+    except BotError as err:
+        # A fault of the bot or its link, said in one line that names the device.
         print(f"flowerpose: error: {err}", file=sys.stderr)
         return 2
     except JobsFailed as err:

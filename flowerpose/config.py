@@ -9,6 +9,8 @@ from __future__ import annotations
 import ast
 import dataclasses
 import functools
+import inspect
+import textwrap
 import tomllib
 import typing
 from pathlib import Path
@@ -35,6 +37,33 @@ def value_at(config: Any, key: str) -> Any:
     JSON-ready (tuples as lists, a section as a dict)."""
     value = functools.reduce(getattr, key.split("."), config)
     return to_dict(value) if dataclasses.is_dataclass(value) else _plain(value)
+
+
+def setting_doc(config: Any, key: str) -> str:
+    """The docstring under a setting's field in its dataclass (its meaning and unit), for
+    a dotted key of `config`; "" when the field has none."""
+    head, _, rest = key.partition(".")
+    if rest:
+        return setting_doc(getattr(config, head), rest)
+    return _field_docs(type(config)).get(key, "")
+
+
+@functools.cache
+def _field_docs(cls: type) -> dict[str, str]:
+    """Each field's docstring (the string literal under it) in the class or its bases."""
+    docs: dict[str, str] = {}
+    for base in reversed(cls.__mro__[:-1]):
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(base)))
+        except (OSError, TypeError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for field_node, doc_node in zip(body, body[1:], strict=False):
+            if (isinstance(field_node, ast.AnnAssign) and isinstance(field_node.target, ast.Name)
+                    and isinstance(doc_node, ast.Expr) and isinstance(doc_node.value, ast.Constant)
+                    and isinstance(doc_node.value.value, str)):
+                docs[field_node.target.id] = " ".join(doc_node.value.value.split())
+    return docs
 
 
 def _field_types(cls: type) -> dict[str, Any]:
@@ -142,7 +171,7 @@ def parse_set_options(items: list[str]) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise InputError("--set", f"expected key=value, got {item!r}")
+            raise InputError("set", f"expected key=value, got {item!r}")
         out[key.strip()] = value.strip()
     return out
 
@@ -161,7 +190,7 @@ def load_profile(name: str) -> dict[str, Any]:
     from importlib.resources import as_file, files
 
     if name not in profile_names():
-        raise InputError("--profile", f"no profile {name!r} (known: {', '.join(profile_names())})")
+        raise InputError("profile", f"no profile {name!r} (known: {', '.join(profile_names())})")
     with as_file(files("flowerpose.assets") / "configs" / f"{name}.toml") as path:
         return load_toml(path)
 
@@ -199,7 +228,7 @@ def load_suite(name: str) -> dict[str, Any]:
     from importlib.resources import as_file, files
 
     if name not in suite_names():
-        raise InputError("--suite", f"no suite {name!r} (known: {', '.join(suite_names())})")
+        raise InputError("suite", f"no suite {name!r} (known: {', '.join(suite_names())})")
     with as_file(files("flowerpose.assets") / "suites" / f"{name}.toml") as path:
         data = load_toml(path)
         header, fixed = data.get("suite", {}), data.get("eval", {})

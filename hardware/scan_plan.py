@@ -153,3 +153,52 @@ def _check_collisions(waypoints: list[Waypoint], obstacles: np.ndarray,
                              f"plant {where} waypoint {b.index} (least "
                              f"{config.head_clearance_m * 1000:.0f} mm): widen the cylinder "
                              "or the dome")
+
+
+def plant_envelope(center, height: float, radius: float, spacing: float = 0.01) -> np.ndarray:
+    """(N, 3) points on the side and top of a cylinder standing for a real plant whose
+    stem is at `center` (x, y), `height` and `radius` in metres, bed frame, `spacing`
+    apart: what the scan path keeps clear of."""
+    x, y = float(center[0]), float(center[1])
+    angles = np.linspace(0.0, 2 * np.pi, max(12, int(np.ceil(2 * np.pi * radius / spacing))),
+                         endpoint=False)
+    heights = np.linspace(0.0, height, max(2, int(np.ceil(height / spacing)) + 1))
+    radii = np.linspace(0.0, radius, max(2, int(np.ceil(radius / spacing)) + 1))
+    side = np.stack(np.broadcast_arrays(x + radius * np.cos(angles), y + radius * np.sin(angles),
+                                        heights[:, None]), -1)
+    top = np.stack(np.broadcast_arrays(x + radii[:, None] * np.cos(angles),
+                                       y + radii[:, None] * np.sin(angles), height), -1)
+    return np.concatenate([side.reshape(-1, 3), top.reshape(-1, 3)])
+
+
+def plan_field_scan(plant_at, plant_height: float, plant_radius: float,
+                    config: ScanConfig = ScanConfig(),
+                    geometry: BotGeometry = PAPER_BOT) -> ScanPlan:
+    """The scan of a real plant whose stem stands at `plant_at` (x, y, metres, bed frame),
+    its reach a cylinder of `plant_height` x `plant_radius` metres the head keeps clear of.
+    InputError names the argument that is out of range."""
+    x, y = (float(v) for v in plant_at)
+    length, width = geometry.bed_size_m
+    if not (0 <= x <= length and 0 <= y <= width):
+        raise InputError("plant_at", f"({x:g}, {y:g}) m is outside the bed: x 0..{length:g} m "
+                         f"along it, y 0..{width:g} m across")
+    for name, value in (("plant_height", plant_height), ("plant_radius", plant_radius)):
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(name, f"must be a positive number of metres, got {value:g}")
+    return plan_scan(np.array([x, y]), plant_height, config, geometry,
+                     obstacles=plant_envelope((x, y), plant_height, plant_radius))
+
+
+def plan_table(plan: ScanPlan) -> list[str]:
+    """The planned moves in FarmBot's own units, a line each (what a physical bot would be
+    sent): millimetres from home and the servos' commands."""
+    from flowerpose.hardware.geometry import bed_to_farmbot_mm
+    from flowerpose.hardware.kinematics import servo_commands
+
+    lines = ["waypoint kind      X mm     Y mm     Z mm   yaw cmd  pitch cmd"]
+    for w in plan.waypoints:
+        x, y, z = bed_to_farmbot_mm(w.pose.gantry)
+        yaw, pitch = servo_commands(w.pose)
+        lines.append(f"{w.index:8d} {w.kind:8s} {x:8.2f} {y:8.2f} {z:8.2f} {float(yaw):8.1f} "
+                     f"{float(pitch):9.1f}")
+    return lines

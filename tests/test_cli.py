@@ -171,6 +171,12 @@ def _grey_cloud(path):
     (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
     (["sweep", "--grid", "nope.eps=1,2", "--out", "{tmp}/s"], ["nope"]),
     (["eval", "--plants", "abc"], ["--plants", "whole number"]),
+    (["frames", "{tmp}/scan", "--count", "0", "--out", "{tmp}/f"], ["--count", "at least 1"]),
+    (["frames", "{tmp}/scan", "--set", "crop_px=2", "--out", "{tmp}/f"], ["--crop", "3 pixels"]),
+    (["frames", "{tmp}/scan", "--set", "count=many", "--out", "{tmp}/f"], ["whole number"]),
+    (["score", "{badjson}", "{badjson}", "--set", "cluster.eps=0.01"], ["score takes score.*"]),
+    (["scan", "--sim", "--plant", "{tmp}", "--width", "8", "--out", "{tmp}/s"],
+     ["--width", "16 pixels"]),
     (["detect"], ["required"]),
     (["frobnicate"], ["invalid choice"]),
     (["eval", "--source", "oracle", "--plants", "1", "--workers", "1", "--out", "{badjson}"],
@@ -296,3 +302,27 @@ def test_the_command_list_has_a_description_and_examples():
     assert examples
     for example in examples:
         build_parser().parse_args(shlex.split(example)[1:] or ["eval"])
+
+
+def test_a_setting_flag_is_its_setting_with_its_docstring_and_default(capsys):
+    """frames' flags are --set under other names: the same config, the config's own default
+    when not given, and help written from the setting's docstring."""
+    from flowerpose.cli import _configure, _frames_base, build_parser
+    from flowerpose.config import setting_doc
+
+    parser = build_parser()
+
+    def configured(*extra):
+        return _configure(_frames_base(), parser.parse_args(["frames", "s", "--out", "o",
+                                                             *extra]))
+
+    by_flag = configured("--count", "7", "--brightness-penalty")
+    assert by_flag == configured("--set", "count=7", "--set", "brightness_penalty=true")
+    assert (by_flag.count, by_flag.brightness_penalty) == (7, True)
+    assert configured() == _frames_base()
+    with pytest.raises(SystemExit):
+        parser.parse_args(["frames", "--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    doc = setting_doc(_frames_base(), "crop_px")
+    assert doc and doc.rstrip(".") in shown
+    assert f"default: {_frames_base().crop_px}; the same as --set crop_px=" in shown

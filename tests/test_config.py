@@ -52,7 +52,7 @@ def test_stage_configs_refuse_values_outside_their_range():
 
 @pytest.mark.parametrize("item, match", [
     ("inner.epss=1", "inner.epss"), ("count=abc", "count"), ("inner.mode=circle", "inner.mode"),
-    ("inner=3", "inner"), ("inner.eps=nan", "inner.eps"), ("noequals", "--set"),
+    ("inner=3", "inner"), ("inner.eps=nan", "inner.eps"), ("noequals", "^set: expected key=value"),
     ("count=2.5", "whole number"), ("count=true", "whole number"),
     ("inner.range_=(1, 2, 3)", "expected 2 values")])
 def test_bad_overrides_name_the_key(item, match):
@@ -93,3 +93,28 @@ def test_an_unknown_profile_is_refused():
 
     with pytest.raises(InputError, match="no profile 'nope'"):
         load_profile("nope")
+
+
+@dataclass(frozen=True)
+class _Inner:
+    width_m: float = 0.5
+    """How wide, metres."""
+    undocumented: int = 1
+
+
+@dataclass(frozen=True)
+class _Outer:
+    inner: _Inner = field(default_factory=_Inner)
+    """A section."""
+    count: int = 3
+    """How many: a docstring
+    over two lines."""
+
+
+def test_a_settings_docstring_is_read_from_its_dataclass():
+    from flowerpose.config import setting_doc
+
+    assert setting_doc(_Outer(), "count") == "How many: a docstring over two lines."
+    assert setting_doc(_Outer(), "inner.width_m") == "How wide, metres."
+    assert setting_doc(_Outer(), "inner") == "A section."
+    assert setting_doc(_Outer(), "inner.undocumented") == ""
