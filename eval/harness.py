@@ -35,6 +35,7 @@ from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.runner import run_jobs
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached, plant_inputs
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
+from flowerpose.pipeline.detect import ONNX_PREFIX
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
     Start,
@@ -110,30 +111,82 @@ def pipeline_part(config: PipelineConfig) -> PipelineConfig:
                              for f in dataclasses.fields(PipelineConfig)})
 
 
-def generate_plant_files(seed: int, sim: SimConfig, plant_dir: Path) -> float:
-    """Write plant `seed`'s truth, mesh and oracle cloud into plant_dir; wall seconds."""
+def generate_plant_files(seed: int, sim: SimConfig, plant_dir: Path,
+                         cache: Path | None = None) -> float:
+    """Write plant `seed`'s truth, mesh and oracle cloud into plant_dir, or copy them from
+    the stage cache at `cache` (None: none); wall seconds spent generating (0 when cached)."""
     from flowerpose.sim.bundle import make_plant
+    from flowerpose.sim.export import PLANT_FILES
 
-    watch = Stopwatch()
-    make_plant(seed, out_dir=plant_dir, config=sim)
-    return watch.elapsed()
+    def generate() -> dict:
+        watch = Stopwatch()
+        make_plant(seed, out_dir=plant_dir, config=sim)
+        return {"seconds": watch.elapsed()}
+
+    if cache is None:
+        return generate()["seconds"]
+    from flowerpose.cache import StageCache
+
+    result, cached, _ = StageCache(cache).run("plant", {"seed": seed, "sim": to_dict(sim)}, [],
+                                              plant_dir, PLANT_FILES, generate)
+    return 0.0 if cached else result["seconds"]
+
+
+#: What the detect stage writes of a synthetic plant, and the stage cache keeps.
+DETECT_FILES = ("flowers.json", "flowers.ply", "normals.ply")
 
 
 def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_dir: Path,
-                   name: str) -> tuple[dict, dict[str, float]]:
+                   name: str, cache: Path | None = None) -> tuple[dict, dict[str, float]]:
     """Run the pipeline on a cloud, write flowers.json to out_dir, score it against the
-    truth; returns the report's plant entry and stage timings."""
-    cloud = read_cloud(cloud_path)
-    result = find_flowers(cloud, pipeline_part(config))
-    write_flowers(out_dir / "flowers.json", result, cloud_path)
-    write_normals_ply(out_dir, result.flowers)
-    watch = Stopwatch()
-    truth = read_plant_truth(truth_path)
-    if config.score.label_error_deg > 0:
-        truth = as_labelled(truth, config.score.label_error_deg, name)
-    score = score_plant([f.pose for f in result.flowers], truth, config.score.max_distance_m)
-    timing = {**result.timing_s, "score": watch.elapsed()}
-    return plant_entry(name, score), timing
+    truth; returns the report's plant entry and stage timings. With `cache` (the stage
+    cache's folder), a detection and a score made before from the same files, settings and
+    code are taken from it (their seconds 0 here)."""
+    pipeline = pipeline_part(config)
+
+    def detect() -> dict:
+        result = find_flowers(read_cloud(cloud_path), pipeline)
+        write_flowers(out_dir / "flowers.json", result, cloud_path)
+        write_normals_ply(out_dir, result.flowers)
+        return {"timing_s": result.timing_s}
+
+    def score() -> dict:
+        watch = Stopwatch()
+        truth = read_plant_truth(truth_path)
+        if config.score.label_error_deg > 0:
+            truth = as_labelled(truth, config.score.label_error_deg, name)
+        entry = plant_entry(name, score_plant(read_flowers(out_dir / "flowers.json"), truth,
+                                              config.score.max_distance_m))
+        return {"entry": entry, "seconds": watch.elapsed()}
+
+    if cache is None or not _cacheable(pipeline):
+        detected, scored = detect(), score()
+        return scored["entry"], {**detected["timing_s"], "score": scored["seconds"]}
+    from flowerpose.cache import StageCache
+
+    stages = StageCache(cache)
+    detected, detect_cached, detect_key = stages.run(
+        "detect", to_dict(pipeline), [cloud_path, *_detector_files(pipeline)], out_dir,
+        DETECT_FILES, detect)
+    scored, score_cached, _ = stages.run(
+        "score", {"score": to_dict(config.score), "plant": name}, [truth_path], out_dir, (),
+        score, parents=[detect_key])
+    timing = {stage: 0.0 if detect_cached else t for stage, t in detected["timing_s"].items()}
+    return scored["entry"], {**timing, "score": 0.0 if score_cached else scored["seconds"]}
+
+
+def _cacheable(pipeline: PipelineConfig) -> bool:
+    """Whether a detection with these settings may come from the stage cache: the built-in
+    detectors' code is in the cache's code version (an ONNX model's file in the key); a
+    plug-in class's code is not, so its detections are always run."""
+    detector = pipeline.detect.detector
+    return detector == "colour" or detector.startswith(ONNX_PREFIX)
+
+
+def _detector_files(pipeline: PipelineConfig) -> list[Path]:
+    """The files a detection reads besides the cloud: an ONNX model."""
+    detector = pipeline.detect.detector
+    return [Path(detector.removeprefix(ONNX_PREFIX))] if detector.startswith(ONNX_PREFIX) else []
 
 
 #: Cores a capture job (render, match, stereo: each multi-threaded) asks of a Ray node, at
@@ -151,10 +204,11 @@ def sum_timings(timings: Iterable[dict[str, float]]) -> dict[str, float]:
 
 
 def generate_plants(seeds: list[int], sim: SimConfig, plants_dir: Path,
-                    workers: int | None) -> list[float]:
-    """Every plant's files under plants_dir/seed-<s>/; seconds per plant."""
+                    workers: int | None, cache: Path | None = None) -> list[float]:
+    """Every plant's files under plants_dir/seed-<s>/ (from the stage cache at `cache` when
+    there); seconds generating per plant."""
     return run_jobs(generate_plant_files,
-                    [(s, sim, plants_dir / f"seed-{s}") for s in seeds], workers,
+                    [(s, sim, plants_dir / f"seed-{s}", cache) for s in seeds], workers,
                     lambda k, sec: f"plant seed-{seeds[k]} generated ({sec:.1f} s)",
                     stage="plant", labels=[f"seed-{s}" for s in seeds])
 
@@ -226,12 +280,12 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         run_config = {"source": source, "plants": plants, "seed": seed,
                       **settings_run(config, source, starts)}
         title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
-    entries, stage_timing = _score_jobs(jobs, config, out_dir, workers)
+    entries, stage_timing = _score_jobs(jobs, config, out_dir, workers, cache)
     timing.update(stage_timing)
     if compare:
         extra["compare"] = {}
         for name, other in compare.items():
-            others, _ = _score_jobs(jobs, other, out_dir / name, workers)
+            others, _ = _score_jobs(jobs, other, out_dir / name, workers, cache)
             extra["compare"][name] = {"summary": summarise(others), "plants": others,
                                       "config": sections_run(other, starts)}
     for method in methods:
@@ -326,15 +380,18 @@ def _method_job(job: tuple, method: ExternalMethod, config: EvalConfig,
 
 
 def _score_jobs(jobs: list[tuple], config: EvalConfig, out_dir: Path,
-                workers: int | None) -> tuple[list[dict], dict[str, float]]:
+                workers: int | None, cache: Path | None = None
+                ) -> tuple[list[dict], dict[str, float]]:
     """Every job (function, its input, its output folder's name) run with `config`; the
-    plant entries and summed stage timings."""
-    results = run_jobs(_score_job, [(job, config, out_dir) for job in jobs], workers,
+    plant entries and summed stage timings. `cache`: the stage cache's folder, which a
+    synthetic plant's detection and score are taken from and put into."""
+    results = run_jobs(_score_job, [(job, config, out_dir, cache) for job in jobs], workers,
                        _describe_entry, stage="score", labels=[job[1] for job in jobs])
     return [entry for entry, _ in results], sum_timings(t for _, t in results)
 
 
-def _score_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dict[str, float]]:
+def _score_job(job: tuple, config: EvalConfig, out_dir: Path,
+               cache: Path | None = None) -> tuple[dict, dict[str, float]]:
     kind, name, *inputs = job
     if kind == "real":
         from flowerpose.eval.real_source import evaluate_real_plant
@@ -342,7 +399,7 @@ def _score_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dic
         return evaluate_real_plant(inputs[0], pipeline_part(config), out_dir / name,
                                    config.score.max_distance_m)
     cloud_path, truth_path = inputs
-    return evaluate_cloud(cloud_path, truth_path, config, out_dir / "plants" / name, name)
+    return evaluate_cloud(cloud_path, truth_path, config, out_dir / "plants" / name, name, cache)
 
 
 def _real_jobs(folders: list[Path],
@@ -388,7 +445,7 @@ def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out
     timings and reconstruction reports."""
     seeds = list(range(seed, seed + plants))
     plants_dir = out_dir / "plants"
-    generation = generate_plants(seeds, config.sim, plants_dir, workers)
+    generation = generate_plants(seeds, config.sim, plants_dir, workers, cache)
     folders = {s: plants_dir / f"seed-{s}" for s in seeds}
     clouds, timing, extra = capture_clouds(config, source, folders, workers, cache)
     timing = {"plant": round(sum(generation), 4), **timing}
@@ -413,8 +470,7 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                             workers,
                             lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
                             f"fused into {v['points']} points "
-                            + ("(from the cache)" if v.get("cached") else
-                               f"({v['seconds']:.1f} s)"),
+                            + _said_steps({"rgbd": v["seconds"]}, v.get("cached", [])),
                             stage="RGB-D capture", labels=[f"seed-{s}" for s in seeds],
                             cpus=CAPTURE_CPUS)
         timing["rgbd"] = round(sum(c["seconds"] for c in captured), 4)
@@ -430,8 +486,7 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                             f"{v['registered']}/{v['frames']} chosen frames registered, "
                             f"{v['points']} points, petal F-score at 5 mm "
                             f"{v['quality']['petals']['fscore_5mm']:.2f} "
-                            + ("(from the cache)" if v.get("cached") else
-                               f"({', '.join(f'{k} {t:.0f} s' for k, t in v['seconds'].items())})"),
+                            + _said_steps(v["seconds"], v.get("cached", [])),
                             stage="scan capture", labels=[f"seed-{s}" for s in seeds],
                             cpus=CAPTURE_CPUS)
         for stage in ("scan", "frames", "reconstruct"):
@@ -441,9 +496,20 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
     extra["reconstruction"] = {f"seed-{s}": c["quality"]
                                for s, c in zip(seeds, captured, strict=True)}
     if cache is not None:
-        extra["cache"] = {"dir": str(cache), "reused": [
-            f"seed-{s}" for s, c in zip(seeds, captured, strict=True) if c.get("cached")]}
+        steps = {f"seed-{s}": c.get("cached", []) for s, c in zip(seeds, captured, strict=True)}
+        whole = len(captured[0]["seconds"]) if source == "scan" else 1
+        extra["cache"] = {"dir": str(cache), "steps_reused": steps,
+                          "reused": [plant for plant, c in steps.items() if len(c) == whole]}
     return clouds, timing, extra
+
+
+def _said_steps(seconds: dict[str, float], cached: list[str]) -> str:
+    """"(scan 95 s, frames 7 s, reconstruct 160 s)", naming the steps that came from the
+    cache."""
+    if cached and set(seconds) <= set(cached):
+        return "(from the cache)"
+    return "(" + ", ".join(f"{step} from the cache" if step in cached else f"{step} {t:.0f} s"
+                           for step, t in seconds.items()) + ")"
 
 
 def capture_rgbd_cached(plant_dir: Path, config: EvalConfig, cache_root: Path | None) -> dict:
@@ -455,10 +521,10 @@ def capture_rgbd_cached(plant_dir: Path, config: EvalConfig, cache_root: Path | 
 
     settings = {"rgbd": to_dict(config.rgbd), "fusion": to_dict(config.fusion),
                 "viewpoints": to_dict(config.sim.viewpoints)}
-    result, cached = StageCache(cache_root).run(
+    result, cached, _ = StageCache(cache_root).run(
         "rgbd", settings, plant_inputs(plant_dir), plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
         lambda: capture_rgbd(plant_dir, config))
-    return {**result, "cached": True, "seconds": 0.0} if cached else result
+    return {**result, "cached": ["rgbd"], "seconds": 0.0} if cached else result
 
 
 def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:

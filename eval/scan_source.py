@@ -8,7 +8,6 @@ visibility), frames/ (`flowerpose frames`), reconstruction/ (`flowerpose reconst
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,42 +91,63 @@ def capture_scan(plant_dir: Path, config: ScanSourceConfig,
     point counts, the cloud's quality against the truth mesh (with the alignment residual)
     and seconds per step. The cloud is plant_dir/reconstruction/cloud.ply, the truth with
     the scan's visibility plant_dir/scan/plant.json."""
-    from flowerpose.eval.quality import reconstruction_quality
+    scanned = scan_and_choose(plant_dir, config, path)
+    built = reconstruct_capture(plant_dir, config)
+    return {**scanned, **built, "seconds": {**scanned["seconds"], **built["seconds"]}}
+
+
+def scan_and_choose(plant_dir: Path, config: ScanSourceConfig,
+                    path: ScanPathConfig | None = None) -> dict:
+    """The capture's first steps: film the plant in plant_dir (plant_dir/scan) and choose
+    its frames (plant_dir/frames). Returns the frames recorded and chosen, and seconds."""
     from flowerpose.hardware.sim_bot import plan_plant_scan
     from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
-    from flowerpose.pipeline.reconstruct import reconstruct
     from flowerpose.sim.export import read_plant
 
     watch = Stopwatch()
-    plant = read_plant(plant_dir)
     scan_dir = plant_dir / "scan"
-    manifest = scan_plant(plant_dir, scan_dir, config, plan_plant_scan(plant, path))
+    manifest = scan_plant(plant_dir, scan_dir, config,
+                          plan_plant_scan(read_plant(plant_dir), path))
     watch.lap("scan")
     chosen = select_frames(scan_dir, plant_dir / "frames", FrameSelectConfig(count=config.frames),
                            progress=False)
     watch.lap("frames")
+    return {"recorded": sum(s.get("frames", 0) for s in manifest["sessions"]),
+            "frames": len(chosen["frames"]), "seconds": watch.report(digits=3, total=None)}
+
+
+def reconstruct_capture(plant_dir: Path, config: ScanSourceConfig) -> dict:
+    """The capture's last step: reconstruct plant_dir/frames into plant_dir/reconstruction
+    and measure the cloud against the truth mesh. Returns the registered images, the
+    points, the quality and seconds."""
+    from flowerpose.eval.quality import reconstruction_quality
+    from flowerpose.pipeline.reconstruct import reconstruct
+    from flowerpose.sim.export import read_plant
+
+    watch = Stopwatch()
     result = reconstruct(plant_dir / "frames", plant_dir / "reconstruction", config.reconstruct,
                          progress=False)
     watch.lap("reconstruct")
+    plant = read_plant(plant_dir)
     quality = reconstruction_quality(result.cloud.points, plant.mesh, plant.face_part,
                                      samples=100_000)
     report = result.report
     quality.update(alignment_rms_m=report["alignment_rms_m"],
                    images_registered=report["images_registered"],
                    images_used=report["images_used"], points=report["points"])
-    return {"recorded": sum(s.get("frames", 0) for s in manifest["sessions"]),
-            "frames": len(chosen["frames"]), "registered": report["images_registered"],
-            "points": report["points"], "quality": quality,
-            "seconds": watch.report(digits=3, total=None)}
+    return {"registered": report["images_registered"], "points": report["points"],
+            "quality": quality, "seconds": watch.report(digits=3, total=None)}
 
 
-#: What the stage cache keeps of a plant's scan: the chosen frames as `flowerpose frames`
-#: wrote them (a reconstruction can be run again from them) and what later steps read (the
-#: truth with the scan's visibility, the trajectory, the cloud and its report); the scan's
-#: other recorded frames stay out of it.
-CAPTURE_FILES = ("scan/plant.json", "scan/scan.json", "scan/camera.json",
-                 "scan/trajectory.csv", "frames", "reconstruction/cloud.ply",
-                 "reconstruction/reconstruction.json")
+#: What the stage cache keeps of a plant's scan and frame choice: the chosen frames as
+#: `flowerpose frames` wrote them (a reconstruction can be run again from them) and what
+#: later steps read (the truth with the scan's visibility, the trajectory). The scan's
+#: other recorded frames stay out of it: about 50 MB a plant, needed only to choose frames
+#: again, which a changed frame choice does by scanning again.
+SCAN_FILES = ("scan/plant.json", "scan/scan.json", "scan/camera.json", "scan/trajectory.csv",
+              "frames")
+#: What it keeps of a reconstruction of those frames: the cloud and its report.
+RECONSTRUCTION_FILES = ("reconstruction/cloud.ply", "reconstruction/reconstruction.json")
 
 
 def plant_inputs(plant_dir: Path) -> list[Path]:
@@ -139,17 +159,27 @@ def plant_inputs(plant_dir: Path) -> list[Path]:
 def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
                         path: ScanPathConfig | None = None,
                         cache_root: Path | None = None) -> dict:
-    """`capture_scan`, or its earlier result for the same plant files, camera, path and code
-    from the stage cache at cache_root (None: no cache). A result taken from the cache says
-    "cached": true, and its seconds are this run's (none spent scanning)."""
+    """`capture_scan`, each of its two parts taken from the stage cache at cache_root when
+    it ran before on the same plant files, settings and code (None: no cache). The scan and
+    frame choice are one entry, keyed by the camera, path and frame count; the
+    reconstruction another, keyed by the first's key and the reconstruction's settings, so
+    a sweep over reconstruction settings films each plant once. "cached" names the steps
+    taken from the cache (of "scan", "frames", "reconstruct"); their seconds are this run's
+    (none)."""
     if cache_root is None:
         return capture_scan(plant_dir, config, path)
-    settings = {"scan": to_dict(dataclasses.replace(config, workers=None)),
-                "viewpoints": to_dict(path or ScanPathConfig())}
-    result, cached = StageCache(cache_root).run("scan", settings, plant_inputs(plant_dir),
-                                                plant_dir,
-                                                CAPTURE_FILES,
-                                                lambda: capture_scan(plant_dir, config, path))
-    if cached:
-        result = {**result, "cached": True, "seconds": {k: 0.0 for k in result["seconds"]}}
-    return result
+    cache = StageCache(cache_root)
+    camera = {k: v for k, v in to_dict(config).items() if k not in ("workers", "reconstruct")}
+    scan_settings = {"scan": camera, "viewpoints": to_dict(path or ScanPathConfig())}
+    scanned, scan_cached, scan_key = cache.run(
+        "scan", scan_settings, plant_inputs(plant_dir), plant_dir, SCAN_FILES,
+        lambda: scan_and_choose(plant_dir, config, path))
+    built, built_cached, _ = cache.run(
+        "reconstruct", {"reconstruct": to_dict(config.reconstruct)}, [], plant_dir,
+        RECONSTRUCTION_FILES, lambda: reconstruct_capture(plant_dir, config),
+        parents=[scan_key])
+    seconds = {**scanned["seconds"], **built["seconds"]}
+    cached = [step for step, hit in (("scan", scan_cached), ("frames", scan_cached),
+                                     ("reconstruct", built_cached)) if hit]
+    seconds.update(dict.fromkeys(cached, 0.0))
+    return {**scanned, **built, "seconds": seconds, "cached": cached}

@@ -181,11 +181,11 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     for k, cfg in enumerate(configs):
         if k == 0 or separate:
             base = out_dir / (f"plants-{k}" if separate else "plants")
-            generate_plants(seeds, cfg.sim, base, workers)
+            generate_plants(seeds, cfg.sim, base, workers, cache)
             shared = capture_clouds(cfg, source, {s: base / f"seed-{s}" for s in seeds},
                                     workers, cache)[0]
         clouds.append(shared)
-    jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}")
+    jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}", cache)
             for k, cfg in enumerate(configs) for s in seeds]
     results = run_jobs(evaluate_cloud, jobs, workers,
                        lambda j, v: f"setting {j // len(seeds)} {v[0]['plant']}: "

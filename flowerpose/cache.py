@@ -7,10 +7,20 @@ output depends on more code than its own module), the settings the stage reads (
 JSON) and the content of its input files, and of nothing else: the output folder, the
 number of workers and the time of day do not enter it.
 
+A stage that follows another in one chain (a reconstruction of a scan's chosen frames)
+takes the earlier stage's key among its inputs (`parents`) rather than the digest of its
+files: the earlier entry holds exactly those files, so the key says the same, and is known
+before anything runs.
+
 An entry is filled in a private folder beside it and renamed into place when whole, so a
 killed fill leaves only that private folder, which no run ever reads; when two processes
 fill one key, the first rename wins and the other's copy is dropped. Entries are never
 changed once made; `restore` copies their files out (atomically, like every result file).
+
+The cache is bounded: `prune` removes the least recently used entries (a hit counts as a
+use) until the entries fit a size, by default DEFAULT_MAX_BYTES or $FLOWERPOSE_CACHE_MAX_GB.
+It removes nothing but entries (a folder STAGE/KEY holding entry.json) and the private
+folders of fills killed more than a day ago: whatever else is in the folder stays.
 """
 
 from __future__ import annotations
@@ -20,17 +30,40 @@ import hashlib
 import json
 import os
 import shutil
+import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 from flowerpose.atomic import write_file
+from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json, write_json
 
 #: The packages whose source makes the code version.
 _PACKAGES = ("flowerpose", "flowerpose.pipeline", "flowerpose.eval", "flowerpose.sim",
              "flowerpose.hardware", "flowerpose.assets")
 _CHUNK = 1 << 20
+
+#: The size the entries are pruned to after an eval or a sweep: about 300 scan captures.
+DEFAULT_MAX_BYTES = 20 * 10**9
+#: A private folder of a fill older than this was left by a killed process.
+_STALE_FILL_S = 24 * 3600
+
+
+def max_cache_bytes() -> int:
+    """$FLOWERPOSE_CACHE_MAX_GB in bytes, else DEFAULT_MAX_BYTES."""
+    text = os.environ.get("FLOWERPOSE_CACHE_MAX_GB")
+    if not text:
+        return DEFAULT_MAX_BYTES
+    try:
+        gigabytes = float(text)
+    except ValueError:
+        gigabytes = float("nan")
+    if not gigabytes >= 0:
+        raise InputError("FLOWERPOSE_CACHE_MAX_GB", f"must be a size in GB, 0 or more, got "
+                         f"{text!r}")
+    return int(gigabytes * 10**9)
 
 
 def default_cache_dir() -> Path:
@@ -66,13 +99,25 @@ def code_version() -> str:
     return digest.hexdigest()
 
 
-def stage_key(stage: str, settings: Mapping, inputs: Iterable[Path]) -> str:
-    """The key of `stage` run on the files `inputs` with `settings` (JSON-able) by this code."""
+def stage_key(stage: str, settings: Mapping, inputs: Iterable[Path],
+              parents: Iterable[str] = ()) -> str:
+    """The key of `stage` run on the files `inputs` and the outputs of the earlier stages
+    whose keys are `parents`, with `settings` (JSON-able), by this code."""
     document = {"stage": stage, "code": code_version(),
                 "settings": json.loads(json.dumps(settings, sort_keys=True, default=str)),
-                "inputs": [file_digest(Path(p)) for p in inputs]}
+                "inputs": [file_digest(Path(p)) for p in inputs], "parents": list(parents)}
     text = json.dumps(document, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One whole entry: its folder, stage, size in bytes and last use (Unix seconds)."""
+
+    folder: Path
+    stage: str
+    size: int
+    used: float
 
 
 class StageCache:
@@ -120,17 +165,23 @@ class StageCache:
             write_file(target, lambda tmp, name=name: shutil.copyfile(entry / name, tmp))
 
     def run(self, stage: str, settings: Mapping, inputs: Iterable[Path], folder: Path,
-            outputs: Iterable[str], compute: Callable[[], dict]) -> tuple[dict, bool]:
-        """(result, whether it came from the cache) of a stage that writes `outputs` (files
-        or folders, relative to `folder`; those it wrote are kept) and returns a JSON-able
-        result: from the entry for its key, its files copied back into folder, or computed
-        and stored."""
-        key = stage_key(stage, settings, inputs)
+            outputs: Iterable[str], compute: Callable[[], dict],
+            parents: Iterable[str] = ()) -> tuple[dict, bool, str]:
+        """(result, whether it came from the cache, key) of a stage that writes `outputs`
+        (files or folders, relative to `folder`; those it wrote are kept) and returns a
+        JSON-able result: from the entry for its key, its files copied back into folder, or
+        computed and stored. `parents`: the keys of the earlier stages it reads the output
+        of (`stage_key`)."""
+        key = stage_key(stage, settings, inputs, parents)
         entry = self.entry(stage, key)
         if entry is not None:
-            about = self.about(entry)
-            self.restore(entry, {name: folder / name for name in about["files"]})
-            return about["result"], True
+            try:
+                about = self.about(entry)
+                self.restore(entry, {name: folder / name for name in about["files"]})
+                os.utime(entry / "entry.json")  # a use: pruned last
+                return about["result"], True, key
+            except FileNotFoundError:
+                pass  # pruned by another process meanwhile: computed again below
         result = compute()
         files = {}
         for name in outputs:
@@ -140,4 +191,63 @@ class StageCache:
             files.update({p.relative_to(folder).as_posix(): p for p in found})
         self.store(stage, key, files, {"result": result, "settings": settings,
                                        "files": sorted(files)})
-        return result, False
+        return result, False, key
+
+    def entries(self) -> list[Entry]:
+        """Every whole entry, least recently used first."""
+        found = []
+        if not self.root.is_dir():
+            return found
+        for about in self.root.glob("*/*/entry.json"):
+            folder = about.parent
+            if folder.name.startswith("."):
+                continue
+            try:
+                size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+                found.append(Entry(folder, folder.parent.name, size, about.stat().st_mtime))
+            except FileNotFoundError:
+                continue  # removed by another process while we looked
+        return sorted(found, key=lambda e: e.used)
+
+    def prune(self, max_bytes: int) -> list[Entry]:
+        """Remove the least recently used entries until the rest take at most `max_bytes`,
+        and the private folders of fills killed more than a day ago; returns the entries
+        removed. An entry is renamed away before it is deleted, so no run reads half of
+        one."""
+        entries = self.entries()
+        total = sum(e.size for e in entries)
+        removed = []
+        for entry in entries:
+            if total <= max_bytes:
+                break
+            doomed = entry.folder.parent / f".{entry.folder.name}.pruned-{uuid.uuid4().hex[:8]}"
+            try:
+                os.rename(entry.folder, doomed)
+            except FileNotFoundError:
+                continue
+            shutil.rmtree(doomed, ignore_errors=True)
+            total -= entry.size
+            removed.append(entry)
+        stale = time.time() - _STALE_FILL_S
+        for private in self.root.glob("*/.*.partial-*"):
+            try:
+                if private.stat().st_mtime < stale:
+                    shutil.rmtree(private, ignore_errors=True)
+            except FileNotFoundError:
+                continue
+        for doomed in self.root.glob("*/.*.pruned-*"):  # a prune killed while deleting
+            shutil.rmtree(doomed, ignore_errors=True)
+        return removed
+
+
+def prune_to_limit(root: Path) -> list[Entry]:
+    """After a run that filled the cache at `root`: its least recently used entries
+    removed until the rest fit `max_cache_bytes()`, said in a line when any were."""
+    from flowerpose.log import LOG
+
+    removed = StageCache(root).prune(max_cache_bytes())
+    if removed:
+        LOG.info(f"cache: removed {len(removed)} least recently used entries "
+                 f"({sum(e.size for e in removed) / 1e6:.0f} MB) to stay within "
+                 f"{max_cache_bytes() / 1e9:g} GB ({root}; FLOWERPOSE_CACHE_MAX_GB sets it)")
+    return removed

@@ -142,10 +142,11 @@ def _jobs_on(args: argparse.Namespace) -> contextlib.AbstractContextManager:
 
 def _cache(args: argparse.Namespace) -> Path | None:
     """The stage cache's folder the command's --cache / --no-cache choose."""
-    from flowerpose.cache import default_cache_dir
+    from flowerpose.cache import default_cache_dir, max_cache_bytes
 
     if args.no_cache and args.cache is not None:
         raise InputError("--no-cache", "and --cache contradict each other: choose one")
+    max_cache_bytes()  # a bad limit says so before any work
     return None if args.no_cache else (args.cache or default_cache_dir())
 
 
@@ -220,6 +221,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
                           out_dir=out, workers=args.workers, folders=args.folders,
                           truth_scale=args.truth_scale, compare=compare, suite=suite,
                           methods=methods, cache=cache)
+    if cache is not None and args.source != "real":
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
     from flowerpose.eval.report import comparison_table, summary_lines, table
 
     print(table(report))
@@ -596,6 +601,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             _jobs_on(args):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
                          workers=args.workers, source=args.source, cache=cache)
+    if cache is not None:
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
     metrics = best["metrics"]
     print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
           + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
@@ -616,6 +625,32 @@ def cmd_fidelity(args: argparse.Namespace) -> int:
           f"({report['real']['flowers']} real flowers, {report['synthetic']['flowers']} "
           f"synthetic) -> {args.out / 'fidelity.json'}, {args.out / 'fidelity.md'}, "
           f"{args.out / 'fidelity.png'}")
+    return 0
+
+
+def cmd_cache(args: argparse.Namespace) -> int:
+    from flowerpose.cache import StageCache, default_cache_dir, max_cache_bytes
+    from flowerpose.eval.report import markdown_table
+
+    root = args.cache or default_cache_dir()
+    if root.exists() and not root.is_dir():
+        raise InputError(root, "is a file, not a cache folder")
+    cache = StageCache(root)
+    limit = 0 if args.clear else args.max_size
+    if limit is not None:
+        removed = cache.prune(int(limit * 1e9))
+        print(f"removed {len(removed)} entries ({sum(e.size for e in removed) / 1e6:.1f} MB)")
+    entries = cache.entries()
+    rows = []
+    for stage in sorted({e.stage for e in entries}):
+        mine = [e for e in entries if e.stage == stage]
+        rows.append([stage, str(len(mine)), f"{sum(e.size for e in mine) / 1e6:.1f} MB",
+                     datetime.fromtimestamp(max(e.used for e in mine)).strftime("%Y-%m-%d %H:%M")])
+    rows.append(["total", str(len(entries)), f"{sum(e.size for e in entries) / 1e6:.1f} MB",
+                 ""])
+    print(f"cache: {root} (entries kept within {max_cache_bytes() / 1e9:g} GB after an eval "
+          "or sweep; FLOWERPOSE_CACHE_MAX_GB sets it)")
+    print(markdown_table(["stage", "entries", "size", "last used"], rows, [len(rows) - 1]))
     return 0
 
 
@@ -643,6 +678,17 @@ def _at_least(minimum: int, maximum: int | None = None, why: str = ""):
                                              f"{value:,}")
         return value
     return parse
+
+
+def _non_negative_number(text: str) -> float:
+    """An argparse type: a finite number, 0 or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (0 <= value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a number, 0 or more, got {text!r}")
+    return value
 
 
 def _positive_number(text: str) -> float:
@@ -1087,6 +1133,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_overwrite(p)
     _add_config_options(p)
     p.set_defaults(func=cmd_fidelity)
+
+    p = sub.add_parser(
+        "cache", help="what the stage cache holds, and pruning it",
+        description="Say what the stage cache holds (entries and size per stage, and when "
+        "each stage's was last used) and, with --max-size or --clear, remove the least "
+        "recently used entries first. Only the cache's own entries are removed.",
+        epilog="examples:\n"
+        "  flowerpose cache\n"
+        "  flowerpose cache --max-size 5")
+    p.add_argument("--cache", type=Path, metavar="DIR",
+                   help="the stage cache's folder (default: $FLOWERPOSE_CACHE, else "
+                   "~/.cache/flowerpose)")
+    p.add_argument("--max-size", type=_non_negative_number, metavar="GB",
+                   help="remove the least recently used entries until the rest take at most "
+                   "GB gigabytes (default: remove nothing)")
+    p.add_argument("--clear", action="store_true", help="remove every entry")
+    p.set_defaults(func=cmd_cache)
 
     p = sub.add_parser(
         "bench", help="time the pipeline from cloud to flower poses",

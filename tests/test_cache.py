@@ -10,7 +10,12 @@ import pytest
 from flowerpose import cache as cache_module
 from flowerpose.cache import StageCache, stage_key
 from flowerpose.eval import scan_source
-from flowerpose.eval.scan_source import CAPTURE_FILES, ScanSourceConfig, capture_scan_cached
+from flowerpose.eval.scan_source import (
+    RECONSTRUCTION_FILES,
+    SCAN_FILES,
+    ScanSourceConfig,
+    capture_scan_cached,
+)
 from flowerpose.scan_geometry import ScanPathConfig
 
 
@@ -57,45 +62,125 @@ def test_an_entry_is_whole_or_absent_and_the_first_of_two_fills_wins(tmp_path):
     assert (tmp_path / "out" / "cloud.ply").read_text() == "first"
 
 
-def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monkeypatch):
+def _fake_capture(monkeypatch):
+    """The capture's two parts as stand-ins that write their files and count their runs."""
+    runs = {"scan": [], "reconstruct": []}
+
+    def scan(plant_dir, config, path):
+        runs["scan"].append(config)
+        for name in [n for n in SCAN_FILES if n != "frames"] + [
+                "frames/frames.json", "frames/frames/frame_000004.jpg",
+                "scan/frames/frame_000004.jpg"]:
+            (plant_dir / name).parent.mkdir(parents=True, exist_ok=True)
+            (plant_dir / name).write_text(f"{name} of scan {len(runs['scan'])}")
+        return {"recorded": 10, "frames": 1, "seconds": {"scan": 5.0, "frames": 1.0}}
+
+    def reconstruct(plant_dir, config):
+        runs["reconstruct"].append(config)
+        for name in RECONSTRUCTION_FILES:
+            (plant_dir / name).parent.mkdir(parents=True, exist_ok=True)
+            (plant_dir / name).write_text(f"{name} of reconstruction {len(runs['reconstruct'])}")
+        return {"points": 7, "seconds": {"reconstruct": 9.0}}
+
+    monkeypatch.setattr(scan_source, "scan_and_choose", scan)
+    monkeypatch.setattr(scan_source, "reconstruct_capture", reconstruct)
+    return runs
+
+
+def _plant(tmp_path):
     plant = tmp_path / "plant"
     plant.mkdir()
     for name in ("plant.json", "plant.ply", "plant_labels.npz"):
         (plant / name).write_text(name)
-    runs = []
+    return plant
 
-    def capture(plant_dir, config, path):
-        runs.append(config)
-        names = [n for n in CAPTURE_FILES if n != "frames"] + [
-            "frames/frames.json", "frames/frames/frame_000004.jpg", "scan/frames/frame_000004.jpg"]
-        for name in names:
-            (plant_dir / name).parent.mkdir(parents=True, exist_ok=True)
-            (plant_dir / name).write_text(f"{name} of run {len(runs)}")
-        return {"recorded": 10, "seconds": {"scan": 5.0, "frames": 1.0, "reconstruct": 9.0}}
 
-    monkeypatch.setattr(scan_source, "capture_scan", capture)
+def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monkeypatch):
+    runs = _fake_capture(monkeypatch)
+    plant = _plant(tmp_path)
     root, config = tmp_path / "cache", ScanSourceConfig()
     first = capture_scan_cached(plant, config, None, root)
-    assert len(runs) == 1 and "cached" not in first
+    assert (len(runs["scan"]), len(runs["reconstruct"])) == (1, 1) and first["cached"] == []
     (plant / "reconstruction" / "cloud.ply").unlink()
     (plant / "frames" / "frames" / "frame_000004.jpg").unlink()
-    # Workers change no output: the entry is reused, its files put back.
+    # Workers change no output: the entries are reused, their files put back.
     again = capture_scan_cached(plant, dataclasses.replace(config, workers=1), None, root)
-    assert len(runs) == 1 and again["cached"] and again["recorded"] == 10
+    assert (len(runs["scan"]), len(runs["reconstruct"])) == (1, 1)
+    assert again["cached"] == ["scan", "frames", "reconstruct"] and again["recorded"] == 10
     assert again["seconds"] == {"scan": 0.0, "frames": 0.0, "reconstruct": 0.0}
     assert (plant / "reconstruction" / "cloud.ply").read_text() == \
-        "reconstruction/cloud.ply of run 1"
+        "reconstruction/cloud.ply of reconstruction 1"
     assert (plant / "frames" / "frames" / "frame_000004.jpg").is_file()  # the chosen frames
     entry = next((root / "scan").iterdir())
     assert not (entry / "scan" / "frames").exists()  # not the scan's every frame
     capture_scan_cached(plant, dataclasses.replace(config, frames=100), None, root)
     capture_scan_cached(plant, config, ScanPathConfig(azimuth_step_deg=30.0), root)
-    assert len(runs) == 3  # another frame count, another path: scanned again
+    assert len(runs["scan"]) == 3  # another frame count, another path: scanned again
     (plant / "plant.json").write_text(json.dumps({"another": "plant"}))
     capture_scan_cached(plant, config, None, root)
-    assert len(runs) == 4
+    assert len(runs["scan"]) == 4
     capture_scan_cached(plant, config, None, None)  # no cache: always run
-    assert len(runs) == 5
+    assert (len(runs["scan"]), len(runs["reconstruct"])) == (5, 5)
+
+
+def test_other_reconstruction_settings_reuse_the_scan_and_the_frames(tmp_path, monkeypatch):
+    runs = _fake_capture(monkeypatch)
+    plant = _plant(tmp_path)
+    root, config = tmp_path / "cache", ScanSourceConfig()
+    capture_scan_cached(plant, config, None, root)
+    other = dataclasses.replace(config, reconstruct=dataclasses.replace(
+        config.reconstruct, dense_poses="recorded"))
+    result = capture_scan_cached(plant, other, None, root)
+    assert (len(runs["scan"]), len(runs["reconstruct"])) == (1, 2)
+    assert result["cached"] == ["scan", "frames"]
+    assert result["seconds"] == {"scan": 0.0, "frames": 0.0, "reconstruct": 9.0}
+    # Each reconstruction keeps its own entry, tied to the scan's.
+    assert len(list((root / "reconstruct").iterdir())) == 2
+    assert capture_scan_cached(plant, config, None, root)["cached"] == [
+        "scan", "frames", "reconstruct"]
+    assert (plant / "reconstruction" / "cloud.ply").read_text() == \
+        "reconstruction/cloud.ply of reconstruction 1"
+
+
+def test_prune_removes_the_least_recently_used_entries_and_nothing_else(tmp_path):
+    cache = StageCache(tmp_path / "cache")
+    source = tmp_path / "payload"
+    source.write_bytes(b"x" * 1000)
+    for key in ("old", "middle", "new"):
+        cache.store("scan", key, {"cloud.ply": source}, {"result": {}})
+    stamp = 1_700_000_000
+    for age, key in enumerate(("new", "middle", "old")):
+        os.utime(tmp_path / "cache" / "scan" / key / "entry.json", (stamp - age, stamp - age))
+    foreign = tmp_path / "cache" / "notes.txt"  # not the cache's: never removed
+    foreign.write_text("mine")
+    (tmp_path / "cache" / "scan" / "nokey").mkdir()  # no entry.json: not an entry
+    live = tmp_path / "cache" / "scan" / ".new.partial-1-live"  # a fill still running
+    live.mkdir()
+    sizes = {e.folder.name: e.size for e in cache.entries()}
+    assert [e.folder.name for e in cache.entries()] == ["old", "middle", "new"]
+    assert cache.prune(sizes["new"] + sizes["middle"]) and \
+        [e.folder.name for e in cache.entries()] == ["middle", "new"]
+    # A hit is a use: the restored entry is kept over one used earlier.
+    os.utime(tmp_path / "cache" / "scan" / "middle" / "entry.json", (stamp + 5, stamp + 5))
+    assert [e.folder.name for e in cache.prune(sizes["middle"])] == ["new"]
+    assert [e.folder.name for e in cache.prune(0)] == ["middle"]
+    assert foreign.read_text() == "mine" and (tmp_path / "cache" / "scan" / "nokey").is_dir()
+    assert live.is_dir()
+    os.utime(live, (stamp, stamp))  # a day old: its fill was killed
+    cache.prune(0)
+    assert not live.exists()
+
+
+def test_a_cache_hit_is_a_use(tmp_path):
+    cache = StageCache(tmp_path / "cache")
+    plant = _plant(tmp_path)
+    (plant / "out.txt").write_text("made")
+    cache.run("plant", {}, [plant / "plant.json"], plant, ["out.txt"], lambda: {})
+    about = next((tmp_path / "cache" / "plant").iterdir()) / "entry.json"
+    os.utime(about, (1_700_000_000, 1_700_000_000))
+    _, cached, _ = cache.run("plant", {}, [plant / "plant.json"], plant, ["out.txt"],
+                             lambda: pytest.fail("computed again"))
+    assert cached and about.stat().st_mtime > 1_700_000_000
 
 
 def test_no_cache_and_a_cache_folder_contradict_before_any_work(tmp_path, capsys):
@@ -108,3 +193,49 @@ def test_no_cache_and_a_cache_folder_contradict_before_any_work(tmp_path, capsys
     assert not (tmp_path / "out").exists()
     with pytest.raises(SystemExit):  # the sweep's sources are the generated plants'
         main(["sweep", "--source", "real", "--grid", "cluster.eps=0.01", "--out", "x"])
+
+
+def test_the_cache_command_says_what_is_held_and_prunes_only_entries(tmp_path, capsys,
+                                                                    monkeypatch):
+    from flowerpose.cli import main
+
+    cache = StageCache(tmp_path / "cache")
+    payload = tmp_path / "payload"
+    payload.write_bytes(b"x" * 2_000_000)
+    for stage, key in (("scan", "a"), ("scan", "b"), ("reconstruct", "c")):
+        cache.store(stage, key, {"cloud.ply": payload}, {"result": {}})
+    (tmp_path / "cache" / "notes.txt").write_text("mine")
+    assert main(["cache", "--cache", str(tmp_path / "cache")]) == 0
+    shown = capsys.readouterr().out
+    assert "| scan " in shown and "| reconstruct " in shown and "| total " in shown
+    assert "6.0 MB" in shown
+    assert main(["cache", "--cache", str(tmp_path / "cache"), "--max-size", "0.003"]) == 0
+    assert "removed 2 entries (4.0 MB)" in capsys.readouterr().out
+    assert main(["cache", "--cache", str(tmp_path / "cache"), "--clear"]) == 0
+    assert cache.entries() == [] and (tmp_path / "cache" / "notes.txt").read_text() == "mine"
+    monkeypatch.setenv("FLOWERPOSE_CACHE_MAX_GB", "lots")
+    assert main(["eval", "--source", "oracle", "--out", str(tmp_path / "out")]) == 2
+    assert "FLOWERPOSE_CACHE_MAX_GB: must be a size in GB" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_eval_again_takes_its_plants_detections_and_scores_from_the_cache(tmp_path):
+    from flowerpose.eval.harness import EvalConfig, run_eval
+
+    root, config = tmp_path / "cache", EvalConfig()
+
+    def run(out, cfg=config):
+        return run_eval(cfg, source="oracle", plants=1, seed=1, out_dir=tmp_path / out,
+                        workers=1, cache=root)
+
+    first, again = run("a"), run("b")
+    assert again["summary"] == first["summary"] and first["timing_s"]["cluster"] > 0
+    assert again["timing_s"]["plant"] == again["timing_s"]["cluster"] == 0.0
+    assert (tmp_path / "b" / "plants" / "seed-1" / "flowers.json").read_bytes() == \
+        (tmp_path / "a" / "plants" / "seed-1" / "flowers.json").read_bytes()
+    # Another pipeline setting: the same plant, detected and scored afresh.
+    other = run("c", dataclasses.replace(config, cluster=dataclasses.replace(
+        config.cluster, eps=0.008)))
+    assert other["timing_s"]["plant"] == 0.0 and other["timing_s"]["cluster"] > 0
+    assert len(list((root / "detect").iterdir())) == 2
+    assert len(list((root / "plant").iterdir())) == 1
