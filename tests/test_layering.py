@@ -41,3 +41,20 @@ def test_each_package_imports_only_what_the_layout_allows(folder, forbidden, all
               for package in _imports(path) & forbidden
               if path.name not in allowed_in.get(package, set())}
     assert not broken, sorted(broken)
+
+
+def test_importing_every_pipeline_module_loads_no_sim_hardware_or_eval_module():
+    """The rule as a user meets it: the pipeline alone, installed on a field machine, never
+    pulls in the simulator, the bot or the harness (an import the source reading could miss,
+    e.g. one made by a library on the pipeline's behalf, shows here)."""
+    import subprocess
+    import sys
+
+    modules = [f"flowerpose.pipeline.{p.stem}" for p in _modules("pipeline")
+               if p.stem != "__init__"]
+    script = ("import sys\n" + "".join(f"import {m}\n" for m in modules) +
+              "print('\\n'.join(sorted(m for m in sys.modules if m.split('.')[:2] in "
+              "(['flowerpose', 'sim'], ['flowerpose', 'hardware'], ['flowerpose', 'eval']))))")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300, check=True)
+    assert done.stdout.split() == [], done.stdout
