@@ -31,10 +31,10 @@ def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
     """Median wall seconds of the simulator's steps for realistic plant `seed`: generating
     the plant, its flowers' visibility from the scan path, and its oracle cloud."""
     from flowerpose.scan_geometry import path_cameras
-    from flowerpose.sim.config import OracleCloudConfig, preset
     from flowerpose.sim.oracle import sample_oracle_cloud
     from flowerpose.sim.plant import generate_plant
     from flowerpose.sim.visibility import flower_visibility
+    from flowerpose.sim.world_config import OracleCloudConfig, preset
 
     runs: dict[str, list[float]] = {name: [] for name in SIMULATOR_BUDGET_S}
     for _ in range(repeat):

@@ -46,7 +46,7 @@ from flowerpose.pipeline.flowers import (
     write_normals_ply,
 )
 from flowerpose.pipeline.rgbd import FusionConfig
-from flowerpose.sim.config import PresetName, SimConfig, sim_preset
+from flowerpose.sim.world_config import PresetName, SimConfig, sim_preset
 from flowerpose.stopwatch import Stopwatch
 
 #: The paper's estimate of its hand labels' error, degrees (the field preset's).

@@ -714,7 +714,7 @@ def _plant_xy(text: str) -> tuple[float, float]:
     return x, y
 
 
-#: Plant presets (sim/config.py): the README describes each.
+#: Plant presets (sim/world_config.py): the README describes each.
 PRESETS = ("easy", "realistic", "hard", "field")
 PRESET_HELP = ("synthetic plants: easy, realistic (the benchmark), hard, or field (calibrated "
                "on a real scan, with the hand labels' error in the scoring)")

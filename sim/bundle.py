@@ -10,11 +10,11 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.scan_geometry import path_cameras
-from flowerpose.sim.config import PresetName, SimConfig, sim_preset
 from flowerpose.sim.export import write_plant
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.plant import Plant, generate_plant
 from flowerpose.sim.visibility import flower_visibility
+from flowerpose.sim.world_config import PresetName, SimConfig, sim_preset
 
 #: Stream of the seed's random numbers used for the oracle cloud (the plant uses the seed).
 ORACLE_STREAM = 1

@@ -14,8 +14,8 @@ from flowerpose.atomic import write_file, write_text
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
-from flowerpose.sim.config import preset
 from flowerpose.sim.plant import FlowerTruth, Plant
+from flowerpose.sim.world_config import preset
 
 
 def truth_dict(plant: Plant, visible: np.ndarray | None = None,

@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flowerpose.sim import colours
-from flowerpose.sim.config import PlantConfig
+from flowerpose.sim import plant_colours as colours
 from flowerpose.sim.pieces import Part, Piece, merge
 from flowerpose.sim.shapes import blade, lathe
+from flowerpose.sim.world_config import PlantConfig
 
 #: Depth below the flower origin where the pedicel enters the calyx, metres.
 PEDICEL_ENTRY_M = 0.003

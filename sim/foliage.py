@@ -6,10 +6,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from flowerpose.sim import colours
-from flowerpose.sim.config import PlantConfig
+from flowerpose.sim import plant_colours as colours
 from flowerpose.sim.pieces import Part, Piece
 from flowerpose.sim.shapes import blade, cubic_bezier, lathe, tube
+from flowerpose.sim.world_config import PlantConfig
 
 #: Height of the crown top where petioles and peduncles start, metres.
 CROWN_TOP_M = 0.017

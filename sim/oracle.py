@@ -7,10 +7,10 @@ import numpy as np
 import trimesh
 
 from flowerpose.cloudio import Cloud
-from flowerpose.sim.config import OracleCloudConfig
 from flowerpose.sim.pieces import Part
 from flowerpose.sim.plant import Plant
 from flowerpose.sim.raycast import make_scene, seen_from_any
+from flowerpose.sim.world_config import OracleCloudConfig
 
 #: First draw is this many times the requested count (hidden points are dropped).
 OVERSAMPLE = 1.5
@@ -26,7 +26,7 @@ SHEEN_RGB = np.array([205.0, 210.0, 218.0])
 
 def _pale(colors: np.ndarray, config: OracleCloudConfig) -> np.ndarray:
     """(N, 3) uint8 colours with their saturation and value scaled and hue shifted."""
-    from flowerpose.sim.colours import hsv_to_rgb
+    from flowerpose.sim.plant_colours import hsv_to_rgb
 
     hsv = cv2.cvtColor(colors.reshape(-1, 1, 3).astype(np.float32) / 255.0,
                        cv2.COLOR_RGB2HSV).reshape(-1, 3).astype(np.float64)

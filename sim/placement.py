@@ -13,8 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from flowerpose.sim import colours
-from flowerpose.sim.config import PlantConfig
+from flowerpose.sim import plant_colours as colours
 from flowerpose.sim.flower import PEDICEL_ENTRY_M, LocalFlower, bud, fruit, open_flower
 from flowerpose.sim.foliage import CROWN_TOP_M
 from flowerpose.sim.obstacles import (
@@ -26,6 +25,7 @@ from flowerpose.sim.obstacles import (
 )
 from flowerpose.sim.pieces import Part, Piece
 from flowerpose.sim.shapes import cubic_bezier, frame, spherical, tube
+from flowerpose.sim.world_config import PlantConfig
 
 PEDUNCLE_RADIUS_M = 0.0018
 PEDICEL_RADIUS_M = 0.0011

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from flowerpose.sim.config import PlantConfig
 from flowerpose.sim.foliage import PETIOLE_RADIUS_M, crown, leaves
 from flowerpose.sim.obstacles import (
     SAMPLE_SPACING_M,
@@ -25,6 +24,7 @@ from flowerpose.sim.obstacles import (
 from flowerpose.sim.pieces import Part, merge
 from flowerpose.sim.placement import Placer
 from flowerpose.sim.soil import soil
+from flowerpose.sim.world_config import PlantConfig
 
 
 @dataclass(frozen=True)

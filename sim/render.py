@@ -41,7 +41,7 @@ import OpenGL.error  # noqa: E402
 import pyrender  # noqa: E402
 
 from flowerpose.log import open3d  # noqa: E402
-from flowerpose.sim import colours  # noqa: E402
+from flowerpose.sim import plant_colours as colours  # noqa: E402
 from flowerpose.sim.camera import CameraConfig, Intrinsics, opencv_to_opengl  # noqa: E402
 from flowerpose.sim.pieces import Part  # noqa: E402
 from flowerpose.sim.plant import Plant  # noqa: E402

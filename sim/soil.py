@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flowerpose.sim import colours
+from flowerpose.sim import plant_colours as colours
 from flowerpose.sim.pieces import Part, Piece
 from flowerpose.sim.shapes import grid_faces
 

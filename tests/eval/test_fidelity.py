@@ -20,8 +20,8 @@ from flowerpose.eval.real_source import read_real_plant
 from flowerpose.pipeline.colour import petal_mask, rgb_to_hsv
 from flowerpose.pipeline.flowers import PipelineConfig
 from flowerpose.sim.bundle import make_plant
-from flowerpose.sim.config import sim_preset
 from flowerpose.sim.pieces import Part
+from flowerpose.sim.world_config import sim_preset
 
 
 def test_statistics_of_flowers_of_known_size_cupping_and_colour(tmp_path):

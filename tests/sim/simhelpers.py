@@ -7,12 +7,12 @@ import functools
 import numpy as np
 import trimesh
 
-from flowerpose.sim.colours import rgba8
-from flowerpose.sim.config import PlantConfig, preset
 from flowerpose.sim.flower import open_flower
 from flowerpose.sim.pieces import Part, Piece, merge
 from flowerpose.sim.plant import FlowerTruth, Plant, generate_plant
+from flowerpose.sim.plant_colours import rgba8
 from flowerpose.sim.shapes import frame
+from flowerpose.sim.world_config import PlantConfig, preset
 
 
 @functools.cache

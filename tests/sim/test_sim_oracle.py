@@ -10,10 +10,10 @@ from simhelpers import box, cached_plant, handmade_plant
 
 from flowerpose.pipeline.colour import rgb_to_hsv
 from flowerpose.scan_geometry import path_cameras
-from flowerpose.sim.config import OracleCloudConfig
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.pieces import Part
 from flowerpose.sim.raycast import make_scene, seen_from_any
+from flowerpose.sim.world_config import OracleCloudConfig
 
 
 def _viewpoints(plant):

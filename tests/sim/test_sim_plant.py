@@ -12,10 +12,10 @@ from simhelpers import cached_plant
 
 from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import rgb_to_hsv
-from flowerpose.sim.config import preset
 from flowerpose.sim.pieces import Part
 from flowerpose.sim.placement import PEDICEL_RADIUS_M, STRAIGHT_BEYOND_RADIUS_M
 from flowerpose.sim.plant import Plant, generate_plant
+from flowerpose.sim.world_config import preset
 
 SEEDS = {"easy": range(3), "realistic": range(5), "hard": range(2)}
 

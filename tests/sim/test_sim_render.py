@@ -21,8 +21,8 @@ from flowerpose.sim.camera import (
     project,
     unproject,
 )
-from flowerpose.sim.colours import rgba8
 from flowerpose.sim.pieces import Part, Piece
+from flowerpose.sim.plant_colours import rgba8
 from flowerpose.sim.raycast import make_scene
 from flowerpose.sim.render import Output, PlantRenderer, RenderConfig
 from flowerpose.sim.shapes import grid_faces

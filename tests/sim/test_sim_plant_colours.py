@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from flowerpose.pipeline.colour import rgb_to_hsv
-from flowerpose.sim.colours import hsv_to_rgb, rgba8
+from flowerpose.sim.plant_colours import hsv_to_rgb, rgba8
 
 
 def test_hsv_round_trip_through_the_pipeline_conversion():
