@@ -659,7 +659,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.flowers import PipelineConfig
 
     run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out,
-              config=_configure(PipelineConfig(), args))
+              config=_configure(PipelineConfig(), args), cache=_cache(args))
     return 0
 
 
@@ -1168,6 +1168,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "flowers)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="also write bench.json here (default: print only)")
+    _add_cache_options(p)
     _add_config_options(p, detector=False)
     p.set_defaults(func=cmd_bench)
     for command in sub.choices.values():

@@ -33,3 +33,14 @@ def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
                  "cluster.eps=0.1"]) == 2
     assert "plant takes the synthetic world's settings" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
+
+
+def test_bench_takes_its_cloud_from_the_stage_cache_when_made_before(tmp_path, monkeypatch):
+    from flowerpose.sim import bundle
+
+    first = run_bench([20000], repeat=1, seed=3, cache=tmp_path / "cache")
+    made = []
+    monkeypatch.setattr(bundle, "make_plant", lambda *a, **k: made.append(a))
+    again = run_bench([20000], repeat=1, seed=3, cache=tmp_path / "cache")
+    assert made == [] and len(list((tmp_path / "cache" / "plant").iterdir())) == 1
+    assert again["results"][0]["flowers"] == first["results"][0]["flowers"]
