@@ -563,6 +563,65 @@ def _scan_field(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pollinate_base():
+    from flowerpose.hardware.pollinate import PollinateConfig
+
+    return PollinateConfig()
+
+
+def cmd_pollinate(args: argparse.Namespace) -> int:
+    from flowerpose.cloudio import read_cloud
+    from flowerpose.hardware.pollinate import check_plant, plan_pollination, read_visit_flowers
+    from flowerpose.hardware.scan_plan import pose_header, pose_row
+    from flowerpose.jsonio import read_json
+    from flowerpose.pipeline.flowers import read_flowers
+
+    config = _configure(_pollinate_base(), args)
+    document = read_json(args.flowers)
+    if document.get("frame", "bed") != "bed":
+        raise InputError(args.flowers, f"is in its cloud's own frame ({document['frame']}, a "
+                         "phone scan's): pollination needs flowers in the bed frame, from a "
+                         "FarmBot scan's reconstruction")
+    flowers, missing = read_visit_flowers(read_flowers(args.flowers), args.method)
+    if not flowers:
+        raise InputError(args.flowers, f"no flower has a {args.method} normal to approach "
+                         "along")
+    check_plant(flowers, args.plant_at, args.plant_height, args.plant_radius, args.flowers)
+    cloud_path = args.cloud or (Path(document["source"]) if document.get("source") else None)
+    if cloud_path is not None and cloud_path.is_file():
+        obstacles = read_cloud(cloud_path, units="m").points
+    elif args.cloud is not None:
+        raise InputError(args.cloud, "no such cloud")
+    else:
+        obstacles = None
+        LOG.warning("warning: no plant cloud (--cloud, or the one flowers.json names): the "
+                    "visits are checked for reach, not for collisions with the plant")
+    with _owned(args.out, "pollinate", args.overwrite, ("pollination.json",)) as output:
+        plan = plan_pollination(flowers, obstacles, config)
+        from flowerpose.jsonio import write_json
+
+        output.record(write_json(args.out / "pollination.json", {
+            **plan.to_json(), "flowers": str(args.flowers), "method": args.method,
+            "no_normal": missing, "cloud": None if obstacles is None else str(cloud_path),
+            "plant": {"at": list(args.plant_at), "height": args.plant_height,
+                      "radius": args.plant_radius}}))
+    print(f"plan: {len(plan.planned)} of {len(flowers) + len(missing)} flowers visited, "
+          f"{plan.duration_s / 60:.1f} min of bot time; reach, the soil and "
+          + ("clearance from the plant's cloud" if obstacles is not None else "no collisions")
+          + f" checked -> {args.out / 'pollination.json'}")
+    for visit in plan.visits:
+        if visit.status != "planned":
+            print(f"flower {visit.flower}: unreachable {visit.reason}")
+    for flower in missing:
+        print(f"flower {flower}: no {args.method} normal")
+    if args.dry_run:
+        print(pose_header("move") + "  flower")
+        for k, move in enumerate(plan.moves):
+            label = "" if move.flower < 0 else f"{move.flower:7d}"
+            print(f"{pose_row(k, move.kind, move.pose)} {label}")
+    return 0
+
+
 def cmd_frames(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.frames import select_frames
 
@@ -940,6 +999,44 @@ def build_parser() -> argparse.ArgumentParser:
                         "sim.viewpoints.*, scan.sensor.*, scan.render.* and the four scan.* "
                         "its flags set; --port and --cloud scan.width and scan.height)")
     p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser(
+        "pollinate", help="plan a pollinator visit to each flower of a flowers.json",
+        description="Plan a visit of the head's pollinator to each flower of a flowers.json "
+        "(bed frame): a pre-approach pose on the flower's axis, a straight approach until the "
+        "swab touches its centre, a rest and a retreat, every pose checked against the "
+        "bot's reach and every move against the plant's cloud, in an order that keeps "
+        "travel short. Writes pollination.json to --out; --dry-run also prints every move "
+        "in FarmBot's units. Nothing connects or moves.",
+        epilog="example:\n"
+        "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
+        "--dry-run")
+    p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
+                   help="flower poses in the bed frame (flowerpose detect on a FarmBot scan's "
+                   "reconstruction, or a simulated one)")
+    p.add_argument("--plant-at", type=_plant_xy, required=True, metavar="X,Y",
+                   help="where the plant's stem stands, metres in the bed frame (the flowers "
+                   "must be the plant's)")
+    p.add_argument("--plant-height", type=_positive_number, default=0.25, metavar="H",
+                   help="the plant's height above the soil, metres (default: %(default)s)")
+    p.add_argument("--plant-radius", type=_positive_number, default=0.15, metavar="R",
+                   help="how far the plant reaches from its stem, metres (default: "
+                   "%(default)s)")
+    p.add_argument("--cloud", type=Path, metavar="CLOUD.ply",
+                   help="the plant's cloud in the bed frame, for collision checks (default: "
+                   "the cloud flowers.json names as its source)")
+    p.add_argument("--method", choices=("plane", "superellipsoid", "paraboloid"),
+                   default="plane", help="whose normal is the flower's axis (default: "
+                   "%(default)s)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="folder for pollination.json")
+    p.add_argument("--dry-run", action="store_true",
+                   help="also print every move (FarmBot millimetres and servo commands)")
+    _add_overwrite(p)
+    _add_config_options(p, profile=False, detector=False,
+                        example="standoff_m=0.04 (metres; the keys of pollination.json's "
+                        "config)")
+    p.set_defaults(func=cmd_pollinate)
 
     p = sub.add_parser(
         "farmduino", help="serve a virtual Farmduino and print its device path (--virtual)",

@@ -142,6 +142,33 @@ PAPER_BOT = BotGeometry()
 """The paper's bot: FarmBot Genesis v1.7 over a 3 x 1.5 m bed with the yaw / pitch head."""
 
 
+@dataclass(frozen=True)
+class PollinatorTool:
+    """A soft swab on the pitch bracket under the camera, its shaft parallel to the optical
+    axis (assets/farmbot/farmbot.xml, body `pollinator`): the head's yaw and pitch aim it,
+    the gantry carries it. Metres, in the pitch bracket's frame: along the optical axis
+    from the pitch axis, and towards the image's bottom from that axis."""
+
+    reach_m: float = 0.12
+    """The swab tip's centre ahead of the pitch axis along the shaft: 8 cm past the camera's
+    optical centre, so the lens stays clear of the flower it touches."""
+    offset_down_m: float = 0.03
+    """The shaft's offset from the optical axis towards the image's bottom: 3 cm, so even
+    its tip, 8 cm ahead of the lens, is 20.6 degrees off the axis, outside the camera's
+    18.75 degree half field of view (the tool never shows in a scan frame)."""
+    shaft_start_m: float = 0.02
+    """Where the shaft leaves the bracket, ahead of the pitch axis."""
+    shaft_radius_m: float = 0.002
+    """Radius of the shaft (a 4 mm rod)."""
+    tip_radius_m: float = 0.004
+    """Radius of the swab at its tip: an 8 mm head, about as wide as a strawberry flower's
+    6-8 mm receptacle, the part a visit must touch."""
+
+
+PAPER_TOOL = PollinatorTool()
+"""The pollinator this project plans for (`hardware/pollinate.py`)."""
+
+
 def farmbot_mm_to_bed(xyz_mm, geometry: BotGeometry = PAPER_BOT) -> np.ndarray:
     """Bed-frame UTM position, metres, of FarmBot coordinates.
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry
+from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL, BotGeometry, PollinatorTool
 
 JOINT_NAMES = ("x", "y", "z", "yaw", "pitch")
 """Joints (and their position actuators) of assets/farmbot/farmbot.xml, in qpos order."""
@@ -172,6 +172,64 @@ def joint_positions(pose: HeadPose, geometry: BotGeometry = PAPER_BOT) -> np.nda
     yaw, pitch = _servo_angles(pose, geometry)
     slides = pose.gantry - geometry.home
     return np.concatenate([slides, yaw[..., None], pitch[..., None]], -1)
+
+
+def _head_axes(yaw: np.ndarray, pitch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The head's forward (optical axis) and the image's down, (..., 3) unit vectors in
+    the bed frame, of head angles, radians."""
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    return np.stack([cp * cy, cp * sy, -sp], -1), np.stack([-sp * cy, -sp * sy, -cp], -1)
+
+
+def tool_forward(pose: HeadPose, tool: PollinatorTool = PAPER_TOOL,
+                 geometry: BotGeometry = PAPER_BOT) -> tuple[np.ndarray, np.ndarray]:
+    """Where the pollinator's tip is and where its shaft points, for a head pose.
+
+    The shaft sits under the optical axis, so unlike the camera's centre the tip depends
+    on which of the two servo solutions (`servo_commands`' flip) the head takes: this uses
+    the one it does take. Returns tip (3,) or (N, 3), metres, bed frame, and the shaft's
+    direction, unit (3,) or (N, 3), from the bracket towards the tip.
+    """
+    yaw, pitch = _servo_angles(pose, geometry)
+    ahead, down = _head_axes(yaw, pitch)
+    pitch_axis = pose.gantry - np.array([0.0, 0.0, geometry.pitch_axis_below_utm_m])
+    return pitch_axis + tool.reach_m * ahead + tool.offset_down_m * down, ahead
+
+
+def tool_at(tip, direction, tool: PollinatorTool = PAPER_TOOL,
+            geometry: BotGeometry = PAPER_BOT) -> HeadPose:
+    """The head pose that puts the pollinator's tip at `tip` with its shaft along
+    `direction` (the way it moves to touch): the inverse of `tool_forward`.
+
+    tip: (3,) or (N, 3), metres, bed frame. direction: (3,) or (N, 3), any length but 0.
+    Like `look_at`, the pose is not checked against the bot's limits.
+    """
+    direction = np.asarray(direction, np.float64)
+    length = np.linalg.norm(direction, axis=-1, keepdims=True)
+    if np.any(length < 1e-12):
+        raise InputError("tool_at", "the tool's direction is a zero vector")
+    ahead = direction / length
+    yaw = np.arctan2(ahead[..., 1], ahead[..., 0])
+    pitch = np.arctan2(-ahead[..., 2], np.hypot(ahead[..., 0], ahead[..., 1]))
+    flip = yaw < -_ANGLE_TOL
+    yaw = np.where(flip, yaw + np.pi, yaw)
+    pitch = np.where(flip, np.pi - pitch, pitch)
+    # The image's down is that of the angles the servos will take, which may be flipped.
+    servo_yaw, servo_pitch = _servo_angles(HeadPose(np.zeros(yaw.shape + (3,)), yaw, pitch),
+                                           geometry)
+    _, down = _head_axes(servo_yaw, servo_pitch)
+    pitch_axis = np.asarray(tip, np.float64) - tool.reach_m * ahead - tool.offset_down_m * down
+    return HeadPose(pitch_axis + np.array([0.0, 0.0, geometry.pitch_axis_below_utm_m]), yaw,
+                    pitch)
+
+
+def tool_points(pose: HeadPose, tool: PollinatorTool = PAPER_TOOL,
+                geometry: BotGeometry = PAPER_BOT, samples: int = 6) -> np.ndarray:
+    """(..., samples, 3) points along the pollinator's shaft, from the bracket to the tip,
+    metres, bed frame: what must keep clear of what it should not touch."""
+    tip, ahead = tool_forward(pose, tool, geometry)
+    along = np.linspace(tool.shaft_start_m - tool.reach_m, 0.0, samples)
+    return tip[..., None, :] + along[:, None] * ahead[..., None, :]
 
 
 def check_reachable(pose: HeadPose, geometry: BotGeometry = PAPER_BOT, *,

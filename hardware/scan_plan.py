@@ -79,7 +79,7 @@ class ScanPlan:
                 "config": asdict(self.config)}
 
 
-def _head_points(pose: HeadPose, geometry: BotGeometry) -> np.ndarray:
+def head_points(pose: HeadPose, geometry: BotGeometry = PAPER_BOT) -> np.ndarray:
     """(N, 2, 3) the camera's optical centre and the pitch axis of poses, metres."""
     camera, _ = forward(pose, geometry)
     axis = pose.gantry - np.array([0.0, 0.0, geometry.pitch_axis_below_utm_m])
@@ -126,25 +126,26 @@ def plan_scan(plant_center, plant_height: float, config: ScanConfig = ScanConfig
                     config, float(duration))
 
 
+def poses_along(a: HeadPose, b: HeadPose, profile: MotionProfile, samples: int) -> HeadPose:
+    """`samples` poses along the move from a to b: the gantry on the motion profile, the
+    head taken to turn linearly in time (the servos are much faster than the gantry, so
+    this is conservative only in where the turn happens)."""
+    fractions = np.linspace(0.0, 1.0, samples)
+    duration = max(move_duration(a.gantry, b.gantry, profile), 1e-9)
+    gantry = move_trajectory(fractions * duration, a.gantry, b.gantry, profile)
+    return HeadPose(gantry, a.yaw + fractions * (b.yaw - a.yaw),
+                    a.pitch + fractions * (b.pitch - a.pitch))
+
+
 def _check_collisions(waypoints: list[Waypoint], obstacles: np.ndarray,
                       config: ScanConfig, geometry: BotGeometry, profile: MotionProfile,
                       samples: int) -> None:
-    """Refuse a path whose head passes too close to the plant at a waypoint or on a move.
-
-    Along a move the gantry follows the motion profile and the head is taken to turn
-    linearly in time (the servos are much faster than the gantry, so this is conservative
-    only in where the turn happens)."""
+    """Refuse a path whose head passes too close to the plant at a waypoint or on a move
+    (`poses_along`)."""
     tree = cKDTree(obstacles)
-    fractions = np.linspace(0.0, 1.0, samples)
     for a, b in zip([None] + waypoints[:-1], waypoints, strict=True):
-        if a is None:
-            pose = b.pose
-        else:
-            duration = max(move_duration(a.pose.gantry, b.pose.gantry, profile), 1e-9)
-            gantry = move_trajectory(fractions * duration, a.pose.gantry, b.pose.gantry, profile)
-            pose = HeadPose(gantry, a.pose.yaw + fractions * (b.pose.yaw - a.pose.yaw),
-                            a.pose.pitch + fractions * (b.pose.pitch - a.pose.pitch))
-        points = _head_points(pose, geometry).reshape(-1, 3)
+        pose = b.pose if a is None else poses_along(a.pose, b.pose, profile, samples)
+        points = head_points(pose, geometry).reshape(-1, 3)
         distance, _ = tree.query(points)
         if distance.min() < config.head_clearance_m:
             where = "at" if a is None else f"on the move from waypoint {a.index} to"
@@ -171,12 +172,10 @@ def plant_envelope(center, height: float, radius: float, spacing: float = 0.01) 
     return np.concatenate([side.reshape(-1, 3), top.reshape(-1, 3)])
 
 
-def plan_field_scan(plant_at, plant_height: float, plant_radius: float,
-                    config: ScanConfig = ScanConfig(),
-                    geometry: BotGeometry = PAPER_BOT) -> ScanPlan:
-    """The scan of a real plant whose stem stands at `plant_at` (x, y, metres, bed frame),
-    its reach a cylinder of `plant_height` x `plant_radius` metres the head keeps clear of.
-    InputError names the argument that is out of range."""
+def check_plant_position(plant_at, plant_height: float, plant_radius: float,
+                         geometry: BotGeometry = PAPER_BOT) -> tuple[float, float]:
+    """A real plant's stem position (x, y), metres, bed frame, checked to be on the bed,
+    and its height and radius to be positive; InputError names the argument."""
     x, y = (float(v) for v in plant_at)
     length, width = geometry.bed_size_m
     if not (0 <= x <= length and 0 <= y <= width):
@@ -185,20 +184,39 @@ def plan_field_scan(plant_at, plant_height: float, plant_radius: float,
     for name, value in (("plant_height", plant_height), ("plant_radius", plant_radius)):
         if not (np.isfinite(value) and value > 0):
             raise InputError(name, f"must be a positive number of metres, got {value:g}")
+    return x, y
+
+
+def plan_field_scan(plant_at, plant_height: float, plant_radius: float,
+                    config: ScanConfig = ScanConfig(),
+                    geometry: BotGeometry = PAPER_BOT) -> ScanPlan:
+    """The scan of a real plant whose stem stands at `plant_at` (x, y, metres, bed frame),
+    its reach a cylinder of `plant_height` x `plant_radius` metres the head keeps clear of.
+    InputError names the argument that is out of range."""
+    x, y = check_plant_position(plant_at, plant_height, plant_radius, geometry)
     return plan_scan(np.array([x, y]), plant_height, config, geometry,
                      obstacles=plant_envelope((x, y), plant_height, plant_radius))
 
 
-def plan_table(plan: ScanPlan) -> list[str]:
-    """The planned moves in FarmBot's own units, a line each (what a physical bot would be
-    sent): millimetres from home and the servos' commands."""
+def pose_header(index_name: str) -> str:
+    """The header of `pose_row`'s lines, their first column named `index_name`."""
+    return (f"{index_name:>8s} {'kind':8s} {'X mm':>8s} {'Y mm':>8s} {'Z mm':>8s} "
+            f"{'yaw cmd':>8s} {'pitch cmd':>9s}")
+
+
+def pose_row(index: int, kind: str, pose: HeadPose) -> str:
+    """A pose in FarmBot's own units, as a physical bot is sent it: millimetres from home
+    and the servos' commands, after `index` and `kind`."""
     from flowerpose.hardware.geometry import bed_to_farmbot_mm
     from flowerpose.hardware.kinematics import servo_commands
 
-    lines = ["waypoint kind      X mm     Y mm     Z mm   yaw cmd  pitch cmd"]
-    for w in plan.waypoints:
-        x, y, z = bed_to_farmbot_mm(w.pose.gantry)
-        yaw, pitch = servo_commands(w.pose)
-        lines.append(f"{w.index:8d} {w.kind:8s} {x:8.2f} {y:8.2f} {z:8.2f} {float(yaw):8.1f} "
-                     f"{float(pitch):9.1f}")
-    return lines
+    x, y, z = bed_to_farmbot_mm(pose.gantry)
+    yaw, pitch = servo_commands(pose)
+    return (f"{index:8d} {kind:8s} {x:8.2f} {y:8.2f} {z:8.2f} {float(yaw):8.1f} "
+            f"{float(pitch):9.1f}")
+
+
+def plan_table(plan: ScanPlan) -> list[str]:
+    """The planned moves in FarmBot's own units, a line each (`pose_row`)."""
+    return [pose_header("waypoint")] + [pose_row(w.index, w.kind, w.pose)
+                                        for w in plan.waypoints]

@@ -1,0 +1,407 @@
+"""Pollination visits planned from flower poses and checked before the bot moves.
+
+A visit brings the pollinator's swab (`geometry.PollinatorTool`, `kinematics.tool_at`) to a
+flower's centre along the flower's axis: from the top of Z it descends to a pre-approach
+pose `standoff_m` out along the axis, moves straight in until the swab touches the centre,
+rests, and retreats the same way. Every pose is checked against the gantry's travel, the
+servos' range and the soil clearance (naming the limit that fails), and every move against
+the plant's cloud: the head and the shaft keep `clearance_m` from it, except that the shaft
+may pass through the target flower's own corolla (its points within `touch_radius_m` of
+the centre). A flower whose axis cannot be taken is approached along the nearest
+direction within `cone_deg` of it that can, or reported unreachable with the reason. The
+visits are ordered to keep travel short (nearest neighbour, then 2-opt), on FarmBot's
+motion profile.
+
+Frames and units: the bed frame, metres, radians (DESIGN.md); flower normals point out of
+the open face of the corolla, so the swab moves along minus the normal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL, BotGeometry, PollinatorTool
+from flowerpose.hardware.kinematics import (
+    HeadPose,
+    UnreachableError,
+    check_reachable,
+    tool_at,
+    tool_points,
+)
+from flowerpose.hardware.motion import (
+    END_OF_MOVE_S,
+    MotionProfile,
+    move_duration,
+    move_trajectory,
+)
+from flowerpose.hardware.scan_plan import head_points, poses_along
+
+
+@dataclass(frozen=True)
+class PollinateConfig:
+    """How a flower is visited, metres and degrees."""
+
+    standoff_m: float = 0.05
+    """The pre-approach pose: the swab this far out along the flower's axis."""
+    press_m: float = 0.002
+    """How far past the flower's centre the swab goes, to touch it with a little force."""
+    dwell_s: float = 1.0
+    """Seconds the swab rests on the flower."""
+    cone_deg: float = 30.0
+    """Largest angle between an approach and the flower's axis, for a flower whose axis
+    cannot be taken (out of reach, or blocked)."""
+    cone_step_deg: float = 10.0
+    """Angle between the rings of directions tried inside that cone."""
+    cone_azimuths: int = 8
+    """Directions tried on each ring."""
+    clearance_m: float = 0.01
+    """Least distance between the plant's points and the head (camera centre, pitch axis)
+    or the shaft anywhere along a visit."""
+    touch_radius_m: float = 0.02
+    """The target flower's own points within this distance of its centre may touch the
+    shaft and swab (its corolla)."""
+    straight_within_m: float = 0.002
+    """The approach keeps within this distance of the straight line to the centre. FarmBot
+    runs each axis on its own profile, so a diagonal move bends: it is cut into shorter
+    moves until it does not bend more."""
+    soil_margin_m: float = 0.005
+    """Least height of the swab above the soil."""
+    samples_per_move: int = 12
+    """Poses checked along each move."""
+
+    def __post_init__(self):
+        for name in ("standoff_m", "clearance_m", "touch_radius_m", "straight_within_m",
+                     "cone_step_deg"):
+            if not getattr(self, name) > 0:
+                raise InputError(name, f"must be positive, got "
+                                 f"{getattr(self, name)}")
+        if not 0 <= self.cone_deg < 90:
+            raise InputError("cone_deg", f"must be 0 or more, below 90, got "
+                             f"{self.cone_deg}")
+
+
+@dataclass(frozen=True)
+class Flower:
+    """A flower to visit: its id (flowers.json's), centre (3,) and unit normal (3,),
+    metres, bed frame."""
+
+    id: int
+    center: np.ndarray
+    normal: np.ndarray
+
+
+@dataclass(frozen=True)
+class Visit:
+    """One flower's visit, or why there is none."""
+
+    flower: int
+    status: Literal["planned", "unreachable"]
+    reason: str = ""
+    """Unreachable: the limit that fails along the flower's axis (and that no direction in
+    the cone does better)."""
+    approach: np.ndarray | None = None
+    """(3,) unit direction the swab moves in to touch, bed frame."""
+    off_axis_deg: float | None = None
+    """Angle between the approach and the flower's axis (0: along it)."""
+    pre: HeadPose | None = None
+    """The pre-approach pose, `standoff_m` out along the approach."""
+    touch: HeadPose | None = None
+    """The pose that touches the centre."""
+    approach_moves: list[HeadPose] = field(default_factory=list)
+    """The gantry positions (one pose each) the approach is cut into, the last `touch`."""
+
+    def to_json(self) -> dict:
+        entry = {"flower": self.flower, "status": self.status}
+        if self.status != "planned":
+            return {**entry, "reason": self.reason}
+        return {**entry, "off_axis_deg": round(float(self.off_axis_deg), 2),
+                "approach": [round(float(v), 6) for v in self.approach],
+                "pre_gantry_m": self.pre.gantry.round(6).tolist(),
+                "touch_gantry_m": self.touch.gantry.round(6).tolist(),
+                "yaw_rad": round(float(self.pre.yaw), 6),
+                "pitch_rad": round(float(self.pre.pitch), 6),
+                "approach_moves": len(self.approach_moves)}
+
+
+@dataclass(frozen=True)
+class Move:
+    """One gantry move of the plan, or a rest: what it is and the pose it ends at."""
+
+    kind: Literal["lift", "travel", "descend", "approach", "dwell", "retreat"]
+    flower: int
+    pose: HeadPose
+
+
+@dataclass(frozen=True)
+class PollinationPlan:
+    """Visits in the order flown (the planned ones; then the unreachable), and the moves."""
+
+    visits: list[Visit]
+    moves: list[Move]
+    duration_s: float
+    """Moves, their ends and the rests on the motion profile, seconds."""
+    config: PollinateConfig
+
+    @property
+    def planned(self) -> list[Visit]:
+        return [v for v in self.visits if v.status == "planned"]
+
+    def to_json(self) -> dict:
+        from dataclasses import asdict
+
+        return {"visits": [v.to_json() for v in self.visits],
+                "planned": len(self.planned), "unreachable": len(self.visits)
+                - len(self.planned), "moves": len(self.moves),
+                "duration_s": round(self.duration_s, 2), "config": asdict(self.config)}
+
+
+def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
+                     config: PollinateConfig = PollinateConfig(),
+                     geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool = PAPER_TOOL,
+                     profile: MotionProfile | None = None,
+                     start: np.ndarray | None = None) -> PollinationPlan:
+    """Plan a visit to each flower, in a short order, from the gantry at `start` ((3,) UTM,
+    metres, bed frame; default home). obstacles: (M, 3) points of the plant (its cloud),
+    metres, bed frame, or None to check reach alone."""
+    profile = profile or MotionProfile()
+    start = geometry.home if start is None else np.asarray(start, np.float64)
+    points = np.empty((0, 3)) if obstacles is None else np.asarray(obstacles, np.float64)
+    tree = cKDTree(points) if len(points) else None
+    visits = [_plan_visit(f, points, tree, config, geometry, tool, profile) for f in flowers]
+    planned = [v for v in visits if v.status == "planned"]
+    order = _short_order(planned, start, geometry, profile)
+    ordered = [planned[k] for k in order]
+    moves = _moves(ordered, start, geometry)
+    _check_transfers(moves, tree, config, geometry, tool, profile)
+    duration = sum(move_duration(a.pose.gantry, b.pose.gantry, profile) + END_OF_MOVE_S
+                   for a, b in zip(moves, moves[1:], strict=False) if b.kind != "dwell")
+    duration += config.dwell_s * len(ordered)
+    unreachable = [v for v in visits if v.status != "planned"]
+    return PollinationPlan(ordered + unreachable, moves, float(duration), config)
+
+
+def _directions(normal: np.ndarray, config: PollinateConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 3) unit axes to approach along (the flower's own first, then rings further off
+    it) and (K,) their angles off it, degrees."""
+    normal = normal / np.linalg.norm(normal)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    rings = np.arange(config.cone_step_deg, config.cone_deg + 1e-9, config.cone_step_deg)
+    azimuths = 2 * np.pi * np.arange(config.cone_azimuths) / config.cone_azimuths
+    theta = np.radians(np.repeat(rings, len(azimuths)))
+    phi = np.tile(azimuths, len(rings))
+    off = (np.cos(theta)[:, None] * normal + np.sin(theta)[:, None]
+           * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v))
+    return (np.vstack([normal, off]),
+            np.concatenate([[0.0], np.degrees(theta)]))
+
+
+def _plan_visit(flower: Flower, points: np.ndarray, tree: cKDTree | None,
+                config: PollinateConfig, geometry: BotGeometry, tool: PollinatorTool,
+                profile: MotionProfile) -> Visit:
+    """The visit along the flower's axis, else along the nearest direction in the cone
+    that is reachable and clear; else why not."""
+    axes, angles = _directions(flower.normal, config)
+    near_flower = (np.linalg.norm(points - flower.center, axis=1) <= config.touch_radius_m
+                   if len(points) else np.zeros(0, bool))
+    others = cKDTree(points[~near_flower]) if (~near_flower).any() else None
+    first_reason = ""
+    for axis, angle in zip(axes, angles, strict=True):
+        approach = -axis
+        pre = tool_at(flower.center + config.standoff_m * axis, approach, tool, geometry)
+        touch = tool_at(flower.center - config.press_m * axis, approach, tool, geometry)
+        reason = _unreachable(pre, touch, config, geometry, tool)
+        if not reason:
+            steps = _straight(pre, touch, config, profile)
+            reason = _blocked(pre, steps, tree, others, config, geometry, tool, profile)
+            if not reason:
+                return Visit(flower.id, "planned", "", approach, float(angle), pre,
+                             touch, steps)
+        first_reason = first_reason or reason
+    return Visit(flower.id, "unreachable",
+                 f"along its axis: {first_reason}; no approach within {config.cone_deg:g} "
+                 "degrees of it does better")
+
+
+def _unreachable(pre: HeadPose, touch: HeadPose, config: PollinateConfig,
+                 geometry: BotGeometry, tool: PollinatorTool) -> str:
+    """The limits the visit's poses break ("" when none)."""
+    for name, pose in (("pre-approach", pre), ("touch", touch)):
+        try:
+            check_reachable(pose, geometry, name=name)
+        except UnreachableError as error:
+            return f"the {name} pose is {error.problem}"
+        swab = tool_points(pose, tool, geometry)[..., 2].min()
+        if swab < config.soil_margin_m:
+            return f"the {name} pose puts the pollinator {swab * 1000:.0f} mm above the soil"
+    return ""
+
+
+def _straight(pre: HeadPose, touch: HeadPose, config: PollinateConfig,
+              profile: MotionProfile) -> list[HeadPose]:
+    """The approach from `pre` to `touch` as moves short enough that each keeps within
+    `straight_within_m` of the line: the gantry positions they end at."""
+    start, end = pre.gantry, touch.gantry
+    line = end - start
+    for count in (1, 2, 4, 8, 16, 32, 64):
+        ends = start + np.outer(np.arange(1, count + 1) / count, line)
+        bend = max(_bend(a, b, start, line, profile)
+                   for a, b in zip(np.vstack([start, ends[:-1]]), ends, strict=True))
+        if bend <= config.straight_within_m:
+            break
+    return [HeadPose(g, pre.yaw, pre.pitch) for g in ends]
+
+
+def _bend(a: np.ndarray, b: np.ndarray, origin: np.ndarray, line: np.ndarray,
+          profile: MotionProfile) -> float:
+    """Farthest the gantry gets from the line through origin along `line`, moving a to b."""
+    duration = max(move_duration(a, b, profile), 1e-9)
+    path = move_trajectory(np.linspace(0.0, duration, 16), a, b, profile) - origin
+    unit = line / max(np.linalg.norm(line), 1e-12)
+    return float(np.linalg.norm(path - np.outer(path @ unit, unit), axis=1).max())
+
+
+def _top_over(pose: HeadPose, geometry: BotGeometry) -> HeadPose:
+    """The pose with the gantry at the top of Z above where `pose` is."""
+    gantry = pose.gantry.copy()
+    gantry[2] = geometry.gantry_max[2]
+    return HeadPose(gantry, pose.yaw, pose.pitch)
+
+
+def _blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None,
+             others: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
+             tool: PollinatorTool, profile: MotionProfile) -> str:
+    """Where the visit's descent or approach comes too close to the plant ("" if never):
+    the head to any point, the shaft to any but the target flower's own."""
+    if tree is None:
+        return ""
+    samples = config.samples_per_move
+    moves = [("descent", poses_along(_top_over(pre, geometry), pre, profile, samples), True)]
+    for a, b in zip([pre, *steps[:-1]], steps, strict=True):
+        moves.append(("approach", poses_along(a, b, profile, samples), False))
+    for name, poses, tool_to_all in moves:
+        head = tree.query(head_points(poses, geometry).reshape(-1, 3))[0].min()
+        shaft_tree = tree if tool_to_all else others
+        shaft = (shaft_tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min()
+                 if shaft_tree is not None else np.inf)
+        if min(head, shaft) < config.clearance_m:
+            part = "camera head" if head <= shaft else "pollinator"
+            return (f"the {part} passes {min(head, shaft) * 1000:.0f} mm from the plant on "
+                    f"the {name} (least {config.clearance_m * 1000:.0f} mm)")
+    return ""
+
+
+def _transfer_cost(a: np.ndarray, b: np.ndarray, profile: MotionProfile) -> float:
+    """Seconds from the top of Z over a to the top of Z over b, down to b's height (the
+    part of a transfer that depends on the order)."""
+    top = max(a[2], b[2])
+    return (move_duration(a, [a[0], a[1], top], profile)
+            + move_duration([a[0], a[1], top], [b[0], b[1], top], profile)
+            + move_duration([b[0], b[1], top], b, profile))
+
+
+def _short_order(visits: list[Visit], start: np.ndarray, geometry: BotGeometry,
+                 profile: MotionProfile) -> list[int]:
+    """An order of the visits that keeps transfers short: nearest neighbour from `start`,
+    then 2-opt. A plant has tens of flowers, so the O(n^3) 2-opt takes milliseconds."""
+    if not visits:
+        return []
+    places = [start] + [v.pre.gantry for v in visits]
+    n = len(places)
+    cost = np.array([[_transfer_cost(places[i], places[j], profile) for j in range(n)]
+                     for i in range(n)])
+    order, left = [0], set(range(1, n))
+    while left:
+        nearest = min(left, key=lambda j: cost[order[-1], j])
+        order.append(nearest)
+        left.remove(nearest)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, n - 1):
+            for j in range(i + 1, n):
+                after = order[j + 1] if j + 1 < n else None
+                old = cost[order[i - 1], order[i]] + (cost[order[j], after] if after else 0)
+                new = cost[order[i - 1], order[j]] + (cost[order[i], after] if after else 0)
+                if new < old - 1e-9:
+                    order[i:j + 1] = order[i:j + 1][::-1]
+                    improved = True
+    return [k - 1 for k in order[1:]]
+
+
+def _moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry) -> list[Move]:
+    """The moves of the visits in order: up to the top of Z, across, down to the
+    pre-approach pose, in to the centre, a rest, back out (the head turns at the top)."""
+    moves = [Move("lift", -1, _top_over(HeadPose(start, 0.0, 0.0), geometry))]
+    for visit in visits:
+        here = moves[-1].pose
+        if moves[-1].kind != "lift":
+            moves.append(Move("lift", visit.flower, _top_over(here, geometry)))
+        moves.append(Move("travel", visit.flower, _top_over(visit.pre, geometry)))
+        moves.append(Move("descend", visit.flower, visit.pre))
+        moves.extend(Move("approach", visit.flower, step) for step in visit.approach_moves)
+        moves.append(Move("dwell", visit.flower, visit.touch))
+        moves.append(Move("retreat", visit.flower, visit.pre))
+    if visits:
+        moves.append(Move("lift", -1, _top_over(visits[-1].pre, geometry)))
+    return moves
+
+
+def _check_transfers(moves: list[Move], tree: cKDTree | None, config: PollinateConfig,
+                     geometry: BotGeometry, tool: PollinatorTool,
+                     profile: MotionProfile) -> None:
+    """Refuse a plan whose travel at the top of Z passes through the plant (a plant taller
+    than the gantry can clear)."""
+    if tree is None:
+        return
+    for a, b in zip(moves, moves[1:], strict=False):
+        if b.kind != "travel":
+            continue
+        poses = poses_along(a.pose, b.pose, profile, config.samples_per_move)
+        points = np.concatenate([head_points(poses, geometry).reshape(-1, 3),
+                                 tool_points(poses, tool, geometry).reshape(-1, 3)])
+        distance = tree.query(points)[0].min()
+        if distance < config.clearance_m:
+            raise InputError(f"flower {b.flower}", f"the travel at the top of Z passes "
+                             f"{distance * 1000:.0f} mm from the plant: it is taller than "
+                             "the gantry can clear")
+
+
+def read_visit_flowers(entries: list[dict],
+                       method: str = "plane") -> tuple[list[Flower], list[int]]:
+    """The flowers of flowers.json entries (`pipeline.flowers.read_flowers`) that have a
+    `method` normal, and the ids of those that have none."""
+    flowers, missing = [], []
+    for k, entry in enumerate(entries):
+        normal = entry["normals"].get(method)
+        if normal is None:
+            missing.append(int(entry.get("id", k)))
+        else:
+            flowers.append(Flower(int(entry.get("id", k)), np.asarray(entry["center"], float),
+                                  np.asarray(normal, float)))
+    return flowers, missing
+
+
+def check_plant(flowers: list[Flower], plant_at, height: float, radius: float,
+                source: object) -> None:
+    """Refuse flowers that are not the plant's at `plant_at` (x, y), `height` x `radius`
+    metres, with 5 cm to spare: a flowers.json of another plant, or not in the bed frame.
+    InputError names `source` (the file), or the argument out of range."""
+    from flowerpose.hardware.scan_plan import check_plant_position
+
+    x, y = check_plant_position(plant_at, height, radius)
+    for flower in flowers:
+        off = float(np.hypot(flower.center[0] - x, flower.center[1] - y))
+        if off > radius + 0.05 or not -0.05 <= flower.center[2] <= height + 0.05:
+            raise InputError(source, f"flower {flower.id} at ({flower.center[0]:.3f}, "
+                             f"{flower.center[1]:.3f}, {flower.center[2]:.3f}) m is not on "
+                             f"the plant at ({x:g}, {y:g}) m ({off:.2f} m from its stem; "
+                             f"the plant {radius:g} m x {height:g} m): is it this plant's, "
+                             "in the bed frame?")

@@ -1,0 +1,174 @@
+"""The pollinator on the head and the visits planned for it: its kinematics against the
+MuJoCo model, reach and collisions on constructed flowers, short orders, and bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from flowerpose.hardware.geometry import PAPER_BOT
+from flowerpose.hardware.kinematics import HeadPose, joint_positions, tool_at, tool_forward
+from flowerpose.hardware.motion import MotionProfile, move_trajectory
+from flowerpose.hardware.pollinate import (
+    Flower,
+    PollinateConfig,
+    _short_order,
+    _transfer_cost,
+    plan_pollination,
+)
+
+CENTER = np.array([1.5, 0.75, 0.2])
+
+
+def test_the_tools_tip_in_the_model_is_where_the_kinematics_put_it():
+    mujoco = pytest.importorskip("mujoco")
+    from flowerpose.hardware.geometry import FARMBOT_ASSETS
+
+    model = mujoco.MjModel.from_xml_path(str(FARMBOT_ASSETS / "scene.xml"))
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(2)
+    n = 200  # yaws over the whole servo reach: the flipped solutions too
+    poses = HeadPose(rng.uniform(PAPER_BOT.gantry_min, PAPER_BOT.gantry_max, (n, 3)),
+                     rng.uniform(0.0, 2 * np.pi, n), rng.uniform(-0.5, 2.0, n))
+    tips, _ = tool_forward(poses)
+    site = model.site("pollinator_tip").id
+    for qpos, tip in zip(joint_positions(poses), tips, strict=True):
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        assert np.abs(data.site_xpos[site] - tip).max() < 1e-9
+
+
+def test_tool_at_puts_the_tip_where_asked_along_the_direction_asked():
+    rng = np.random.default_rng(3)
+    tips = rng.uniform([0.5, 0.3, 0.05], [2.5, 1.2, 0.3], (100, 3))
+    directions = rng.normal(size=(100, 3))
+    reached, ahead = tool_forward(tool_at(tips, directions))
+    assert np.abs(reached - tips).max() < 1e-12
+    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    assert np.abs(ahead - unit).max() < 1e-12
+
+
+def _plan(flowers, obstacles=None, **settings):
+    return plan_pollination(flowers, obstacles, PollinateConfig(**settings))
+
+
+def test_an_open_flower_facing_up_is_touched_along_its_axis_on_a_straight_path():
+    plan = _plan([Flower(0, CENTER, np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0))])
+    (visit,) = plan.visits
+    assert visit.status == "planned" and visit.off_axis_deg == 0.0
+    normal = np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0)
+    tip, ahead = tool_forward(visit.touch)
+    assert np.allclose(tip, CENTER - PollinateConfig().press_m * normal)
+    assert np.allclose(ahead, -normal)
+    pre_tip, _ = tool_forward(visit.pre)
+    assert np.allclose(pre_tip, CENTER + PollinateConfig().standoff_m * normal)
+    # FarmBot runs each axis on its own profile: the approach is cut until it keeps to
+    # the straight line through the centre.
+    line = visit.touch.gantry - visit.pre.gantry
+    unit = line / np.linalg.norm(line)
+    ends = [visit.pre.gantry] + [step.gantry for step in visit.approach_moves]
+    for a, b in zip(ends, ends[1:], strict=False):
+        path = move_trajectory(np.linspace(0, 60, 400), a, b, MotionProfile()) - visit.pre.gantry
+        bend = np.linalg.norm(path - np.outer(path @ unit, unit), axis=1).max()
+        assert bend <= PollinateConfig().straight_within_m + 1e-9
+    assert [m.kind for m in plan.moves][:3] == ["lift", "travel", "descend"]
+    assert plan.moves[-2].kind == "retreat" and plan.duration_s > 0
+
+
+def test_a_flower_facing_the_bed_is_unreachable_naming_the_servo():
+    plan = _plan([Flower(0, CENTER, np.array([0.0, 0.0, -1.0]))])
+    (visit,) = plan.visits
+    assert visit.status == "unreachable" and "pitch servo" in visit.reason
+
+
+def test_a_flower_outside_the_travel_is_unreachable_naming_the_axis():
+    plan = _plan([Flower(0, np.array([2.99, 0.75, 0.2]), np.array([1.0, 0.0, 0.0]))])
+    (visit,) = plan.visits
+    assert visit.status == "unreachable" and "gantry X travel" in visit.reason
+
+
+def _leaf(radius: float, height: float) -> np.ndarray:
+    """A leaf: points on a level disc of `radius` over the flower's centre, `height` above it."""
+    r, a = np.meshgrid(np.linspace(0, radius, 12), np.linspace(0, 2 * np.pi, 48))
+    return np.stack([CENTER[0] + r.ravel() * np.cos(a.ravel()),
+                     CENTER[1] + r.ravel() * np.sin(a.ravel()),
+                     np.full(r.size, CENTER[2] + height)], 1)
+
+
+def test_a_flower_behind_a_leaf_is_approached_round_it_or_not_at_all():
+    flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]))
+    # A 1 cm leaf 4.5 cm over the centre blocks the axis; 30 degrees off it, the swab
+    # comes down 2.5 cm to its side and slants in under it.
+    (visit,) = _plan([flower], _leaf(0.01, 0.045)).visits
+    assert visit.status == "planned" and visit.off_axis_deg == pytest.approx(30.0)
+    (clear,) = _plan([flower], _leaf(0.01, 0.045) + [0.1, 0.0, 0.0]).visits  # to one side
+    assert clear.status == "planned" and clear.off_axis_deg == 0.0
+    (blocked,) = _plan([flower], _leaf(0.1, 0.045)).visits  # a leaf over the whole flower
+    assert blocked.status == "unreachable" and "from the plant" in blocked.reason
+
+
+def test_the_order_is_no_longer_than_the_flowers_order():
+    rng = np.random.default_rng(4)
+    centres = CENTER + rng.uniform([-0.12, -0.12, -0.02], [0.12, 0.12, 0.05], (9, 3))
+    flowers = [Flower(k, c, np.array([0.0, 0.0, 1.0])) for k, c in enumerate(centres)]
+    plan = _plan(flowers)
+    assert sorted(v.flower for v in plan.visits) == list(range(9))
+    profile = MotionProfile()
+
+    def length(visits):
+        places = [PAPER_BOT.home] + [v.pre.gantry for v in visits]
+        return sum(_transfer_cost(a, b, profile) for a, b in zip(places, places[1:],
+                                                                 strict=False))
+
+    given = sorted(plan.visits, key=lambda v: v.flower)
+    assert length(plan.visits) <= length(given) + 1e-9
+    assert _short_order(given, PAPER_BOT.home, PAPER_BOT, profile) == [
+        given.index(v) for v in plan.visits]
+
+
+@pytest.mark.parametrize("flowers, words", [
+    ({"frame": "bed", "flowers": [{"center": [1.5, 0.75, 0.2],
+                                   "normals": {"plane": None}}]}, "no flower has a plane"),
+    ({"frame": "cloud", "flowers": [{"center": [1.5, 0.75, 0.2],
+                                     "normals": {"plane": [0, 0, 1]}}]}, "bed frame"),
+    ({"frame": "bed", "flowers": [{"center": [0.5, 0.75, 0.2],
+                                   "normals": {"plane": [0, 0, 1]}}]}, "not on the plant"),
+])
+def test_bad_flowers_are_one_line_and_exit_2(tmp_path, capsys, flowers, words):
+    from flowerpose.cli import main
+
+    path = tmp_path / "flowers.json"
+    path.write_text(json.dumps(flowers))
+    assert main(["pollinate", str(path), "--plant-at", "1.5,0.75", "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err and "flowers.json" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_plant_outside_the_bed_is_one_line_and_exit_2(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    path = tmp_path / "flowers.json"
+    path.write_text(json.dumps({"frame": "bed", "flowers": [
+        {"center": [1.5, 0.75, 0.2], "normals": {"plane": [0, 0, 1]}}]}))
+    assert main(["pollinate", str(path), "--plant-at", "3.5,0.75", "--out",
+                 str(tmp_path / "out")]) == 2
+    assert "--plant-at: (3.5, 0.75) m is outside the bed" in capsys.readouterr().err
+
+
+def test_pollinate_writes_the_plan_and_prints_the_moves(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    path = tmp_path / "flowers.json"
+    path.write_text(json.dumps({"frame": "bed", "flowers": [
+        {"id": 4, "center": [1.5, 0.75, 0.2], "normals": {"plane": [0, 0, 1]}},
+        {"id": 5, "center": [1.5, 0.75, 0.15], "normals": {"plane": [0, 0, -1]}}]}))
+    assert main(["pollinate", str(path), "--plant-at", "1.5,0.75", "--out",
+                 str(tmp_path / "out"), "--dry-run", "--set", "standoff_m=0.04"]) == 0
+    shown = capsys.readouterr().out
+    assert "1 of 2 flowers visited" in shown and "flower 5: unreachable" in shown
+    assert " approach " in shown and " dwell " in shown
+    written = json.loads((tmp_path / "out" / "pollination.json").read_text())
+    assert written["planned"] == 1 and written["config"]["standoff_m"] == 0.04
+    assert [v["flower"] for v in written["visits"]] == [4, 5]
