@@ -23,6 +23,7 @@ from flowerpose.errors import InputError
 from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.methods import ExternalMethod, run_method
+from flowerpose.eval.pollination import PollinationScoreConfig
 from flowerpose.eval.report import (
     REPORT_FILES,
     build_report,
@@ -35,6 +36,7 @@ from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.runner import run_jobs
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached, plant_inputs
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
+from flowerpose.hardware.pollinate import PollinateConfig
 from flowerpose.pipeline.detect import ONNX_PREFIX
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
@@ -79,6 +81,10 @@ class EvalConfig(PipelineConfig):
     rgbd: RgbdConfig = field(default_factory=RgbdConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     scan: ScanSourceConfig = field(default_factory=ScanSourceConfig)
+    pollinate: PollinateConfig = field(default_factory=PollinateConfig)
+    """`eval --task pollinate`: how each flower is visited (`hardware/pollinate.py`)."""
+    pollination: PollinationScoreConfig = field(default_factory=PollinationScoreConfig)
+    """`eval --task pollinate`: what counts as a pollinated flower (`eval/pollination.py`)."""
 
 
 #: The field preset's camera and photogrammetry for the scan source, calibrated on the
@@ -248,7 +254,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
              folders: Iterable[Path] = (), truth_scale: float | None = None,
              compare: dict[str, EvalConfig] | None = None,
              suite: dict | None = None, methods: Iterable[ExternalMethod] = (),
-             cache: Path | None = None) -> dict:
+             cache: Path | None = None, task: str = "pose") -> dict:
     """The benchmark: returns report.json's content and writes report.json, report.md and,
     per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
 
@@ -259,10 +265,17 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     `suite` (name, version, description) is recorded as report["suite"]. Each external
     method (`methods.py`) runs on the same clouds and is scored and compared the same way.
     `cache`: the stage cache's folder (`flowerpose.cache`), which the scan and RGB-D sources'
-    captures are taken from and put into; None runs every stage.
+    captures are taken from and put into; None runs every stage. `task` "pollinate" also
+    plans, flies and scores pollination visits on each synthetic plant (`pollination.py`),
+    from the pipeline's poses and from the true ones.
     """
     if source not in SOURCES:
         raise InputError("source", f"'{source}': one of {', '.join(SOURCES)}")
+    if task not in TASKS:
+        raise InputError("task", f"'{task}': one of {', '.join(TASKS)}")
+    if task == "pollinate" and source == "real":
+        raise InputError("task", "pollinate needs synthetic plants, whose geometry judges "
+                         "the visits: not --source real")
     watch = Stopwatch()
     if source == "real":
         jobs, described = _real_jobs(list(folders), truth_scale)
@@ -280,6 +293,9 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         run_config = {"source": source, "plants": plants, "seed": seed,
                       **settings_run(config, source, starts)}
         title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
+    if task == "pollinate":
+        run_config.update(task=task, pollinate=to_dict(config.pollinate),
+                          pollination=to_dict(config.pollination))
     entries, stage_timing = _score_jobs(jobs, config, out_dir, workers, cache)
     timing.update(stage_timing)
     if compare:
@@ -296,14 +312,67 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         extra.setdefault("compare", {})[method.name] = {
             "summary": summarise(others), "plants": others,
             "config": {"method": method.command, "timeout_s": method.timeout_s}}
+    if task == "pollinate":
+        with watch.step("pollinate"):
+            _pollinate(jobs, entries, config, out_dir, workers, extra)
+        timing["pollinate"] = round(watch.seconds["pollinate"], 4)
     timing["total"] = round(watch.elapsed(), 4)
     if suite is not None:
         extra["suite"] = suite
     report = build_report(run_config, entries, timing, extra)
+    if task == "pollinate":
+        from flowerpose.eval.pollination import summarise_pollination
+
+        report["summary"]["pollination"] = summarise_pollination(
+            [e["pollination"] for e in entries])
+        report["summary"]["pollination_ceiling"] = summarise_pollination(
+            [e["pollination_ceiling"] for e in entries])
     write_report(out_dir, report, title)
     write_html_report(out_dir / "report.html", title, report,
                       _plant_views(jobs, config, out_dir, source))
     return report
+
+
+#: What an eval measures: the poses (Table I), or pollination visits with them as well.
+TASKS = ("pose", "pollinate")
+
+
+def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_dir: Path,
+               workers: int | None, extra: dict) -> None:
+    """Each synthetic plant's visits from its estimates and from its truth, scored, into
+    its entry (`pollination`, `pollination_ceiling`); the success against pose error into
+    `extra` and out_dir/pollination.png."""
+    from flowerpose.eval.pollination import success_by_error, write_success_plot
+
+    results = run_jobs(_pollinate_job, [(job, config, out_dir) for job in jobs], workers,
+                       lambda k, v: f"{jobs[k][1]}: pollinated {v[0]['successes']} of "
+                       f"{len(v[0]['flowers'])} flowers ({v[1]['successes']} from the true "
+                       "poses)", stage="pollinate", labels=[job[1] for job in jobs])
+    errors = {}
+    for entry, (estimated, ceiling) in zip(entries, results, strict=True):
+        entry["pollination"], entry["pollination_ceiling"] = estimated, ceiling
+        detected = {m["detection"]: m for m in entry["matches"]}
+        for outcome in estimated["flowers"]:
+            match = detected.get(outcome["detection"])
+            if match is not None and match["error_deg"]["plane"] is not None:
+                errors[(entry["plant"], outcome["flower"])] = match["error_deg"]["plane"]
+    rows = success_by_error([{"plant": e["plant"], **e["pollination"]} for e in entries],
+                            errors)
+    extra["pollination_by_error"] = rows
+    if any(r["flowers"] for r in rows):
+        write_success_plot(out_dir / "pollination.png", rows)
+
+
+def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dict]:
+    """One synthetic plant's pollination from its estimates, and from its true poses."""
+    from flowerpose.eval.pollination import plan_and_score
+
+    _, name, cloud_path, _ = job
+    plant_dir = out_dir / "plants" / name
+    obstacles = read_cloud(cloud_path).points
+    return tuple(plan_and_score(plant_dir, flowers, obstacles, config.score.max_distance_m,
+                                config.pollinate, config.pollination)
+                 for flowers in (plant_dir / "flowers.json", None))
 
 
 def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:
@@ -434,7 +503,7 @@ def eval_outputs(source: str, folders: Iterable[Path] = (), compared: Iterable[s
     method."""
     plants = (_unique([Path(f).resolve().name for f in folders]) if source == "real"
               else ["plants"])
-    return (*REPORT_FILES, "report.html", *plants, *compared)
+    return (*REPORT_FILES, "report.html", "pollination.png", *plants, *compared)
 
 
 def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,

@@ -228,3 +228,20 @@ def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
     md += ["", "## Configuration", "", "```json", json.dumps(report["config"], indent=1), "```", ""]
     md_path = write_text(out_dir / "report.md", "\n".join(md))
     return json_path, md_path
+
+
+def pollination_lines(report: dict) -> list[str]:
+    """The printed summary of `eval --task pollinate`: success with the estimated and with
+    the true poses, and the failures by cause."""
+    lines = []
+    for key, what in (("pollination", "estimated poses"),
+                      ("pollination_ceiling", "true poses (the planner's ceiling)")):
+        part = report["summary"].get(key)
+        if part is None:
+            continue
+        rate = part["success_rate"]
+        failures = ", ".join(f"{cause} {n}" for cause, n in part["failures"].items() if n)
+        lines.append(f"pollination from {what}: {part['successes']} flowers "
+                     f"({'-' if rate is None else f'{100 * rate:.1f}%'}) in "
+                     f"{part['visits']} visits; failures: {failures or 'none'}")
+    return lines

@@ -220,7 +220,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
                           truth_scale=args.truth_scale, compare=compare, suite=suite,
-                          methods=methods, cache=cache)
+                          methods=methods, cache=cache, task=args.task)
     if cache is not None and args.source != "real":
         from flowerpose.cache import prune_to_limit
 
@@ -236,6 +236,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         for plant in compared["plants"]:
             if "error" in plant:
                 print(f"{plant['plant']}: {plant['error']}")
+    if args.task == "pollinate":
+        from flowerpose.eval.report import pollination_lines
+
+        for line in pollination_lines(report):
+            print(line)
     print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'report.html'}")
     return _gates(report, requirements, args) if requirements else 0
 
@@ -889,6 +894,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "{out} (a folder to write flowers.json into), e.g. "
                    "mine='python detect.py {cloud} {out}', or NAME alone for a method an "
                    "installed package registers (repeatable; default: none)")
+    p.add_argument("--task", choices=("pose", "pollinate"), default="pose",
+                   help="pose: score the flower poses (Table I); pollinate: also plan, fly "
+                   "and score a pollinator visit to each synthetic flower, from the "
+                   "estimated poses and from the true ones (summary.pollination; "
+                   "pollination.png) (default: %(default)s)")
     p.add_argument("--method-timeout", type=_positive_number, default=600.0, metavar="S",
                    help="seconds an external method may take on one plant (default: "
                    "%(default)g)")

@@ -52,10 +52,11 @@ class PollinateConfig:
     """How far past the flower's centre the swab goes, to touch it with a little force."""
     dwell_s: float = 1.0
     """Seconds the swab rests on the flower."""
-    cone_deg: float = 30.0
+    cone_deg: float = 15.0
     """Largest angle between an approach and the flower's axis, for a flower whose axis
-    cannot be taken (out of reach, or blocked)."""
-    cone_step_deg: float = 10.0
+    cannot be taken (out of reach, or blocked): below the 20 degrees off the true axis that
+    still pollinates (`eval/pollination.py`), leaving 5 for the pose's own error."""
+    cone_step_deg: float = 5.0
     """Angle between the rings of directions tried inside that cone."""
     cone_azimuths: int = 8
     """Directions tried on each ring."""

@@ -99,11 +99,12 @@ def test_a_flower_behind_a_leaf_is_approached_round_it_or_not_at_all():
     flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]))
     # A 1 cm leaf 4.5 cm over the centre blocks the axis; 30 degrees off it, the swab
     # comes down 2.5 cm to its side and slants in under it.
-    (visit,) = _plan([flower], _leaf(0.01, 0.045)).visits
+    wide = {"cone_deg": 30.0, "cone_step_deg": 10.0}
+    (visit,) = _plan([flower], _leaf(0.01, 0.045), **wide).visits
     assert visit.status == "planned" and visit.off_axis_deg == pytest.approx(30.0)
-    (clear,) = _plan([flower], _leaf(0.01, 0.045) + [0.1, 0.0, 0.0]).visits  # to one side
+    (clear,) = _plan([flower], _leaf(0.01, 0.045) + [0.1, 0.0, 0.0], **wide).visits  # aside
     assert clear.status == "planned" and clear.off_axis_deg == 0.0
-    (blocked,) = _plan([flower], _leaf(0.1, 0.045)).visits  # a leaf over the whole flower
+    (blocked,) = _plan([flower], _leaf(0.1, 0.045), **wide).visits  # over the whole flower
     assert blocked.status == "unreachable" and "from the plant" in blocked.reason
 
 

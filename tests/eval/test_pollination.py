@@ -1,0 +1,82 @@
+"""Pollination scored on synthetic plants: the planner's ceiling on an easy plant, poses
+that are off, the report's sections, and a task that cannot run."""
+
+import json
+
+import numpy as np
+import pytest
+
+from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, plan_and_score
+from flowerpose.hardware.pollinate import PollinateConfig
+
+
+@pytest.fixture(scope="module")
+def easy_plant(tmp_path_factory):
+    from flowerpose.sim.bundle import make_plant
+
+    folder = tmp_path_factory.mktemp("easy") / "plant"
+    bundle = make_plant(2, "easy", out_dir=folder)
+    return folder, bundle
+
+
+def _flowers_json(path, plant, tilt_deg=0.0):
+    """The plant's true poses as a flowers.json, each normal tilted by `tilt_deg`."""
+    entries = []
+    for flower in plant.flowers:
+        normal = np.asarray(flower.normal, float)
+        side = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+        side /= np.linalg.norm(side)
+        tilted = np.cos(np.radians(tilt_deg)) * normal + np.sin(np.radians(tilt_deg)) * side
+        entries.append({"id": flower.id, "center": list(map(float, flower.center)),
+                        "normals": {"plane": list(map(float, tilted))}})
+    path.write_text(json.dumps({"units": "m", "frame": "bed", "flowers": entries}))
+    return path
+
+
+def test_the_true_poses_pollinate_every_flower_the_planner_can_reach(easy_plant):
+    folder, bundle = easy_plant
+    result = plan_and_score(folder, None, bundle.cloud.points, 0.02, PollinateConfig(),
+                            PollinationScoreConfig())
+    outcomes = [o["outcome"] for o in result["flowers"]]
+    assert len(outcomes) == len(bundle.plant.flowers)
+    assert set(outcomes) <= {"success", "unreachable"} and "success" in outcomes
+    assert result["successes"] == outcomes.count("success") == result["visits"]
+    assert set(result["failures"]) == set(CAUSES)
+
+
+def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_plant,
+                                                                         tmp_path):
+    folder, bundle = easy_plant
+    args = (bundle.cloud.points, 0.02, PollinateConfig(), PollinationScoreConfig())
+    exact = plan_and_score(folder, _flowers_json(tmp_path / "exact.json", bundle.plant),
+                           *args)
+    ceiling = plan_and_score(folder, None, *args)
+    assert exact["successes"] == ceiling["successes"]
+    off = plan_and_score(folder, _flowers_json(tmp_path / "off.json", bundle.plant, 35.0),
+                         *args)
+    assert off["successes"] == 0
+    assert all(o["outcome"] in ("pose off", "unreachable", "collision")
+               for o in off["flowers"])
+    assert off["failures"]["pose off"] >= 1
+
+
+def test_eval_reports_pollination_and_its_curve(tmp_path):
+    from flowerpose.eval.harness import EvalConfig, run_eval
+
+    report = run_eval(EvalConfig(), source="oracle", plants=1, seed=2, workers=1,
+                      out_dir=tmp_path / "run", task="pollinate")
+    summary = report["summary"]
+    for key in ("pollination", "pollination_ceiling"):
+        assert set(summary[key]) == {"visits", "successes", "success_rate", "failures"}
+    plant = report["plants"][0]
+    assert len(plant["pollination"]["flowers"]) == plant["gt"]
+    assert sum(r["flowers"] for r in report["pollination_by_error"]) > 0
+    assert (tmp_path / "run" / "pollination.png").stat().st_size > 0
+
+
+def test_pollination_needs_synthetic_plants(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    assert main(["eval", "--source", "real", str(tmp_path), "--task", "pollinate",
+                 "--out", str(tmp_path / "out")]) == 2
+    assert "pollinate needs synthetic plants" in capsys.readouterr().err
