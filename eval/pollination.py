@@ -198,18 +198,25 @@ def summarise_pollination(plants: list[dict]) -> dict:
 
 
 def success_by_error(plants: list[dict], truth_errors: dict[tuple[str, int], float],
-                     edges_deg=(0, 2, 4, 6, 8, 10, 15, 20, 30, 45, 90)) -> list[dict]:
-    """Success rate per bin of the pose's plane error (degrees) over the flowers that were
-    detected with a normal: how much angle error is enough, measured."""
+                     edges_deg=(0, 2, 4, 6, 8, 10, 15, 20, 30, 45, 90, 180)) -> list[dict]:
+    """Success rate per bin of the pose's plane error (degrees) over the flowers detected
+    with a normal, and over those whose visit was planned (reach is the pose's error's
+    business only through the approach it asks for): how much angle error is enough,
+    measured."""
     rows = []
-    pairs = [(truth_errors[(p["plant"], o["flower"])], o["outcome"] == "success")
-             for p in plants for o in p["flowers"]
-             if (p["plant"], o["flower"]) in truth_errors]
+    flowers = [(truth_errors[(p["plant"], o["flower"])], o["outcome"])
+               for p in plants for o in p["flowers"] if (p["plant"], o["flower"]) in truth_errors]
     for low, high in zip(edges_deg, edges_deg[1:], strict=False):
-        inside = [ok for error, ok in pairs if low <= error < high]
+        inside = [outcome for error, outcome in flowers if low <= error < high]
+        planned = [outcome for outcome in inside if outcome != "unreachable"]
         rows.append({"from_deg": low, "to_deg": high, "flowers": len(inside),
-                     "success_rate": round(sum(inside) / len(inside), 4) if inside else None})
+                     "success_rate": _rate(inside), "planned": len(planned),
+                     "success_rate_planned": _rate(planned)})
     return rows
+
+
+def _rate(outcomes: list[str]) -> float | None:
+    return round(outcomes.count("success") / len(outcomes), 4) if outcomes else None
 
 
 def write_success_plot(path: Path, rows: list[dict]) -> Path:
@@ -224,16 +231,22 @@ def write_success_plot(path: Path, rows: list[dict]) -> Path:
     used = [r for r in rows if r["flowers"]]
     if not used:
         raise InputError(path, "no detected flower to plot")
-    figure, axis = plt.subplots(figsize=(6, 3.5))
-    centres = [(r["from_deg"] + r["to_deg"]) / 2 for r in used]
-    axis.bar(centres, [r["success_rate"] for r in used],
-             width=[0.9 * (r["to_deg"] - r["from_deg"]) for r in used], color="#4c9a2a")
-    for x, r in zip(centres, used, strict=True):
-        axis.annotate(str(r["flowers"]), (x, r["success_rate"]), ha="center", va="bottom",
-                      fontsize=8)
-    axis.set_xlabel("plane normal error, degrees (bins; the count above each)")
+    figure, axis = plt.subplots(figsize=(7, 3.5))
+    labels = [f"{r['from_deg']}-{r['to_deg']}" for r in used]
+    x = np.arange(len(used))
+    for offset, key, count, colour, name in (
+            (-0.2, "success_rate", "flowers", "#9bbf85", "of the flowers detected"),
+            (0.2, "success_rate_planned", "planned", "#3f7f1f", "of the visits planned")):
+        heights = [r[key] or 0.0 for r in used]
+        axis.bar(x + offset, heights, width=0.4, color=colour, label=name)
+        for k, r in enumerate(used):
+            axis.annotate(str(r[count]), (x[k] + offset, heights[k]), ha="center",
+                          va="bottom", fontsize=7)
+    axis.set_xticks(x, labels)
+    axis.set_xlabel("plane normal error, degrees (the count above each bar)")
     axis.set_ylabel("pollination success")
-    axis.set_ylim(0, 1.1)
+    axis.set_ylim(0, 1.15)
+    axis.legend(loc="upper right", fontsize=8)
     figure.tight_layout()
     write_file(path, lambda tmp: figure.savefig(tmp, format="png", dpi=120))
     plt.close(figure)
