@@ -188,13 +188,13 @@ def check_plant_position(plant_at, plant_height: float, plant_radius: float,
 
 
 def plan_field_scan(plant_at, plant_height: float, plant_radius: float,
-                    config: ScanConfig = ScanConfig(),
+                    config: ScanConfig | None = None,
                     geometry: BotGeometry = PAPER_BOT) -> ScanPlan:
     """The scan of a real plant whose stem stands at `plant_at` (x, y, metres, bed frame),
     its reach a cylinder of `plant_height` x `plant_radius` metres the head keeps clear of.
     InputError names the argument that is out of range."""
     x, y = check_plant_position(plant_at, plant_height, plant_radius, geometry)
-    return plan_scan(np.array([x, y]), plant_height, config, geometry,
+    return plan_scan(np.array([x, y]), plant_height, config or ScanConfig(), geometry,
                      obstacles=plant_envelope((x, y), plant_height, plant_radius))
 
 

@@ -14,8 +14,8 @@ from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_scan_truth
 from flowerpose.jsonio import read_json
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_frames
-from flowerpose.scanio import frame_files, read_trajectory
 from flowerpose.scan_geometry import ScanPathConfig
+from flowerpose.scanio import frame_files, read_trajectory
 from flowerpose.sim.bundle import make_plant
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig

@@ -26,8 +26,8 @@ from flowerpose.hardware.trajectory import (
 from flowerpose.hardware.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
-from flowerpose.scanio import read_trajectory
 from flowerpose.scan_geometry import ScanPathConfig
+from flowerpose.scanio import read_trajectory
 
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.2,
                                   dome_polar_deg=(50.0,)))
