@@ -40,7 +40,8 @@ class FakeDevice:
         self.silent = False
         """No reply at all (the client times out)."""
         self.block_moves = False
-        """Moves run until an emergency stop ends them."""
+        """Moves run until an emergency stop ends them (a minute at most: longer than any
+        test waits for one to end)."""
         self.moving = threading.Event()
         self.logins = {(EMAIL, PASSWORD): make_token()}
 
@@ -105,7 +106,7 @@ class FakeFarmbot:
             return self._reply("Device is locked (emergency lock)")
         if device.block_moves:
             device.moving.set()
-            device.estopped.wait(5.0)
+            device.estopped.wait(60.0)
             return self._reply("Movement aborted: emergency lock")
         if device.fail_next is not None:
             explanation, device.fail_next = device.fail_next, None

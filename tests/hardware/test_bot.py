@@ -132,26 +132,46 @@ def test_moves_longer_than_the_firmware_timeout_stop_at_it():
     np.testing.assert_allclose(bot.position(), move_trajectory([5.0], start, target, profile)[0])
 
 
+def _move_under_way(bot: KinematicBot, target) -> tuple[threading.Thread, list]:
+    """`bot.move_to(target)` in a thread of its own, returned once the gantry has left its
+    start (so a stop lands mid-move however late this machine runs either thread), with
+    the list that gets what the move raised."""
+    raised, start = [], bot.position()
+
+    def move():
+        try:
+            bot.move_to(target)
+        except BotError as error:
+            raised.append(error)
+
+    mover = threading.Thread(target=move, daemon=True)
+    mover.start()
+    deadline = time.monotonic() + 30.0
+    while np.array_equal(bot.position(), start):
+        assert time.monotonic() < deadline, "hung: the move never started"
+        time.sleep(0.005)
+    return mover, raised
+
+
+def _ended(mover: threading.Thread, raised: list, how: str) -> BotError:
+    """What the move raised, once its thread has ended (30 s at most: a hang guard)."""
+    mover.join(30.0)
+    assert not mover.is_alive(), f"hung: move_to did not return after {how}"
+    assert len(raised) == 1, f"move_to raised nothing after {how}"
+    return raised[0]
+
+
 def test_emergency_stop_from_another_thread_ends_the_move_and_locks():
-    bot = KinematicBot(time_scale=0.1)  # a 14.6 s move would block for 1.46 s
+    # Real time: the 14.6 s move blocks for 14.6 s. Only the stop can end it short of the
+    # target with EmergencyStopError (checked below); an ignored one fails on arrival.
+    bot = KinematicBot(time_scale=1.0)
     start, target = bot.position(), HOME + [1.0, 0.0, 0.0]
-    seen = []
-
-    def operator():
-        time.sleep(0.2)
-        seen.append(bot.position())
-        bot.emergency_stop()
-
-    thread = threading.Thread(target=operator)
-    thread.start()
-    began = time.monotonic()
-    with pytest.raises(EmergencyStopError):
-        bot.move_to(target)
-    waited = time.monotonic() - began
-    thread.join()
-    assert 0.15 < waited < 1.2
+    mover, raised = _move_under_way(bot, target)
+    seen = bot.position()
+    bot.emergency_stop()
+    assert isinstance(_ended(mover, raised, "the emergency stop"), EmergencyStopError)
     stopped = bot.position()
-    assert start[0] < seen[0][0] <= stopped[0] < target[0]
+    assert start[0] < seen[0] <= stopped[0] < target[0]
     assert 0 < bot.now() < move_duration(start, target, MotionProfile())
     for command in (lambda: bot.move_to(start), lambda: bot.home(),
                     lambda: bot.set_head(0.1, 0.0)):
@@ -164,14 +184,13 @@ def test_emergency_stop_from_another_thread_ends_the_move_and_locks():
 
 
 def test_one_command_at_a_time():
-    bot = KinematicBot(time_scale=0.02)
+    bot = KinematicBot(time_scale=0.05)  # the move blocks for 0.73 s
     target = HOME + [1.0, 0.0, 0.0]
-    mover = threading.Thread(target=bot.move_to, args=(target,))
-    mover.start()
-    time.sleep(0.05)
+    mover, raised = _move_under_way(bot, target)
     with pytest.raises(BotError, match="busy"):
         bot.set_head(0.2, 0.1)
-    mover.join()
+    mover.join(30.0)
+    assert not mover.is_alive() and raised == []
     np.testing.assert_array_equal(bot.position(), target)
 
 
@@ -215,13 +234,11 @@ def test_camera_frames_and_recording(tmp_path):
 
 
 def test_close_from_another_thread_ends_a_running_move():
-    bot = KinematicBot(time_scale=0.1)  # a 14.6 s move would block for 1.46 s
-    thread = threading.Thread(target=lambda: (time.sleep(0.2), bot.close()))
-    thread.start()
-    began = time.monotonic()
-    with pytest.raises(EmergencyStopError):
-        bot.move_to(HOME + [1.0, 0.0, 0.0])
-    thread.join()
-    assert time.monotonic() - began < 1.2
+    bot = KinematicBot(time_scale=1.0)  # the 14.6 s move blocks for 14.6 s: see above
+    target = HOME + [1.0, 0.0, 0.0]
+    mover, raised = _move_under_way(bot, target)
+    bot.close()
+    assert isinstance(_ended(mover, raised, "close()"), EmergencyStopError)
+    assert bot.position()[0] < target[0]  # ended by the close, not by arriving
     with pytest.raises(BotError, match="closed"):
         bot.move_to(HOME)

@@ -144,6 +144,19 @@ def test_no_reply_is_a_command_timeout_and_an_offline_bot_a_lost_connection():
         _bot(device)
 
 
+def _stop_while_blocked(bot: FarmbotCloudBot) -> None:
+    """`bot.emergency_stop()` from a thread of its own while a move blocks the owner: it
+    returns without waiting for that move, which the fakes end only at the stop (or after
+    a minute), so a stop that waited would outlast the 30 s guard here."""
+    stopped = []
+    stopper = threading.Thread(target=lambda: stopped.append(bot.emergency_stop()),
+                               daemon=True)
+    stopper.start()
+    stopper.join(30.0)
+    assert not stopper.is_alive(), "hung: emergency_stop waited for the blocked move"
+    assert stopped == [None]  # returned, confirmed (it raises BotError otherwise)
+
+
 def test_emergency_stop_from_another_thread_ends_the_move_and_locks_until_unlock():
     activities = []
     bot, device, clients = _bot(observer=activities.append)
@@ -158,14 +171,13 @@ def test_emergency_stop_from_another_thread_ends_the_move_and_locks_until_unlock
         except BotError as err:
             errors.append(err)
 
-    owner = threading.Thread(target=scan)
+    owner = threading.Thread(target=scan, daemon=True)
     owner.start()
-    assert device.moving.wait(2.0)
-    started = time.monotonic()
-    bot.emergency_stop()
-    assert time.monotonic() - started < 1.0
-    owner.join(2.0)
-    assert not owner.is_alive() and isinstance(errors[0], EmergencyStopError)
+    assert device.moving.wait(30.0), "hung: the move never reached FarmBot OS"
+    _stop_while_blocked(bot)
+    owner.join(30.0)
+    assert not owner.is_alive(), "hung: the move did not end at the emergency stop"
+    assert isinstance(errors[0], EmergencyStopError)
     assert clients[1].state.last_messages["from_device"]  # sent by the second client
     assert all(math.isnan(a) for a in bot.head())  # the servos lost their pulses
     device.block_moves = False
@@ -338,8 +350,10 @@ def test_the_real_client_drives_the_bot_over_a_fake_broker(monkeypatch, capsys):
             if body["kind"] == "emergency_lock":
                 device.estopped.set()
             if body["kind"] == "move" and device.block_moves:
+                device.moving.set()
+
                 def later():  # FarmBot OS answers the move once the stop has ended it
-                    device.estopped.wait(5.0)
+                    device.estopped.wait(60.0)
                     self._deliver("from_device", {
                         "kind": "rpc_error", "args": label,
                         "body": [{"kind": "explanation",
@@ -378,12 +392,13 @@ def test_the_real_client_drives_the_bot_over_a_fake_broker(monkeypatch, capsys):
     device.block_moves = True
     errors = []
     owner = threading.Thread(target=lambda: errors.append(
-        pytest.raises(EmergencyStopError, bot.move_to, [1.5, 0.5, 0.4])))
+        pytest.raises(EmergencyStopError, bot.move_to, [1.5, 0.5, 0.4])), daemon=True)
     owner.start()
-    real_sleep(0.2)
-    bot.emergency_stop()
-    owner.join(5.0)
-    assert errors and not owner.is_alive()
+    assert device.moving.wait(30.0), "hung: the move never reached the broker"
+    _stop_while_blocked(bot)
+    owner.join(30.0)
+    assert not owner.is_alive(), "hung: the move did not end at the emergency stop"
+    assert errors  # it raised EmergencyStopError
     assert not senders["emergency_lock"] & senders["move"]  # a connection of its own
     device.block_moves = False
     bot.unlock()

@@ -3,6 +3,7 @@ saved with their times, resumed recordings that append, and one-line errors."""
 
 import csv
 import dataclasses
+import itertools
 import math
 import time
 
@@ -32,9 +33,22 @@ def _camera(capture=None, config=SMALL, clock=time.monotonic):
                      capture=lambda device: capture), capture
 
 
+class TickingClock:
+    """A bot clock that moves on `step_s` at every reading: the camera stamps each frame a
+    step after the one before, however fast or slowly this machine takes them."""
+
+    def __init__(self, step_s: float):
+        self.step_s = step_s
+        self._ticks = itertools.count()
+
+    def __call__(self) -> float:
+        return next(self._ticks) * self.step_s
+
+
 def _failure(camera, what: str) -> str:
-    """The CameraError `check()` raises once the camera's threads have failed (3 s at most)."""
-    deadline = time.monotonic() + 3.0
+    """The CameraError `check()` raises once the camera's threads have failed (30 s at most:
+    a hang guard)."""
+    deadline = time.monotonic() + 30.0
     while time.monotonic() < deadline:
         try:
             camera.check()
@@ -42,6 +56,17 @@ def _failure(camera, what: str) -> str:
             return str(err)
         time.sleep(0.02)
     pytest.fail(f"{what} was never reported")
+
+
+def _saved(camera, frames: int) -> list[tuple[int, float]]:
+    """`camera.saved_frames()` gathered until it has given `frames` (30 s at most: a hang
+    guard), so a recording holds that many however slowly this machine saves them."""
+    saved, deadline = [], time.monotonic() + 30.0
+    while len(saved) < frames:
+        assert time.monotonic() < deadline, f"hung: {len(saved)} of {frames} frames saved"
+        saved += camera.saved_frames()
+        time.sleep(0.01)
+    return saved
 
 
 def _times(scan_dir):
@@ -52,7 +77,7 @@ def _times(scan_dir):
 
 
 def test_opens_in_the_asked_mode_locks_exposure_and_focus_and_gives_frames(capsys):
-    camera, capture = _camera()
+    camera, capture = _camera(clock=lambda: 1234.5)
     assert capture.get(cv2.CAP_PROP_FOURCC) == cv2.VideoWriter_fourcc(*"MJPG")
     assert capture.get(cv2.CAP_PROP_AUTO_EXPOSURE) == 1.0  # V4L2's manual exposure
     assert capture.get(cv2.CAP_PROP_AUTOFOCUS) == 0.0
@@ -60,7 +85,7 @@ def test_opens_in_the_asked_mode_locks_exposure_and_focus_and_gives_frames(capsy
     assert capsys.readouterr().err == ""
     frame = camera.frame()
     assert frame.image.shape == (48, 64, 3) and frame.image.dtype == np.uint8
-    assert abs(frame.t_s - time.monotonic()) < 0.5  # stamped with the (bot's) clock
+    assert frame.t_s == 1234.5  # stamped with the bot's clock
     intrinsics = camera.intrinsics()
     assert intrinsics["fx"] == pytest.approx(32 / math.tan(math.radians(62.2) / 2))
     assert (intrinsics["cx"], intrinsics["cy"], intrinsics["fps"]) == (32, 24, 30.0)
@@ -115,8 +140,7 @@ def test_intrinsics_from_a_calibration_at_the_same_resolution(tmp_path):
 def test_recording_saves_every_frame_with_its_time_and_a_resumed_one_appends(tmp_path):
     camera, capture = _camera()
     camera.start_recording(tmp_path / "video.mp4")
-    time.sleep(0.15)
-    saved = camera.saved_frames()
+    saved = _saved(camera, 10)
     recording = camera.stop_recording()
     saved += camera.saved_frames()
     first = len(saved)
@@ -130,9 +154,9 @@ def test_recording_saves_every_frame_with_its_time_and_a_resumed_one_appends(tmp
     assert np.all(np.abs(np.diff(levels) - 1) <= 2)
 
     camera.start_recording(tmp_path / "video.mp4")  # a second session in the same folder
-    time.sleep(0.1)
+    later = _saved(camera, 1)
     camera.stop_recording()
-    later = camera.saved_frames()
+    later += camera.saved_frames()
     assert later[0][0] == first and len(frame_files(tmp_path)) == first + len(later)
     np.testing.assert_array_equal(_times(tmp_path)[:, 0], np.arange(first + len(later)))
     camera.close()
@@ -153,17 +177,28 @@ def test_a_camera_that_stops_mid_recording_fails_the_check(tmp_path):
 
 
 def test_choosing_while_recording_writes_only_the_kept_frames(tmp_path):
-    config = dataclasses.replace(SMALL, choose=FrameChoice(duration_s=0.2, bins=4, keep=2))
-    camera, capture = _camera(FakeCapture(fps=200.0), config)
-    started = time.monotonic()
+    # Room to queue every frame: none is dropped, however slowly this machine saves them.
+    config = dataclasses.replace(SMALL, choose=FrameChoice(duration_s=0.2, bins=4, keep=2),
+                                 queue_frames=1000)
+    # Bot time by frames, not by the wall clock: 10 frames a bin of 0.05 s.
+    camera, capture = _camera(FakeCapture(fps=200.0), config, clock=TickingClock(0.005))
     camera.start_recording(tmp_path / "video.mp4")
-    time.sleep(0.3)  # past the planned end: more bins of the same 0.05 s
+    first = capture.count
+    deadline = time.monotonic() + 30.0
+    while capture.count < first + 120:  # 0.6 s of bot time: past the planned 0.2 s
+        assert time.monotonic() < deadline, "hung: the camera stopped delivering frames"
+        time.sleep(0.01)
     recording = camera.stop_recording()
-    bins = math.ceil((time.monotonic() - started) / 0.05)
-    offered = capture.count
+    offered = capture.count - first
     assert recording.frames == len(frame_files(tmp_path))
-    assert 2 * 6 <= recording.frames <= 2 * bins < offered / 2
     assert np.all(np.diff(_times(tmp_path)[:, 1]) > 0)  # numbered in time order
+    # Two of each bin (binned as the keeper does); past the planned end, more bins of the
+    # same 0.05 s; the last one may have closed after a single frame.
+    width = config.choose.duration_s / config.choose.bins
+    kept = np.bincount([max(int((t - recording.start_s) // width), 0)
+                        for _, t in camera.saved_frames()]).tolist()
+    assert len(kept) >= 10 and kept[:-1] == [2] * (len(kept) - 1) and kept[-1] in (1, 2)
+    assert recording.frames == sum(kept) < offered / 2
     camera.close()
 
 
