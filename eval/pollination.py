@@ -72,12 +72,13 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, obstacles: np.nda
     if flowers_json is None:
         estimates = [Flower(f.id, np.asarray(f.center, float), np.asarray(f.normal, float))
                      for f in truth]
-        missing: list[int] = []
+        nearest = {f.id: f.id for f in truth}
     else:
-        estimates, missing = read_visit_flowers(read_flowers(flowers_json))
+        entries = read_flowers(flowers_json)
+        estimates, _ = read_visit_flowers(entries)
+        nearest = _match(truth, entries, match_distance_m)
     plan = plan_pollination(estimates, obstacles, plan_config, tool=tool)
     surfaces = _Surfaces(plant, config.surface_samples)
-    nearest = _match(truth, estimates, missing, flowers_json, match_distance_m)
     outcomes = []
     for flower in truth:
         outcomes.append(_judge(flower, nearest.get(flower.id), plan, surfaces, config, tool))
@@ -85,15 +86,10 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, obstacles: np.nda
             "flowers": outcomes, **tally(outcomes)}
 
 
-def _match(truth: list, estimates: list[Flower], missing: list[int],
-           flowers_json: Path | None, distance_m: float) -> dict[int, int | None]:
-    """Each true flower's detection id: the nearest estimate within `distance_m`, one each
-    (greedy on distance); the detections without a normal count too, as "no pose"."""
-    if flowers_json is None:
-        return {f.id: f.id for f in truth}
-    from flowerpose.pipeline.flowers import read_flowers
-
-    entries = read_flowers(flowers_json)
+def _match(truth: list, entries: list[dict], distance_m: float) -> dict[int, int | None]:
+    """Each true flower's detection id among flowers.json `entries`: the nearest within
+    `distance_m`, one each (greedy on distance); a detection without a normal counts too,
+    as "no pose"."""
     centres = {int(e.get("id", k)): np.asarray(e["center"], float) for k, e in enumerate(entries)}
     pairs = sorted((float(np.linalg.norm(np.asarray(t.center) - c)), t.id, d)
                    for t in truth for d, c in centres.items())

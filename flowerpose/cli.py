@@ -578,7 +578,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
     from flowerpose.hardware.pollinate import check_plant, plan_pollination, read_visit_flowers
     from flowerpose.hardware.scan_plan import pose_header, pose_row
-    from flowerpose.jsonio import read_json
+    from flowerpose.jsonio import read_json, write_json
     from flowerpose.pipeline.flowers import read_flowers
 
     config = _configure(_pollinate_base(), args)
@@ -603,8 +603,6 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
                     "visits are checked for reach, not for collisions with the plant")
     with _owned(args.out, "pollinate", args.overwrite, ("pollination.json",)) as output:
         plan = plan_pollination(flowers, obstacles, config)
-        from flowerpose.jsonio import write_json
-
         output.record(write_json(args.out / "pollination.json", {
             **plan.to_json(), "flowers": str(args.flowers), "method": args.method,
             "no_normal": missing, "cloud": None if obstacles is None else str(cloud_path),

@@ -81,15 +81,21 @@ def forward(pose: HeadPose, geometry: BotGeometry = PAPER_BOT) -> tuple[np.ndarr
     Returns position (3,) or (N, 3), metres, bed frame, and rotation (3, 3) or (N, 3, 3)
     whose columns are the OpenCV camera axes (x right, y down, z forward) in the bed frame.
     """
-    cy, sy = np.cos(pose.yaw), np.sin(pose.yaw)
-    cp, sp = np.cos(pose.pitch), np.sin(pose.pitch)
-    zero = np.zeros_like(cy)
-    ahead = np.stack([cp * cy, cp * sy, -sp], -1)
-    right = np.stack([sy, -cy, zero], -1)
-    down = np.stack([-sp * cy, -sp * sy, -cp], -1)
+    ahead, down = _head_axes(pose.yaw, pose.pitch)
+    right = np.cross(down, ahead)
     rotation = np.stack([right, down, ahead], -1)
     pitch_axis = pose.gantry - np.array([0.0, 0.0, geometry.pitch_axis_below_utm_m])
     return pitch_axis + geometry.camera_forward_of_pitch_m * ahead, rotation
+
+
+def _look_angles(ahead: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Geometric yaw in [0, pi] and pitch, radians, that point the head along unit
+    vectors `ahead` (..., 3): a yaw in (pi, 2 pi) takes upstream's flip (yaw - pi,
+    pi - pitch), the same axis with the image turned by 180 degrees."""
+    yaw = np.arctan2(ahead[..., 1], ahead[..., 0])
+    pitch = np.arctan2(-ahead[..., 2], np.hypot(ahead[..., 0], ahead[..., 1]))
+    flip = yaw < -_ANGLE_TOL
+    return np.where(flip, yaw + np.pi, yaw), np.where(flip, np.pi - pitch, pitch)
 
 
 def look_at(camera_position, target, geometry: BotGeometry = PAPER_BOT) -> HeadPose:
@@ -108,11 +114,7 @@ def look_at(camera_position, target, geometry: BotGeometry = PAPER_BOT) -> HeadP
     if np.any(distance < 1e-9):
         raise InputError("look_at", "a camera position equals its look-at target")
     ahead = offset / distance
-    yaw = np.arctan2(ahead[..., 1], ahead[..., 0])
-    pitch = np.arctan2(-ahead[..., 2], np.hypot(ahead[..., 0], ahead[..., 1]))
-    flip = yaw < -_ANGLE_TOL
-    yaw = np.where(flip, yaw + np.pi, yaw)
-    pitch = np.where(flip, np.pi - pitch, pitch)
+    yaw, pitch = _look_angles(ahead)
     gantry = (camera - geometry.camera_forward_of_pitch_m * ahead
               + np.array([0.0, 0.0, geometry.pitch_axis_below_utm_m]))
     return HeadPose(gantry, yaw, pitch)
@@ -209,11 +211,7 @@ def tool_at(tip, direction, tool: PollinatorTool = PAPER_TOOL,
     if np.any(length < 1e-12):
         raise InputError("tool_at", "the tool's direction is a zero vector")
     ahead = direction / length
-    yaw = np.arctan2(ahead[..., 1], ahead[..., 0])
-    pitch = np.arctan2(-ahead[..., 2], np.hypot(ahead[..., 0], ahead[..., 1]))
-    flip = yaw < -_ANGLE_TOL
-    yaw = np.where(flip, yaw + np.pi, yaw)
-    pitch = np.where(flip, np.pi - pitch, pitch)
+    yaw, pitch = _look_angles(ahead)
     # The image's down is that of the angles the servos will take, which may be flipped.
     servo_yaw, servo_pitch = _servo_angles(HeadPose(np.zeros(yaw.shape + (3,)), yaw, pitch),
                                            geometry)
