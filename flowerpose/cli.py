@@ -114,6 +114,25 @@ def _owned(folder: Path, stage: str, overwrite: bool, writes: tuple[str, ...]):
     output.finish()
 
 
+def _add_field_bot_options(p: argparse.ArgumentParser) -> None:
+    """--port / --cloud and their options: the physical bot (scan, pollinate)."""
+    p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
+                   "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
+    p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
+                   "app; log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
+                   "(FARMBOT_SERVER for another server), or --token-file")
+    p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
+                   "firmware settings as the FarmBot web app exports them (JSON); written to "
+                   "the Farmduino at connect and read back, as FarmBot OS does (default: the "
+                   "settings the board holds)")
+    p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
+                   "home (put there by hand): take it as home instead of homing, for a bot "
+                   "without endstops or encoders")
+    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
+                   "the repository, readable by its owner alone, holding a FarmBot token (its "
+                   "JSON or its JWT)")
+
+
 def _add_cache_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache", type=Path, metavar="DIR",
                         help="the stage cache: scans and reconstructions of the same plant "
@@ -467,6 +486,61 @@ def cmd_farmduino(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_field_bot_flags(args: argparse.Namespace) -> None:
+    """Refuse --port's and --cloud's options given to the other bot."""
+    if args.token_file is not None and not args.cloud:
+        raise InputError("--token-file", "is for --cloud")
+    for flag, value in (("--firmware-params", args.firmware_params),
+                        ("--home-here", args.home_here)):
+        if value and args.port is None:
+            raise InputError(flag, "is for --port (with --cloud, FarmBot OS holds the "
+                             "bot's settings and finds home)")
+
+
+def _field_bot(args: argparse.Namespace, camera=None, observer=None):
+    """The physical bot of --port or --cloud: a function that connects to it, and what
+    scan.json / flight.json record of it (no secret)."""
+    _check_field_bot_flags(args)
+    if args.cloud:
+        from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
+
+        credentials = CloudCredentials.from_environment(token_file=args.token_file)
+        source = {"backend": "farmbot-cloud", "server": credentials.server}
+
+        def connect():
+            return FarmbotCloudBot(credentials, camera=camera, observer=observer)
+    else:
+        from flowerpose.hardware.farmduino import FarmduinoBot
+        from flowerpose.hardware.protocol import read_settings
+
+        settings = None
+        if args.firmware_params is not None:
+            settings = read_settings(args.firmware_params)
+        else:
+            LOG.warning("warning: no --firmware-params: the Farmduino runs on the settings it "
+                        "holds, its firmware's defaults unless they were stored in its EEPROM "
+                        "(FarmBot OS, which writes them, is not connected)")
+        source = {"backend": "serial", "port": args.port,
+                  "firmware_params": str(args.firmware_params or "the board's own")}
+
+        def connect():
+            return FarmduinoBot(args.port, camera=camera, observer=observer,
+                                settings=settings)
+    return connect, source
+
+
+def _home_field_bot(args: argparse.Namespace, bot) -> None:
+    """--port: home the bot just connected (or take where it stands, --home-here)."""
+    if args.port is not None and args.home_here:
+        LOG.warning(f"warning: --home-here: {bot.info.name} takes where the gantry "
+                    "stands for home; every move is off by as much as it is not at home")
+        bot.home_here()
+    elif args.port is not None:
+        # Opening the port reset the board, which lost the position: home, Z first.
+        LOG.info(f"homing {bot.info.name} (Z, Y, X)")
+        bot.home()
+
+
 def _scan_field(args: argparse.Namespace) -> int:
     """scan --port / --cloud: the physical bot films a real plant with its USB camera."""
     from flowerpose.hardware.scan import approach_start, run_scan
@@ -478,13 +552,7 @@ def _scan_field(args: argparse.Namespace) -> int:
                          "stands, X,Y in metres in the bed frame")
     _only_settings(args, "scan --port/--cloud", ("scan.width", "scan.height"))
     size = _configure(_scan_base(), args).scan
-    if args.token_file is not None and not args.cloud:
-        raise InputError("--token-file", "is for --cloud")
-    for flag, value in (("--firmware-params", args.firmware_params),
-                        ("--home-here", args.home_here)):
-        if value and args.port is None:
-            raise InputError(flag, "is for --port (with --cloud, FarmBot OS holds the "
-                             "bot's settings and finds home)")
+    _check_field_bot_flags(args)
     plan = plan_field_scan(args.plant_at, args.plant_height, args.plant_radius)
     x, y = args.plant_at
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at ({x:.3f}, {y:.3f}) m, "
@@ -516,31 +584,7 @@ def _scan_field(args: argparse.Namespace) -> int:
                              choose=choose)
     check_disk_space(args.out, camera, plan.duration_s)
     recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
-    if args.cloud:
-        from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
-
-        credentials = CloudCredentials.from_environment(token_file=args.token_file)
-        source = {"backend": "farmbot-cloud", "server": credentials.server}
-
-        def connect():
-            return FarmbotCloudBot(credentials, camera=recorder.bind, observer=recorder.observe)
-    else:
-        from flowerpose.hardware.farmduino import FarmduinoBot
-        from flowerpose.hardware.protocol import read_settings
-
-        settings = None
-        if args.firmware_params is not None:
-            settings = read_settings(args.firmware_params)
-        else:
-            LOG.warning("warning: no --firmware-params: the Farmduino runs on the settings it "
-                        "holds, its firmware's defaults unless they were stored in its EEPROM "
-                        "(FarmBot OS, which writes them, is not connected)")
-        source = {"backend": "serial", "port": args.port,
-                  "firmware_params": str(args.firmware_params or "the board's own")}
-
-        def connect():
-            return FarmduinoBot(args.port, camera=recorder.bind, observer=recorder.observe,
-                                settings=settings)
+    connect, source = _field_bot(args, camera=recorder.bind, observer=recorder.observe)
     source["camera"] = {"device": args.camera, "width": size.width, "height": size.height,
                         "intrinsics": str(args.calibration or "estimated from the field of view"),
                         "frames": "every frame" if choose is None else
@@ -548,14 +592,7 @@ def _scan_field(args: argparse.Namespace) -> int:
     source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
     try:
         with connect() as bot:
-            if args.port is not None and args.home_here:
-                LOG.warning(f"warning: --home-here: {bot.info.name} takes where the gantry "
-                            "stands for home; every move is off by as much as it is not at home")
-                bot.home_here()
-            elif args.port is not None:
-                # Opening the port reset the board, which lost the position: home, Z first.
-                LOG.info(f"homing {bot.info.name} (Z, Y, X)")
-                bot.home()
+            _home_field_bot(args, bot)
             approach_start(bot, plan, args.out)
             manifest = run_scan(bot, plan, args.out, source={
                 **source, "bot": bot.info.name, "firmware": bot.info.firmware})
@@ -577,10 +614,15 @@ def _pollinate_base():
 def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
     from flowerpose.hardware.pollinate import check_plant, plan_pollination, read_visit_flowers
+    from flowerpose.hardware.pollination_flight import FLIGHT_NAME, read_flight
     from flowerpose.hardware.scan_plan import pose_header, pose_row
     from flowerpose.jsonio import read_json, write_json
     from flowerpose.pipeline.flowers import read_flowers
 
+    if args.port and args.cloud:
+        raise InputError("pollinate", "choose one bot: --port PORT or --cloud, not both")
+    flying = bool(args.port or args.cloud) and not args.dry_run
+    _check_field_bot_flags(args)
     config = _configure(_pollinate_base(), args)
     document = read_json(args.flowers)
     if document.get("frame", "bed") != "bed":
@@ -592,17 +634,24 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         raise InputError(args.flowers, f"no flower has a {args.method} normal to approach "
                          "along")
     check_plant(flowers, args.plant_at, args.plant_height, args.plant_radius, args.flowers)
-    cloud_path = args.cloud or (Path(document["source"]) if document.get("source") else None)
+    cloud_path = args.plant_cloud or (Path(document["source"]) if document.get("source")
+                                      else None)
     if cloud_path is not None and cloud_path.is_file():
         obstacles = read_cloud(cloud_path, units="m").points
-    elif args.cloud is not None:
-        raise InputError(args.cloud, "no such cloud")
+    elif args.plant_cloud is not None:
+        raise InputError(args.plant_cloud, "no such cloud")
     else:
         obstacles = None
-        LOG.warning("warning: no plant cloud (--cloud, or the one flowers.json names): the "
-                    "visits are checked for reach, not for collisions with the plant")
-    with _owned(args.out, "pollinate", args.overwrite, ("pollination.json",)) as output:
-        plan = plan_pollination(flowers, obstacles, config)
+        LOG.warning("warning: no plant cloud (--plant-cloud, or the one flowers.json names): "
+                    "the visits are checked for reach, not for collisions with the plant")
+    plan = plan_pollination(flowers, obstacles, config)
+    if flying:
+        read_flight(args.out, plan)  # another plan's flight there: refused before writing
+        if obstacles is None:
+            raise InputError("--plant-cloud", "needed to fly: without the plant's cloud the "
+                             "visits are not checked for collisions with the plant")
+    with _owned(args.out, "pollinate", args.overwrite, ("pollination.json", FLIGHT_NAME)) \
+            as output:
         output.record(write_json(args.out / "pollination.json", {
             **plan.to_json(), "flowers": str(args.flowers), "method": args.method,
             "no_normal": missing, "cloud": None if obstacles is None else str(cloud_path),
@@ -622,6 +671,24 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         for k, move in enumerate(plan.moves):
             label = "" if move.flower < 0 else f"{move.flower:7d}"
             print(f"{pose_row(k, move.kind, move.pose)} {label}")
+    if flying and plan.planned:
+        return _fly_pollination(args, plan)
+    return 0
+
+
+def _fly_pollination(args: argparse.Namespace, plan) -> int:
+    """pollinate --port / --cloud: fly the plan on the physical bot (flight.json; a flight
+    cut short resumes when rerun)."""
+    from flowerpose.hardware.pollination_flight import fly_pollination
+
+    connect, source = _field_bot(args)
+    # flight.json is declared, never recorded: no later run of this stage deletes it.
+    with connect() as bot:
+        _home_field_bot(args, bot)
+        flight = fly_pollination(bot, plan, args.out, source={
+            **source, "bot": bot.info.name, "firmware": bot.info.firmware})
+    print(f"flight {flight['status']}: {len(flight['done'])}/{len(flight['visits'])} "
+          f"flowers pollinated -> {args.out / 'flight.json'}")
     return 0
 
 
@@ -955,24 +1022,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim", action="store_true", help="the simulated bot (MuJoCo + renderer)")
     p.add_argument("--plant", type=Path, metavar="DIR",
                    help="--sim: the plant folder from flowerpose plant")
-    p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
-                   "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
-    p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
-                   "app; log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
-                   "(FARMBOT_SERVER for another server), or --token-file")
-    p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
-                   "firmware settings as the FarmBot web app exports them (JSON); written to "
-                   "the Farmduino at connect and read back, as FarmBot OS does (default: the "
-                   "settings the board holds)")
+    _add_field_bot_options(p)
     p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
                    "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
                    "each of 200 bins of the path, chosen while recording")
-    p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
-                   "home (put there by hand): take it as home instead of homing, for a bot "
-                   "without endstops or encoders")
-    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
-                   "the repository, readable by its owner alone, holding a FarmBot token (its "
-                   "JSON or its JWT)")
     p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
                    "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
                    "--width x --height, 30 fps, exposure and focus locked")
@@ -1015,10 +1068,14 @@ def build_parser() -> argparse.ArgumentParser:
         "swab touches its centre, a rest and a retreat, every pose checked against the "
         "bot's reach and every move against the plant's cloud, in an order that keeps "
         "travel short. Writes pollination.json to --out; --dry-run also prints every move "
-        "in FarmBot's units. Nothing connects or moves.",
-        epilog="example:\n"
+        "in FarmBot's units. With --port or --cloud the physical bot then flies the plan "
+        "(flight.json records each visit; rerun to resume a flight cut short); without, "
+        "nothing connects or moves.",
+        epilog="examples:\n"
         "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
-        "--dry-run")
+        "--dry-run\n"
+        "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
+        "--port /dev/ttyACM0")
     p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
                    help="flower poses in the bed frame (flowerpose detect on a FarmBot scan's "
                    "reconstruction, or a simulated one)")
@@ -1030,7 +1087,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plant-radius", type=_positive_number, default=0.15, metavar="R",
                    help="how far the plant reaches from its stem, metres (default: "
                    "%(default)s)")
-    p.add_argument("--cloud", type=Path, metavar="CLOUD.ply",
+    p.add_argument("--plant-cloud", type=Path, metavar="CLOUD.ply",
                    help="the plant's cloud in the bed frame, for collision checks (default: "
                    "the cloud flowers.json names as its source)")
     p.add_argument("--method", choices=("plane", "superellipsoid", "paraboloid"),
@@ -1039,7 +1096,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="folder for pollination.json")
     p.add_argument("--dry-run", action="store_true",
-                   help="also print every move (FarmBot millimetres and servo commands)")
+                   help="also print every move (FarmBot millimetres and servo commands), "
+                   "and fly nothing")
+    _add_field_bot_options(p)
     _add_overwrite(p)
     _add_config_options(p, profile=False, detector=False,
                         example="standoff_m=0.04 (metres; the keys of pollination.json's "

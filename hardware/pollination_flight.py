@@ -1,0 +1,153 @@
+"""Flying a pollination plan on any bot, and resuming one that was interrupted.
+
+The executor flies the visits of a `PollinationPlan` (`hardware/pollinate.py`) in order on
+any `Bot`: the physical one on serial or through FarmBot's web app, or a simulated one in
+the harness (`eval/pollination.py`), so what the harness scores is what a bot is told to
+do. Before anything moves, every pose of the plan is checked against the connected bot's
+own travel and head limits, and its position must be known (homed). Each visit starts
+from the top of Z where the bot stands: up, across, the head turned, down to the
+pre-approach pose, in to the flower's centre, a rest, back out.
+
+After every visit `flight.json` records, atomically, which flowers were pollinated and
+when on the bot's clock, so a flight cut short (an error, Ctrl-C, a dropped link) resumes
+at the next visit instead of starting over; the visit it was cut in is flown again
+(touching a flower twice does it no harm). Metres and radians, bed frame.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.bot import Bot, check_head, check_target
+from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.hardware.pollinate import Move, PollinationPlan
+from flowerpose.jsonio import read_json, write_json
+from flowerpose.log import LOG, Tally
+from flowerpose.stopwatch import Stopwatch
+
+FLIGHT_NAME = "flight.json"
+"""The flight's record in its folder: the plan's fingerprint, the visits done, sessions."""
+
+
+def flight_id(plan: PollinationPlan) -> str:
+    """A short fingerprint of the plan's moves, so a resume never mixes two plans."""
+    values = np.concatenate([[m.flower, *m.pose.gantry, m.pose.yaw, m.pose.pitch]
+                             for m in plan.moves] or [np.zeros(0)])
+    return hashlib.sha1(np.round(values, 6).tobytes()).hexdigest()[:16]
+
+
+def visit_moves(plan: PollinationPlan) -> dict[int, list[Move]]:
+    """Each planned flower's moves after its lift (travel, descent, approach, rest,
+    retreat), in the order flown."""
+    moves: dict[int, list[Move]] = {}
+    for move in plan.moves:
+        if move.flower >= 0 and move.kind != "lift":
+            moves.setdefault(move.flower, []).append(move)
+    return moves
+
+
+def head_angles(pose: HeadPose) -> tuple[float, float]:
+    """The yaw and pitch the head's servos take for `pose`, radians (its yaw wrapped into
+    the servo's reach, or flipped: the solution the plan's tool positions assume)."""
+    yaw, pitch = joint_positions(pose)[3:]
+    return float(yaw), float(pitch)
+
+
+def check_flight(bot: Bot, plan: PollinationPlan) -> None:
+    """Refuse, before anything moves, a plan the connected bot cannot fly: a pose outside
+    its own travel or its servos' range (the plan was checked against the geometry it was
+    planned for, which may not be this bot's), or a bot whose position is unknown."""
+    here = bot.position()
+    if not np.all(np.isfinite(here)):
+        raise InputError(bot.info.name, "the gantry's position is unknown: home the bot "
+                         "before pollinating")
+    for move in plan.moves:
+        where = f"flower {move.flower} ({move.kind})" if move.flower >= 0 else move.kind
+        try:
+            check_target(bot.info, move.pose.gantry)
+            check_head(bot.info, *head_angles(move.pose))
+        except InputError as error:
+            raise InputError(f"{where}", f"{bot.info.name} cannot fly the plan: "
+                             f"{error}") from None
+
+
+def read_flight(out_dir: Path, plan: PollinationPlan) -> dict | None:
+    """The flight of `plan` recorded in out_dir (None: none yet); one of another plan is
+    refused, so a resume never mixes two plans."""
+    path = Path(out_dir) / FLIGHT_NAME
+    if not path.exists():
+        return None
+    previous = read_json(path)
+    if previous.get("plan_id") != flight_id(plan):
+        raise InputError(path, "records the flight of another plan (other flowers, "
+                         "settings or cloud); choose a new folder")
+    return previous
+
+
+def fly_pollination(bot: Bot, plan: PollinationPlan, out_dir: Path, *, source: dict,
+                    progress: bool = True) -> dict:
+    """Fly `plan` with `bot`, recording into out_dir/flight.json; resumes a flight of the
+    same plan already recorded there. Returns flight.json's content: `done`, one entry a
+    visit flown ({"flower", "t0", "t1"}: bot-clock seconds from its lift to its retreat's
+    end), `status` ("complete", or "interrupted" when an error cut it), `sessions`."""
+    out_dir = Path(out_dir)
+    path = out_dir / FLIGHT_NAME
+    fingerprint = flight_id(plan)
+    order = [v.flower for v in plan.planned]
+    flight = {"version": 1, "plan_id": fingerprint, "source": source, "visits": order,
+              "done": [], "status": "running", "sessions": []}
+    previous = read_flight(out_dir, plan)
+    if previous is not None:
+        flight.update(done=list(previous.get("done", [])),
+                      sessions=list(previous.get("sessions", [])))
+    done = {int(entry["flower"]) for entry in flight["done"]}
+    pending = [flower for flower in order if flower not in done]
+    if not pending:
+        flight["status"] = "complete"
+        if progress:
+            LOG.info(f"pollinate: {path} holds this plan's flight, complete: nothing flown "
+                     "(choose a new folder to fly it again)")
+        return flight
+    check_flight(bot, plan)
+    if done and progress:
+        LOG.info(f"pollinate: resuming at visit {len(done) + 1} of {len(order)}")
+    session = {"started_visit": len(done), "bot_time_start": bot.now(),
+               "wall_start": time.time()}
+    flight["sessions"].append(session)
+    write_json(path, flight)
+    moves = visit_moves(plan)
+    top = bot.info.travel_max[2]
+    wall = Stopwatch()
+    try:
+        with Tally(len(pending) if progress else 0, "visits") as tally:
+            for flower in pending:
+                t0 = bot.now()
+                here = bot.position()
+                bot.move_to([here[0], here[1], top])  # every visit starts from the top of Z
+                for move in moves[flower]:
+                    if move.kind == "dwell":
+                        bot.dwell(plan.config.dwell_s)
+                        continue
+                    bot.move_to(move.pose.gantry)
+                    if move.kind == "travel":  # the head turns at the top, clear of the plant
+                        bot.set_head(*head_angles(move.pose))
+                flight["done"].append({"flower": flower, "t0": round(t0, 4),
+                                       "t1": round(bot.now(), 4)})
+                write_json(path, flight)
+                tally.advance(1)
+            here = bot.position()
+            bot.move_to([here[0], here[1], top])
+        flight["status"] = "complete"
+    except BaseException as err:
+        flight["status"] = "interrupted"
+        session["error"] = f"{type(err).__name__}: {err}"
+        raise
+    finally:
+        session.update(bot_time_end=bot.now(), wall_s=round(wall.elapsed(), 3))
+        write_json(path, flight)
+    return flight
