@@ -366,13 +366,18 @@ def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_d
 def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dict]:
     """One synthetic plant's pollination from its estimates, and from its true poses."""
     from flowerpose.eval.pollination import plan_and_score
+    from flowerpose.eval.pollination_contact import ContactWorld
+    from flowerpose.sim.export import read_plant
 
     _, name, cloud_path, _ = job
     plant_dir = out_dir / "plants" / name
     obstacles = read_cloud(cloud_path).points
+    world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
     return tuple(plan_and_score(plant_dir, flowers, obstacles, config.score.max_distance_m,
-                                config.pollinate, config.pollination)
-                 for flowers in (plant_dir / "flowers.json", None))
+                                config.pollinate, config.pollination,
+                                flight_json=plant_dir / flight, world=world)
+                 for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),
+                                         (None, "flight_ceiling.json")))
 
 
 def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:

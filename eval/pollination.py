@@ -1,40 +1,45 @@
 """Pollination as the harness scores it (`eval --task pollinate`): each synthetic plant's
 visits planned from the pipeline's poses (and, for the planner's own ceiling, from the true
-poses), flown along the motion profile, and judged against the plant's exact geometry.
+poses), flown by the same executor that drives the physical bot (`hardware/
+pollination_flight.py`) on a simulated bot, and that flight replayed through the plant in
+MuJoCo with contact (`eval/pollination_contact.py`): leaflets and petioles give way on
+sprung joints, flowers and stalks stand.
 
-A visit succeeds when the swab's centre ends within `touch_radius_m` of the true flower's
-centre, its approach lies within `max_angle_deg` of the true axis, and on the way in and
-out the pollinator touches no other flower's petals, anthers or receptacle and pushes no
-leaf or stem aside by more than `max_push_m`. Every true flower gets one outcome: success,
-or the cause of failure: "missed" (no detection), "no pose" (a detection without a normal),
-"unreachable" (the planner found no approach), "pose off" (the swab misses the centre or
-comes in too far off the axis), "collision" (another flower, or a leaf pushed too far).
-
-This is kinematic, not MuJoCo contact: the tool is rigid and the plant's surfaces stand
-still, so a touch is the tool coming nearer a surface sample than its radius, and a push
-how much nearer (the depth a leaf would have to move aside). Metres and degrees, bed frame.
+A visit succeeds when, at the rest, the swab's centre is within `touch_radius_m` of the
+true flower's centre and touches its receptacle or stamens, its approach lies within
+`max_angle_deg` of the true axis, and on the way in and out the pollinator and head touch
+no other flower's petals, anthers or receptacle and push no leaflet or petiole more than
+`max_push_m` from where it grew. Every true flower gets one outcome: success, or the cause
+of failure: "missed" (no detection), "no pose" (a detection without a normal),
+"unreachable" (the planner found no approach), "pose off" (the swab misses the centre,
+stops short of it or comes in too far off the axis), "collision" (another flower, or a leaf
+pushed too far). Metres and degrees, bed frame.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from flowerpose.errors import InputError
+from flowerpose.eval.pollination_contact import ContactWorld, Touches
+from flowerpose.hardware.bot import KinematicBot
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
-from flowerpose.hardware.kinematics import HeadPose, tool_forward, tool_points
-from flowerpose.hardware.motion import MotionProfile
+from flowerpose.hardware.kinematics import HeadPose, tool_forward
 from flowerpose.hardware.pollinate import (
     Flower,
     PollinateConfig,
-    PollinationPlan,
     plan_pollination,
     read_visit_flowers,
 )
-from flowerpose.hardware.scan_plan import poses_along
+from flowerpose.hardware.pollination_flight import fly_pollination
+from flowerpose.hardware.trajectory import Timeline
+from flowerpose.jsonio import write_json
+from flowerpose.sim.contact import ContactConfig
+from flowerpose.sim.pieces import FLOWER_PARTS, Part
 
 #: The causes a visit fails for, in the order they are looked at.
 CAUSES = ("missed", "no pose", "unreachable", "pose off", "collision")
@@ -51,19 +56,27 @@ class PollinationScoreConfig:
     """The approach within this of the true axis: further off, the swab meets the petals'
     inner side before the centre (a 30 mm corolla cupped 3-4 mm)."""
     max_push_m: float = 0.01
-    """How far a leaf or stem may be pushed aside by the tool."""
-    surface_samples: int = 200_000
-    """Points sampled on the plant's surfaces to test contact."""
-    samples_per_move: int = 12
-    """Poses checked along each move of the plan."""
+    """How far the tool may push any point of a leaflet or petiole from where it grew."""
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    """The plant in MuJoCo: its contact patches and how its leaves give way."""
+
+
+#: Parts of another flower that a visit must not touch (its sepals sit behind the petals,
+#: where the tool brushes them without harm).
+OTHER_FLOWER_PARTS = [int(p) for p in FLOWER_PARTS if p != Part.SEPAL]
+#: Parts whose touch by the swab at the rest pollinates.
+PISTIL_PARTS = [int(Part.RECEPTACLE), int(Part.STAMEN)]
 
 
 def plan_and_score(plant_dir: Path, flowers_json: Path | None, obstacles: np.ndarray | None,
                    match_distance_m: float, plan_config: PollinateConfig,
-                   config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL) -> dict:
+                   config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
+                   flight_json: Path | None = None, world: ContactWorld | None = None) -> dict:
     """One plant's pollination: plan from flowers.json's poses (None: the true poses), fly
-    the plan, and judge every open flower of the plant in plant_dir (`flowerpose plant`'s
-    folder). Returns the per-plant report section."""
+    the plan on a simulated bot, replay the flight through the plant in MuJoCo and judge
+    every open flower of the plant in plant_dir (`flowerpose plant`'s folder). The flight's
+    record goes to flight_json when given; `world`: the plant's contact world, when the
+    caller has one. Returns the per-plant report section."""
     from flowerpose.pipeline.flowers import read_flowers
     from flowerpose.sim.export import read_plant
 
@@ -78,11 +91,19 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, obstacles: np.nda
         estimates, _ = read_visit_flowers(entries)
         nearest = _match(truth, entries, match_distance_m)
     plan = plan_pollination(estimates, obstacles, plan_config, tool=tool)
-    surfaces = _Surfaces(plant, config.surface_samples)
-    outcomes = []
-    for flower in truth:
-        outcomes.append(_judge(flower, nearest.get(flower.id), plan, surfaces, config, tool))
+    timeline = Timeline()
+    with tempfile.TemporaryDirectory() as scratch:  # a fresh flight, never a resumed one
+        flight = fly_pollination(KinematicBot(observer=timeline.add), plan, Path(scratch),
+                                 source={"backend": "simulated"}, progress=False)
+    if flight_json is not None:
+        write_json(flight_json, flight)
+    world = world or ContactWorld(plant, config.contact, tool)
+    flown = {int(d["flower"]): (d["t0"], d["t1"]) for d in flight["done"]}
+    outcomes = [_judge(f, nearest.get(f.id), plan, flown, timeline, world, config, tool)
+                for f in truth]
     return {"visits": len(plan.planned), "planned_s": round(plan.duration_s, 1),
+            "flown_s": round(flight["sessions"][-1]["bot_time_end"], 1)
+            if flight["sessions"] else 0.0,
             "flowers": outcomes, **tally(outcomes)}
 
 
@@ -102,25 +123,15 @@ def _match(truth: list, entries: list[dict], distance_m: float) -> dict[int, int
     return found
 
 
-class _Surfaces:
-    """Samples of the plant's surfaces with what each belongs to, for contact tests."""
-
-    def __init__(self, plant, samples: int):
-        import trimesh
-
-        from flowerpose.sim.pieces import FLOWER_PARTS, Part
-
-        points, faces = trimesh.sample.sample_surface(plant.mesh, samples, seed=0)
-        part, flower = plant.face_part[faces], plant.face_flower[faces]
-        self.flower_parts = np.isin(part, [int(p) for p in FLOWER_PARTS if p != Part.SEPAL])
-        self.pushable = np.isin(part, [int(Part.LEAF), int(Part.PETIOLE), int(Part.PEDUNCLE),
-                                       int(Part.SEPAL), int(Part.BUD), int(Part.FRUIT)])
-        self.points, self.flower = points, flower
-        self.tree = cKDTree(points)
+def _rest_time(timeline: Timeline, t0: float, t1: float) -> float:
+    """Bot-clock seconds halfway through the one rest of the visit flown from t0 to t1."""
+    rest = next(a for a in timeline.activities() if a.kind == "dwell" and t0 <= a.t0 < t1)
+    return rest.t0 + rest.elapsed / 2
 
 
-def _judge(flower, detection: int | None, plan: PollinationPlan, surfaces: _Surfaces,
-           config: PollinationScoreConfig, tool: PollinatorTool) -> dict:
+def _judge(flower, detection: int | None, plan, flown: dict[int, tuple[float, float]],
+           timeline: Timeline, world: ContactWorld, config: PollinationScoreConfig,
+           tool: PollinatorTool) -> dict:
     """One true flower's outcome: success or the first cause of failure."""
     entry = {"flower": int(flower.id), "detection": detection}
     if detection is None:
@@ -130,52 +141,43 @@ def _judge(flower, detection: int | None, plan: PollinationPlan, surfaces: _Surf
         return {**entry, "outcome": "no pose"}
     if visit.status != "planned":
         return {**entry, "outcome": "unreachable", "reason": visit.reason}
-    tip, ahead = tool_forward(visit.touch, tool)
+    t0, t1 = flown[detection]
+    rest = _rest_time(timeline, t0, t1)
+    tip, ahead = tool_forward(HeadPose(*(v[0] for v in timeline.poses([rest]))), tool)
     miss = float(np.linalg.norm(tip - np.asarray(flower.center)))
     angle = float(np.degrees(np.arccos(np.clip(-ahead @ np.asarray(flower.normal), -1, 1))))
-    entry.update(miss_m=round(miss, 4), angle_deg=round(angle, 2))
-    if miss > config.touch_radius_m or angle > config.max_angle_deg:
-        return {**entry, "outcome": "pose off"}
-    touched, push = _contacts(_visit_path(plan, detection, config), flower.id, surfaces, tool)
-    entry.update(push_m=round(push, 4))
-    if touched:
-        return {**entry, "outcome": "collision", "reason": f"touches flower {touched[0]}"}
-    if push > config.max_push_m:
+    touches = world.fly(timeline, t0, t1, at_time=rest)
+    entry.update(miss_m=round(miss, 4), angle_deg=round(angle, 2),
+                 push_m=round(touches.push_m, 4), contact_steps=touches.steps)
+    pistil = _of(world, touches.swab_patches, PISTIL_PARTS, flower.id)
+    if miss > config.touch_radius_m:
+        return {**entry, "outcome": "pose off",
+                "reason": f"the swab rests {miss * 1000:.0f} mm from the centre"}
+    if angle > config.max_angle_deg:
+        return {**entry, "outcome": "pose off",
+                "reason": f"the approach is {angle:.0f} degrees off the axis"}
+    if not pistil:
+        return {**entry, "outcome": "pose off", "reason": "the swab does not touch the pistil"}
+    others = sorted({int(f) for f in world.patches.flower[_others(world, touches, flower.id)]})
+    if others:
+        return {**entry, "outcome": "collision", "reason": f"touches flower {others[0]}"}
+    if touches.push_m > config.max_push_m:
         return {**entry, "outcome": "collision",
-                "reason": f"pushes a leaf {push * 1000:.0f} mm aside"}
+                "reason": f"pushes a leaf {touches.push_m * 1000:.0f} mm aside"}
     return {**entry, "outcome": "success"}
 
 
-def _visit_path(plan: PollinationPlan, detection: int,
-                config: PollinationScoreConfig) -> HeadPose:
-    """Poses along the moves of one visit (travel in, descent, approach, retreat) on the
-    motion profile."""
-    profile = MotionProfile()
-    moves = plan.moves
-    indices = [k for k, m in enumerate(moves) if m.flower == detection]
-    first, last = max(indices[0] - 1, 0), indices[-1]
-    poses = [poses_along(moves[k].pose, moves[k + 1].pose, profile, config.samples_per_move)
-             for k in range(first, last)]
-    return HeadPose(np.concatenate([p.gantry for p in poses]),
-                    np.concatenate([p.yaw for p in poses]),
-                    np.concatenate([p.pitch for p in poses]))
+def _of(world: ContactWorld, patches: np.ndarray, parts: list[int], flower: int) -> bool:
+    """Whether any of `patches` is one of `parts` of `flower`."""
+    return bool(np.any(np.isin(world.patches.part[patches], parts)
+                       & (world.patches.flower[patches] == flower)))
 
 
-def _contacts(path: HeadPose, target: int, surfaces: _Surfaces,
-              tool: PollinatorTool) -> tuple[list[int], float]:
-    """The other flowers the tool touches along `path`, and the deepest it goes into a
-    leaf or stem (metres; 0 when it touches none)."""
-    shaft = tool_points(path, tool, samples=24).reshape(-1, 3)
-    radius = max(tool.tip_radius_m, tool.shaft_radius_m)
-    near = surfaces.tree.query_ball_point(shaft, radius)
-    hit = np.unique(np.concatenate([np.asarray(n, int) for n in near] or [np.zeros(0, int)]))
-    others = hit[surfaces.flower_parts[hit] & (surfaces.flower[hit] != target)]
-    touched = sorted({int(f) for f in surfaces.flower[others]})
-    pushed = hit[surfaces.pushable[hit]]
-    if not len(pushed):
-        return touched, 0.0
-    depth = radius - cKDTree(shaft).query(surfaces.points[pushed])[0]
-    return touched, float(max(depth.max(), 0.0))
+def _others(world: ContactWorld, touches: Touches, flower: int) -> np.ndarray:
+    """The touched patches that are petals, anthers or receptacle of another flower."""
+    patches = touches.patches
+    part, owner = world.patches.part[patches], world.patches.flower[patches]
+    return patches[np.isin(part, OTHER_FLOWER_PARTS) & (owner >= 0) & (owner != flower)]
 
 
 def tally(outcomes: list[dict]) -> dict:

@@ -81,6 +81,15 @@ class BotGeometry:
     """Yaw command at geometric yaw 180 degrees (upstream's + 40)."""
     pitch_command_offset_deg: float = 30.0
     """Pitch command at geometric pitch 180 degrees (upstream's + 30)."""
+    head_yaw_box_m: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        (0.0, 0.0, -0.02), (0.022, 0.012, 0.022))
+    """The yaw servo's housing as a box: its centre in the yaw frame (origin the UTM bottom
+    centre, x the yaw-0 heading, z up) and half sizes, metres (`farmbot.xml`'s collision
+    geom of `head_yaw`)."""
+    head_pitch_box_m: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        (0.015, 0.0, 0.0), (0.03, 0.022, 0.022))
+    """The pitch servo, bracket and camera as a box: its centre in the pitch frame (origin
+    on the pitch axis, x the optical axis) and half sizes, metres (`head_pitch`'s)."""
     soil_clearance_m: float = 0.03
     """Least height of the camera's optical centre and of the pitch axis above the soil,
     metres (the head's housings reach about 2 cm around them)."""

@@ -183,6 +183,29 @@ def _head_axes(yaw: np.ndarray, pitch: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.stack([cp * cy, cp * sy, -sp], -1), np.stack([-sp * cy, -sp * sy, -cp], -1)
 
 
+def head_boxes(pose: HeadPose, geometry: BotGeometry = PAPER_BOT
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The head's housings as boxes (the yaw servo's, then the pitch servo's with the camera),
+    at the servo solution the head takes. Returns centres (..., 2, 3) metres, bed frame,
+    rotations (..., 2, 3, 3) (columns: the box's axes in the bed frame) and half sizes
+    (2, 3), metres."""
+    yaw, pitch = _servo_angles(pose, geometry)
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    zero, one = np.zeros_like(cy), np.ones_like(cy)
+    turn = np.stack([np.stack([cy, -sy, zero], -1), np.stack([sy, cy, zero], -1),
+                     np.stack([zero, zero, one], -1)], -2)
+    tilt = np.stack([np.stack([cp, zero, sp], -1), np.stack([zero, one, zero], -1),
+                     np.stack([-sp, zero, cp], -1)], -2)
+    aim = turn @ tilt
+    gantry = np.asarray(pose.gantry, np.float64)
+    pitch_axis = gantry - np.array([0.0, 0.0, geometry.pitch_axis_below_utm_m])
+    (yaw_centre, yaw_half), (pitch_centre, pitch_half) = (geometry.head_yaw_box_m,
+                                                          geometry.head_pitch_box_m)
+    centres = np.stack([gantry + turn @ np.asarray(yaw_centre),
+                        pitch_axis + aim @ np.asarray(pitch_centre)], -2)
+    return centres, np.stack([turn, aim], -3), np.array([yaw_half, pitch_half])
+
+
 def tool_forward(pose: HeadPose, tool: PollinatorTool = PAPER_TOOL,
                  geometry: BotGeometry = PAPER_BOT) -> tuple[np.ndarray, np.ndarray]:
     """Where the pollinator's tip is and where its shaft points, for a head pose.

@@ -5,7 +5,7 @@ flower's centre along the flower's axis: from the top of Z it descends to a pre-
 pose `standoff_m` out along the axis, moves straight in until the swab touches the centre,
 rests, and retreats the same way. Every pose is checked against the gantry's travel, the
 servos' range and the soil clearance (naming the limit that fails), and every move against
-the plant's cloud: the head and the shaft keep `clearance_m` from it, except that the shaft
+the plant's cloud: the head's housings and the shaft keep `clearance_m` from it, except that the shaft
 may pass through the target flower's own corolla (its points within `touch_radius_m` of
 the centre). A flower whose axis cannot be taken is approached along the nearest
 direction within `cone_deg` of it that can, or reported unreachable with the reason. The
@@ -30,6 +30,7 @@ from flowerpose.hardware.kinematics import (
     HeadPose,
     UnreachableError,
     check_reachable,
+    head_boxes,
     tool_at,
     tool_points,
 )
@@ -39,7 +40,7 @@ from flowerpose.hardware.motion import (
     move_duration,
     move_trajectory,
 )
-from flowerpose.hardware.scan_plan import head_points, poses_along
+from flowerpose.hardware.scan_plan import poses_along
 
 
 @dataclass(frozen=True)
@@ -61,8 +62,8 @@ class PollinateConfig:
     cone_azimuths: int = 8
     """Directions tried on each ring."""
     clearance_m: float = 0.01
-    """Least distance between the plant's points and the head (camera centre, pitch axis)
-    or the shaft anywhere along a visit."""
+    """Least distance between the plant's points and the head's housings (its two servo
+    boxes, `kinematics.head_boxes`) or the shaft anywhere along a visit."""
     touch_radius_m: float = 0.02
     """The target flower's own points within this distance of its centre may touch the
     shaft and swab (its corolla)."""
@@ -280,7 +281,7 @@ def _blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None,
              others: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
              tool: PollinatorTool, profile: MotionProfile) -> str:
     """Where the visit's descent or approach comes too close to the plant ("" if never):
-    the head to any point, the shaft to any but the target flower's own."""
+    the head's housings to any point, the shaft to any but the target flower's own."""
     if tree is None:
         return ""
     samples = config.samples_per_move
@@ -288,7 +289,7 @@ def _blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None,
     for a, b in zip([pre, *steps[:-1]], steps, strict=True):
         moves.append(("approach", poses_along(a, b, profile, samples), False))
     for name, poses, tool_to_all in moves:
-        head = tree.query(head_points(poses, geometry).reshape(-1, 3))[0].min()
+        head = head_gap(poses, tree, config.clearance_m, geometry)
         shaft_tree = tree if tool_to_all else others
         shaft = (shaft_tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min()
                  if shaft_tree is not None else np.inf)
@@ -297,6 +298,25 @@ def _blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None,
             return (f"the {part} passes {min(head, shaft) * 1000:.0f} mm from the plant on "
                     f"the {name} (least {config.clearance_m * 1000:.0f} mm)")
     return ""
+
+
+def head_gap(poses: HeadPose, tree: cKDTree, reach_m: float,
+             geometry: BotGeometry = PAPER_BOT) -> float:
+    """Least distance, metres, between the plant's points (`tree`) and the head's housings
+    (`kinematics.head_boxes`) over `poses`: 0 for a point inside one, inf when none is
+    within reach_m of them."""
+    centres, rotations, half = head_boxes(poses, geometry)
+    centres, rotations = centres.reshape(-1, 3), rotations.reshape(-1, 3, 3)
+    box = np.tile(np.arange(len(half)), len(centres) // len(half))
+    near = tree.query_ball_point(centres, np.linalg.norm(half, axis=1).max() + reach_m)
+    counts = np.array([len(n) for n in near])
+    if not counts.sum():
+        return np.inf
+    owner = np.repeat(np.arange(len(near)), counts)
+    points = tree.data[np.concatenate([np.asarray(n, int) for n in near])]
+    local = np.einsum("kji,kj->ki", rotations[owner], points - centres[owner])
+    outside = np.maximum(np.abs(local) - half[box[owner]], 0.0)
+    return float(np.sqrt((outside ** 2).sum(axis=1)).min())
 
 
 def _transfer_cost(a: np.ndarray, b: np.ndarray, profile: MotionProfile) -> float:
@@ -366,9 +386,8 @@ def _check_transfers(moves: list[Move], tree: cKDTree | None, config: PollinateC
         if b.kind != "travel":
             continue
         poses = poses_along(a.pose, b.pose, profile, config.samples_per_move)
-        points = np.concatenate([head_points(poses, geometry).reshape(-1, 3),
-                                 tool_points(poses, tool, geometry).reshape(-1, 3)])
-        distance = tree.query(points)[0].min()
+        distance = min(head_gap(poses, tree, config.clearance_m, geometry),
+                       tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min())
         if distance < config.clearance_m:
             raise InputError(f"flower {b.flower}", f"the travel at the top of Z passes "
                              f"{distance * 1000:.0f} mm from the plant: it is taller than "

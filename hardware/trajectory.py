@@ -107,6 +107,11 @@ class Timeline:
     def __len__(self) -> int:
         return len(self._activities)
 
+    def activities(self) -> list[Activity]:
+        """The activities so far, in the order they happened."""
+        with self._lock:
+            return list(self._activities)
+
     @property
     def end(self) -> float:
         """Bot-clock seconds up to which the timeline is known (-inf when empty)."""

@@ -173,3 +173,39 @@ def test_pollinate_writes_the_plan_and_prints_the_moves(tmp_path, capsys):
     written = json.loads((tmp_path / "out" / "pollination.json").read_text())
     assert written["planned"] == 1 and written["config"]["standoff_m"] == 0.04
     assert [v["flower"] for v in written["visits"]] == [4, 5]
+
+
+def test_the_head_boxes_are_the_models_collision_geoms():
+    mujoco = pytest.importorskip("mujoco")
+    from flowerpose.hardware.geometry import FARMBOT_ASSETS
+    from flowerpose.hardware.kinematics import head_boxes
+
+    model = mujoco.MjModel.from_xml_path(str(FARMBOT_ASSETS / "scene.xml"))
+    data = mujoco.MjData(model)
+    head = [model.body(name).id for name in ("head_yaw", "head_pitch")]
+    geoms = [g for g in range(model.ngeom)
+             if model.geom_bodyid[g] in head and model.geom_group[g] == 3]
+    rng = np.random.default_rng(5)
+    n = 50
+    poses = HeadPose(rng.uniform(PAPER_BOT.gantry_min, PAPER_BOT.gantry_max, (n, 3)),
+                     rng.uniform(0.0, 2 * np.pi, n), rng.uniform(-0.5, 2.0, n))
+    centres, rotations, half = head_boxes(poses)
+    assert np.allclose(half, model.geom_size[geoms])
+    for k, qpos in enumerate(joint_positions(poses)):
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        assert np.abs(data.geom_xpos[geoms] - centres[k]).max() < 1e-12
+        assert np.abs(data.geom_xmat[geoms].reshape(-1, 3, 3) - rotations[k]).max() < 1e-12
+
+
+def test_a_leaf_inside_the_heads_housing_blocks_the_axis_though_far_from_its_centres():
+    from flowerpose.hardware.kinematics import head_boxes
+    from flowerpose.hardware.scan_plan import head_points
+
+    flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]))
+    (clear,) = _plan([flower]).visits
+    centres, rotations, _ = head_boxes(clear.pre)
+    leaf = centres[1] + rotations[1] @ np.array([0.0, 0.02, 0.0])  # in the pitch box
+    assert np.linalg.norm(head_points(clear.pre)[0] - leaf, axis=1).min() > 0.02
+    (visit,) = _plan([flower], leaf[None, :]).visits
+    assert visit.status == "unreachable" or visit.off_axis_deg > 0

@@ -37,7 +37,7 @@ def test_the_flown_visits_rest_the_swab_where_the_plan_touches(tmp_path):
     assert flight["status"] == "complete"
     assert [d["flower"] for d in flight["done"]] == [v.flower for v in plan.planned]
     assert read_json(tmp_path / FLIGHT_NAME) == flight
-    dwells = [a for a in timeline._activities if a.kind == "dwell"]
+    dwells = [a for a in timeline.activities() if a.kind == "dwell"]
     assert len(dwells) == 3
     for visit, dwell in zip(plan.planned, dwells, strict=True):
         gantry, yaw, pitch = timeline.poses([dwell.t0 + dwell.elapsed / 2])
@@ -48,7 +48,7 @@ def test_the_flown_visits_rest_the_swab_where_the_plan_touches(tmp_path):
     # Every visit starts and ends at the top of Z, clear of the plant.
     top = bot.info.travel_max[2]
     for entry in flight["done"]:
-        lift = next(a for a in timeline._activities if a.t0 >= entry["t0"] - 1e-3)
+        lift = next(a for a in timeline.activities() if a.t0 >= entry["t0"] - 1e-3)
         assert lift.kind == "move" and np.isclose(lift.gantry_end[2], top)
     assert np.isclose(bot.position()[2], top)
 
@@ -82,7 +82,7 @@ def test_a_flight_cut_short_resumes_at_the_next_visit(tmp_path):
     flight = fly_pollination(again, plan, tmp_path, source={})
     assert flight["status"] == "complete" and len(flight["sessions"]) == 2
     assert [d["flower"] for d in flight["done"]] == [v.flower for v in plan.planned]
-    assert sum(a.kind == "dwell" for a in timeline._activities) == 2  # the first not again
+    assert sum(a.kind == "dwell" for a in timeline.activities()) == 2  # the first not again
     before = again.now()
     assert fly_pollination(again, plan, tmp_path, source={})["status"] == "complete"
     assert again.now() == before  # complete: nothing flown
