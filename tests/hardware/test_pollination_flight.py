@@ -104,6 +104,7 @@ def test_another_plans_flight_and_a_bot_that_cannot_fly_it_are_refused_before_mo
 
 
 def _flowers_file(tmp_path):
+    tmp_path.mkdir(parents=True, exist_ok=True)
     path = tmp_path / "flowers.json"
     path.write_text(json.dumps({"frame": "bed", "flowers": [
         {"id": 3, "center": CENTER.tolist(), "normals": {"plane": [0.0, 0.0, 1.0]}}]}))
@@ -158,3 +159,47 @@ def test_flying_without_the_plants_cloud_is_refused_before_connecting(tmp_path, 
                         tmp_path / "visits", "--port", "/dev/no-such-port")
     assert code == 2 and "--plant-cloud: needed to fly" in err.splitlines()[-1]
     assert not (tmp_path / "visits").exists()
+
+
+def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, monkeypatch):
+    from cloud_fakes import FakeDevice, fake_factory, make_token
+
+    from flowerpose.hardware import cloud_bot
+
+    for name in ("FARMBOT_EMAIL", "FARMBOT_PASSWORD", "FARMBOT_SERVER"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("FARMBOT_TOKEN", json.dumps(make_token()))
+    path = tmp_path / "flowers.json"
+    path.write_text(json.dumps({"frame": "bed", "flowers": [
+        {"id": k, "center": f.center.tolist(), "normals": {"plane": f.normal.tolist()}}
+        for k, f in enumerate(_flowers())]}))
+    _flowers_file(tmp_path / "cloud")  # its ring of plant points
+    device = FakeDevice(position_mm=(500.0, 300.0, -200.0))
+    moves = []
+
+    def factory():
+        client = fake_factory(device)()
+
+        def move(**kwargs):
+            moves.append(kwargs)
+            record = tmp_path / "visits" / FLIGHT_NAME
+            if len(moves) > 3 and len(read_json(record)["done"]) == 1:  # into the second
+                raise KeyboardInterrupt
+            return type(client).move(client, **kwargs)
+        client.move = move
+        return client
+
+    argv = ["pollinate", path, "--plant-at", "1.5,0.75", "--plant-cloud",
+            tmp_path / "cloud" / "plant.ply", "--out", tmp_path / "visits", "--cloud"]
+    monkeypatch.setattr(cloud_bot, "_farmbot_client", factory)
+    code, _, err = _run(capsys, *argv)
+    assert code == 130 and "interrupted" in err
+    cut = read_json(tmp_path / "visits" / FLIGHT_NAME)
+    assert cut["status"] == "interrupted" and len(cut["done"]) == 1
+    monkeypatch.setattr(cloud_bot, "_farmbot_client", lambda: fake_factory(device)())
+    code, out, err = _run(capsys, *argv)
+    assert code == 0, err
+    assert "resuming at visit 2 of 3" in err and "flight complete: 3/3" in out
+    flight = read_json(tmp_path / "visits" / FLIGHT_NAME)
+    assert flight["source"]["backend"] == "farmbot-cloud" and len(flight["sessions"]) == 2
+    assert make_token()["token"]["encoded"] not in (tmp_path / "visits" / FLIGHT_NAME).read_text()
