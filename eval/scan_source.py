@@ -60,7 +60,7 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
     `via_farmduino`) flies `plan` (`sim_bot.plan_plant_scan`) round the plant in plant_dir
     with the camera `config` gives, recording the scan folder out_dir; then out_dir/plant.json
     holds the truth with this scan's own visibility. Returns scan.json's content."""
-    from flowerpose.hardware.scan import run_scan
+    from flowerpose.hardware.scan_flight import run_scan
     from flowerpose.hardware.sim_bot import (
         SimBot,
         SimBotConfig,

@@ -543,7 +543,7 @@ def _home_field_bot(args: argparse.Namespace, bot) -> None:
 
 def _scan_field(args: argparse.Namespace) -> int:
     """scan --port / --cloud: the physical bot films a real plant with its USB camera."""
-    from flowerpose.hardware.scan import approach_start, run_scan
+    from flowerpose.hardware.scan_flight import approach_start, run_scan
     from flowerpose.hardware.scan_plan import plan_field_scan, plan_table
     from flowerpose.scanio import frame_files
 

@@ -40,7 +40,7 @@ from flowerpose.hardware.cloud_bot import (
 from flowerpose.hardware.geometry import bed_to_farmbot_mm, farmbot_mm_to_bed
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import move_duration
-from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.scan_geometry import ScanPathConfig
 

@@ -17,7 +17,7 @@ from flowerpose.hardware.bot import SolidCamera
 from flowerpose.hardware.bot_errors import ConnectionLostError
 from flowerpose.hardware.cloud_bot import CloudCredentials, CloudLinkError, FarmbotCloudBot
 from flowerpose.hardware.geometry import bed_to_farmbot_mm
-from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json
 from flowerpose.scan_geometry import ScanPathConfig

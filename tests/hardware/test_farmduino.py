@@ -36,7 +36,7 @@ from flowerpose.hardware.farmduino import (
 from flowerpose.hardware.geometry import PAPER_BOT, bed_to_farmbot_mm
 from flowerpose.hardware.kinematics import HeadPose, servo_commands
 from flowerpose.hardware.motion import move_duration
-from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 from flowerpose.jsonio import read_json

@@ -9,7 +9,7 @@ import pytest
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.kinematics import HeadPose, forward
-from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_scan_truth
 from flowerpose.jsonio import read_json

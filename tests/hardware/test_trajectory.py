@@ -12,7 +12,7 @@ from flowerpose.hardware.bot import Activity, Frame, KinematicBot, Recording
 from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
-from flowerpose.hardware.scan import run_scan
+from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.trajectory import (
     RecordingCamera,
@@ -236,7 +236,7 @@ def test_scan_json_counts_a_waypoint_done_only_once_its_kept_frames_are_on_disk(
     resume from: the frames the recording keeps from before the waypoints it calls done are
     already on disk with their trajectory rows, none in the writer's queue or the frame
     keeper's open bin."""
-    import flowerpose.hardware.scan as scan
+    import flowerpose.hardware.scan_flight as scan
 
     plan = plan_scan(np.array([1.5, 0.75]), 0.25, ScanConfig(SMALL.path, pause_s=0.05))
     config = UsbCameraConfig(width=64, height=48, settle_s=0.0,
