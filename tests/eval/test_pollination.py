@@ -61,9 +61,9 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
 
 
 def test_eval_reports_pollination_and_its_curve(tmp_path):
-    from flowerpose.eval.harness import EvalConfig, run_eval
+    from flowerpose.eval.harness import eval_config, run_eval
 
-    report = run_eval(EvalConfig(), source="oracle", plants=1, seed=2, workers=1,
+    report = run_eval(eval_config("easy"), source="oracle", plants=1, seed=2, workers=1,
                       out_dir=tmp_path / "run", task="pollinate")
     summary = report["summary"]
     for key in ("pollination", "pollination_ceiling"):
@@ -72,6 +72,9 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
     assert len(plant["pollination"]["flowers"]) == plant["gt"]
     assert sum(r["flowers"] for r in report["pollination_by_error"]) > 0
     assert (tmp_path / "run" / "pollination.png").stat().st_size > 0
+    flight = json.loads((tmp_path / "run" / "plants" / plant["plant"] / "flight.json").read_text())
+    assert flight["status"] == "complete"
+    assert len(flight["done"]) == plant["pollination"]["visits"]
 
 
 def test_pollination_needs_synthetic_plants(tmp_path, capsys):
