@@ -5,9 +5,9 @@ flower's centre along the flower's axis: from the top of Z it descends to a pre-
 pose `standoff_m` out along the axis, moves straight in until the swab touches the centre,
 rests, and retreats the same way. Every pose is checked against the gantry's travel, the
 servos' range and the soil clearance (naming the limit that fails), and every move against
-the plant's cloud: the head's housings and the shaft keep `clearance_m` from it, except that the shaft
-may pass through the target flower's own corolla (its points within `touch_radius_m` of
-the centre). A flower whose axis cannot be taken is approached along the nearest
+the plant's cloud: the head's housings and the shaft keep `clearance_m` from it, except
+that the shaft may pass through the target flower's own corolla (its points within
+`touch_radius_m` of the centre). A flower whose axis cannot be taken is approached along the nearest
 direction within `cone_deg` of it that can, or reported unreachable with the reason. The
 visits are ordered to keep travel short (nearest neighbour, then 2-opt), on FarmBot's
 motion profile.
