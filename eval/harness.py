@@ -371,9 +371,9 @@ def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict,
 
     _, name, cloud_path, _ = job
     plant_dir = out_dir / "plants" / name
-    obstacles = read_cloud(cloud_path).points
+    cloud = read_cloud(cloud_path)
     world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
-    return tuple(plan_and_score(plant_dir, flowers, obstacles, config.score.max_distance_m,
+    return tuple(plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
                                 config.pollinate, config.pollination,
                                 flight_json=plant_dir / flight, world=world)
                  for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.pollination_contact import ContactWorld, Touches
 from flowerpose.hardware.bot import KinematicBot
@@ -38,6 +39,7 @@ from flowerpose.hardware.pollinate import (
 from flowerpose.hardware.pollination_flight import fly_pollination
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import write_json
+from flowerpose.pipeline.colour import flower_coloured
 from flowerpose.sim.contact import ContactConfig
 from flowerpose.sim.pieces import FLOWER_PARTS, Part
 
@@ -68,11 +70,12 @@ OTHER_FLOWER_PARTS = [int(p) for p in FLOWER_PARTS if p != Part.SEPAL]
 PISTIL_PARTS = [int(Part.RECEPTACLE), int(Part.STAMEN)]
 
 
-def plan_and_score(plant_dir: Path, flowers_json: Path | None, obstacles: np.ndarray | None,
+def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | None,
                    match_distance_m: float, plan_config: PollinateConfig,
                    config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
                    flight_json: Path | None = None, world: ContactWorld | None = None) -> dict:
-    """One plant's pollination: plan from flowers.json's poses (None: the true poses), fly
+    """One plant's pollination: plan from flowers.json's poses (None: the true poses) with
+    the plant's cloud (bed frame, metres; None: reach alone) as obstacles, fly
     the plan on a simulated bot, replay the flight through the plant in MuJoCo and judge
     every open flower of the plant in plant_dir (`flowerpose plant`'s folder). The flight's
     record goes to flight_json when given; `world`: the plant's contact world, when the
@@ -90,7 +93,9 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, obstacles: np.nda
         entries = read_flowers(flowers_json)
         estimates, _ = read_visit_flowers(entries)
         nearest = _match(truth, entries, match_distance_m)
-    plan = plan_pollination(estimates, obstacles, plan_config, tool=tool)
+    plan = plan_pollination(estimates, None if cloud is None else cloud.points, plan_config,
+                            tool=tool, corolla=None if cloud is None
+                            else flower_coloured(cloud.colors))
     timeline = Timeline()
     with tempfile.TemporaryDirectory() as scratch:  # a fresh flight, never a resumed one
         flight = fly_pollination(KinematicBot(observer=timeline.add), plan, Path(scratch),

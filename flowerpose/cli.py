@@ -636,15 +636,19 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
     check_plant(flowers, args.plant_at, args.plant_height, args.plant_radius, args.flowers)
     cloud_path = args.plant_cloud or (Path(document["source"]) if document.get("source")
                                       else None)
+    corolla = None
     if cloud_path is not None and cloud_path.is_file():
-        obstacles = read_cloud(cloud_path, units="m").points
+        from flowerpose.pipeline.colour import flower_coloured
+
+        cloud = read_cloud(cloud_path, units="m")
+        obstacles, corolla = cloud.points, flower_coloured(cloud.colors)
     elif args.plant_cloud is not None:
         raise InputError(args.plant_cloud, "no such cloud")
     else:
         obstacles = None
         LOG.warning("warning: no plant cloud (--plant-cloud, or the one flowers.json names): "
                     "the visits are checked for reach, not for collisions with the plant")
-    plan = plan_pollination(flowers, obstacles, config)
+    plan = plan_pollination(flowers, obstacles, config, corolla=corolla)
     if flying:
         read_flight(args.out, plan)  # another plan's flight there: refused before writing
         if obstacles is None:

@@ -6,11 +6,11 @@ pose `standoff_m` out along the axis, moves straight in until the swab touches t
 rests, and retreats the same way. Every pose is checked against the gantry's travel, the
 servos' range and the soil clearance (naming the limit that fails), and every move against
 the plant's cloud: the head's housings and the shaft keep `clearance_m` from it, except
-that the shaft may pass through the target flower's own corolla (its points within
-`touch_radius_m` of the centre). A flower whose axis cannot be taken is approached along the nearest
-direction within `cone_deg` of it that can, or reported unreachable with the reason. The
-visits are ordered to keep travel short (nearest neighbour, then 2-opt), on FarmBot's
-motion profile.
+that the shaft may pass through the target flower's own corolla (its points of a flower's
+colour within `touch_radius_m` of the centre). A flower whose axis cannot be taken is
+approached along the nearest direction within `cone_deg` of it that can, or reported
+unreachable with the reason. The visits are ordered to keep travel short (nearest
+neighbour, then 2-opt), on FarmBot's motion profile.
 
 Frames and units: the bed frame, metres, radians (DESIGN.md); flower normals point out of
 the open face of the corolla, so the swab moves along minus the normal.
@@ -65,8 +65,12 @@ class PollinateConfig:
     """Least distance between the plant's points and the head's housings (its two servo
     boxes, `kinematics.head_boxes`) or the shaft anywhere along a visit."""
     touch_radius_m: float = 0.02
-    """The target flower's own points within this distance of its centre may touch the
-    shaft and swab (its corolla)."""
+    """The target flower's own points (of a flower's colour, when the cloud's colours are
+    given) within this distance of its centre may touch the shaft and swab (its corolla)."""
+    calyx_radius_m: float = 0.012
+    """The target's points within this distance of its centre, whatever their colour, are
+    its own too: the green sepals and stalk right behind the receptacle, where the swab
+    presses."""
     straight_within_m: float = 0.002
     """The approach keeps within this distance of the straight line to the centre. FarmBot
     runs each axis on its own profile, so a diagonal move bends: it is cut into shorter
@@ -166,15 +170,21 @@ def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
                      config: PollinateConfig = PollinateConfig(),
                      geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool = PAPER_TOOL,
                      profile: MotionProfile | None = None,
-                     start: np.ndarray | None = None) -> PollinationPlan:
+                     start: np.ndarray | None = None,
+                     corolla: np.ndarray | None = None) -> PollinationPlan:
     """Plan a visit to each flower, in a short order, from the gantry at `start` ((3,) UTM,
     metres, bed frame; default home). obstacles: (M, 3) points of the plant (its cloud),
-    metres, bed frame, or None to check reach alone."""
+    metres, bed frame, or None to check reach alone. corolla: (M,) bool, the obstacles of a
+    flower's colour (`pipeline.colour.flower_coloured`): only they may be a target's own
+    corolla, so a leaf beside the flower stays an obstacle; None: any point near it."""
     profile = profile or MotionProfile()
     start = geometry.home if start is None else np.asarray(start, np.float64)
     points = np.empty((0, 3)) if obstacles is None else np.asarray(obstacles, np.float64)
     tree = cKDTree(points) if len(points) else None
-    visits = [_plan_visit(f, points, tree, config, geometry, tool, profile) for f in flowers]
+    flowery = (np.ones(len(points), bool) if corolla is None
+               else np.asarray(corolla, bool).reshape(len(points)))
+    visits = [_plan_visit(f, points, flowery, tree, config, geometry, tool, profile)
+              for f in flowers]
     planned = [v for v in visits if v.status == "planned"]
     order = _short_order(planned, start, geometry, profile)
     ordered = [planned[k] for k in order]
@@ -205,14 +215,15 @@ def _directions(normal: np.ndarray, config: PollinateConfig) -> tuple[np.ndarray
             np.concatenate([[0.0], np.degrees(theta)]))
 
 
-def _plan_visit(flower: Flower, points: np.ndarray, tree: cKDTree | None,
-                config: PollinateConfig, geometry: BotGeometry, tool: PollinatorTool,
-                profile: MotionProfile) -> Visit:
+def _plan_visit(flower: Flower, points: np.ndarray, corolla: np.ndarray,
+                tree: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
+                tool: PollinatorTool, profile: MotionProfile) -> Visit:
     """The visit along the flower's axis, else along the nearest direction in the cone
     that is reachable and clear; else why not."""
     axes, angles = _directions(flower.normal, config)
-    near_flower = (np.linalg.norm(points - flower.center, axis=1) <= config.touch_radius_m
-                   if len(points) else np.zeros(0, bool))
+    distance = np.linalg.norm(points - flower.center, axis=1)
+    near_flower = ((corolla & (distance <= config.touch_radius_m))
+                   | (distance <= config.calyx_radius_m))
     others = cKDTree(points[~near_flower]) if (~near_flower).any() else None
     first_reason = ""
     for axis, angle in zip(axes, angles, strict=True):

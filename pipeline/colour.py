@@ -90,3 +90,11 @@ def support_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
     """(...,) bool: HSV colours (..., 3) in the support band (petals excluded by the caller)."""
     return (_in_band(hsv[..., 0], config.support_hue)
             & (hsv[..., 1] >= config.support_min_saturation))
+
+
+def flower_coloured(rgb: np.ndarray, config: ColourConfig | None = None) -> np.ndarray:
+    """(N,) bool: RGB colours (N, 3) uint8 of a petal or a pistil (a pollination visit's
+    target corolla may be only these)."""
+    hsv = rgb_to_hsv(np.asarray(rgb, np.uint8))
+    config = config or ColourConfig()
+    return petal_mask(hsv, config) | pistil_mask(hsv, config)

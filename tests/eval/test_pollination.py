@@ -35,7 +35,7 @@ def _flowers_json(path, plant, tilt_deg=0.0):
 
 def test_the_true_poses_pollinate_every_flower_the_planner_can_reach(easy_plant):
     folder, bundle = easy_plant
-    result = plan_and_score(folder, None, bundle.cloud.points, 0.02, PollinateConfig(),
+    result = plan_and_score(folder, None, bundle.cloud, 0.02, PollinateConfig(),
                             PollinationScoreConfig())
     outcomes = [o["outcome"] for o in result["flowers"]]
     assert len(outcomes) == len(bundle.plant.flowers)
@@ -47,7 +47,7 @@ def test_the_true_poses_pollinate_every_flower_the_planner_can_reach(easy_plant)
 def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_plant,
                                                                          tmp_path):
     folder, bundle = easy_plant
-    args = (bundle.cloud.points, 0.02, PollinateConfig(), PollinationScoreConfig())
+    args = (bundle.cloud, 0.02, PollinateConfig(), PollinationScoreConfig())
     exact = plan_and_score(folder, _flowers_json(tmp_path / "exact.json", bundle.plant),
                            *args)
     ceiling = plan_and_score(folder, None, *args)

@@ -209,3 +209,21 @@ def test_a_leaf_inside_the_heads_housing_blocks_the_axis_though_far_from_its_cen
     assert np.linalg.norm(head_points(clear.pre)[0] - leaf, axis=1).min() > 0.02
     (visit,) = _plan([flower], leaf[None, :]).visits
     assert visit.status == "unreachable" or visit.off_axis_deg > 0
+
+
+def test_a_leaf_over_the_flower_blocks_the_shaft_unless_it_has_a_flowers_colour():
+    flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]))
+    grid = np.linspace(-0.003, 0.003, 4)
+    disc = np.array([[x, y, 0.016] for x in grid for y in grid]) + CENTER
+    for corolla, blocked in ((None, False), (np.ones(len(disc), bool), False),
+                             (np.zeros(len(disc), bool), True)):
+        (visit,) = plan_pollination([flower], disc, PollinateConfig(), corolla=corolla).visits
+        axis_taken = visit.status == "planned" and visit.off_axis_deg == 0.0
+        assert axis_taken != blocked, (corolla, visit)
+
+
+def test_flower_coloured_points_are_petals_and_pistils():
+    from flowerpose.pipeline.colour import flower_coloured
+
+    rgb = np.array([[245, 245, 240], [230, 200, 40], [60, 140, 50], [120, 90, 60]], np.uint8)
+    assert flower_coloured(rgb).tolist() == [True, True, False, False]
