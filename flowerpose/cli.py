@@ -654,6 +654,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         if obstacles is None:
             raise InputError("--plant-cloud", "needed to fly: without the plant's cloud the "
                              "visits are not checked for collisions with the plant")
+        bot = _field_bot(args)  # credentials and settings file read before writing
     with _owned(args.out, "pollinate", args.overwrite, ("pollination.json", FLIGHT_NAME)) \
             as output:
         output.record(write_json(args.out / "pollination.json", {
@@ -676,16 +677,15 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
             label = "" if move.flower < 0 else f"{move.flower:7d}"
             print(f"{pose_row(k, move.kind, move.pose)} {label}")
     if flying and plan.planned:
-        return _fly_pollination(args, plan)
+        return _fly_pollination(args, plan, *bot)
     return 0
 
 
-def _fly_pollination(args: argparse.Namespace, plan) -> int:
+def _fly_pollination(args: argparse.Namespace, plan, connect, source: dict) -> int:
     """pollinate --port / --cloud: fly the plan on the physical bot (flight.json; a flight
     cut short resumes when rerun)."""
     from flowerpose.hardware.pollination_flight import fly_pollination
 
-    connect, source = _field_bot(args)
     # flight.json is declared, never recorded: no later run of this stage deletes it.
     with connect() as bot:
         _home_field_bot(args, bot)

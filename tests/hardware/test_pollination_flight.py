@@ -203,3 +203,15 @@ def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, 
     flight = read_json(tmp_path / "visits" / FLIGHT_NAME)
     assert flight["source"]["backend"] == "farmbot-cloud" and len(flight["sessions"]) == 2
     assert make_token()["token"]["encoded"] not in (tmp_path / "visits" / FLIGHT_NAME).read_text()
+
+
+def test_flying_without_credentials_is_refused_before_the_plan_is_written(tmp_path, capsys,
+                                                                          monkeypatch):
+    for name in ("FARMBOT_TOKEN", "FARMBOT_EMAIL", "FARMBOT_PASSWORD", "FARMBOT_SERVER"):
+        monkeypatch.delenv(name, raising=False)
+    flowers = _flowers_file(tmp_path)
+    code, _, err = _run(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75",
+                        "--plant-cloud", tmp_path / "plant.ply", "--out", tmp_path / "visits",
+                        "--cloud")
+    assert code == 2 and "FARMBOT_TOKEN" in err.splitlines()[-1]
+    assert not (tmp_path / "visits").exists()
