@@ -198,6 +198,9 @@ def _detector_files(pipeline: PipelineConfig) -> list[Path]:
 #: Cores a capture job (render, match, stereo: each multi-threaded) asks of a Ray node, at
 #: most the largest node's.
 CAPTURE_CPUS = 2
+#: Whether a scan capture's Ray task asks for a GPU, by `scan.reconstruct.dense_method`:
+#: PatchMatch runs only on CUDA; "auto" takes it where the cluster has a GPU.
+CAPTURE_GPU = {"patch_match": "needed", "auto": "if_any", "sgbm": "none"}
 
 
 def sum_timings(timings: Iterable[dict[str, float]]) -> dict[str, float]:
@@ -562,7 +565,8 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                             f"{v['quality']['petals']['fscore_5mm']:.2f} "
                             + _said_steps(v["seconds"], v.get("cached", [])),
                             stage="scan capture", labels=[f"seed-{s}" for s in seeds],
-                            cpus=CAPTURE_CPUS)
+                            cpus=CAPTURE_CPUS, gpu=CAPTURE_GPU[config.scan.reconstruct
+                                                               .dense_method])
         for stage in ("scan", "frames", "reconstruct"):
             timing[stage] = round(sum(c["seconds"][stage] for c in captured), 4)
         clouds = {s: (folders[s] / "reconstruction" / "cloud.ply",

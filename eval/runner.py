@@ -20,7 +20,7 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from flowerpose.errors import InputError, JobsFailed, one_line
 from flowerpose.log import LOG, Tally
@@ -99,15 +99,18 @@ def _check_listening(address: str) -> None:
 def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
              describe: Callable[[int, Any], str] | None = None, *,
              stage: str = "job", labels: list[str] | None = None,
-             cpus: int = 1) -> list[Any]:
+             cpus: int = 1, gpu: Literal["none", "needed", "if_any"] = "none") -> list[Any]:
     """function(*job) for every job, results in job order: in a process pool of `workers`
     (default: every core; 1 runs them here, one after another), or as Ray tasks of `cpus`
     cores each inside `on_ray` (`workers` is then Ray's to choose). With `describe`, a
     line per finished job with the time left (`log.Tally`). stage, labels: what each job
-    is (the stage, and the plant of each job), for the report of a job that failed."""
+    is (the stage, and the plant of each job), for the report of a job that failed.
+    gpu: on Ray, whether each task asks for a GPU: "needed" (refused in one line where the
+    cluster has none, instead of waiting for ever), "if_any" (where the cluster has one)."""
     if _session is not None:
         return _run_on_ray(_session, function, jobs, describe, stage,
-                           labels or [f"job {k}" for k in range(len(jobs))], cpus)
+                           labels or [f"job {k}" for k in range(len(jobs))], cpus,
+                           _task_gpus(gpu, stage))
     results: list[Any] = [None] * len(jobs)
     pool = _pool(min(workers or os.cpu_count() or 1, len(jobs)))
     with Tally(len(jobs) if describe is not None else 0) as tally:
@@ -144,6 +147,19 @@ def _pool(workers: int) -> ProcessPoolExecutor | None:
                                initializer=quiet_worker)
 
 
+def _task_gpus(gpu: str, stage: str) -> int:
+    """GPUs a Ray task of `stage` asks for (`run_jobs`' gpu)."""
+    if gpu == "none":
+        return 0
+    import ray
+
+    available = ray.cluster_resources().get("GPU", 0)
+    if gpu == "needed" and not available:
+        raise InputError("ray", f"the {stage} needs a GPU (scan.reconstruct.dense_method = "
+                         "patch_match) and the Ray cluster has none")
+    return 1 if available else 0
+
+
 def _ray_task(function: Callable, job: tuple) -> tuple[Any, str]:
     """One job in a Ray worker: its result and the node that ran it."""
     import ray
@@ -156,11 +172,12 @@ def _ray_task(function: Callable, job: tuple) -> tuple[Any, str]:
 
 def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
                 describe: Callable[[int, Any], str] | None, stage: str, labels: list[str],
-                cpus: int) -> list[Any]:
+                cpus: int, gpus: int = 0) -> list[Any]:
     import ray
 
     task = ray.remote(_ray_task).options(
-        num_cpus=min(cpus, session.largest_node_cpus()), max_retries=TASK_RETRIES,
+        num_cpus=min(cpus, session.largest_node_cpus()), num_gpus=gpus,
+        max_retries=TASK_RETRIES,
         retry_exceptions=True)
     refs = {task.remote(function, job): k for k, job in enumerate(jobs)}
     results: list[Any] = [None] * len(jobs)

@@ -71,3 +71,24 @@ def test_a_ray_address_where_nothing_listens_is_one_line_at_once(capsys, tmp_pat
                  "cluster.eps=0.01", "--out", str(tmp_path / "s"), "--ray", "127.0.0.1:1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "nothing answers at 127.0.0.1:1" in err
+
+
+@pytest.mark.parametrize("method, gpus_in_cluster, asked", [
+    ("patch_match", 1, 1), ("auto", 1, 1), ("auto", 0, 0), ("sgbm", 1, 0)])
+def test_a_capture_asks_for_a_gpu_where_patch_match_will_run(monkeypatch, method,
+                                                             gpus_in_cluster, asked):
+    from flowerpose.eval.harness import CAPTURE_GPU
+    from flowerpose.eval.runner import _task_gpus
+
+    monkeypatch.setattr(ray, "cluster_resources",
+                        lambda: {"CPU": 2.0, **({"GPU": 1.0} if gpus_in_cluster else {})})
+    assert _task_gpus(CAPTURE_GPU[method], "scan capture") == asked
+
+
+def test_patch_match_on_a_cluster_without_a_gpu_is_one_line(monkeypatch):
+    from flowerpose.errors import InputError
+    from flowerpose.eval.runner import _task_gpus
+
+    monkeypatch.setattr(ray, "cluster_resources", lambda: {"CPU": 2.0})
+    with pytest.raises(InputError, match="needs a GPU .* has none"):
+        _task_gpus("needed", "scan capture")
