@@ -149,9 +149,11 @@ def test_recording_saves_every_frame_with_its_time_and_a_resumed_one_appends(tmp
     np.testing.assert_array_equal(times[:, 0], np.arange(first))
     np.testing.assert_allclose(times[:, 1], [t for _, t in saved], atol=1e-6)
     assert np.all(np.diff(times[:, 1]) > 0)
-    # Each file holds its frame: the fake's grey level counts frames up, one by one.
+    # Each file holds its frame, in order: the fake's grey level counts frames up (by one
+    # a frame; more where a loaded machine's reader skipped some, as a live camera's does;
+    # JPEG may move a level by one).
     levels = [int(cv2.imread(str(p))[0, 0, 0]) for p in frame_files(tmp_path)]
-    assert np.all(np.abs(np.diff(levels) - 1) <= 2)
+    assert np.all(np.diff(levels) >= -1) and levels[-1] - levels[0] >= len(levels) - 3
 
     camera.start_recording(tmp_path / "video.mp4")  # a second session in the same folder
     later = _saved(camera, 1)
