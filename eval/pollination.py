@@ -78,12 +78,12 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
     the plant's cloud (bed frame, metres; None: reach alone) as obstacles, fly
     the plan on a simulated bot, replay the flight through the plant in MuJoCo and judge
     every open flower of the plant in plant_dir (`flowerpose plant`'s folder). The flight's
-    record goes to flight_json when given; `world`: the plant's contact world, when the
-    caller has one. Returns the per-plant report section."""
+    record goes to flight_json when given; `world`: the plant's contact world (and the plant
+    read once), when the caller has one. Returns the per-plant report section."""
     from flowerpose.pipeline.flowers import read_flowers
     from flowerpose.sim.export import read_plant
 
-    plant = read_plant(plant_dir)
+    plant = world.plant if world is not None else read_plant(plant_dir)
     truth = plant.flowers
     if flowers_json is None:
         estimates = [Flower(f.id, np.asarray(f.center, float), np.asarray(f.normal, float))

@@ -57,6 +57,7 @@ class ContactWorld:
         self._mujoco = mujoco
         config = config or ContactConfig()
         self.config, self.tool, self.near_m, self.settle_s = config, tool, near_m, settle_s
+        self.plant = plant
         self.patches: PlantPatches = plant_patches(plant, config)
         spec = mujoco.MjSpec.from_file(str(FARMBOT_ASSETS / "scene.xml"))
         spec.option.gravity = [0.0, 0.0, 0.0]  # the generated shape is the leaves' rest shape

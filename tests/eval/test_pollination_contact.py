@@ -9,6 +9,7 @@ pytest.importorskip("mujoco")
 from flowerpose.eval.pollination_contact import ContactWorld  # noqa: E402
 from flowerpose.hardware.bot import KinematicBot  # noqa: E402
 from flowerpose.hardware.kinematics import tool_at  # noqa: E402
+from flowerpose.hardware.pollination_flight import head_angles  # noqa: E402
 from flowerpose.hardware.trajectory import Timeline  # noqa: E402
 from flowerpose.sim.pieces import Part  # noqa: E402
 
@@ -52,18 +53,12 @@ def _drive(world, leaf: np.ndarray, past_m: float):
     into = tool_at(leaf + past_m * down, down)
     top = bot.info.travel_max[2]
     bot.move_to([*above.gantry[:2], top])
-    bot.set_head(*_servo(above))
+    bot.set_head(*head_angles(above))
     bot.move_to(above.gantry)
     start = bot.now()
     bot.move_to(into.gantry)
     bot.dwell(0.5)
     return world.fly(timeline, start, bot.now())
-
-
-def _servo(pose):
-    from flowerpose.hardware.pollination_flight import head_angles
-
-    return head_angles(pose)
 
 
 def test_a_leaflet_gives_way_by_about_as_far_as_the_tool_drives_into_it(world):
