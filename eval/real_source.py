@@ -134,7 +134,7 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     source = _source(folder)
     where = folder / "source.json"
     if truth_scale is not None:
-        scale = _scale(truth_scale, "--truth-scale")
+        scale = _scale(truth_scale, "truth_scale")
     elif "truth_scale" in source:
         scale = _scale(source["truth_scale"], where)
     else:
@@ -173,7 +173,7 @@ def _check_scale(plant: RealPlant, truth: list[TruthFlower], points: np.ndarray,
     if not (nearest <= max_distance).any():
         raise InputError(plant.labels, f"no label lies within {max_distance:g} of any point "
                          f"at truth scale {plant.truth_scale:g} (the nearest is "
-                         f"{nearest.min():.3g} away): is the scale right? (--truth-scale, "
+                         f"{nearest.min():.3g} away): is the scale right? (`truth_scale`, "
                          "or truth_scale in source.json)")
 
 

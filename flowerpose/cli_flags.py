@@ -1,16 +1,23 @@
 """Command-line flags made from settings: a flag is a short name for `--set KEY=VALUE`, its
 help the setting's own docstring and its default the setting's value in the command's
 starting configuration, so neither is written twice. Library code names the setting when a
-value is wrong; the command line says the flag the user typed (`flag_for`)."""
+value is wrong, and names settings and arguments in backticks in its advice; the command line
+says the flag the user types for each (`flag_for`, `say_flags`)."""
 
 from __future__ import annotations
 
 import argparse
+import re
 from collections.abc import Callable
 from typing import Any
 
 #: The argparse attribute that holds a command's {flag dest: setting key}.
 FLAGS_ATTRIBUTE = "setting_flags"
+#: The argparse attribute that holds a command's {library name: how its flags say it}, for
+#: a name no flag sets by itself (the USB camera's `choose` is --keep-all left out).
+PHRASES_ATTRIBUTE = "flag_phrases"
+#: A setting's or argument's name as library messages quote it.
+QUOTED_NAME = re.compile(r"`([A-Za-z_][\w.]*)`")
 
 
 class SettingHelp(str):
@@ -80,3 +87,15 @@ def _subparser(parser: argparse.ArgumentParser,
         if isinstance(action, argparse._SubParsersAction):
             return action.choices.get(getattr(args, "command", ""), parser)
     return parser
+
+
+def say_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, text: str) -> str:
+    """`text` (a library's message) with each name it quotes in backticks said as the
+    command's flag for it, or its phrase; a name the command has no flag for keeps its
+    quotes (it is a setting for --set or a config file)."""
+    phrases = getattr(args, PHRASES_ATTRIBUTE, None) or {}
+
+    def said(match: re.Match) -> str:
+        name = match.group(1)
+        return phrases.get(name) or flag_for(parser, args, name) or match.group(0)
+    return QUOTED_NAME.sub(said, text)

@@ -442,9 +442,9 @@ class FarmduinoBot(Bot):
             raise HomingError(
                 f"{command}: the firmware cannot find home on {name.upper()}: neither its "
                 f"endstops (parameter {describe(endstops)}) nor its encoder "
-                f"({describe(encoder)}) is enabled; load the bot's settings (--firmware-params, "
-                "exported from the FarmBot web app), or put the gantry at home by hand and "
-                "use --home-here")
+                f"({describe(encoder)}) is enabled; load the bot's firmware settings "
+                "(`settings`, as the FarmBot web app exports them), or put the gantry at home "
+                "by hand and take it as home (`home_here`)")
 
     def set_head(self, yaw_rad: float, pitch_rad: float) -> None:
         yaw, pitch = check_head(self._info, yaw_rad, pitch_rad)
@@ -609,8 +609,9 @@ class FarmduinoBot(Bot):
                            if exchange.stopped else "it was stopped;")
                 raise HomingError(f"{command}: the firmware cannot find home: it reports "
                                   f"{exchange.failure}; {stopped} check the endstops and "
-                                  "encoders and their settings (--firmware-params), or put "
-                                  "the gantry at home by hand and use --home-here")
+                                  "encoders and their settings (`settings`), or put "
+                                  "the gantry at home by hand and take it as home "
+                                  "(`home_here`)")
             self._raise_for(exchange)
             return
         raise ConnectionLostError(self._port, f"{command}: the link kept dropping")

@@ -128,7 +128,7 @@ def check_disk_space(scan_dir: Path, config: UsbCameraConfig, duration_s: float)
     if free < needed:
         chosen = replace(config, choose=FrameChoice(duration_s)).expected_bytes(duration_s)
         every = "" if config.choose is not None else (
-            f"; choosing frames while recording (without --keep-all) needs about "
+            f"; frames chosen while recording (`choose`) need about "
             f"{(chosen + config.disk_reserve_mb * 1e6) / 1e6:.0f} MB")
         raise InputError(scan_dir, f"{free / 1e6:.0f} MB free on its disk, but the scan needs "
                          f"about {needed / 1e6:.0f} MB ({config.disk_reserve_mb:g} MB of it "

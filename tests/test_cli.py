@@ -307,13 +307,15 @@ def test_the_command_list_has_a_description_and_examples():
 def test_a_setting_flag_is_its_setting_with_its_docstring_and_default(capsys):
     """frames' flags are --set under other names: the same config, the config's own default
     when not given, and help written from the setting's docstring."""
-    from flowerpose.cli import _configure, _frames_base, build_parser
+    from flowerpose.cli import build_parser
+    from flowerpose.cli_options import configure
+    from flowerpose.cli_stages import _frames_base
     from flowerpose.config import setting_doc
 
     parser = build_parser()
 
     def configured(*extra):
-        return _configure(_frames_base(), parser.parse_args(["frames", "s", "--out", "o",
+        return configure(_frames_base(), parser.parse_args(["frames", "s", "--out", "o",
                                                              *extra]))
 
     by_flag = configured("--count", "7", "--brightness-penalty")
@@ -326,3 +328,23 @@ def test_a_setting_flag_is_its_setting_with_its_docstring_and_default(capsys):
     doc = setting_doc(_frames_base(), "crop_px")
     assert doc and doc.rstrip(".") in shown
     assert f"default: {_frames_base().crop_px}; the same as --set crop_px=" in shown
+
+
+def test_library_advice_names_settings_and_the_command_line_says_its_flags():
+    """A library message quotes the setting or argument to change; each command says the
+    flag it has for it, and keeps the quotes where it has none (a --set key)."""
+    from flowerpose.cli import build_parser
+    from flowerpose.cli_flags import say_flags
+
+    parser = build_parser()
+    scan = parser.parse_args(["scan", "--port", "p", "--out", "o"])
+    advice = ("load `settings`, or take it as home (`home_here`); frames chosen while "
+              "recording (`choose`) need less; `scan.width` sets the size, `cluster.eps` no")
+    assert say_flags(parser, scan, advice) == (
+        "load --firmware-params, or take it as home (--home-here); frames chosen while "
+        "recording (leaving out --keep-all) need less; --width sets the size, `cluster.eps` no")
+    pollinate = parser.parse_args(["pollinate", "f.json", "--plant-at", "1,1", "--out", "o"])
+    assert say_flags(parser, pollinate, advice).startswith(
+        "load --firmware-params, or take it as home (--home-here); frames chosen while "
+        "recording (`choose`)")
+

@@ -78,6 +78,15 @@ def test_a_scale_that_puts_no_label_near_any_point_is_refused(tmp_path):
                  out_dir=tmp_path / "out", workers=1)
 
 
+
+def test_a_wrong_truth_scale_is_said_as_the_flag_that_set_it(tmp_path, capsys):
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    assert main(["eval", "--source", "real", str(folder), "--truth-scale", "1", "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("flowerpose: error:")
+    assert "is the scale right? (--truth-scale, or truth_scale in source.json)" in err[0]
+
 def _bad(tmp_path, make):
     folder = tmp_path / "bad"
     make(folder)

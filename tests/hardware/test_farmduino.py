@@ -271,7 +271,7 @@ def test_homing_an_axis_without_endstops_or_encoder_is_refused_before_anything_m
     with _bot(bare) as bot:
         with pytest.raises(HomingError, match=r"Z: neither its endstops \(parameter 27 "
                            r"\(movement_enable_endpoints_z\)\) nor its encoder \(103 "
-                           r"\(encoder_enabled_z\)\).*--home-here"):
+                           r"\(encoder_enabled_z\)\).*`home_here`"):
             bot.home()
         assert not any(line.startswith(("F11", "F12", "F13")) for line in bare.received)
 

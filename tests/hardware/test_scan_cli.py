@@ -184,7 +184,10 @@ def test_a_board_on_its_defaults_scans_with_the_bots_settings_or_homed_by_hand(t
     with virtual.VirtualFarmduino(time_scale=100.0) as device:
         code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--out", scan)
         assert code == 2 and "warning: no --firmware-params" in err
-        assert "parameter 27 (movement_enable_endpoints_z)" in err.splitlines()[-1]
+        refused = err.splitlines()[-1]
+        assert "parameter 27 (movement_enable_endpoints_z)" in refused
+        assert "(--firmware-params, as the FarmBot web app" in refused
+        assert "(--home-here)" in refused
         assert not any(line.startswith(("F11", "F12", "F13", "G00")) for line in device.received)
         code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--firmware-params",
                               tmp_path / "firmware.json", "--out", tmp_path / "with-settings")

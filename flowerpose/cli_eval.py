@@ -1,0 +1,390 @@
+"""The jobs made of stages: `eval` (the benchmark), `sweep`, `fidelity`, `bench`, and
+`cache`, which looks after their stage cache."""
+
+from __future__ import annotations
+
+import argparse
+from datetime import datetime
+from pathlib import Path
+
+from flowerpose.cli_options import (
+    CLOUD_POINTS_MAX,
+    PLANTS,
+    POSITIVE,
+    SEED,
+    add_cache_options,
+    add_config_options,
+    add_output,
+    add_preset,
+    add_ray_option,
+    add_workers,
+    at_least,
+    configure,
+    jobs_on,
+    non_negative_number,
+    owned,
+    positive_number,
+    stage_cache,
+)
+from flowerpose.config import profile_names, suite_names
+from flowerpose.errors import InputError
+
+#: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
+SCAN_PLANTS = 2
+
+
+#: eval's source, preset and first seed when neither the command line nor a suite says.
+EVAL_DEFAULTS = {"source": "scan", "preset": "realistic", "seed": 0}
+
+
+def _default_out() -> Path:
+    return Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config, run_eval
+
+    suite = _apply_suite(args) if args.suite else None
+    for key, default in EVAL_DEFAULTS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
+    if args.folders and args.source != "real":
+        raise InputError(args.folders[0], "plant folders are for --source real")
+    if args.truth_scale is not None and args.source != "real":
+        raise InputError("--truth-scale", "is for --source real")
+    from flowerpose.eval.gates import parse_requirements
+    from flowerpose.eval.methods import ExternalMethod, parse_compare, parse_method
+
+    requirements = parse_requirements(args.require)  # a bad gate says so before any work
+    if (args.junit or args.summary) and not requirements:
+        raise InputError("--junit" if args.junit else "--summary", "needs --require")
+    config = eval_config(args.preset, lambda base: configure(base, args))
+    from flowerpose.pipeline.detect import make_detector
+
+    make_detector(config.detect, config.colour)  # one that cannot load says so before any work
+    # A compared profile or detector shares the run's settings (scoring, plants) but its own.
+    compared = [parse_compare(text, config, args.method_timeout) for text in args.compare]
+    methods = [parse_method(text, args.method_timeout) for text in args.method] + [
+        what for _, what in compared if isinstance(what, ExternalMethod)]
+    compare = {name: what for name, what in compared if not isinstance(what, ExternalMethod)}
+    cache = stage_cache(args)
+    names = [m.name for m in methods] + list(compare)
+    if len(set(names)) < len(names):
+        raise InputError("--compare", "each compared method needs a name of its own")
+    out = args.out or _default_out()
+    plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
+    from flowerpose.eval.harness import eval_outputs
+
+    writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
+    with owned(out, "eval", args.overwrite, writes), jobs_on(args):
+        report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
+                          out_dir=out, workers=args.workers, folders=args.folders,
+                          truth_scale=args.truth_scale, compare=compare, suite=suite,
+                          methods=methods, cache=cache, task=args.task)
+    if cache is not None and args.source != "real":
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
+    from flowerpose.eval.report import comparison_table, summary_lines, table
+
+    print(table(report))
+    for line in summary_lines(report):
+        print(line)
+    if compare or methods:
+        print(comparison_table(report, args.profile or "default"))
+    for compared in report.get("compare", {}).values():
+        for plant in compared["plants"]:
+            if "error" in plant:
+                print(f"{plant['plant']}: {plant['error']}")
+    if args.task == "pollinate":
+        from flowerpose.eval.report import pollination_lines
+
+        for line in pollination_lines(report):
+            print(line)
+    print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'report.html'}")
+    return _gates(report, requirements, args) if requirements else 0
+
+
+def _apply_suite(args: argparse.Namespace) -> dict:
+    """--suite NAME: the suite's source, preset, plants and seed for this eval; what it
+    fixes may not be given too, nor settings that would change what it measures."""
+    from flowerpose.config import load_suite
+
+    suite = load_suite(args.suite)
+    for key, value in suite["eval"].items():
+        given = getattr(args, key)
+        if given is not None and given != value:
+            raise InputError(f"--{key}", f"is fixed by --suite {args.suite} ({value}); leave "
+                             "it out")
+        setattr(args, key, value)
+    for flag, given in (("--set", args.set), ("--detector", args.detector),
+                        ("--config", args.config), ("--profile", args.profile),
+                        ("folders", args.folders)):
+        if given:
+            raise InputError(flag, f"--suite {args.suite} runs its own settings only, so its "
+                             "numbers compare between versions and labs")
+    return {k: suite[k] for k in ("name", "version", "description")}
+
+
+def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
+    """eval's --require: the table of what failed (or that all hold), the JUnit and
+    Markdown files when asked; 1 when a requirement does not hold."""
+    from flowerpose.eval.gates import check, outcome_table, write_junit, write_summary
+
+    outcomes = check(report, requirements)
+    failed = [o for o in outcomes if not o.passed]
+    title = f"flowerpose eval --source {args.source}"
+    if args.junit:
+        write_junit(args.junit, outcomes, title)
+    if args.summary:
+        write_summary(args.summary, outcomes, title)
+    if failed:
+        print(f"\n{len(failed)} of {len(outcomes)} requirements failed:")
+        print(outcome_table(outcomes, failed_only=True))
+        return 1
+    print(f"\nall {len(outcomes)} requirements hold ({len(requirements)} on the run and on "
+          f"each of {len(report['plants'])} plants)")
+    return 0
+
+
+def add_eval(sub: argparse._SubParsersAction) -> None:
+    """The `eval` subcommand's parser."""
+    p = sub.add_parser(
+        "eval", help="the benchmark: plants -> clouds -> flowers -> Table I",
+        description="Run the benchmark: generate seeded plants (or read labelled real plant "
+        "folders), turn each into a point cloud (--source), find its flowers and their "
+        "normals, score them against the truth and print the paper's Table I. Writes "
+        "report.json, report.md and report.html to --out, and per plant its files.",
+        epilog="examples:\n"
+        "  flowerpose eval --source oracle --plants 2 --out runs/oracle\n"
+        "  flowerpose eval --source real ../shared/real/paper-plant-3 --compare upstream\n"
+        "  flowerpose eval --suite oracle-10 --require 'recall_visible>=0.95'")
+    p.add_argument("--source", choices=("scan", "oracle", "rgbd", "real"), default=None,
+                   help="where clouds come from: scan = the simulated bot films each plant "
+                   "and photogrammetry reconstructs it (default); oracle = the plant's "
+                   "surfaces sampled directly; rgbd = a simulated depth camera's views fused; "
+                   "real = labelled real plant folders (DIR ...)")
+    p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
+                   help="--source real: labelled plant folders (labels.json and cloud.ply, "
+                   "candidates/*.ply or crops/*.ply; README, \"Real plants\")")
+    p.add_argument("--truth-scale", type=positive_number, default=None, metavar="K",
+                   help="--source real: the factor the labelled cloud was scaled by, no unit "
+                   "(default: each folder's source.json, else 25 for SageMaker labels)")
+    p.add_argument("--compare", action="append", default=[], metavar="METHOD",
+                   help="also run another method on the same plants and print them side by "
+                   f"side: a settings profile ({', '.join(profile_names())}), a 2D detector "
+                   "(onnx:MODEL.onnx or MODULE:CLASS), an external command "
+                   "(NAME='CMD {cloud} {out}', as --method) or a registered method's name "
+                   "(repeatable; default: none)")
+    p.add_argument("--plants", type=PLANTS, default=None, metavar="N",
+                   help=f"number of seeded plants (default: {SCAN_PLANTS} for scan, 10 for "
+                   "oracle and rgbd)")
+    p.add_argument("--seed", type=SEED, default=None, metavar="S",
+                   help=f"first plant seed; plants are S, S+1, ... (default: "
+                   f"{EVAL_DEFAULTS['seed']})")
+    add_preset(p, None, EVAL_DEFAULTS["preset"])
+    add_workers(p)
+    add_output(p, "output folder (default: runs/<date>-<time>/)", required=False)
+    p.add_argument("--method", action="append", default=[], metavar="NAME=CMD",
+                   help="also score another method on the same clouds, printed beside this "
+                   "one: CMD runs once per plant with {cloud} (the plant's cloud, PLY) and "
+                   "{out} (a folder to write flowers.json into), e.g. "
+                   "mine='python detect.py {cloud} {out}', or NAME alone for a method an "
+                   "installed package registers (repeatable; default: none)")
+    p.add_argument("--task", choices=("pose", "pollinate"), default="pose",
+                   help="pose: score the flower poses (Table I); pollinate: also plan, fly "
+                   "and score a pollinator visit to each synthetic flower, from the "
+                   "estimated poses and from the true ones (summary.pollination; "
+                   "pollination.png) (default: %(default)s)")
+    p.add_argument("--method-timeout", type=positive_number, default=600.0, metavar="S",
+                   help="seconds an external method may take on one plant (default: "
+                   "%(default)g)")
+    add_cache_options(p)
+    add_ray_option(p)
+    p.add_argument("--suite", choices=suite_names(), metavar="NAME",
+                   help="a named, versioned benchmark suite that fixes the source, preset, "
+                   f"plants and seeds ({', '.join(suite_names())}; assets/suites/); the report "
+                   "records its name and version (default: none)")
+    p.add_argument("--require", action="append", default=[], metavar="KEY>=NUMBER",
+                   help="a CI gate on the report's summary, on the whole run and on each "
+                   "plant, e.g. 'recall_visible>=0.95' or 'error_deg.plane.mean<=3' "
+                   "(>=, <=, >, <, ==; repeatable): exit status 1 when one does not hold")
+    p.add_argument("--junit", type=Path, metavar="FILE.xml",
+                   help="with --require: write the gates as JUnit XML (a test case per plant "
+                   "and requirement)")
+    p.add_argument("--summary", type=Path, metavar="FILE.md",
+                   help="with --require: write the gates as Markdown for a CI job's summary "
+                   "page (e.g. $GITHUB_STEP_SUMMARY)")
+    add_config_options(p)
+    p.set_defaults(func=cmd_eval)
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config
+    from flowerpose.eval.sweep import parse_grid, run_sweep, sweep_outputs
+
+    config = eval_config(args.preset, lambda base: configure(base, args))
+    grid = parse_grid(args.grid, config)
+    cache = stage_cache(args)
+    with owned(args.out, "sweep", args.overwrite, sweep_outputs(grid, args.source)), \
+            jobs_on(args):
+        best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
+                         workers=args.workers, source=args.source, cache=cache)
+    if cache is not None:
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
+    metrics = best["metrics"]
+    print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
+          + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
+          f"plane {metrics['plane_mean_deg']}°; its settings in {args.out / 'best.json'})")
+    return 0
+
+
+def add_sweep(sub: argparse._SubParsersAction) -> None:
+    """The `sweep` subcommand's parser."""
+    p = sub.add_parser(
+        "sweep", help="evaluate a grid of settings over seeded plants",
+        description="Evaluate every combination of the --grid settings on the same seeded "
+        "plants' clouds (oracle, or filmed and reconstructed once for all settings). "
+        "Writes sweep.csv (a row per setting), sweep.png (each metric "
+        "per setting, spread over the plants) and best.json (the best setting: most visible "
+        "flowers found, then fewest false positives, then the smallest plane error).",
+        epilog="examples:\n"
+        "  flowerpose sweep --grid cluster.eps=0.006,0.008 --grid grid.views=6,14 --plants 3 "
+        "--out sweep\n"
+        "  flowerpose sweep --source scan --plants 3 --grid cluster.eps=0.006,0.008,0.01,0.012 "
+        "--out sweep-scan")
+    p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
+                   help="a setting's dotted key and its values; repeat for a grid over several")
+    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
+                   help="where the clouds come from, as for eval; scan and rgbd film each "
+                   "plant once for every setting that does not change the plants or the "
+                   "capture (default: %(default)s)")
+    p.add_argument("--plants", type=PLANTS, default=5, metavar="N",
+                   help="seeded plants per setting (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (default: %(default)s)")
+    add_preset(p)
+    add_workers(p)
+    add_output(p, "folder for sweep.csv, sweep.png and best.json")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p)
+    p.set_defaults(func=cmd_sweep)
+
+
+def cmd_fidelity(args: argparse.Namespace) -> int:
+    from flowerpose.eval.fidelity import FIDELITY_FILES, run_fidelity, table
+    from flowerpose.eval.harness import EvalConfig, pipeline_part
+
+    config = configure(EvalConfig(), args)
+    with owned(args.out, "fidelity", args.overwrite, FIDELITY_FILES):
+        report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
+                              config.score.max_distance_m, args.truth_scale)
+    print(table(report))
+    print(f"{report['holds']} of {report['of']} statistics within tolerance "
+          f"({report['real']['flowers']} real flowers, {report['synthetic']['flowers']} "
+          f"synthetic) -> {args.out / 'fidelity.json'}, {args.out / 'fidelity.md'}, "
+          f"{args.out / 'fidelity.png'}")
+    return 0
+
+
+def add_fidelity(sub: argparse._SubParsersAction) -> None:
+    """The `fidelity` subcommand's parser."""
+    p = sub.add_parser(
+        "fidelity", help="the same statistics of real and synthetic flowers side by side",
+        description="Describe a real labelled plant's flowers and synthetic plants' flowers "
+        "by the same statistics (size, thickness, cupping, colours) and say which agree "
+        "within a stated tolerance. Writes fidelity.json, fidelity.md and fidelity.png.",
+        epilog="example:\n"
+        "  flowerpose fidelity ../shared/real/paper-plant-3 runs/oracle --out fidelity")
+    p.add_argument("real", type=Path, metavar="REAL_DIR",
+                   help="a labelled real plant folder (cloud.ply or candidates/)")
+    p.add_argument("synthetic", type=Path, nargs="+", metavar="SYNTH_DIR",
+                   help="plant folders from flowerpose plant, or eval runs (their plants/); a "
+                   "scan or RGB-D run is described by its reconstructed cloud")
+    p.add_argument("--truth-scale", type=positive_number, default=None, metavar="K",
+                   help="the real labels' scale, no unit (default: source.json's, else 25)")
+    add_output(p, "folder for fidelity.json, fidelity.md and fidelity.png")
+    add_config_options(p)
+    p.set_defaults(func=cmd_fidelity)
+
+
+def cmd_cache(args: argparse.Namespace) -> int:
+    from flowerpose.cache import StageCache, default_cache_dir, max_cache_bytes
+    from flowerpose.eval.report import markdown_table
+
+    root = args.cache or default_cache_dir()
+    if root.exists() and not root.is_dir():
+        raise InputError(root, "is a file, not a cache folder")
+    cache = StageCache(root)
+    limit = 0 if args.clear else args.max_size
+    if limit is not None:
+        removed = cache.prune(int(limit * 1e9))
+        print(f"removed {len(removed)} entries ({sum(e.size for e in removed) / 1e6:.1f} MB)")
+    entries = cache.entries()
+    rows = []
+    for stage in sorted({e.stage for e in entries}):
+        mine = [e for e in entries if e.stage == stage]
+        rows.append([stage, str(len(mine)), f"{sum(e.size for e in mine) / 1e6:.1f} MB",
+                     datetime.fromtimestamp(max(e.used for e in mine)).strftime("%Y-%m-%d %H:%M")])
+    rows.append(["total", str(len(entries)), f"{sum(e.size for e in entries) / 1e6:.1f} MB",
+                 ""])
+    print(f"cache: {root} (entries kept within {max_cache_bytes() / 1e9:g} GB after an eval "
+          "or sweep; FLOWERPOSE_CACHE_MAX_GB sets it)")
+    print(markdown_table(["stage", "entries", "size", "last used"], rows, [len(rows) - 1]))
+    return 0
+
+
+def add_cache(sub: argparse._SubParsersAction) -> None:
+    """The `cache` subcommand's parser."""
+    p = sub.add_parser(
+        "cache", help="what the stage cache holds, and pruning it",
+        description="Say what the stage cache holds (entries and size per stage, and when "
+        "each stage's was last used) and, with --max-size or --clear, remove the least "
+        "recently used entries first. Only the cache's own entries are removed.",
+        epilog="examples:\n"
+        "  flowerpose cache\n"
+        "  flowerpose cache --max-size 5")
+    p.add_argument("--cache", type=Path, metavar="DIR",
+                   help="the stage cache's folder (default: $FLOWERPOSE_CACHE, else "
+                   "~/.cache/flowerpose)")
+    p.add_argument("--max-size", type=non_negative_number, metavar="GB",
+                   help="remove the least recently used entries until the rest take at most "
+                   "GB gigabytes (default: remove nothing)")
+    p.add_argument("--clear", action="store_true", help="remove every entry")
+    p.set_defaults(func=cmd_cache)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from flowerpose.eval.bench import run_bench
+    from flowerpose.pipeline.flowers import PipelineConfig
+
+    run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out,
+              config=configure(PipelineConfig(), args), cache=stage_cache(args))
+    return 0
+
+
+def add_bench(sub: argparse._SubParsersAction) -> None:
+    """The `bench` subcommand's parser."""
+    p = sub.add_parser(
+        "bench", help="time the pipeline from cloud to flower poses",
+        description="Time the pipeline from cloud to flower poses on one seeded plant's "
+        "oracle cloud at each --points size: wall seconds per stage, the median of --repeat "
+        "runs, imports and file reading excluded.",
+        epilog="example:\n  flowerpose bench --points 125000 --repeat 3")
+    p.add_argument("--points", type=at_least(1000, CLOUD_POINTS_MAX, "more does not fit in "
+                                               "memory"), nargs="+",
+                   default=[125_000, 1_000_000], metavar="N",
+                   help="cloud sizes to time, points (default: 125000 1000000)")
+    p.add_argument("--repeat", type=POSITIVE, default=3, metavar="N",
+                   help="runs per size; the median is reported (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=3, metavar="S",
+                   help="plant seed (default: %(default)s, a realistic plant with 18 open "
+                   "flowers)")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="also write bench.json here (default: print only)")
+    add_cache_options(p)
+    add_config_options(p, detector=False)
+    p.set_defaults(func=cmd_bench)

@@ -1,0 +1,458 @@
+"""The bot's subcommands: `scan` and `pollinate` on the simulated or the physical FarmBot
+(--port, --cloud), and `farmduino`, a virtual Farmduino for any serial client."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from flowerpose.cli_flags import PHRASES_ATTRIBUTE, add_setting_flags
+from flowerpose.cli_options import (
+    add_config_options,
+    add_output,
+    configure,
+    only_settings,
+    owned,
+    plant_xy,
+    positive_number,
+    starting_config,
+)
+from flowerpose.errors import InputError
+from flowerpose.log import LOG
+
+#: What `flowerpose scan --sim` reads of a config: the path (the oracle's cameras) and the
+#: simulated camera (SCAN_FLAGS gives four of them flags).
+SCAN_SETTINGS = ("sim.viewpoints.", "scan.sensor.", "scan.render.", "scan.frame_rate_hz",
+                 "scan.workers", "scan.width", "scan.height")
+
+
+SCAN_FLAGS = {"--frame-rate": "scan.frame_rate_hz", "--width": "scan.width",
+              "--height": "scan.height", "--workers": "scan.workers"}
+
+
+#: `scan --sim`'s frames per second of bot time: twice an eval's, for a user filming one
+#: plant to choose frames from.
+SCAN_SIM_FRAME_RATE_HZ = 0.6
+
+
+def _scan_base():
+    """`flowerpose scan`'s starting settings: an eval's, at SCAN_SIM_FRAME_RATE_HZ."""
+    import dataclasses
+
+    from flowerpose.eval.harness import EvalConfig
+
+    config = EvalConfig()
+    return dataclasses.replace(config, scan=dataclasses.replace(
+        config.scan, frame_rate_hz=SCAN_SIM_FRAME_RATE_HZ))
+
+
+def _add_field_bot_options(p: argparse.ArgumentParser) -> None:
+    """--port / --cloud and their options: the physical bot (scan, pollinate)."""
+    p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
+                   "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
+    p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
+                   "app; log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
+                   "(FARMBOT_SERVER for another server), or --token-file")
+    p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
+                   "firmware settings as the FarmBot web app exports them (JSON); written to "
+                   "the Farmduino at connect and read back, as FarmBot OS does (default: the "
+                   "settings the board holds)")
+    p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
+                   "home (put there by hand): take it as home instead of homing, for a bot "
+                   "without endstops or encoders")
+    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
+                   "the repository, readable by its owner alone, holding a FarmBot token (its "
+                   "JSON or its JWT)")
+    # The serial backend's errors advise its `settings`, which --firmware-params loads.
+    p.set_defaults(**{PHRASES_ATTRIBUTE: {"settings": "--firmware-params"}})
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    from flowerpose.scanio import frame_files
+
+    if args.via_farmduino and not args.sim:
+        raise InputError("scan --via-farmduino", "is for the simulated bot: add --sim")
+    bots = [name for name, chosen in (("--sim", args.sim), ("--port", args.port),
+                                      ("--cloud", args.cloud)) if chosen]
+    if len(bots) != 1:
+        raise InputError("scan", "choose one bot: --sim (simulated), --port PORT (a Farmduino "
+                         "on serial) or --cloud (through FarmBot's web app)"
+                         + (f", not {' and '.join(bots)}" if bots else ""))
+    if not args.sim:
+        return _scan_field(args)
+    if args.plant is None:
+        raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
+    from flowerpose.eval.scan_source import scan_plant
+    from flowerpose.hardware.scan_plan import plan_table
+    from flowerpose.hardware.sim_bot import plan_plant_scan
+    from flowerpose.sim.export import read_plant
+
+    only_settings(args, "scan --sim", SCAN_SETTINGS)
+    config = configure(_scan_base(), args)
+    camera = config.scan
+    plant = read_plant(args.plant)
+    plan = plan_plant_scan(plant, config.sim.viewpoints)  # the oracle's cameras, flown
+    print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
+          f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
+          "of bot time; reach and collisions checked")
+    if args.dry_run:
+        print("\n".join(plan_table(plan)))
+        return 0
+    from flowerpose.hardware.sim_bot import write_preview
+
+    manifest = scan_plant(args.plant, args.out, camera, plan, args.via_farmduino,
+                          progress=True)
+    frames = len(frame_files(args.out))  # on disk: a killed session never counted its own
+    truth = args.out / "plant.json"
+    print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
+          f"waypoints, {frames} frames -> {args.out} (truth with the scan's visibility: "
+          f"{truth})")
+    if args.preview:
+        print(f"preview: {write_preview(args.out, [plant.center], [plant.height])}")
+    return 0
+
+
+def _scan_field(args: argparse.Namespace) -> int:
+    """scan --port / --cloud: the physical bot films a real plant with its USB camera."""
+    from flowerpose.hardware.scan_flight import approach_start, run_scan
+    from flowerpose.hardware.scan_plan import plan_field_scan, plan_table
+    from flowerpose.scanio import frame_files
+
+    if args.plant_at is None:
+        raise InputError("--plant-at", "needed with --port and --cloud: where the plant's stem "
+                         "stands, X,Y in metres in the bed frame")
+    only_settings(args, "scan --port/--cloud", ("scan.width", "scan.height"))
+    size = configure(_scan_base(), args).scan
+    _check_field_bot_flags(args)
+    plan = plan_field_scan(args.plant_at, args.plant_height, args.plant_radius)
+    x, y = args.plant_at
+    print(f"plan: {len(plan.waypoints)} waypoints around the plant at ({x:.3f}, {y:.3f}) m, "
+          f"{plan.duration_s / 60:.1f} min of bot time; the paper's bot's travel and servo "
+          f"range, and clearance from a {args.plant_radius:g} m x {args.plant_height:g} m plant "
+          "envelope, checked")
+    if args.dry_run:
+        print("\n".join(plan_table(plan)))
+        return 0
+    if args.camera is None:
+        raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
+                         "/dev/v4l/by-id/usb-...-video-index0")
+    if not Path(args.camera).exists():
+        raise InputError(args.camera, "no such camera device; list them with "
+                         "ls -l /dev/v4l/by-id/")
+    from flowerpose.hardware.trajectory import TrajectoryRecorder
+    from flowerpose.hardware.usb_camera import (
+        FrameChoice,
+        UsbCamera,
+        UsbCameraConfig,
+        check_disk_space,
+    )
+    from flowerpose.scanio import read_intrinsics
+
+    if args.calibration is not None:
+        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
+    choose = None if args.keep_all else FrameChoice(plan.duration_s)
+    camera = UsbCameraConfig(width=size.width, height=size.height, calibration=args.calibration,
+                             choose=choose)
+    check_disk_space(args.out, camera, plan.duration_s)
+    recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
+    connect, source = _field_bot(args, camera=recorder.bind, observer=recorder.observe)
+    source["camera"] = {"device": args.camera, "width": size.width, "height": size.height,
+                        "intrinsics": str(args.calibration or "estimated from the field of view"),
+                        "frames": "every frame" if choose is None else
+                        f"the {choose.keep} sharpest of each of {choose.bins} bins of the path"}
+    source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
+    try:
+        with connect() as bot:
+            _home_field_bot(args, bot)
+            approach_start(bot, plan, args.out)
+            manifest = run_scan(bot, plan, args.out, source={
+                **source, "bot": bot.info.name, "firmware": bot.info.firmware})
+    finally:
+        recorder.close()
+    frames = len(frame_files(args.out))  # on disk: a killed session never counted its own
+    print(f"scan {manifest['status']}: {manifest['completed']}/{manifest['waypoints']} "
+          f"waypoints, {frames} frames ({recorder.rows} of this session's with a pose) -> "
+          f"{args.out}")
+    return 0
+
+
+def add_scan(sub: argparse._SubParsersAction) -> None:
+    """The `scan` subcommand's parser."""
+    p = sub.add_parser(
+        "scan", help="film a plant along the cylinder and dome: the simulated FarmBot "
+        "(--sim) or the physical one (--port, --cloud)",
+        description="Film a plant along the paper's cylinder-and-dome path and write a scan "
+        "folder (frames/, trajectory.csv, camera.json, scan.json): --sim with the simulated "
+        "FarmBot, --port (a Farmduino on serial) or --cloud (FarmBot's web app) with the "
+        "physical bot and its USB camera. Every move is checked before anything moves; an "
+        "interrupted scan resumes when rerun.",
+        epilog="examples:\n"
+        "  flowerpose scan --sim --plant plant3 --out scan3\n"
+        "  flowerpose scan --port /dev/ttyACM0 --plant-at 1.20,0.75 --out scan_field --dry-run")
+    p.add_argument("--sim", action="store_true", help="the simulated bot (MuJoCo + renderer)")
+    p.add_argument("--plant", type=Path, metavar="DIR",
+                   help="--sim: the plant folder from flowerpose plant")
+    _add_field_bot_options(p)
+    p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
+                   "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
+                   "each of 200 bins of the path, chosen while recording")
+    p.set_defaults(**{PHRASES_ATTRIBUTE: {**p.get_default(PHRASES_ATTRIBUTE),
+                                          "choose": "leaving out --keep-all"}})
+    p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
+                   "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
+                   "--width x --height, 30 fps, exposure and focus locked")
+    p.add_argument("--calibration", type=Path, metavar="CAMERA.json", help="--port/--cloud: "
+                   "the camera's calibrated intrinsics at that size (default: estimated from "
+                   "a 62.2 degree horizontal field of view)")
+    p.add_argument("--plant-at", type=plant_xy, metavar="X,Y", help="--port/--cloud: where "
+                   "the plant's stem stands, metres in the bed frame: x along the bed from "
+                   "FarmBot's home end, y across it, (0, 0) the soil corner at home")
+    p.add_argument("--plant-height", type=float, default=0.25, metavar="H",
+                   help="--port/--cloud: the plant's height above the soil, metres (default: "
+                   "%(default)s)")
+    p.add_argument("--plant-radius", type=float, default=0.15, metavar="R",
+                   help="--port/--cloud: how far the plant reaches from its stem, metres; the "
+                   "head keeps 4 cm clear of it (default: %(default)s)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the scan folder (resumes the scan already there)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the planned moves (FarmBot millimetres and servo commands), "
+                   "checked against the bot's limits, and stop: nothing connects or moves")
+    add_setting_flags(p, _scan_base, SCAN_FLAGS,
+                      metavars={"--frame-rate": "HZ", "--width": "PX", "--height": "PX",
+                                "--workers": "N"},
+                      extra={"--frame-rate": "--sim: ", "--workers": "--sim: "})
+    p.add_argument("--no-preview", dest="preview", action="store_false",
+                   help="--sim: skip preview.mp4 (the gantry scanning, seen from outside)")
+    p.add_argument("--via-farmduino", action="store_true",
+                   help="with --sim: drive the simulated bot through the serial Farmduino "
+                   "backend and a virtual Farmduino (100 x real time)")
+    add_config_options(p, profile=False, detector=False,
+                        example="sim.viewpoints.azimuth_step_deg=30 (degrees; --sim reads "
+                        "sim.viewpoints.*, scan.sensor.*, scan.render.* and the four scan.* "
+                        "its flags set; --port and --cloud scan.width and scan.height)")
+    p.set_defaults(func=cmd_scan)
+
+
+def _check_field_bot_flags(args: argparse.Namespace) -> None:
+    """Refuse --port's and --cloud's options given to the other bot."""
+    if args.token_file is not None and not args.cloud:
+        raise InputError("--token-file", "is for --cloud")
+    for flag, value in (("--firmware-params", args.firmware_params),
+                        ("--home-here", args.home_here)):
+        if value and args.port is None:
+            raise InputError(flag, "is for --port (with --cloud, FarmBot OS holds the "
+                             "bot's settings and finds home)")
+
+
+def _field_bot(args: argparse.Namespace, camera=None, observer=None):
+    """The physical bot of --port or --cloud: a function that connects to it, and what
+    scan.json / flight.json record of it (no secret)."""
+    _check_field_bot_flags(args)
+    if args.cloud:
+        from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
+
+        credentials = CloudCredentials.from_environment(token_file=args.token_file)
+        source = {"backend": "farmbot-cloud", "server": credentials.server}
+
+        def connect():
+            return FarmbotCloudBot(credentials, camera=camera, observer=observer)
+    else:
+        from flowerpose.hardware.farmduino import FarmduinoBot
+        from flowerpose.hardware.protocol import read_settings
+
+        settings = None
+        if args.firmware_params is not None:
+            settings = read_settings(args.firmware_params)
+        else:
+            LOG.warning("warning: no --firmware-params: the Farmduino runs on the settings it "
+                        "holds, its firmware's defaults unless they were stored in its EEPROM "
+                        "(FarmBot OS, which writes them, is not connected)")
+        source = {"backend": "serial", "port": args.port,
+                  "firmware_params": str(args.firmware_params or "the board's own")}
+
+        def connect():
+            return FarmduinoBot(args.port, camera=camera, observer=observer,
+                                settings=settings)
+    return connect, source
+
+
+def _home_field_bot(args: argparse.Namespace, bot) -> None:
+    """--port: home the bot just connected (or take where it stands, --home-here)."""
+    if args.port is not None and args.home_here:
+        LOG.warning(f"warning: --home-here: {bot.info.name} takes where the gantry "
+                    "stands for home; every move is off by as much as it is not at home")
+        bot.home_here()
+    elif args.port is not None:
+        # Opening the port reset the board, which lost the position: home, Z first.
+        LOG.info(f"homing {bot.info.name} (Z, Y, X)")
+        bot.home()
+
+
+_pollinate_base = starting_config("flowerpose.hardware.pollinate:PollinateConfig")
+
+
+def cmd_pollinate(args: argparse.Namespace) -> int:
+    from flowerpose.cloudio import read_cloud
+    from flowerpose.hardware.pollinate import check_plant, plan_pollination, read_visit_flowers
+    from flowerpose.hardware.pollination_flight import FLIGHT_NAME, read_flight
+    from flowerpose.hardware.scan_plan import pose_header, pose_row
+    from flowerpose.jsonio import read_json, write_json
+    from flowerpose.pipeline.flowers import read_flowers
+
+    if args.port and args.cloud:
+        raise InputError("pollinate", "choose one bot: --port PORT or --cloud, not both")
+    flying = bool(args.port or args.cloud) and not args.dry_run
+    _check_field_bot_flags(args)
+    config = configure(_pollinate_base(), args)
+    document = read_json(args.flowers)
+    if document.get("frame", "bed") != "bed":
+        raise InputError(args.flowers, f"is in its cloud's own frame ({document['frame']}, a "
+                         "phone scan's): pollination needs flowers in the bed frame, from a "
+                         "FarmBot scan's reconstruction")
+    flowers, missing = read_visit_flowers(read_flowers(args.flowers), args.method)
+    if not flowers:
+        raise InputError(args.flowers, f"no flower has a {args.method} normal to approach "
+                         "along")
+    check_plant(flowers, args.plant_at, args.plant_height, args.plant_radius, args.flowers)
+    cloud_path = args.plant_cloud or (Path(document["source"]) if document.get("source")
+                                      else None)
+    corolla = None
+    if cloud_path is not None and cloud_path.is_file():
+        from flowerpose.pipeline.colour import flower_coloured
+
+        cloud = read_cloud(cloud_path, units="m")
+        obstacles, corolla = cloud.points, flower_coloured(cloud.colors)
+    elif args.plant_cloud is not None:
+        raise InputError(args.plant_cloud, "no such cloud")
+    else:
+        obstacles = None
+        LOG.warning("warning: no plant cloud (--plant-cloud, or the one flowers.json names): "
+                    "the visits are checked for reach, not for collisions with the plant")
+    plan = plan_pollination(flowers, obstacles, config, corolla=corolla)
+    if flying:
+        read_flight(args.out, plan)  # another plan's flight there: refused before writing
+        if obstacles is None:
+            raise InputError("--plant-cloud", "needed to fly: without the plant's cloud the "
+                             "visits are not checked for collisions with the plant")
+        bot = _field_bot(args)  # credentials and settings file read before writing
+    with owned(args.out, "pollinate", args.overwrite, ("pollination.json", FLIGHT_NAME)) \
+            as output:
+        output.record(write_json(args.out / "pollination.json", {
+            **plan.to_json(), "flowers": str(args.flowers), "method": args.method,
+            "no_normal": missing, "cloud": None if obstacles is None else str(cloud_path),
+            "plant": {"at": list(args.plant_at), "height": args.plant_height,
+                      "radius": args.plant_radius}}))
+    print(f"plan: {len(plan.planned)} of {len(flowers) + len(missing)} flowers visited, "
+          f"{plan.duration_s / 60:.1f} min of bot time; reach, the soil and "
+          + ("clearance from the plant's cloud" if obstacles is not None else "no collisions")
+          + f" checked -> {args.out / 'pollination.json'}")
+    for visit in plan.visits:
+        if visit.status != "planned":
+            print(f"flower {visit.flower}: unreachable {visit.reason}")
+    for flower in missing:
+        print(f"flower {flower}: no {args.method} normal")
+    if args.dry_run:
+        print(pose_header("move") + "  flower")
+        for k, move in enumerate(plan.moves):
+            label = "" if move.flower < 0 else f"{move.flower:7d}"
+            print(f"{pose_row(k, move.kind, move.pose)} {label}")
+    if flying and plan.planned:
+        return _fly_pollination(args, plan, *bot)
+    return 0
+
+
+def _fly_pollination(args: argparse.Namespace, plan, connect, source: dict) -> int:
+    """pollinate --port / --cloud: fly the plan on the physical bot (flight.json; a flight
+    cut short resumes when rerun)."""
+    from flowerpose.hardware.pollination_flight import fly_pollination
+
+    # flight.json is declared, never recorded: no later run of this stage deletes it.
+    with connect() as bot:
+        _home_field_bot(args, bot)
+        flight = fly_pollination(bot, plan, args.out, source={
+            **source, "bot": bot.info.name, "firmware": bot.info.firmware})
+    print(f"flight {flight['status']}: {len(flight['done'])}/{len(flight['visits'])} "
+          f"flowers pollinated -> {args.out / 'flight.json'}")
+    return 0
+
+
+def add_pollinate(sub: argparse._SubParsersAction) -> None:
+    """The `pollinate` subcommand's parser."""
+    p = sub.add_parser(
+        "pollinate", help="plan a pollinator visit to each flower of a flowers.json",
+        description="Plan a visit of the head's pollinator to each flower of a flowers.json "
+        "(bed frame): a pre-approach pose on the flower's axis, a straight approach until the "
+        "swab touches its centre, a rest and a retreat, every pose checked against the "
+        "bot's reach and every move against the plant's cloud, in an order that keeps "
+        "travel short. Writes pollination.json to --out; --dry-run also prints every move "
+        "in FarmBot's units. With --port or --cloud the physical bot then flies the plan "
+        "(flight.json records each visit; rerun to resume a flight cut short); without, "
+        "nothing connects or moves.",
+        epilog="examples:\n"
+        "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
+        "--dry-run\n"
+        "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
+        "--port /dev/ttyACM0")
+    p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
+                   help="flower poses in the bed frame (flowerpose detect on a FarmBot scan's "
+                   "reconstruction, or a simulated one)")
+    p.add_argument("--plant-at", type=plant_xy, required=True, metavar="X,Y",
+                   help="where the plant's stem stands, metres in the bed frame (the flowers "
+                   "must be the plant's)")
+    p.add_argument("--plant-height", type=positive_number, default=0.25, metavar="H",
+                   help="the plant's height above the soil, metres (default: %(default)s)")
+    p.add_argument("--plant-radius", type=positive_number, default=0.15, metavar="R",
+                   help="how far the plant reaches from its stem, metres (default: "
+                   "%(default)s)")
+    p.add_argument("--plant-cloud", type=Path, metavar="CLOUD.ply",
+                   help="the plant's cloud in the bed frame, for collision checks (default: "
+                   "the cloud flowers.json names as its source)")
+    p.add_argument("--method", choices=("plane", "superellipsoid", "paraboloid"),
+                   default="plane", help="whose normal is the flower's axis (default: "
+                   "%(default)s)")
+    add_output(p, "folder for pollination.json")
+    p.add_argument("--dry-run", action="store_true",
+                   help="also print every move (FarmBot millimetres and servo commands), "
+                   "and fly nothing")
+    _add_field_bot_options(p)
+    add_config_options(p, profile=False, detector=False,
+                        example="standoff_m=0.04 (metres; the keys of pollination.json's "
+                        "config)")
+    p.set_defaults(func=cmd_pollinate)
+
+
+def cmd_farmduino(args: argparse.Namespace) -> int:
+    if not args.virtual:
+        raise InputError("farmduino", "only --virtual is available: it serves a virtual "
+                         "Farmduino on a pseudo-terminal")
+    from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
+
+    params = {} if args.bare else FEEDBACK_PARAMETERS
+    with VirtualFarmduino(time_scale=args.time_scale, params=params) as device:
+        try:  # from the moment its path is out, Ctrl-C is the way to stop it
+            print(device.path, flush=True)
+            LOG.info(f"virtual Farmduino on {device.path} (now {device.device}) at "
+                     f"{args.time_scale:g} x real time; connect at 115200 baud; Ctrl-C stops it")
+            device.wait()
+        except KeyboardInterrupt:
+            LOG.info("virtual Farmduino stopped")
+    return 0
+
+
+def add_farmduino(sub: argparse._SubParsersAction) -> None:
+    """The `farmduino` subcommand's parser."""
+    p = sub.add_parser(
+        "farmduino", help="serve a virtual Farmduino and print its device path (--virtual)",
+        description="Serve a virtual Farmduino (FarmBot's firmware protocol over the MuJoCo "
+        "gantry) on a pseudo-terminal and print its device path, for any serial client, "
+        "until Ctrl-C.",
+        epilog="example:\n  flowerpose farmduino --virtual --time-scale 10")
+    p.add_argument("--virtual", action="store_true",
+                   help="serve a virtual Farmduino (the only kind there is)")
+    p.add_argument("--time-scale", type=positive_number, default=1.0, metavar="K",
+                   help="simulated seconds per wall second (default: %(default)g)")
+    p.add_argument("--bare", action="store_true", help="the board on the firmware's defaults: "
+                   "no endstops or encoders, so it cannot find home (default: encoders on, as "
+                   "FarmBot OS sets a Genesis up)")
+    p.set_defaults(func=cmd_farmduino)

@@ -1,0 +1,235 @@
+"""What the subcommands share: --config, --set and --profile and the configuration they
+build, the output folder a command owns, the stage cache and Ray options, and the argument
+types that refuse a bad number in one line."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from flowerpose.errors import InputError
+
+
+def only_settings(args: argparse.Namespace, command: str, prefixes: tuple[str, ...]) -> None:
+    """Refuse --set keys the command does not read (they would be silently ignored)."""
+    from flowerpose.config import parse_set_options
+
+    for key in parse_set_options(args.set):
+        if not key.startswith(prefixes):
+            raise InputError(f"--set {key}", f"{command} takes "
+                             f"{', '.join(k + '*' if k.endswith('.') else k for k in prefixes)}")
+
+
+def add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
+                        detector: bool = True,
+                        example: str = "cluster.eps=0.008 (metres)") -> None:
+    """--config and --set; --profile where the profiles' keys apply (the pipeline's), and
+    --detector where a detector runs."""
+    from flowerpose.config import profile_names
+
+    if profile:
+        parser.add_argument("--profile", choices=profile_names(), metavar="NAME",
+                            help="start from a named settings profile: upstream = the "
+                            "published method's settings (assets/configs/NAME.toml; default: "
+                            "none, this project's defaults)")
+    parser.add_argument("--config", type=Path, metavar="FILE.toml",
+                        help="settings file (TOML, sections as in report.json's config)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one setting by its dotted key, in the setting's own "
+                        f"unit, e.g. {example}; repeatable")
+    if detector:
+        parser.add_argument("--detector", metavar="MODULE:CLASS|onnx:MODEL.onnx",
+                            help="the 2D detector on the grid views instead of the colour "
+                            "detector: onnx:MODEL.onnx, a box or segmentation model exported "
+                            "to ONNX (the [onnx] extra; input, output and class in "
+                            "pipeline/onnx_detector.py), or any importable class with the "
+                            "Detector interface (pipeline/detect.py); the same as --set "
+                            "detect.detector=... (default: the colour detector)")
+
+
+@contextlib.contextmanager
+def owned(folder: Path, stage: str, overwrite: bool, writes: tuple[str, ...]):
+    """The command's output folder, refused when it holds files the command did not
+    write (`outputs`; with --overwrite, when one of them has a name in `writes`, the
+    entries the command writes), and marked whole when the command succeeds."""
+    from flowerpose.outputs import OutputFolder
+
+    output = OutputFolder(folder, stage, overwrite, writes)
+    yield output
+    output.finish()
+
+
+def add_cache_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cache", type=Path, metavar="DIR",
+                        help="the stage cache: scans and reconstructions of the same plant "
+                        "with the same settings and code are taken from it, not run again "
+                        "(default: $FLOWERPOSE_CACHE, else ~/.cache/flowerpose)")
+    parser.add_argument("--no-cache", action="store_true",
+                        help="run every stage, reading and filling no cache")
+
+
+def add_ray_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="run the plants' jobs as Ray tasks: on a local Ray without an "
+                        "address, else on the cluster at ADDRESS (host:port, ray://..., or "
+                        "auto); a job that fails is tried once more, then reported by plant "
+                        "(needs the [ray] extra; default: a local process pool)")
+
+
+def jobs_on(args: argparse.Namespace) -> contextlib.AbstractContextManager:
+    """Where the command's jobs run: Ray (`--ray`), or the process pool."""
+    if args.ray is None:
+        return contextlib.nullcontext()
+    from flowerpose.eval.runner import on_ray
+
+    return on_ray(None if args.ray == "local" else args.ray)
+
+
+def stage_cache(args: argparse.Namespace) -> Path | None:
+    """The stage cache's folder the command's --cache / --no-cache choose."""
+    from flowerpose.cache import default_cache_dir, max_cache_bytes
+
+    if args.no_cache and args.cache is not None:
+        raise InputError("--no-cache", "and --cache contradict each other: choose one")
+    max_cache_bytes()  # a bad limit says so before any work
+    return None if args.no_cache else (args.cache or default_cache_dir())
+
+
+def add_overwrite(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder that holds files this command did not "
+                        "write (they are kept; only its own earlier output is replaced)")
+
+
+def add_output(parser: argparse.ArgumentParser, help: str, required: bool = True) -> None:
+    """--out DIR (what the folder gets: `help`) and --overwrite."""
+    parser.add_argument("--out", type=Path, required=required, metavar="DIR", help=help)
+    add_overwrite(parser)
+
+
+def add_preset(parser: argparse.ArgumentParser, default: str | None = "realistic",
+               shown: str = "%(default)s") -> None:
+    """--preset: the synthetic plants' preset (`shown`: the default the help says, where
+    `default` None leaves it to the command)."""
+    parser.add_argument("--preset", choices=PRESETS, default=default,
+                        help=f"{PRESET_HELP} (default: {shown})")
+
+
+def add_workers(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
+                        help="worker processes (default: one per core)")
+
+
+def add_units(parser: argparse.ArgumentParser, what: str) -> None:
+    """--units of the cloud the command reads (`what`: "cloud", "crop")."""
+    parser.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
+                        help=f"the {what}'s unit; auto decides from its extent (default: "
+                        "%(default)s)")
+
+
+def starting_config(where: str) -> Callable[[], Any]:
+    """A command's starting settings, "module:Class" made with its defaults, imported when
+    first asked for, so the command line starts without importing every stage."""
+    module, name = where.split(":")
+
+    def base() -> Any:
+        import importlib
+
+        return getattr(importlib.import_module(module), name)()
+    return base
+
+
+def configure(base: Any, args: argparse.Namespace, flags: bool = True) -> Any:
+    """`base` with the --profile, then the --config file, then the settings' flags
+    (`flags`), then each --set, applied."""
+    from flowerpose.cli_flags import given_settings
+    from flowerpose.config import apply_overrides, load_profile, load_toml, parse_set_options
+
+    config = base
+    if getattr(args, "profile", None) is not None:
+        config = apply_overrides(config, load_profile(args.profile))
+    if args.config is not None:
+        config = apply_overrides(config, load_toml(args.config))
+    detector = getattr(args, "detector", None)
+    sets = ((given_settings(args) if flags else []) + args.set
+            + ([f"detect.detector={detector}"] if detector else []))
+    return apply_overrides(config, parse_set_options(sets))
+
+
+def at_least(minimum: int, maximum: int | None = None, why: str = ""):
+    """An argparse type: a whole number no smaller than `minimum` (nor larger than
+    `maximum`, refused before anything is allocated)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum:,} ({why}), got "
+                                             f"{value:,}")
+        return value
+    return parse
+
+
+def non_negative_number(text: str) -> float:
+    """An argparse type: a finite number, 0 or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (0 <= value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a number, 0 or more, got {text!r}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """An argparse type: a finite number above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def plant_xy(text: str) -> tuple[float, float]:
+    """An argparse type: X,Y, two finite numbers (metres)."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres (e.g. 1.5,0.75), got "
+                                         f"{text!r}") from None
+    if not (abs(x) < float("inf") and abs(y) < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected two finite numbers, got {text!r}")
+    return x, y
+
+
+#: Plant presets (sim/world_config.py): the README describes each.
+PRESETS = ("easy", "realistic", "hard", "field")
+
+
+PRESET_HELP = ("synthetic plants: easy, realistic (the benchmark), hard, or field (calibrated "
+               "on a real scan, with the hand labels' error in the scoring)")
+
+
+SEED = at_least(0)
+
+
+POSITIVE = at_least(1)
+
+
+#: Largest synthetic cloud: about 1 kB a point while it is sampled, so 20 million is 20 GB.
+CLOUD_POINTS_MAX = 20_000_000
+
+
+CLOUD_POINTS = at_least(100, CLOUD_POINTS_MAX, "more does not fit in memory")
+
+
+#: Most seeded plants a run takes: about 10 MB of files each, and hours of work per 1,000.
+PLANTS = at_least(1, 10_000, "a larger benchmark is several runs")

@@ -1,0 +1,330 @@
+"""One subcommand a stage of the method: `plant` (a synthetic plant), `frames`,
+`reconstruct`, `dataset` (training data), `detect`, `pose` and `score`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from flowerpose.cli_flags import add_setting_flags
+from flowerpose.cli_options import (
+    CLOUD_POINTS,
+    PLANTS,
+    SEED,
+    add_config_options,
+    add_output,
+    add_preset,
+    add_units,
+    configure,
+    only_settings,
+    owned,
+    starting_config,
+)
+from flowerpose.errors import InputError
+
+
+def cmd_plant(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config
+    from flowerpose.sim.bundle import make_plant
+    from flowerpose.sim.export import PLANT_FILES
+
+    for key in (item.split("=")[0].strip() for item in args.set):
+        if not key.startswith("sim."):
+            raise InputError(f"--set {key}", "plant takes the synthetic world's settings: "
+                             "sim.plant.*, sim.oracle.*, sim.viewpoints.*")
+    sim = eval_config(args.preset, lambda base: configure(base, args)).sim
+    with owned(args.out, "plant", args.overwrite, PLANT_FILES):
+        bundle = make_plant(args.seed, points=args.points, out_dir=args.out, config=sim)
+    visible = int(sum(bundle.visible))
+    print(f"seed {args.seed} ({args.preset}): {len(bundle.plant.flowers)} open flowers, "
+          f"{visible} visible, {len(bundle.cloud)} cloud points -> {args.out}")
+    return 0
+
+
+def add_plant(sub: argparse._SubParsersAction) -> None:
+    """The `plant` subcommand's parser."""
+    p = sub.add_parser(
+        "plant", help="generate one plant: plant.json (truth), mesh, oracle cloud",
+        description="Generate one seeded synthetic strawberry plant and write its exact "
+        "truth (plant.json: flower centres and normals, metres, bed frame), its mesh "
+        "(plant.ply) and its oracle cloud (cloud.ply) to --out.",
+        epilog="example:\n  flowerpose plant --seed 3 --out plant3")
+    p.add_argument("--seed", type=SEED, required=True, metavar="S",
+                   help="the plant's seed: the same seed and preset give the same plant")
+    p.add_argument("--points", type=CLOUD_POINTS, default=None, metavar="N",
+                   help="points of the oracle cloud (default: the preset's, 60000; field "
+                   "100000)")
+    add_preset(p)
+    add_output(p, "the plant folder to write")
+    add_config_options(p, profile=False, detector=False,
+                        example="sim.plant.flower_diameter_m=[0.03,0.05] (metres; plant reads "
+                        "sim.plant.*, sim.oracle.* and sim.viewpoints.*)")
+    p.set_defaults(func=cmd_plant)
+
+
+_frames_base = starting_config("flowerpose.pipeline.frames:FrameSelectConfig")
+
+
+def cmd_frames(args: argparse.Namespace) -> int:
+    from flowerpose.pipeline.frames import select_frames
+
+    config = configure(_frames_base(), args)
+    result = select_frames(args.scan, args.out, config, overwrite=args.overwrite)
+    sharp = [f["sharpness"] for f in result["frames"]]
+    print(f"{len(result['frames'])} of {result['recorded']} frames chosen in "
+          f"{result['seconds']:.1f} s (sharpness median {sorted(sharp)[len(sharp) // 2]:.1f}) "
+          f"-> {args.out / 'frames.json'}")
+    return 0
+
+
+def add_frames(sub: argparse._SubParsersAction) -> None:
+    """The `frames` subcommand's parser."""
+    p = sub.add_parser(
+        "frames", help="choose the sharpest frame of each of N bins of a scan",
+        description="Choose the sharpest frame of each of --count bins of a scan (Laplacian "
+        "variance of a centre crop) and write them to --out with their recorded poses "
+        "(frames.json) and the camera (camera.json).",
+        epilog="example:\n  flowerpose frames scan3 --count 200 --out frames3")
+    p.add_argument("scan", type=Path, metavar="SCAN_DIR",
+                   help="a scan folder from flowerpose scan (frames/, trajectory.csv)")
+    add_setting_flags(p, _frames_base, {"--count": "count", "--crop": "crop_px",
+                                        "--brightness-penalty": "brightness_penalty"},
+                      metavars={"--count": "N", "--crop": "PX"},
+                      switches=("--brightness-penalty",))
+    add_output(p, "folder for the chosen frames, frames.json and camera.json")
+    add_config_options(p, profile=False, detector=False,
+                        example="brightness_target=110 (HSV value, 0-255; the keys of "
+                        "frames.json's config)")
+    p.set_defaults(func=cmd_frames)
+
+
+_reconstruct_base = starting_config("flowerpose.pipeline.reconstruct:ReconstructConfig")
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from flowerpose.pipeline.reconstruct import reconstruct
+
+    config = configure(_reconstruct_base(), args)
+    result = reconstruct(args.frames, args.out, config, overwrite=args.overwrite)
+    report = result.report
+    rms = report["alignment_rms_m"]
+    print(f"{report['images_registered']}/{report['images_used']} images registered, "
+          f"camera centres {1000 * rms:.2f} mm RMS from the recorded ones; "
+          f"{report['points']} points in {report['seconds']['total']:.1f} s "
+          f"(sparse {report['seconds']['sparse']:.1f} s, dense {report['seconds']['dense']:.1f} s)"
+          f" -> {report['cloud']}, {args.out / 'reconstruction.json'}")
+    return 0
+
+
+def add_reconstruct(sub: argparse._SubParsersAction) -> None:
+    """The `reconstruct` subcommand's parser."""
+    p = sub.add_parser(
+        "reconstruct", help="frames -> camera poses (pycolmap) -> dense coloured cloud",
+        description="Reconstruct a frames folder: pycolmap poses the frames (guided by the "
+        "recorded poses), dense stereo turns them into a coloured cloud in the bed frame "
+        "(cloud.ply, metres), and reconstruction.json says how well it went.",
+        epilog="example:\n  flowerpose reconstruct frames3 --out recon3")
+    p.add_argument("frames", type=Path, metavar="FRAMES_DIR",
+                   help="a folder from flowerpose frames (frames.json, frames/, camera.json)")
+    add_output(p, "folder for cloud.ply, the sparse model and reconstruction.json")
+    add_setting_flags(p, _reconstruct_base, {"--dense-poses": "dense_poses"},
+                      metavars={"--dense-poses": "{refined,recorded}"})
+    add_config_options(p, profile=False, detector=False)
+    p.set_defaults(func=cmd_reconstruct)
+
+
+_dataset_base = starting_config("flowerpose.eval.dataset:DatasetConfig")
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from flowerpose.cli_flags import given_settings
+    from flowerpose.config import apply_overrides, parse_set_options
+    from flowerpose.eval.dataset import DatasetConfig, write_dataset
+    from flowerpose.eval.harness import eval_config
+
+    dataset = apply_overrides(DatasetConfig(), parse_set_options(given_settings(args)))
+    config = eval_config(args.preset, lambda base: configure(base, args, flags=False))
+    seeds = list(range(args.seed, args.seed + args.plants))
+    manifest = write_dataset(args.out, seeds, config, dataset, args.overwrite)
+    split = manifest["split"]
+    print(f"{manifest['images']} images, {manifest['instances']} flower instances of "
+          f"{len(seeds)} plants ({len(split['train'])} train, {len(split['val'])} val: seeds "
+          f"{', '.join(map(str, split['val'])) or 'none'}) as {dataset.format} -> "
+          f"{args.out / 'dataset.json'}")
+    return 0
+
+
+def add_dataset(sub: argparse._SubParsersAction) -> None:
+    """The `dataset` subcommand's parser."""
+    p = sub.add_parser(
+        "dataset", help="training data for a 2D detector: seeded plants' grid views (or scan "
+        "frames) with exact per-flower masks and boxes, as COCO or YOLO",
+        description="Write training data for a 2D flower detector from seeded synthetic "
+        "plants. Each image is a grid view the detect stage sees (or a scan frame) with every "
+        "flower's exact instance mask and box, as COCO or YOLO, split into train and val by "
+        "plant; dataset.json records the seeds and settings.",
+        epilog="examples:\n"
+        "  flowerpose dataset --plants 20 --out flowers-coco\n"
+        "  flowerpose dataset --plants 20 --format yolo --views frames --out flowers-yolo")
+    p.add_argument("--plants", type=PLANTS, required=True, metavar="N",
+                   help="number of seeded plants")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed: the plants are seeds S to S+N-1 (default: "
+                   "%(default)s)")
+    add_preset(p)
+    add_setting_flags(p, _dataset_base, {
+        "--format": "format", "--views": "views", "--val-fraction": "val_fraction",
+        "--split-seed": "split_seed", "--frames": "frames_per_plant",
+        "--min-pixels": "min_pixels"},
+        metavars={"--format": "{coco,yolo}", "--views": "{grid,frames}", "--val-fraction": "F",
+                  "--split-seed": "S", "--frames": "N", "--min-pixels": "N"})
+    add_output(p, "the dataset folder (dataset.json says how it was made)")
+    add_config_options(p, profile=False, detector=False,
+                        example="sim.plant.flower_diameter_m=[0.03,0.05] (metres)")
+    p.set_defaults(func=cmd_dataset)
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    from flowerpose.cloudio import read_cloud, write_cloud
+    from flowerpose.jsonio import write_json
+    from flowerpose.outputs import OutputFolder, check_output
+    from flowerpose.pipeline.flowers import (
+        PipelineConfig,
+        find_flowers,
+        find_flowers_in_candidates,
+        read_flowers,
+        sections_run,
+        write_flowers,
+        write_normals_ply,
+    )
+    from flowerpose.pipeline.views import write_views
+
+    config = configure(PipelineConfig(), args)
+    out: Path = args.out
+    writes = ("flowers.json", "flowers.ply", "normals.ply", "config.json", "views", "crops",
+              "report.html")
+    check_output(out, "detect", args.overwrite, writes)
+    cloud = read_cloud(args.cloud, units=args.units)
+    result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
+    # An earlier detection's files (crops of flowers this one may not have) go first.
+    output = OutputFolder(out, "detect", args.overwrite, writes)
+    output.record(write_flowers(out / "flowers.json", result, args.cloud,
+                                "cloud" if args.candidates else "bed"),
+                  *write_normals_ply(out, result.flowers),
+                  write_json(out / "config.json", sections_run(
+                      config, ["candidates" if args.candidates else "cloud"])))
+    if result.projections:
+        output.record(*write_views(out / "views", result.projections, result.detections,
+                                   result.detection_flowers))
+    output.record(*(write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply",
+                                cloud.subset(flower.crop)) for flower in result.flowers))
+    from flowerpose.eval.html_report import PlantView, write_html_report
+
+    output.record(write_html_report(
+        out / "report.html", f"flowerpose detect: {args.cloud.name}", None,
+        [PlantView(args.cloud.stem, cloud, read_flowers(out / "flowers.json"),
+                   views_png=out / "views" / "views.png" if result.projections else None)]))
+    output.finish()
+    found = sum(f.pose.normals["plane"] is not None for f in result.flowers)
+    views = f", {out / 'views' / 'views.png'}" if result.projections else ""
+    print(f"{len(result.flowers)} flowers ({found} with a normal) in "
+          f"{result.timing_s['total']:.2f} s -> {out / 'flowers.json'}{views}")
+    return 0
+
+
+def add_detect(sub: argparse._SubParsersAction) -> None:
+    """The `detect` subcommand's parser."""
+    p = sub.add_parser(
+        "detect", help="find flowers and their normals in a coloured cloud",
+        description="Find the flowers in a coloured point cloud and estimate each one's "
+        "normal three ways (plane, superellipsoid, paraboloid). Writes flowers.json, "
+        "flowers.ply and normals.ply, the grid views with their detections, each flower's "
+        "crop and report.html to --out.",
+        epilog="examples:\n"
+        "  flowerpose detect plant3/cloud.ply --out detect3\n"
+        "  flowerpose detect candidates.ply --candidates --units m --out detect")
+    p.add_argument("cloud", type=Path, metavar="CLOUD.ply",
+                   help="a coloured point cloud (PLY): a reconstruction, Polycam's, an oracle's")
+    add_output(p, "folder for flowers.json, the views, the crops and report.html")
+    add_units(p, "cloud")
+    p.add_argument("--candidates", action="store_true",
+                   help="CLOUD.ply holds points a detector already took out of views (its "
+                   "crops, merged): skip ground removal, the grid and detection")
+    add_config_options(p)
+    p.set_defaults(func=cmd_detect)
+
+
+def cmd_pose(args: argparse.Namespace) -> int:
+    from flowerpose.cloudio import read_cloud
+    from flowerpose.pipeline.flowers import PipelineConfig
+    from flowerpose.pipeline.pose import estimate_pose
+    from flowerpose.pipeline.segment import oriented_box
+
+    config = configure(PipelineConfig(), args)
+    crop = read_cloud(args.crop, units=args.units)
+    entry = {"id": 0, **estimate_pose(crop, config.pose, config.colour, config.cluster).to_json(),
+             "box": oriented_box(crop.points).to_json()}
+    print(json.dumps(entry, indent=1))
+    return 0
+
+
+def add_pose(sub: argparse._SubParsersAction) -> None:
+    """The `pose` subcommand's parser."""
+    p = sub.add_parser(
+        "pose", help="normals of one flower crop, printed as JSON",
+        description="Estimate one flower's normals from its crop and print them on standard "
+        "output as a flowers.json entry (JSON: centre, normals per method, points, box).",
+        epilog="example:\n  flowerpose pose detect3/crops/flower_00.ply")
+    p.add_argument("crop", type=Path, metavar="CROP.ply", help="one flower's points (PLY)")
+    add_units(p, "crop")
+    add_config_options(p, detector=False)
+    p.set_defaults(func=cmd_pose)
+
+
+_eval_base = starting_config("flowerpose.eval.harness:EvalConfig")
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import EvalConfig, score_files
+
+    only_settings(args, "score", ("score.",))
+    config = configure(EvalConfig(), args)
+    report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,
+                         config.score.max_distance_m)
+    from flowerpose.eval.report import REPORT_FILES, summary_lines, table, write_report
+
+    print(table(report))
+    for line in summary_lines(report):
+        print(line)
+    if args.out:
+        with owned(args.out, "score", args.overwrite, REPORT_FILES):
+            paths = write_report(args.out, report, f"flowerpose score: {args.flowers.name}")
+        print(f"report: {paths[0]}, {paths[1]}")
+    return 0
+
+
+def add_score(sub: argparse._SubParsersAction) -> None:
+    """The `score` subcommand's parser."""
+    p = sub.add_parser(
+        "score", help="score flowers.json against truth (plant.json or SageMaker cuboids)",
+        description="Score a flowers.json against its truth (a plant.json, or SageMaker "
+        "Ground Truth cuboids): one-to-one matches on centre distance, angle errors per "
+        "method, printed as Table I; --out also writes report.json and report.md.",
+        epilog="example:\n  flowerpose score detect3/flowers.json plant3/plant.json")
+    p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
+                   help="estimates, from flowerpose detect")
+    p.add_argument("truth", type=Path, metavar="TRUTH.json",
+                   help="the truth: a plant.json, or SageMaker Ground Truth cuboids")
+    p.add_argument("--truth-format", choices=("plant", "sagemaker"), default="plant",
+                   help="TRUTH.json's format: plant (the simulator's) or sagemaker (the "
+                   "authors' hand labels) (default: %(default)s)")
+    p.add_argument("--truth-scale", type=float, default=25.0, metavar="K",
+                   help="sagemaker: the factor the labelled cloud was scaled by, no unit "
+                   "(default: %(default)g)")
+    add_setting_flags(p, _eval_base, {"--max-distance": "score.max_distance_m"},
+                      metavars={"--max-distance": "M"})
+    add_output(p, "also write report.json and report.md here (default: print only)", required=False)
+    add_config_options(p, profile=False, detector=False,
+                        example="score.max_distance_m=0.01 (metres; score reads score.*)")
+    p.set_defaults(func=cmd_score)
