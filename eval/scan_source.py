@@ -73,7 +73,7 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
                                                      sensor=config.sensor, render=config.render),
                               width=config.width, height=config.height)
     if via_farmduino:
-        from flowerpose.hardware.virtual_farmduino import SimulatedSerialBot
+        from flowerpose.hardware.serial_sim_bot import SimulatedSerialBot
 
         bot = SimulatedSerialBot([plant_dir], bot_config)
     else:

@@ -16,11 +16,11 @@ import serial
 from flowerpose.errors import InputError
 from flowerpose.hardware.motion import END_OF_MOVE_S, MotionProfile, move_duration
 from flowerpose.hardware.protocol import BANNER
+from flowerpose.hardware.serial_sim_bot import PausableClock
 from flowerpose.hardware.virtual_farmduino import (
     DEFAULT_PARAMETERS,
     FEEDBACK_PARAMETERS,
     FIRMWARE_VERSION,
-    PausableClock,
     VirtualFarmduino,
 )
 
