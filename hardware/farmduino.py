@@ -118,6 +118,7 @@ from flowerpose.hardware.protocol import (
     STARTUP_TEXT,
     describe,
 )
+from flowerpose.hardware.serial_link import Dropped, LinkDropped, SerialLink
 
 BAUD = 115200
 AXIS_LENGTH_PARAMETERS = (141, 142, 143)
@@ -159,14 +160,6 @@ class PositionLostError(BotError):
         self.command = command
         super().__init__(f"{command}: {why}; the position is unknown: home the bot "
                          "(home(), Z first) before moving")
-
-
-class _LinkDropped(ConnectionLostError):
-    """The port failed under us (recovered inside this module)."""
-
-    def __init__(self, link: str, detail: str):
-        self.detail = detail
-        super().__init__(link, detail)
 
 
 class _BoardStarted(PositionLostError):
@@ -268,13 +261,6 @@ class _Exchange:
         return None
 
 
-class _Dropped:
-    """Put in the line queue by the reader when the port fails."""
-
-    def __init__(self, detail: str):
-        self.detail = detail
-
-
 class _NoCamera(Camera):
     """The camera of a bot given none: every call says so."""
 
@@ -347,7 +333,6 @@ class FarmduinoBot(Bot):
         self._wall_clock = wall_clock
         self._skip_time = skip_time
         self._origin = wall_clock()
-        self._write_lock = threading.Lock()
         self._state_lock = threading.Lock()
         self._busy = threading.Lock()
         self._locked = threading.Event()
@@ -355,9 +340,7 @@ class FarmduinoBot(Bot):
         self._stop_sent: float | None = None
         """Monotonic time of the last `E` whose end the firmware has not yet reported."""
         self._closed = False
-        self._serial: serial.Serial | None = None
-        self._reader: threading.Thread | None = None
-        self._reader_stop = threading.Event()
+        self._link: SerialLink | None = None
         self._lines: queue.Queue = queue.Queue()
         self._q = 0
         self._params: dict[int, float] = {}
@@ -490,13 +473,11 @@ class FarmduinoBot(Bot):
             if self._closed:
                 return
             self._estops += 1
-        with self._write_lock:
-            if self._serial is not None:
-                # The link may be gone: then only the bot's own stop button stops it, and
-                # the firmware is locked again as soon as the port is back (_initialise).
-                with contextlib.suppress(serial.SerialException, OSError):
-                    self._serial.write(b"E")
-                    self._stop_sent = time.monotonic()
+        # The link may be gone: then only the bot's own stop button stops it, and the
+        # firmware is locked again as soon as the port is back (_initialise).
+        link = self._link
+        if link is not None and link.try_write(b"E"):
+            self._stop_sent = time.monotonic()
         self._locked.set()
 
     def unlock(self) -> None:
@@ -512,11 +493,9 @@ class FarmduinoBot(Bot):
                 return
             self._closed = True
             moving = self._moving is not None
-        if moving:
-            # Stop the move the owner thread is waiting for (abort, not lock).
-            with self._write_lock, contextlib.suppress(serial.SerialException, OSError,
-                                                       AttributeError):
-                self._serial.write(b"@")
+        link = self._link
+        if moving and link is not None:
+            link.try_write(b"@")  # stop the move the owner thread waits for (abort, not lock)
         self._disconnect()
 
     # --- commands ---------------------------------------------------------------------
@@ -584,7 +563,7 @@ class FarmduinoBot(Bot):
             try:
                 exchange = self._transact(line, self._move_timeout(axes),
                                           self._homing_failure if homing else None)
-            except _LinkDropped as drop:
+            except LinkDropped as drop:
                 # The board goes on moving until reopening the port resets it.
                 self._recover(command, drop, attempt, interrupted=functools.partial(
                     self._moved, t0, start, target, profile, None))
@@ -633,7 +612,7 @@ class FarmduinoBot(Bot):
         for attempt in range(_MAX_RECOVERIES + 1):
             try:
                 exchange = self._transact(body, timeout_s)
-            except _LinkDropped as drop:
+            except LinkDropped as drop:
                 self._recover(body, drop, attempt)
                 continue
             except _BoardStarted:
@@ -665,7 +644,7 @@ class FarmduinoBot(Bot):
     def _transact(self, body: str, timeout_s: float,
                   watch: Callable[[Reply], str | None] | None = None) -> _Exchange:
         """Send `body` with the next Q and collect the replies with that Q up to the final
-        one. Raises _LinkDropped, _BoardStarted or CommandTimeoutError; an emergency stop
+        one. Raises LinkDropped, _BoardStarted or CommandTimeoutError; an emergency stop
         sent meanwhile gives `stopped` (waiting ESTOP_GRACE_S at most for the reply). When
         `watch` names a failure in any reply, the command is aborted (`@`, then `E` if no
         final reply comes within ESTOP_GRACE_S) and the exchange carries the failure."""
@@ -733,8 +712,8 @@ class FarmduinoBot(Bot):
 
     def _reply(self, item) -> Reply | None:
         """A queued line as a reply; raises for a dropped link or the startup banner."""
-        if isinstance(item, _Dropped):
-            raise _LinkDropped(self._port, item.detail)
+        if isinstance(item, Dropped):
+            raise LinkDropped(self._port, item.detail)
         reply = parse_reply(item)
         if reply is not None and reply.code == "R99" and STARTUP_TEXT in reply.text:
             raise _BoardStarted("Farmduino", "the board restarted (R99 ARDUINO STARTUP "
@@ -751,20 +730,17 @@ class FarmduinoBot(Bot):
                 return
 
     def _write(self, data: bytes) -> None:
-        with self._write_lock:
-            if self._serial is None:
-                raise _LinkDropped(self._port, "the port is not open")
-            try:
-                self._serial.write(data)
-            except (serial.SerialException, OSError) as error:
-                raise _LinkDropped(self._port, str(error)) from None
+        link = self._link
+        if link is None:
+            raise LinkDropped(self._port, "the port is not open")
+        link.write(data)
 
     # --- the link ---------------------------------------------------------------------
 
     def _connect(self, first: bool, deadline: float) -> bool:
         """Open the port and bring the firmware up; returns whether the board (re)started."""
         try:
-            port = serial.Serial(self._port, BAUD, timeout=0.05, write_timeout=2.0)
+            self._link = SerialLink(self._port, BAUD)
         except (serial.SerialException, OSError, ValueError) as error:
             number = getattr(error, "errno", None)
             reason = os.strerror(number) if number else str(error)
@@ -773,13 +749,8 @@ class FarmduinoBot(Bot):
                                  "the device path (ls /dev/serial/by-id), that FarmBot OS does "
                                  "not hold it, and that you may open it (the dialout "
                                  "group)") from None
-            raise _LinkDropped(self._port, reason) from None
-        self._lines, self._reader_stop = queue.Queue(), threading.Event()
-        self._serial = port
-        self._reader = threading.Thread(target=_read_lines,
-                                        args=(port, self._lines, self._reader_stop),
-                                        name=f"farmduino-reader {self._port}", daemon=True)
-        self._reader.start()
+            raise LinkDropped(self._port, reason) from None
+        self._lines = self._link.lines
         restarted, approve = self._await_ready(deadline, first)
         if restarted:
             self._stop_sent = None  # a board that starts has no stop under way
@@ -799,7 +770,7 @@ class FarmduinoBot(Bot):
                         "does not hold the port")
                 if first:
                     raise BotError(what)
-                raise _LinkDropped(self._port, "no banner after reopening")
+                raise LinkDropped(self._port, "no banner after reopening")
             try:
                 item = self._lines.get(timeout=min(remaining, 0.05))
             except queue.Empty:
@@ -892,7 +863,7 @@ class FarmduinoBot(Bot):
         return replace(base, firmware=self._firmware, motion=profile,
                        travel_min=tuple(map(float, low)), travel_max=tuple(map(float, high)))
 
-    def _recover(self, command: str, drop: _LinkDropped, attempt: int,
+    def _recover(self, command: str, drop: LinkDropped, attempt: int,
                  interrupted: Callable[[], None] | None = None) -> None:
         """Get the link back after it dropped during `command`, and home when reopening
         restarted the board; ConnectionLostError when that cannot be done. `interrupted`
@@ -914,7 +885,7 @@ class FarmduinoBot(Bot):
         finally:
             self._recovering = False
 
-    def _reconnect(self, command: str, drop: _LinkDropped) -> bool:
+    def _reconnect(self, command: str, drop: LinkDropped) -> bool:
         """Reopen the port with backoff for up to connect_timeout_s; returns whether the
         board restarted."""
         self._disconnect()
@@ -925,7 +896,7 @@ class FarmduinoBot(Bot):
                 raise BotError(f"{command}: {self._info.name} was closed")
             try:
                 return self._connect(first=False, deadline=deadline)
-            except _LinkDropped as error:
+            except LinkDropped as error:
                 last = error.detail
             except CommandTimeoutError as error:
                 last = str(error)
@@ -945,34 +916,6 @@ class FarmduinoBot(Bot):
                                 "and the gantry")
 
     def _disconnect(self) -> None:
-        self._reader_stop.set()
-        if self._reader is not None and self._reader is not threading.current_thread():
-            self._reader.join(1.0)
-        self._reader = None
-        with self._write_lock:
-            if self._serial is not None:
-                with contextlib.suppress(serial.SerialException, OSError):
-                    self._serial.close()
-                self._serial = None
-
-
-def _read_lines(port: serial.Serial, lines: queue.Queue, stop: threading.Event) -> None:
-    """The reader thread: received lines into `lines`, then `_Dropped` when the port fails."""
-    buffer = b""
-    while not stop.is_set():
-        try:
-            chunk = port.read(max(1, port.in_waiting))
-        except (serial.SerialException, OSError, TypeError) as error:
-            # TypeError: pyserial's read on a port closed under it.
-            if not stop.is_set():
-                lines.put(_Dropped(str(error)))
-            return
-        if not chunk:
-            continue
-        *complete, buffer = (buffer + chunk).split(b"\n")
-        for raw in complete:
-            text = raw.decode("ascii", "replace").strip()
-            if text:
-                lines.put(text)
-        if len(buffer) > 4096:
-            buffer = b""  # noise without line ends
+        link, self._link = self._link, None
+        if link is not None:
+            link.close()
