@@ -1,23 +1,13 @@
 import cv2
 import numpy as np
+from flower_views import WHITE, YELLOW, flower_view
 
 from flowerpose.pipeline.colour import ColourConfig
 from flowerpose.pipeline.detect import ColourDetector, DetectConfig, backproject
 
-WHITE, YELLOW, GREEN = (245, 245, 238), (240, 205, 40), (60, 120, 40)
-
-
-def _scene(centres, radius=12, size=(120, 160)):
-    image = np.zeros((*size, 3), np.uint8)
-    image[:] = GREEN
-    for cx, cy in centres:
-        cv2.circle(image, (cx, cy), radius, WHITE, -1)
-        cv2.circle(image, (cx, cy), radius // 4, YELLOW, -1)
-    return image
-
 
 def test_finds_each_separate_flower_with_a_mask_of_its_disc():
-    image = _scene([(40, 40), (110, 70)])
+    image = flower_view([(40, 40), (110, 70)])
     occupied = np.ones(image.shape[:2], bool)
     dets = ColourDetector(DetectConfig(), ColourConfig())(image, occupied, 0.001)
     assert len(dets) == 2
@@ -27,18 +17,18 @@ def test_finds_each_separate_flower_with_a_mask_of_its_disc():
 
 
 def test_ignores_specks_yellow_blobs_and_empty_pixels():
-    image = _scene([])
+    image = flower_view([])
     cv2.circle(image, (30, 30), 1, WHITE, -1)          # below the minimum area
     cv2.circle(image, (100, 60), 12, YELLOW, -1)       # yellow alone: not a flower
     occupied = np.ones(image.shape[:2], bool)
     assert ColourDetector(DetectConfig(), ColourConfig())(image, occupied, 0.001) == []
-    flower = _scene([(60, 60)])
+    flower = flower_view([(60, 60)])
     detector = ColourDetector(DetectConfig(), ColourConfig())
     assert detector(flower, np.zeros_like(occupied), 0.001) == []
 
 
 def test_minimum_area_is_physical():
-    image = _scene([(60, 60)], radius=4)  # 50 px: 50 mm^2 at 1 mm pixels, 12.5 mm^2 at 0.5 mm
+    image = flower_view([(60, 60)], radius=4)  # 50 px: 50 mm^2 at 1 mm pixels, 12.5 mm^2 at 0.5 mm
     occupied = np.ones(image.shape[:2], bool)
     detector = ColourDetector(DetectConfig(min_area_m2=2e-5), ColourConfig())
     assert len(detector(image, occupied, 0.001)) == 1
@@ -46,7 +36,7 @@ def test_minimum_area_is_physical():
 
 
 def test_mask_backprojection_returns_fewer_points_than_the_box():
-    image = _scene([(60, 60)])
+    image = flower_view([(60, 60)])
     occupied = np.ones(image.shape[:2], bool)
     index = np.arange(image.shape[0] * image.shape[1], dtype=np.int32).reshape(image.shape[:2])
     index[0, :] = -1

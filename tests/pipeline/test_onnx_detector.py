@@ -3,28 +3,16 @@ segmentation model (light pixels by a colour threshold) and a box model (fixed r
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import onnx
 import pytest
+from flower_views import flower_view
 from onnx import TensorProto, helper, numpy_helper
 
 from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import ColourConfig
 from flowerpose.pipeline.detect import ColourDetector, DetectConfig, OnnxConfig
 from flowerpose.pipeline.onnx_detector import OnnxDetector, letterbox
-
-WHITE, YELLOW, GREEN = (245, 245, 238), (240, 205, 40), (60, 120, 40)
-
-
-def _scene(centres, radius=12, size=(120, 160)):
-    """A (H, W, 3) view of green leaves with white flowers round yellow centres."""
-    image = np.zeros((*size, 3), np.uint8)
-    image[:] = GREEN
-    for cx, cy in centres:
-        cv2.circle(image, (cx, cy), radius, WHITE, -1)
-        cv2.circle(image, (cx, cy), radius // 4, YELLOW, -1)
-    return image
 
 
 def _save(path: Path, nodes, output_shape, input_shape=(1, 3, "H", "W"), initializers=()):
@@ -73,7 +61,7 @@ def test_letterbox_scales_to_fit_and_pads_like_ultralytics():
 
 
 def test_a_segmentation_model_finds_the_flowers_the_colour_detector_finds(tmp_path):
-    image = _scene([(40, 40), (110, 70)])
+    image = flower_view([(40, 40), (110, 70)])
     occupied = np.ones(image.shape[:2], bool)
     occupied[:, 150:] = False
     detector = OnnxDetector(flower_model(tmp_path / "flower.onnx"), DetectConfig())
@@ -98,7 +86,7 @@ def test_a_box_model_gives_its_flower_boxes_in_the_views_pixels(tmp_path):
                      [300, 300, 320, 320, 0.8, 0]])  # only padding: outside the view
     detector = OnnxDetector(box_model(tmp_path / "boxes.onnx", rows), DetectConfig())
     assert detector.size == (320, 320)  # the model's own fixed size
-    image = _scene([(40, 50)])
+    image = flower_view([(40, 50)])
     occupied = np.ones(image.shape[:2], bool)
     occupied[30:40, 20:60] = False
     found = detector(image, occupied, 0.001)
@@ -110,7 +98,7 @@ def test_a_box_model_gives_its_flower_boxes_in_the_views_pixels(tmp_path):
 
 
 def test_bad_models_are_one_line_naming_the_file(tmp_path):
-    image, occupied = _scene([(40, 40)]), np.ones((120, 160), bool)
+    image, occupied = flower_view([(40, 40)]), np.ones((120, 160), bool)
     (tmp_path / "garbage.onnx").write_bytes(b"not a model")
     for path, words in ((tmp_path / "missing.onnx", "no such ONNX model"),
                         (tmp_path / "garbage.onnx", "cannot load it")):
