@@ -30,7 +30,9 @@ def test_detect_runs_on_the_core_install_and_the_extras_are_named(tmp_path):
                         (["dataset", "--plants", "2", "--out", tmp_path / "d"], "sim"),
                         (["detect", cloud, "--out", tmp_path / "o", "--detector",
                           "onnx:model.onnx"], "onnx"),
-                        (["farmduino", "--virtual"], "bot")):
+                        # The virtual board serves a pseudo-terminal over the MuJoCo gantry:
+                        # the simulator, not the serial port's package.
+                        (["farmduino", "--virtual"], "sim")):
         done = _core(*args)
         assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
         assert done.stderr.strip().endswith(f"pip install 'flowerpose[{extra}]'")
