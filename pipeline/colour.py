@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from flowerpose.config import require
+from flowerpose.srgb import relight, srgb_to_linear
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
@@ -59,6 +60,13 @@ class ColourConfig:
     """Support (sepals and peduncle behind a flower): hue band, degrees."""
     support_min_saturation: float = 0.15
     """Support: saturation at least this."""
+    white_balance: bool = True
+    """Neutralise a colour cast before any colour test (`white_gain`): the brightest
+    unclipped points of petal colour (petals are white in any light) are made grey by a
+    gain per channel on linear light, applied to every point. A camera's white balance or
+    a photogrammetry texture moves every hue: 15 % more red or less green turns
+    yellow-green sepals pistil-yellow and pale leaves petal-white (`flowerpose stress`).
+    Deviation: upstream took the colours as they came."""
 
     def __post_init__(self):
         for name in ("petal_max_saturation", "petal_min_value", "petal_reject_saturation",
@@ -67,6 +75,42 @@ class ColourConfig:
         for name in ("petal_reject_hue", "pistil_hue", "support_hue"):
             low, high = getattr(self, name)
             require(0 <= low <= high <= 360, f"colour.{name}", "must be (low, high) degrees")
+
+
+#: The white reference: this share of the unclipped petal-coloured points, brightest first.
+WHITE_REFERENCE_SHARE = 0.2
+#: Fewest unclipped petal-coloured points that measure a cast; with fewer, none is removed.
+MIN_WHITE_POINTS = 50
+#: A channel at or above this 8-bit level may be clipped, so its ratio says nothing of a cast.
+CLIPPED_LEVEL = 250
+#: Largest gain on any channel: a stronger "cast" is not one, but a cloud without white.
+MAX_WHITE_GAIN = 1.5
+
+
+def white_gain(colors: np.ndarray, config: ColourConfig) -> np.ndarray:
+    """(3,) the gain per channel on linear light that makes the cloud's white reference
+    grey, keeping its mean: the median linear colour of the brightest WHITE_REFERENCE_SHARE
+    of its unclipped petal-coloured points. Ones when white balance is off or too few such
+    points measure it. colors: (N, 3) uint8 sRGB."""
+    colors = np.asarray(colors, np.uint8).reshape(-1, 3)
+    if not config.white_balance or len(colors) == 0:
+        return np.ones(3)
+    hsv = rgb_to_hsv(colors)
+    white = petal_mask(hsv, config) & (colors.max(axis=1) < CLIPPED_LEVEL)
+    if white.sum() < MIN_WHITE_POINTS:
+        return np.ones(3)
+    value = hsv[white, 2]
+    bright = value >= np.quantile(value, 1.0 - WHITE_REFERENCE_SHARE)
+    reference = np.median(srgb_to_linear(colors[white][bright] / 255.0), axis=0)
+    if not (reference > 0).all():
+        return np.ones(3)
+    return np.clip(reference.mean() / reference, 1 / MAX_WHITE_GAIN, MAX_WHITE_GAIN)
+
+
+def white_balanced(colors: np.ndarray, config: ColourConfig) -> np.ndarray:
+    """(N, 3) uint8 colours with the cloud's cast removed (`white_gain`)."""
+    gain = white_gain(colors, config)
+    return np.asarray(colors, np.uint8) if np.allclose(gain, 1.0) else relight(colors, gain)
 
 
 def _in_band(values: np.ndarray, band: tuple[float, float]) -> np.ndarray:

@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -19,23 +19,31 @@ from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
 from flowerpose.log import LOG, open3d
-from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
+from flowerpose.pipeline.colour import (
+    ColourConfig,
+    petal_mask,
+    pistil_mask,
+    rgb_to_hsv,
+    white_balanced,
+    white_gain,
+)
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
+from flowerpose.pipeline.limits import Density, for_cloud, pose_for_density, sized_to_band
 from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
 from flowerpose.pipeline.segment import (
     ClusterConfig,
     GroundConfig,
     OrientedBox,
     OutlierConfig,
+    cloud_spacing,
     cluster_flowers,
     corolla,
     crop_flowers,
     remove_ground,
-    scaled_limits,
-    sized_to_band,
     typical_radius,
 )
+from flowerpose.srgb import relight
 from flowerpose.stopwatch import Stopwatch
 
 #: Up in the bed frame a whole plant's cloud is in (DESIGN.md: metres, z up).
@@ -108,15 +116,19 @@ class FlowerResult:
 
 
 def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
-                 up: np.ndarray | None = BED_UP) -> FlowerResult:
+                 up: np.ndarray | None = BED_UP, drop_views: Collection[int] = ()
+                 ) -> FlowerResult:
     """Flowers and their normals in a whole plant's coloured cloud (metres, bed frame, z up).
     up: the frame's up, for the direction prior (`PoseConfig.up_prior`); None for a cloud
-    whose up is not known (a phone scan's own frame)."""
+    whose up is not known (a phone scan's own frame). drop_views: positions of grid views
+    whose detections are left out (a robustness test: a view the detector missed)."""
     timer = Stopwatch()
+    cloud = Cloud(cloud.points, white_balanced(cloud.colors, config.colour))
     above_ground, projections = grid_views(cloud, config, timer)
     plant = cloud.subset(above_ground)
     detector = make_detector(config.detect, config.colour)
-    detections = [detector(p.image, p.occupied, p.pixel_size_m) for p in projections]
+    detections = [[] if k in drop_views else detector(p.image, p.occupied, p.pixel_size_m)
+                  for k, p in enumerate(projections)]
     timer.lap("detect")
     picked = [backproject(d, p.index, config.detect.backproject)
               for d, p in zip(detections, projections, strict=True)]
@@ -160,6 +172,7 @@ def find_flowers_in_candidates(candidates: Cloud,
     timer = Stopwatch()
     first = candidates.first_copies()
     points = candidates.subset(first)
+    points = Cloud(points.points, white_balanced(points.colors, config.colour))
     flowers = _flowers_among(points, np.arange(len(points)), first, config, timer, None)
     return FlowerResult(flowers, [], [], timer.report(digits=6))
 
@@ -174,14 +187,16 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     boxes, crops = crop_flowers(plant, grouping.clusters, grouping.config)
     timer.lap("cluster")
     flowers = []
+    pose_config = pose_for_density(config.pose, grouping.density)
     for box, crop in zip(boxes, crops, strict=True):
-        pose = estimate_pose(plant.subset(crop), config.pose, config.colour, grouping.config,
+        pose = estimate_pose(plant.subset(crop), pose_config, config.colour, grouping.config,
                              grouping.typical_radius, up)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
         flowers.append(Flower(len(flowers), pose, box, original[crop]))
     timer.lap("pose")
     _say_sizes("detect", grouping.size, grouping.scale, config.cluster)
+    _say_density("detect", grouping.density)
     LOG.debug(f"detect: {len(candidates)} candidate points, {len(grouping.clusters)} clusters, "
               f"{len(flowers)} flowers")
     return flowers
@@ -206,31 +221,57 @@ def _say_sizes(stage: str, size: float | None, scale: float, config: ClusterConf
     (LOG.info if notable else LOG.debug)(line)
 
 
+def _say_density(stage: str, density: Density) -> None:
+    """Say how the cloud's density sized the point counts, where it did."""
+    if density.factor < 1.0:
+        LOG.debug(f"{stage}: {density.neighbours:.3g} points within eps of a flower point, "
+                  f"below cluster.density_reference: point counts scaled by "
+                  f"{density.factor:.2f}")
+
+
 def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
                ) -> tuple[list[FlowerPose], dict[str, float]]:
     """The pose of each flower crop (one flower a crop, as a detector cut it out), sized by
     the crops' typical flower (`segment.typical_radius`, their median corolla radius when
     none passes the coverage test); returns the poses and the stage timings."""
     timer = Stopwatch()
+    gain = white_gain(np.concatenate([c.colors for c in crops]) if crops else np.zeros((0, 3)),
+                      config.colour)
+    crops = [Cloud(c.points, relight(c.colors, gain)) for c in crops]
     masks = []
     for crop in crops:
         hsv = rgb_to_hsv(crop.colors)
         masks.append((petal_mask(hsv, config.colour), pistil_mask(hsv, config.colour)))
 
-    def pistil_limits(scale: float) -> tuple[ClusterConfig, float | None]:
-        cluster = scaled_limits(config.outliers, config.cluster, scale)[1]
+    # The crops' density, measured on their flower-coloured points as the cluster stage
+    # measures its candidates'.
+    coloured = [crop.points[petal | pistil] for crop, (petal, pistil) in zip(crops, masks,
+                                                                           strict=True)]
+    spacing = (cloud_spacing(np.concatenate(coloured), config.cluster)
+               if coloured and max(len(c) for c in coloured) > 1 else None)
+    if spacing is not None:
+        # Crops are measured apart (their points do not neighbour each other): the median
+        # crop's own spacing.
+        spacings = [cloud_spacing(c, config.cluster) for c in coloured if len(c) > 1]
+        spacing = float(np.median([s for s in spacings if s is not None]))
+
+    def pistil_limits(scale: float) -> tuple[tuple[ClusterConfig, Density], float | None]:
+        _, cluster, density = for_cloud(config.outliers, config.cluster, scale, spacing)
         shapes = [corolla(crop.points, petal, pistil, cluster)
                   for crop, (petal, pistil) in zip(crops, masks, strict=True)]
         radius = typical_radius(shapes, cluster)
         if radius is None and shapes:
             radius = float(np.median([s.radius for s in shapes]))
-        return cluster, radius
+        return (cluster, density), radius
 
-    # The pistil search's limit is metric: sized to the crops' flowers as the cluster stage
-    # sizes its limits (`ClusterConfig.size_band_m`).
-    scale, cluster, radius = sized_to_band(pistil_limits, config.cluster.size_band_m)
+    # The pistil search's limits are metric and counts: sized to the crops' flowers and
+    # density as the cluster stage sizes its limits (`limits`).
+    scale, (cluster, density), radius = sized_to_band(pistil_limits,
+                                                      config.cluster.size_band_m)
     _say_sizes("pose", radius, scale, config.cluster)
-    poses = [estimate_pose(crop, config.pose, config.colour, cluster, radius) for crop in crops]
+    _say_density("pose", density)
+    pose_config = pose_for_density(config.pose, density)
+    poses = [estimate_pose(crop, pose_config, config.colour, cluster, radius) for crop in crops]
     timer.lap("pose")
     return poses, timer.report(digits=6)
 

@@ -7,9 +7,8 @@ per flower whose contents in the full cloud become the flower's crop.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import Literal, TypeVar
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.sparse.csgraph import dijkstra
@@ -20,6 +19,7 @@ from flowerpose.config import require
 from flowerpose.log import open3d
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.fit import principal_axes
+from flowerpose.pipeline.limits import Density, area_per_point, for_cloud, sized_to_band
 
 
 @dataclass(frozen=True)
@@ -165,8 +165,21 @@ class ClusterConfig:
     them (its flowers cut into pieces of about the band's size) still needs its unit said
     (`units`) or the limits set. Deviation: upstream used its limits as stated (none)."""
 
+    density_reference: float | None = 100.0
+    """Points within `eps` of a flower-coloured candidate on its surface (the cloud's
+    measured density: pi eps^2 over the median area a point stands for) at which the
+    point counts (`min_points`, `pistil_min_points`, `outliers.radius_points`,
+    `pose.base_min_points`, `pose.support_min_points`) hold as stated. A sparser cloud (a
+    faster scan, fewer frames, a phone scan) has them multiplied by its density over this,
+    never below their floors (`limits.COUNT_FLOORS`), and the lengths that must span
+    several points at least so many point spacings (`limits.SPACING_FLOORS`). The authors'
+    plant 3 measures about 110. Deviation: upstream stated its counts for one density
+    (none)."""
+
     def __post_init__(self):
         require(self.eps > 0, "cluster.eps", "must be positive (metres)")
+        require(self.density_reference is None or self.density_reference > 0,
+                "cluster.density_reference", "must be positive (points) or none")
         require(self.min_points >= 1, "cluster.min_points", "must be at least 1")
         require(self.reach_ratio > 0, "cluster.reach_ratio", "must be positive")
         for name in ("min_flower_fraction", "min_white_fraction", "min_size_ratio"):
@@ -330,10 +343,6 @@ class Corolla:
     near 0 for a strip."""
 
 
-#: Neighbours of the k-nearest-neighbour estimate of the surface area each point stands for.
-COVERAGE_NEIGHBOURS = 8
-
-
 #: A disc's petal density (points per squared distance) within this share of its value at
 #: the median petal distance still counts as the corolla (`disc_radius`).
 DISC_DENSITY_SHARE = 0.8
@@ -355,9 +364,12 @@ def disc_radius(distances: np.ndarray) -> float:
 
 
 def corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
-            config: ClusterConfig) -> Corolla:
+            config: ClusterConfig, cloud_area: float | None = None) -> Corolla:
     """The corolla of one flower's points (N, 3), any unit; petal, pistil: (N,) bool colour
-    masks. A flower without three petal points has radius and coverage 0."""
+    masks. cloud_area: the area a point of the whole cloud stands for (`area_per_point`),
+    the most a point of this flower may stand for in its coverage: a few points far apart
+    are a speck of flower colour, not a sparsely sampled flower. A flower without three
+    petal points has radius and coverage 0."""
     petal_points = points[petal]
     chosen = the_pistil(points, petal, pistil, config)
     if chosen is not None:
@@ -368,10 +380,10 @@ def corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
         return Corolla(anchor, chosen is not None, 0.0, 0.0)
     distance = np.linalg.norm(petal_points - anchor, axis=1)
     spanned = float(np.percentile(distance, 90))
-    neighbours = min(COVERAGE_NEIGHBOURS, len(points) - 1)
-    reach = cKDTree(points).query(points, k=neighbours + 1)[0][:, -1]
-    area_per_point = float(np.median(np.pi * reach ** 2 / neighbours))
-    coverage = len(petal_points) * area_per_point / (np.pi * spanned ** 2) if spanned > 0 else 0.0
+    area = area_per_point(points)
+    if cloud_area is not None:
+        area = min(area, cloud_area)
+    coverage = len(petal_points) * area / (np.pi * spanned ** 2) if spanned > 0 else 0.0
     return Corolla(anchor, chosen is not None, disc_radius(distance), coverage)
 
 
@@ -380,38 +392,6 @@ def typical_radius(corollas: list[Corolla], config: ClusterConfig) -> float | No
     this cloud, in its unit (None when none passes)."""
     radii = [c.radius for c in corollas if c.coverage >= config.min_coverage]
     return float(np.median(radii)) if radii else None
-
-
-#: Most times the limits are re-sized to a cloud's flowers (`ClusterConfig.size_band_m`),
-#: each at the typical radius the grouping before measured.
-SIZE_PASSES = 3
-
-Result = TypeVar("Result")
-
-
-def limit_scale(typical: float | None, band: tuple[float, float] | None) -> float:
-    """What the metric limits are multiplied by for flowers of this typical radius: the
-    radius over the band's nearer edge outside the band, 1 inside it (or without a band or
-    a measured radius)."""
-    if band is None or typical is None:
-        return 1.0
-    low, high = band
-    return typical / high if typical > high else typical / low if typical < low else 1.0
-
-
-def scaled_limits(outliers: OutlierConfig, config: ClusterConfig,
-                  scale: float) -> tuple[OutlierConfig, ClusterConfig]:
-    """The outlier and cluster settings with every limit stated in metres multiplied by
-    `scale`: grouping a cloud with them is grouping it shrunk by `scale` with the limits
-    as stated."""
-    if scale == 1.0:
-        return outliers, config
-    return (replace(outliers, radius_m=outliers.radius_m * scale),
-            replace(config, eps=config.eps * scale,
-                    split_min_separation_m=config.split_min_separation_m * scale,
-                    split_link_m=config.split_link_m * scale,
-                    pistil_eps=config.pistil_eps * scale,
-                    crop_margin_m=config.crop_margin_m * scale))
 
 
 @dataclass(frozen=True)
@@ -427,15 +407,18 @@ class Grouping:
     the limits are sized by."""
     scale: float
     """What the metric limits were multiplied by (`ClusterConfig.size_band_m`)."""
+    density: Density
+    """How the cloud's density sized the point counts (`ClusterConfig.density_reference`)."""
     config: ClusterConfig
-    """The cluster settings as applied, limits scaled: the crops and the pose stage's
-    pistil search use them too."""
+    """The cluster settings as applied, sized to the cloud (`limits.for_cloud`): the crops
+    and the pose stage's pistil search use them too."""
 
 
 def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfig,
                     config: ClusterConfig, colour: ColourConfig) -> Grouping:
     """Candidate points grouped into one index array per flower, at limits sized to the
-    cloud's own flowers (`ClusterConfig.size_band_m`).
+    cloud's own flowers and density (`limits`: `ClusterConfig.size_band_m`,
+    `density_reference`).
 
     plant: the cloud (metres, or the unit its flowers are measured in); candidates:
     indices into it of the points taken from the detections (or given as candidates).
@@ -455,40 +438,34 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     white[candidates] = (hsv[:, 1] <= colour.petal_max_saturation
                          if config.white_rule == "saturation" else petal_mask(hsv, colour))
     centre[candidates] = pistil_mask(hsv, colour)
+    flower_coloured = candidates[white[candidates] | centre[candidates]]
     if config.candidates == "flower_colour":
-        candidates = candidates[white[candidates] | centre[candidates]]
-    def at(scale: float) -> tuple[tuple[list[np.ndarray], float | None, ClusterConfig],
-                                  float | None]:
-        scaled_outliers, scaled = scaled_limits(outliers, config, scale)
-        clusters, typical, size = _group(plant, candidates, white, centre, scaled_outliers,
-                                         scaled)
-        return (clusters, typical, scaled), size
+        candidates = flower_coloured
+    spacing = cloud_spacing(plant.points[flower_coloured], config)
 
-    scale, (clusters, typical, applied), size = sized_to_band(at, config.size_band_m)
-    return Grouping(clusters, typical, size, scale, applied)
+    def at(scale: float) -> tuple[tuple[list[np.ndarray], float | None, ClusterConfig,
+                                        Density], float | None]:
+        sized_outliers, sized, density = for_cloud(outliers, config, scale, spacing)
+        clusters, typical, size = _group(plant, candidates, white, centre, sized_outliers,
+                                         sized, None if spacing is None else spacing ** 2)
+        return (clusters, typical, sized, density), size
+
+    scale, (clusters, typical, applied, density), size = sized_to_band(at, config.size_band_m)
+    return Grouping(clusters, typical, size, scale, density, applied)
 
 
-def sized_to_band(run: Callable[[float], tuple[Result, float | None]],
-                  band: tuple[float, float] | None) -> tuple[float, Result, float | None]:
-    """`run(scale)` (a stage at its metric limits times `scale`, returning its result and
-    the flower radius it measured) at the limits as stated, then again at the scale its
-    measured radius asks for (`limit_scale`), up to SIZE_PASSES times; a rescaled run that
-    measures no flower keeps the run before. Returns the scale, the result and its radius."""
-    scale = 1.0
-    result, size = run(scale)
-    for _ in range(SIZE_PASSES):
-        wanted = limit_scale(size, band)
-        if np.isclose(wanted, scale, rtol=1e-3):
-            break
-        resized, resized_size = run(wanted)
-        if resized_size is None:
-            break
-        scale, result, size = wanted, resized, resized_size
-    return scale, result, size
+def cloud_spacing(points: np.ndarray, config: ClusterConfig) -> float | None:
+    """The point spacing of a cloud's flower-coloured points (N, 3) that sizes the limits
+    (`limits.for_cloud`): the square root of the area each stands for; None where the
+    density is not to size them (`density_reference` unset) or too few points measure it."""
+    if config.density_reference is None:
+        return None
+    area = area_per_point(points)
+    return None if area is None or area <= 0 else float(np.sqrt(area))
 
 
 def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.ndarray,
-           outliers: OutlierConfig, config: ClusterConfig
+           outliers: OutlierConfig, config: ClusterConfig, cloud_area: float | None
            ) -> tuple[list[np.ndarray], float | None, float | None]:
     """One grouping of `cluster_flowers` at these limits: the flowers, their typical radius
     (`typical_radius`), and their size: the median radius of the flowers kept, each
@@ -508,14 +485,14 @@ def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.n
                 or white[members].mean() < config.min_white_fraction):
             continue
         points = plant.points[members]
-        split = (split_by_centres(points, pistil_clusters(points, centre[members], config),
+        split = (split_by_centres(points, _splitting_centres(points, centre[members], config),
                                   config.split_min_separation_m, config.split_link_m)
                  if config.split_touching else np.zeros(len(members), np.int64))
         parts.extend(part for part in (members[split == j] for j in range(split.max() + 1))
                      if len(part) >= config.min_points)
 
     def analyse(part: np.ndarray) -> Corolla:
-        return corolla(plant.points[part], white[part], centre[part], config)
+        return corolla(plant.points[part], white[part], centre[part], config, cloud_area)
 
     corollas = [analyse(part) for part in parts]
     typical = typical_radius(corollas, config)
@@ -543,6 +520,20 @@ def _weighted_median(values: list[float], weights: list[int]) -> float | None:
     order = np.argsort(values)
     cumulative = np.cumsum(np.asarray(weights, np.float64)[order])
     return float(np.asarray(values)[order][np.searchsorted(cumulative, cumulative[-1] / 2)])
+
+
+#: A candidate centre with fewer points than this share of the cluster's largest one does
+#: not split it: a fleck of yellow on a petal fold or a shaded rim, not a second receptacle.
+SPLIT_MIN_CENTRE_SHARE = 0.1
+
+
+def _splitting_centres(points: np.ndarray, is_pistil: np.ndarray,
+                       config: ClusterConfig) -> list[np.ndarray]:
+    """The candidate pistils (`pistil_clusters`) that may split a cluster between them:
+    each at least SPLIT_MIN_CENTRE_SHARE of the largest."""
+    centres = pistil_clusters(points, is_pistil, config)
+    largest = max((len(c) for c in centres), default=0)
+    return [c for c in centres if len(c) >= SPLIT_MIN_CENTRE_SHARE * largest]
 
 
 def split_by_centres(points: np.ndarray, centres: list[np.ndarray], min_separation: float,

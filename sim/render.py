@@ -48,6 +48,7 @@ from flowerpose.sim.plant import Plant  # noqa: E402
 from flowerpose.sim.raycast import make_scene  # noqa: E402
 from flowerpose.sim.render_config import RenderConfig  # noqa: E402
 from flowerpose.sim.shapes import grid_faces  # noqa: E402
+from flowerpose.srgb import linear_to_srgb, srgb_to_linear  # noqa: E402
 
 o3d = open3d()
 
@@ -116,17 +117,6 @@ def _forget_at_exit() -> None:
         pass  # MuJoCo's exit handler may have terminated the shared display already
     _shared._renderer = None
     _shared._platform = None
-
-
-def _srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
-    """Linear light of sRGB values in [0, 1] (any shape)."""
-    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
-
-
-def _linear_to_srgb(linear: np.ndarray) -> np.ndarray:
-    """sRGB values in [0, 1] of linear light (any shape), clipped (over-exposure)."""
-    c = np.clip(linear, 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
 
 
 def _direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
@@ -236,7 +226,7 @@ class _Lighting:
         for side in (0, 1):
             sky = self._sky(points, normals if side == 0 else -normals)
             ambient = cfg.sky * sky[:, None] * tint + cfg.bounce * (1 - sky)[:, None]
-            out.append(_linear_to_srgb(albedo * (direct[side] + ambient)))
+            out.append(linear_to_srgb(albedo * (direct[side] + ambient)))
         return out[0], out[1]
 
 
@@ -322,7 +312,7 @@ class PlantRenderer:
             code.append(np.zeros(len(ground[1]), np.int64))
         vertices, faces = np.concatenate(vertices), np.concatenate(faces)
         part, code = np.concatenate(part), np.concatenate(code)
-        albedo = _srgb_to_linear(np.concatenate(rgba)[:, :3] / 255.0)
+        albedo = srgb_to_linear(np.concatenate(rgba)[:, :3] / 255.0)
         translucency = np.zeros(len(Part))
         for p, value in TRANSLUCENCY.items():
             translucency[p] = value

@@ -1,0 +1,152 @@
+"""Seeded perturbations of a coloured cloud: what a real scan does differently from a clean one.
+
+Each perturbation models one way a field cloud departs from the one the pipeline was
+measured on, at a strength that has a unit:
+
+- ``thin``: a seeded uniform subsample keeping this fraction of the points (a faster scan,
+  fewer frames, a coarser reconstruction, a phone scan);
+- ``exposure``: linear light multiplied by this factor (log2 of it is the change in stops;
+  0.6 is about -0.7 EV), clipped at white;
+- ``cast``: one channel's linear light multiplied by (1 + this), a white-balance error
+  (``channel`` names it: r, g or b);
+- ``noise``: Gaussian noise of this standard deviation added to every coordinate, in the
+  cloud's unit (metres for a metric cloud);
+- ``drop_view``: one grid view's detections left out (a whole cloud) or one candidates file
+  left out (a real plant's candidates); the value is the view's position in the list.
+
+Colours are 8-bit sRGB: exposure and cast act on linear light, as a camera's do. The
+stress report (`eval/stress.py`) and the `field` preset's per-plant degradation both use
+these, so a perturbation means the same in both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from flowerpose.cloudio import Cloud
+from flowerpose.errors import InputError
+from flowerpose.srgb import relight
+
+Kind = Literal["thin", "exposure", "cast", "noise", "drop_view"]
+
+#: Every perturbation kind, in the order reports list them.
+KINDS: tuple[Kind, ...] = ("thin", "exposure", "cast", "noise", "drop_view")
+#: The colour channels a cast may act on.
+CHANNELS = "rgb"
+#: What each kind's value means, for reports and errors.
+UNITS: dict[str, str] = {
+    "thin": "fraction of points kept", "exposure": "factor on linear light",
+    "cast": "relative change of one channel's linear light",
+    "noise": "standard deviation, the cloud's unit (metres)", "drop_view": "view index"}
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """One perturbation of a cloud (the module docstring says what each kind does)."""
+
+    kind: Kind
+    value: float
+    channel: str = ""
+    """The cast's channel (r, g or b); empty for the other kinds."""
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise InputError("perturbation", f"unknown kind {self.kind!r} (one of "
+                             f"{', '.join(KINDS)})")
+        value = self.value
+        problem = {
+            "thin": None if 0 < value <= 1 else "a fraction of points kept, above 0, at most 1",
+            "exposure": None if value > 0 else "a positive factor",
+            "cast": None if -1 < value else "above -1 (a relative change)",
+            "noise": None if value >= 0 else "0 or more",
+            "drop_view": None if value >= 0 and float(value).is_integer() else
+            "a view's index, 0 or more",
+        }[self.kind]
+        if problem is not None or not np.isfinite(value):
+            raise InputError(f"{self.kind}", f"{value!r}: must be {problem or 'finite'}")
+        if (self.kind == "cast") != bool(self.channel) or (
+                self.channel and self.channel not in CHANNELS):
+            raise InputError(self.kind, "a cast needs its channel (r, g or b), and only a "
+                             "cast has one")
+
+    @property
+    def label(self) -> str:
+        """A short name: "thin 0.1", "cast b+0.15", "drop_view 2"."""
+        if self.kind == "cast":
+            return f"cast {self.channel}{self.value:+g}"
+        return f"{self.kind} {self.value:g}"
+
+    def is_identity(self) -> bool:
+        """Whether this perturbation leaves a cloud as it is."""
+        return {"thin": self.value == 1, "exposure": self.value == 1, "cast": self.value == 0,
+                "noise": self.value == 0, "drop_view": False}[self.kind]
+
+    def to_json(self) -> dict:
+        entry = {"kind": self.kind, "value": self.value, "unit": UNITS[self.kind]}
+        if self.channel:
+            entry["channel"] = self.channel
+        return entry
+
+
+def thin(cloud: Cloud, fraction: float, rng: np.random.Generator) -> Cloud:
+    """A seeded uniform subsample of round(fraction x N) points (at least one), in the
+    cloud's order."""
+    keep = max(1, int(round(fraction * len(cloud))))
+    if keep >= len(cloud):
+        return cloud
+    return cloud.subset(np.sort(rng.choice(len(cloud), keep, replace=False)))
+
+
+def relit(cloud: Cloud, gain: np.ndarray) -> Cloud:
+    """The cloud with each channel's linear light multiplied by gain (3,), clipped at white."""
+    return Cloud(cloud.points, relight(cloud.colors, gain))
+
+
+def channel_gain(exposure: float = 1.0, channel: str = "", cast: float = 0.0) -> np.ndarray:
+    """(3,) the per-channel gain on linear light of an exposure and a cast of one channel."""
+    gain = np.full(3, float(exposure))
+    if channel:
+        gain[CHANNELS.index(channel)] *= 1.0 + cast
+    return gain
+
+
+def jitter(cloud: Cloud, sigma: float, rng: np.random.Generator) -> Cloud:
+    """The cloud with Gaussian noise of standard deviation sigma (its unit) on every
+    coordinate."""
+    if sigma == 0:
+        return cloud
+    return Cloud(cloud.points + rng.normal(0.0, sigma, cloud.points.shape), cloud.colors)
+
+
+def perturb(cloud: Cloud, perturbation: Perturbation, rng: np.random.Generator) -> Cloud:
+    """The cloud under one perturbation (a view dropped acts on detections or files, not
+    on a cloud: the cloud comes back as it is)."""
+    kind, value = perturbation.kind, perturbation.value
+    if kind == "thin":
+        return thin(cloud, value, rng)
+    if kind == "exposure":
+        return relit(cloud, channel_gain(exposure=value))
+    if kind == "cast":
+        return relit(cloud, channel_gain(channel=perturbation.channel, cast=value))
+    if kind == "noise":
+        return jitter(cloud, value, rng)
+    return cloud
+
+
+def parse_perturbation(text: str) -> Perturbation:
+    """A perturbation from its label's form, "KIND VALUE" or "KIND=VALUE" ("thin=0.1",
+    "cast=b+0.15", "noise=0.0015", "drop_view=2")."""
+    kind, sep, value = text.replace(" ", "=", 1).partition("=")
+    if not sep:
+        raise InputError("perturbation", f"{text!r}: expected KIND=VALUE, e.g. thin=0.1")
+    channel = ""
+    if kind == "cast" and value[:1] in tuple(CHANNELS):
+        channel, value = value[0], value[1:]
+    try:
+        number = float(value)
+    except ValueError:
+        raise InputError("perturbation", f"{text!r}: {value!r} is not a number") from None
+    return Perturbation(kind, number, channel)  # type: ignore[arg-type]

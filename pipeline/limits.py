@@ -1,0 +1,162 @@
+"""Limits sized to the cloud: the settings stated in metres and in points, made to hold for
+the cloud at hand (DESIGN.md, "The operating envelope").
+
+Two measurements of the cloud size them:
+
+- **its flowers' radius**: the limits stated in metres (`ClusterConfig.eps` and the other
+  lengths of the cluster stage, `OutlierConfig.radius_m`) hold for flowers of
+  `cluster.size_band_m`; a cloud whose flowers measure outside the band (another unit, a
+  phone scan's own scale, bigger or smaller flowers) has them multiplied by its flowers'
+  radius over the band's nearer edge (`limit_scale`, `sized_to_band`);
+- **its point density**: the median surface area a flower-coloured candidate point stands
+  for (`area_per_point`). The point counts (`cluster.min_points`, `pistil_min_points`,
+  `outliers.radius_points`, `pose.base_min_points`, `support_min_points`) hold for clouds
+  with at least `cluster.density_reference` points within `eps` of such a point; a sparser
+  cloud has them multiplied by its density over that, never below `COUNT_FLOORS`
+  (`for_density`). Lengths that must span several points (a surface link, the crop
+  margin, the pistil's DBSCAN radius) are at least `SPACING_FLOORS` point spacings.
+
+Counts are never raised for a denser cloud: the stated ones are the paper's, and more
+points only make a flower easier to find.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, TypeVar
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from flowerpose.pipeline.pose import PoseConfig
+    from flowerpose.pipeline.segment import ClusterConfig, OutlierConfig
+
+#: Neighbours of the k-nearest-neighbour estimate of the surface area each point stands for.
+AREA_NEIGHBOURS = 8
+
+#: Least value of each point count however sparse the cloud, and why. DBSCAN's core count
+#: on a surface: 4, Ester et al.'s rule for two-dimensional data (2 x dimension). A radius
+#: outlier needs 2 neighbours: one would keep isolated pairs. A pistil of 2 points: a
+#: receptacle seen as a handful of points at 50 points a flower. The petal base and the
+#: sepals need 3 points for a centroid that is not one point's noise.
+COUNT_FLOORS = {"min_points": 4, "radius_points": 2, "pistil_min_points": 2,
+                "base_min_points": 3, "support_min_points": 3}
+
+#: Least length of each limit in point spacings (the square root of the area a point
+#: stands for), and why: DBSCAN's radius and the radius outlier's must hold about
+#: 2.5^2 pi = 20 points of a surface to count 4; the geodesic split's link joins a point
+#: to its neighbours on the surface (twice the spacing, as the setting says); the pistil's
+#: DBSCAN radius joins a receptacle's few points (1.5); the crop margin takes in the ring
+#: of points round a cluster (1).
+SPACING_FLOORS = {"eps": 2.5, "radius_m": 2.5, "split_link_m": 2.0, "pistil_eps": 1.5,
+                  "crop_margin_m": 1.0}
+
+
+def area_per_point(points: np.ndarray, neighbours: int = AREA_NEIGHBOURS) -> float | None:
+    """The median surface area one point of a sampled surface stands for, pi r_k^2 / k with
+    r_k the distance to its k-th neighbour: the inverse of the surface's point density.
+    points: (N, 3), any unit; the result in that unit squared, None for fewer than 2 points."""
+    if len(points) < 2:
+        return None
+    k = min(neighbours, len(points) - 1)
+    reach = cKDTree(points).query(points, k=k + 1)[0][:, -1]
+    return float(np.median(np.pi * reach ** 2 / k))
+
+
+def limit_scale(typical: float | None, band: tuple[float, float] | None) -> float:
+    """What the metric limits are multiplied by for flowers of this typical radius: the
+    radius over the band's nearer edge outside the band, 1 inside it (or without a band or
+    a measured radius)."""
+    if band is None or typical is None:
+        return 1.0
+    low, high = band
+    return typical / high if typical > high else typical / low if typical < low else 1.0
+
+
+@dataclass(frozen=True)
+class Density:
+    """How a cloud's density sized the count limits."""
+
+    spacing: float | None
+    """Square root of the area a flower-coloured candidate point stands for (the cloud's
+    unit; None: too few points to measure)."""
+    neighbours: float | None
+    """Points within the applied `eps` of such a point on its surface (pi eps^2 / area)."""
+    factor: float
+    """What the point counts were multiplied by (1: as stated)."""
+
+
+def for_cloud(outliers: OutlierConfig, cluster: ClusterConfig, scale: float,
+              spacing: float | None) -> tuple[OutlierConfig, ClusterConfig, Density]:
+    """The outlier and cluster settings for a cloud: every limit in metres multiplied by
+    `scale` (the flowers' size), lengths raised to SPACING_FLOORS point spacings, and point
+    counts sized to the density (`cluster.density_reference`, COUNT_FLOORS)."""
+    lengths = {"eps": cluster.eps, "split_link_m": cluster.split_link_m,
+               "pistil_eps": cluster.pistil_eps, "crop_margin_m": cluster.crop_margin_m,
+               "split_min_separation_m": cluster.split_min_separation_m}
+    lengths = {name: value * scale for name, value in lengths.items()}
+    radius_m = outliers.radius_m * scale
+    if spacing is not None:
+        lengths = {name: max(value, SPACING_FLOORS.get(name, 0.0) * spacing)
+                   for name, value in lengths.items()}
+        radius_m = max(radius_m, SPACING_FLOORS["radius_m"] * spacing)
+    density = _density(lengths["eps"], spacing, cluster.density_reference)
+    outliers = replace(outliers, radius_m=radius_m,
+                       radius_points=_count(outliers.radius_points, "radius_points", density))
+    cluster = replace(cluster, **lengths,
+                      min_points=_count(cluster.min_points, "min_points", density),
+                      pistil_min_points=_count(cluster.pistil_min_points, "pistil_min_points",
+                                               density))
+    return outliers, cluster, density
+
+
+def pose_for_density(pose: PoseConfig, density: Density) -> PoseConfig:
+    """The pose settings with their point counts sized to the cloud's density."""
+    if density.factor == 1.0:
+        return pose
+    return replace(pose, base_min_points=_count(pose.base_min_points, "base_min_points", density),
+                   support_min_points=_count(pose.support_min_points, "support_min_points",
+                                             density))
+
+
+def _density(eps: float, spacing: float | None, reference: float | None) -> Density:
+    if spacing is None or reference is None or spacing <= 0:
+        return Density(spacing, None, 1.0)
+    neighbours = np.pi * eps ** 2 / spacing ** 2
+    return Density(spacing, float(neighbours), float(min(1.0, neighbours / reference)))
+
+
+def _count(stated: int, name: str, density: Density) -> int:
+    """A point count sized to the density: stated x factor, at least its floor (or the
+    stated count, where that is lower), rounded."""
+    if density.factor >= 1.0 or stated == 0:
+        return stated
+    return int(max(min(stated, COUNT_FLOORS[name]), round(stated * density.factor)))
+
+
+#: Most times the limits are re-sized to a cloud's flowers (`ClusterConfig.size_band_m`),
+#: each at the typical radius the grouping before measured.
+SIZE_PASSES = 3
+
+Result = TypeVar("Result")
+
+
+def sized_to_band(run: Callable[[float], tuple[Result, float | None]],
+                  band: tuple[float, float] | None) -> tuple[float, Result, float | None]:
+    """`run(scale)` (a stage at its metric limits times `scale`, returning its result and
+    the flower radius it measured) at the limits as stated, then again at the scale its
+    measured radius asks for (`limit_scale`), up to SIZE_PASSES times; a rescaled run that
+    measures no flower keeps the run before. Returns the scale, the result and its radius."""
+    scale = 1.0
+    result, size = run(scale)
+    for _ in range(SIZE_PASSES):
+        wanted = limit_scale(size, band)
+        if np.isclose(wanted, scale, rtol=1e-3):
+            break
+        resized, resized_size = run(wanted)
+        if resized_size is None:
+            break
+        scale, result, size = wanted, resized, resized_size
+    return scale, result, size
