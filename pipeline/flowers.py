@@ -29,7 +29,13 @@ from flowerpose.pipeline.colour import (
 )
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
-from flowerpose.pipeline.limits import Density, for_cloud, pose_for_density, sized_to_band
+from flowerpose.pipeline.limits import (
+    Density,
+    Sizing,
+    for_cloud,
+    pose_for_density,
+    sized_to_cloud,
+)
 from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
 from flowerpose.pipeline.segment import (
     ClusterConfig,
@@ -187,9 +193,14 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     boxes, crops = crop_flowers(plant, grouping.clusters, grouping.config)
     timer.lap("cluster")
     flowers = []
-    pose_config = pose_for_density(config.pose, grouping.density)
-    for box, crop in zip(boxes, crops, strict=True):
-        pose = estimate_pose(plant.subset(crop), pose_config, config.colour, grouping.config,
+    crop_clouds = [plant.subset(crop) for crop in crops]
+    # The crops hold every cloud point near a flower, the candidates only those that owned
+    # a pixel of some view: the pose stage's counts follow the crops' own density.
+    _, pose_cluster, density = for_cloud(config.outliers, config.cluster, grouping.scale,
+                                         crops_spacing(crop_clouds, config))
+    pose_config = pose_for_density(config.pose, density)
+    for box, crop, crop_cloud in zip(boxes, crops, crop_clouds, strict=True):
+        pose = estimate_pose(crop_cloud, pose_config, config.colour, pose_cluster,
                              grouping.typical_radius, up)
         if config.cluster.require_pistil and not pose.pistil_found:
             continue
@@ -229,6 +240,15 @@ def _say_density(stage: str, density: Density) -> None:
                   f"{density.factor:.2f}")
 
 
+def crops_spacing(crops: list[Cloud], config: PipelineConfig) -> float | None:
+    """The point spacing of flower crops (`segment.cloud_spacing` of their flower-coloured
+    points together), which sizes the pose stage's counts; None: none to measure."""
+    hsv = rgb_to_hsv(np.concatenate([np.zeros((0, 3), np.uint8)] + [c.colors for c in crops]))
+    coloured = petal_mask(hsv, config.colour) | pistil_mask(hsv, config.colour)
+    points = np.concatenate([np.zeros((0, 3))] + [c.points for c in crops])[coloured]
+    return cloud_spacing(points, config.cluster)
+
+
 def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
                ) -> tuple[list[FlowerPose], dict[str, float]]:
     """The pose of each flower crop (one flower a crop, as a detector cut it out), sized by
@@ -243,32 +263,24 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
         hsv = rgb_to_hsv(crop.colors)
         masks.append((petal_mask(hsv, config.colour), pistil_mask(hsv, config.colour)))
 
-    # The crops' density, measured on their flower-coloured points as the cluster stage
-    # measures its candidates'.
-    coloured = [crop.points[petal | pistil] for crop, (petal, pistil) in zip(crops, masks,
-                                                                           strict=True)]
-    spacing = (cloud_spacing(np.concatenate(coloured), config.cluster)
-               if coloured and max(len(c) for c in coloured) > 1 else None)
-    if spacing is not None:
-        # Crops are measured apart (their points do not neighbour each other): the median
-        # crop's own spacing.
-        spacings = [cloud_spacing(c, config.cluster) for c in coloured if len(c) > 1]
-        spacing = float(np.median([s for s in spacings if s is not None]))
+    spacing = crops_spacing(crops, config)
 
-    def pistil_limits(scale: float) -> tuple[tuple[ClusterConfig, Density], float | None]:
-        _, cluster, density = for_cloud(config.outliers, config.cluster, scale, spacing)
+    def pistil_limits(sizing: Sizing) -> tuple[tuple[ClusterConfig, Density], float | None,
+                                               None]:
+        _, cluster, density = for_cloud(config.outliers, config.cluster, sizing.scale,
+                                        sizing.spacing)
         shapes = [corolla(crop.points, petal, pistil, cluster)
                   for crop, (petal, pistil) in zip(crops, masks, strict=True)]
         radius = typical_radius(shapes, cluster)
         if radius is None and shapes:
             radius = float(np.median([s.radius for s in shapes]))
-        return (cluster, density), radius
+        return (cluster, density), radius, None
 
     # The pistil search's limits are metric and counts: sized to the crops' flowers and
     # density as the cluster stage sizes its limits (`limits`).
-    scale, (cluster, density), radius = sized_to_band(pistil_limits,
-                                                      config.cluster.size_band_m)
-    _say_sizes("pose", radius, scale, config.cluster)
+    sizing, (cluster, density), radius = sized_to_cloud(pistil_limits,
+                                                        config.cluster.size_band_m, spacing)
+    _say_sizes("pose", radius, sizing.scale, config.cluster)
     _say_density("pose", density)
     pose_config = pose_for_density(config.pose, density)
     poses = [estimate_pose(crop, pose_config, config.colour, cluster, radius) for crop in crops]

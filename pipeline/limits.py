@@ -57,12 +57,36 @@ SPACING_FLOORS = {"eps": 2.5, "radius_m": 2.5, "split_link_m": 2.0, "pistil_eps"
 def area_per_point(points: np.ndarray, neighbours: int = AREA_NEIGHBOURS) -> float | None:
     """The median surface area one point of a sampled surface stands for, pi r_k^2 / k with
     r_k the distance to its k-th neighbour: the inverse of the surface's point density.
-    points: (N, 3), any unit; the result in that unit squared, None for fewer than 2 points."""
+    points: (N, 3), any unit; the result in that unit squared, None for fewer than 2 points.
+    Position noise comparable to r_k inflates it (the points fill a slab, not a surface):
+    `surface_area_per_point` counts at a radius that spans the noise."""
     if len(points) < 2:
         return None
     k = min(neighbours, len(points) - 1)
     reach = cKDTree(points).query(points, k=k + 1)[0][:, -1]
     return float(np.median(np.pi * reach ** 2 / k))
+
+
+#: Most points whose neighbours `surface_area_per_point` counts (an even subsample).
+DENSITY_SAMPLE = 2000
+#: ... at a radius of at least this many k-nearest-neighbour spacings.
+DENSITY_RADIUS_SPACINGS = 2.5
+
+
+def surface_area_per_point(points: np.ndarray, radius: float) -> float | None:
+    """The area a point of a sampled surface stands for, counted at a surface scale: pi R^2
+    over the median number of points within R of a point, R the larger of `radius` and
+    DENSITY_RADIUS_SPACINGS k-nearest-neighbour spacings. Unlike the k-nearest-neighbour
+    estimate at the scale of one spacing (`area_per_point`), position noise thinner than
+    R does not change it: what lies within R is the same surface, thickened. points: (N, 3),
+    any unit; None for fewer than 2 points."""
+    nearest = area_per_point(points)
+    if nearest is None:
+        return None
+    reach = max(radius, DENSITY_RADIUS_SPACINGS * float(np.sqrt(nearest)))
+    step = max(1, len(points) // DENSITY_SAMPLE)
+    counts = cKDTree(points).query_ball_point(points[::step], reach, return_length=True)
+    return float(np.pi * reach ** 2 / max(float(np.median(counts)), 1.0))
 
 
 def limit_scale(typical: float | None, band: tuple[float, float] | None) -> float:
@@ -136,27 +160,56 @@ def _count(stated: int, name: str, density: Density) -> int:
     return int(max(min(stated, COUNT_FLOORS[name]), round(stated * density.factor)))
 
 
-#: Most times the limits are re-sized to a cloud's flowers (`ClusterConfig.size_band_m`),
-#: each at the typical radius the grouping before measured.
+#: Most times the limits are re-sized to a cloud's flowers, each at the typical radius and
+#: point spacing the grouping before measured on them.
 SIZE_PASSES = 3
+#: Point spacings within this ratio of each other size the counts alike (no regrouping).
+SPACING_TOLERANCE = 1.15
 
 Result = TypeVar("Result")
 
 
-def sized_to_band(run: Callable[[float], tuple[Result, float | None]],
-                  band: tuple[float, float] | None) -> tuple[float, Result, float | None]:
-    """`run(scale)` (a stage at its metric limits times `scale`, returning its result and
-    the flower radius it measured) at the limits as stated, then again at the scale its
-    measured radius asks for (`limit_scale`), up to SIZE_PASSES times; a rescaled run that
-    measures no flower keeps the run before. Returns the scale, the result and its radius."""
-    scale = 1.0
-    result, size = run(scale)
+@dataclass(frozen=True)
+class Sizing:
+    """What a stage's limits are sized to: its flowers' size and its points' spacing."""
+
+    scale: float
+    """The metric limits' factor (`limit_scale`)."""
+    spacing: float | None
+    """The point spacing the counts and spacing floors follow (None: as stated)."""
+
+    def close_to(self, other: Sizing) -> bool:
+        if not np.isclose(self.scale, other.scale, rtol=1e-3):
+            return False
+        if self.spacing is None or other.spacing is None:
+            return self.spacing is other.spacing
+        ratio = self.spacing / other.spacing
+        return 1 / SPACING_TOLERANCE <= ratio <= SPACING_TOLERANCE
+
+
+def sized_to_cloud(run: Callable[[Sizing], tuple[Result, float | None, float | None]],
+                   band: tuple[float, float] | None, spacing: float | None
+                   ) -> tuple[Sizing, Result, float | None]:
+    """`run(sizing)` (a stage at its limits sized so, returning its result, the flower
+    radius it measured and the point spacing of the flowers it found) at the limits as
+    stated (or, where that finds no flower, at the whole cloud's `spacing`: a sparse
+    cloud), then again at what its flowers measured: the scale their radius asks for
+    (`limit_scale`) and their own spacing (a cloud's flowers are sampled more densely than
+    the specks of flower colour round them, which the whole cloud's spacing counts too),
+    up to SIZE_PASSES times; a rerun that finds no flower keeps the run before. Returns
+    the sizing, the result and its radius."""
+    sizing = Sizing(1.0, None)
+    result, size, measured = run(sizing)
+    if size is None and spacing is not None:
+        sizing = Sizing(1.0, spacing)
+        result, size, measured = run(sizing)
     for _ in range(SIZE_PASSES):
-        wanted = limit_scale(size, band)
-        if np.isclose(wanted, scale, rtol=1e-3):
+        wanted = Sizing(limit_scale(size, band), measured if measured is not None
+                        else sizing.spacing)
+        if wanted.close_to(sizing):
             break
-        resized, resized_size = run(wanted)
+        resized, resized_size, resized_spacing = run(wanted)
         if resized_size is None:
             break
-        scale, result, size = wanted, resized, resized_size
-    return scale, result, size
+        sizing, result, size, measured = wanted, resized, resized_size, resized_spacing
+    return sizing, result, size

@@ -19,7 +19,14 @@ from flowerpose.config import require
 from flowerpose.log import open3d
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.fit import principal_axes
-from flowerpose.pipeline.limits import Density, area_per_point, for_cloud, sized_to_band
+from flowerpose.pipeline.limits import (
+    Density,
+    Sizing,
+    area_per_point,
+    for_cloud,
+    sized_to_cloud,
+    surface_area_per_point,
+)
 
 
 @dataclass(frozen=True)
@@ -312,12 +319,25 @@ def pistil_clusters(points: np.ndarray, is_pistil: np.ndarray,
     return [index[order[edges[k]:edges[k + 1]]] for k in range(len(edges) - 1)]
 
 
+#: A candidate pistil with fewer points than this share of the largest among its
+#: neighbours is a fleck of yellow (a petal fold, a shaded rim, a yellowed sepal), not a
+#: receptacle: it neither splits a cluster nor orients a flower.
+MIN_PISTIL_SHARE = 0.1
+
+
+def substantial(pistils: list[np.ndarray]) -> list[np.ndarray]:
+    """The candidate pistils with at least MIN_PISTIL_SHARE of the largest one's points."""
+    largest = max((len(c) for c in pistils), default=0)
+    return [c for c in pistils if len(c) >= MIN_PISTIL_SHARE * largest]
+
+
 def the_pistil(points: np.ndarray, petal: np.ndarray, is_pistil: np.ndarray,
                config: ClusterConfig) -> np.ndarray | None:
-    """The candidate pistil (`pistil_clusters`) nearest the petal centroid (the centroid of
-    all the points when there are no petals), as indices into points (N, 3); None when
-    there is no candidate. petal, is_pistil: (N,) bool colour masks."""
-    pistils = pistil_clusters(points, is_pistil, config)
+    """The candidate pistil (`pistil_clusters`, flecks beside a receptacle left out:
+    `substantial`) nearest the petal centroid (the centroid of all the points when there
+    are no petals), as indices into points (N, 3); None when there is no candidate.
+    petal, is_pistil: (N,) bool colour masks."""
+    pistils = substantial(pistil_clusters(points, is_pistil, config))
     if not pistils:
         return None
     anchor = points[petal].mean(axis=0) if petal.any() else points.mean(axis=0)
@@ -387,11 +407,16 @@ def corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
     return Corolla(anchor, chosen is not None, disc_radius(distance), coverage)
 
 
-def typical_radius(corollas: list[Corolla], config: ClusterConfig) -> float | None:
-    """The median radius of the corollas that pass the coverage test: the flower size of
-    this cloud, in its unit (None when none passes)."""
-    radii = [c.radius for c in corollas if c.coverage >= config.min_coverage]
-    return float(np.median(radii)) if radii else None
+def typical_radius(corollas: list[Corolla], config: ClusterConfig,
+                   points: list[int] | None = None) -> float | None:
+    """The median radius of the corollas that pass the coverage test, each counted by its
+    `points` (once each without): the flower size of this cloud, in its unit (None when
+    none passes). Counted by points, the typical flower is the one a typical flower point
+    belongs to: a cloud's many specks of sheen, each a dozen points, do not outvote its
+    flowers of hundreds."""
+    passed = [k for k, c in enumerate(corollas) if c.coverage >= config.min_coverage]
+    weights = [1 if points is None else points[k] for k in passed]
+    return _weighted_median([corollas[k].radius for k in passed], weights)
 
 
 @dataclass(frozen=True)
@@ -441,17 +466,22 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     flower_coloured = candidates[white[candidates] | centre[candidates]]
     if config.candidates == "flower_colour":
         candidates = flower_coloured
-    spacing = cloud_spacing(plant.points[flower_coloured], config)
+    flower = white | centre
 
-    def at(scale: float) -> tuple[tuple[list[np.ndarray], float | None, ClusterConfig,
-                                        Density], float | None]:
-        sized_outliers, sized, density = for_cloud(outliers, config, scale, spacing)
+    def at(sizing: Sizing) -> tuple[tuple[list[np.ndarray], float | None, ClusterConfig,
+                                          Density], float | None, float | None]:
+        sized_outliers, sized, density = for_cloud(outliers, config, sizing.scale,
+                                                   sizing.spacing)
+        area = None if sizing.spacing is None else sizing.spacing ** 2
         clusters, typical, size = _group(plant, candidates, white, centre, sized_outliers,
-                                         sized, None if spacing is None else spacing ** 2)
-        return (clusters, typical, sized, density), size
+                                         sized, area)
+        members = np.concatenate([np.zeros(0, np.int64), *clusters])
+        return ((clusters, typical, sized, density), size,
+                cloud_spacing(plant.points[members[flower[members]]], sized))
 
-    scale, (clusters, typical, applied, density), size = sized_to_band(at, config.size_band_m)
-    return Grouping(clusters, typical, size, scale, density, applied)
+    sizing, (clusters, typical, applied, density), size = sized_to_cloud(
+        at, config.size_band_m, cloud_spacing(plant.points[flower_coloured], config))
+    return Grouping(clusters, typical, size, sizing.scale, density, applied)
 
 
 def cloud_spacing(points: np.ndarray, config: ClusterConfig) -> float | None:
@@ -460,7 +490,7 @@ def cloud_spacing(points: np.ndarray, config: ClusterConfig) -> float | None:
     density is not to size them (`density_reference` unset) or too few points measure it."""
     if config.density_reference is None:
         return None
-    area = area_per_point(points)
+    area = surface_area_per_point(points, config.eps)
     return None if area is None or area <= 0 else float(np.sqrt(area))
 
 
@@ -485,7 +515,8 @@ def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.n
                 or white[members].mean() < config.min_white_fraction):
             continue
         points = plant.points[members]
-        split = (split_by_centres(points, _splitting_centres(points, centre[members], config),
+        split = (split_by_centres(points, substantial(pistil_clusters(points, centre[members],
+                                                                      config)),
                                   config.split_min_separation_m, config.split_link_m)
                  if config.split_touching else np.zeros(len(members), np.int64))
         parts.extend(part for part in (members[split == j] for j in range(split.max() + 1))
@@ -495,7 +526,8 @@ def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.n
         return corolla(plant.points[part], white[part], centre[part], config, cloud_area)
 
     corollas = [analyse(part) for part in parts]
-    typical = typical_radius(corollas, config)
+    counts = [len(part) for part in parts]
+    typical = typical_radius(corollas, config, counts)
     if typical is None:
         return [], None, None
     flowers, radii = [], []
@@ -520,20 +552,6 @@ def _weighted_median(values: list[float], weights: list[int]) -> float | None:
     order = np.argsort(values)
     cumulative = np.cumsum(np.asarray(weights, np.float64)[order])
     return float(np.asarray(values)[order][np.searchsorted(cumulative, cumulative[-1] / 2)])
-
-
-#: A candidate centre with fewer points than this share of the cluster's largest one does
-#: not split it: a fleck of yellow on a petal fold or a shaded rim, not a second receptacle.
-SPLIT_MIN_CENTRE_SHARE = 0.1
-
-
-def _splitting_centres(points: np.ndarray, is_pistil: np.ndarray,
-                       config: ClusterConfig) -> list[np.ndarray]:
-    """The candidate pistils (`pistil_clusters`) that may split a cluster between them:
-    each at least SPLIT_MIN_CENTRE_SHARE of the largest."""
-    centres = pistil_clusters(points, is_pistil, config)
-    largest = max((len(c) for c in centres), default=0)
-    return [c for c in centres if len(c) >= SPLIT_MIN_CENTRE_SHARE * largest]
 
 
 def split_by_centres(points: np.ndarray, centres: list[np.ndarray], min_separation: float,
