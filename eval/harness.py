@@ -479,19 +479,24 @@ def _score_job(job: tuple, config: EvalConfig, out_dir: Path,
     return evaluate_cloud(cloud_path, truth_path, config, out_dir / "plants" / name, name, cache)
 
 
-def _real_jobs(folders: list[Path],
-               truth_scale: float | None) -> tuple[list[tuple], list[dict]]:
-    """A scoring job per real plant folder (checked first, named uniquely), and what each
-    folder holds for the report's config."""
+def real_plants(folders: list[Path], truth_scale: float | None) -> list:
+    """The real plant folders, checked (`read_real_plant`), each named uniquely."""
     from flowerpose.eval.real_source import read_real_plant
 
     if not folders:
         raise InputError("source", "real needs at least one labelled plant folder: "
                          "flowerpose eval --source real DIR [DIR ...]")
     plants = [read_real_plant(folder, truth_scale) for folder in folders]
-    jobs = [("real", name, plant)
+    return [dataclasses.replace(plant, name=name)
             for name, plant in zip(_unique([p.name for p in plants]), plants, strict=True)]
-    return jobs, [p.describe() for p in plants]
+
+
+def _real_jobs(folders: list[Path],
+               truth_scale: float | None) -> tuple[list[tuple], list[dict]]:
+    """A scoring job per real plant folder (checked first, named uniquely), and what each
+    folder holds for the report's config."""
+    plants = real_plants(folders, truth_scale)
+    return [("real", plant.name, plant) for plant in plants], [p.describe() for p in plants]
 
 
 def _unique(names: list[str]) -> list[str]:

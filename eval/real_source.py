@@ -197,28 +197,36 @@ def merged_candidates(paths: tuple[Path, ...], units: Units) -> Cloud:
                  np.concatenate([c.colors for c in clouds]))
 
 
+def read_plant_clouds(plant: RealPlant) -> list[Cloud]:
+    """The folder's clouds as read: cloud.ply, each candidates file, or each crop."""
+    return [read_cloud(p, units=plant.units) for p in plant.clouds]
+
+
 def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,
-                        max_distance: float) -> tuple[dict, dict[str, float]]:
+                        max_distance: float, clouds: list[Cloud] | None = None,
+                        drop_views: tuple[int, ...] = ()) -> tuple[dict, dict[str, float]]:
     """Run the pipeline from the stage the folder's data allows, write flowers.json to
     out_dir, and score it against the labels; returns the report's plant entry (with its
-    stage) and the stage timings."""
+    stage) and the stage timings. `clouds`: the folder's clouds as `read_plant_clouds`
+    gives them, perhaps changed (`flowerpose stress`); None reads them. `drop_views`: grid
+    views whose detections are left out, for a whole cloud."""
     truth = real_truth(plant)
+    clouds = read_plant_clouds(plant) if clouds is None else clouds
     if plant.stage == "crops":
-        crops = [read_cloud(p, units=plant.units) for p in plant.clouds]
-        _check_scale(plant, truth, np.concatenate([c.points for c in crops]), max_distance)
-        poses, timing = pose_crops(crops, config)
+        _check_scale(plant, truth, np.concatenate([c.points for c in clouds]), max_distance)
+        poses, timing = pose_crops(clouds, config)
         flowers = {"flowers": [{"id": k, "crop": p.name, **pose.to_json()}
                                for k, (p, pose) in enumerate(zip(plant.clouds, poses,
                                                                  strict=True))],
                    "timing_s": timing}
         write_json(out_dir / "flowers.json", flowers_document(flowers, plant.folder, "cloud"))
     else:
-        cloud = (read_cloud(plant.clouds[0], units=plant.units) if plant.stage == "cloud"
-                 else merged_candidates(plant.clouds, plant.units))
+        cloud = clouds[0] if plant.stage == "cloud" else Cloud(
+            np.concatenate([c.points for c in clouds]), np.concatenate([c.colors for c in clouds]))
         _check_scale(plant, truth, cloud.points, max_distance)
         # A real cloud is in its scanner's frame: its up is not known to be z.
-        result = (find_flowers(cloud, config, up=None) if plant.stage == "cloud"
-                  else find_flowers_in_candidates(cloud, config))
+        result = (find_flowers(cloud, config, up=None, drop_views=drop_views)
+                  if plant.stage == "cloud" else find_flowers_in_candidates(cloud, config))
         write_flowers(out_dir / "flowers.json", result, plant.folder, "cloud")
         poses, timing = [f.pose for f in result.flowers], dict(result.timing_s)
     watch = Stopwatch()

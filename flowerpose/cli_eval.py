@@ -388,3 +388,130 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     add_cache_options(p)
     add_config_options(p, detector=False)
     p.set_defaults(func=cmd_bench)
+
+
+def _numbers(what: str):
+    """An argparse type: a comma-separated list of numbers."""
+    def parse(text: str) -> list[float]:
+        try:
+            values = [float(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: {what} as numbers separated by "
+                                             "commas") from None
+        if not values:
+            raise argparse.ArgumentTypeError(f"{text!r}: no {what}")
+        return values
+    return parse
+
+
+def _texts(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def cmd_stress(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config, real_plants
+    from flowerpose.eval.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
+
+    if args.folders and args.source != "real":
+        raise InputError(args.folders[0], "plant folders are for --source real")
+    config = eval_config(args.preset, lambda base: configure(base, args))
+    levels = {kind: getattr(args, kind) if getattr(args, kind) is not None
+              else list(DEFAULT_LEVELS[kind]) for kind in DEFAULT_LEVELS}
+    if args.source == "real":
+        views = min(len(p.clouds) if p.stage == "candidates" else config.grid.views
+                    for p in real_plants(args.folders, args.truth_scale)
+                    if p.stage != "crops") if any(
+            True for _ in args.folders) else 0
+    else:
+        views = config.grid.views
+    drop = views if args.drop_views == "all" else int(args.drop_views)
+    if drop > views:
+        raise InputError("--drop-views", f"{drop}: there are {views} views to drop")
+    capture = {k: v for k, v in (("frames", args.frames), ("resolution", args.resolution)) if v}
+    for value in capture.get("resolution", []):
+        width, _, height = value.partition("x")
+        if not (width.isdigit() and height.isdigit()):
+            raise InputError("--resolution", f"{value!r}: WIDTHxHEIGHT in pixels, e.g. 640x360")
+    for value in capture.get("frames", []):
+        if not value.isdigit():
+            raise InputError("--frames", f"{value!r}: a whole number of frames")
+    plan = plan_from(levels, args.channels, drop, capture, args.repeats, args.stress_seed)
+    cache = stage_cache(args)
+    with owned(args.out, "stress", args.overwrite, STRESS_FILES), jobs_on(args):
+        report = run_stress(config, plan, args.out, args.source, args.folders, args.plants,
+                            args.seed, args.workers, cache, args.truth_scale)
+    if cache is not None and args.source != "real":
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
+    from flowerpose.eval.stress import stress_markdown
+
+    print(stress_markdown(report).split("\n\n", 2)[2].split("\n\n")[0])
+    print(f"stress: {args.out / 'stress.json'}, {args.out / 'stress.md'}, "
+          f"{args.out / 'stress.png'}, {args.out / 'report.html'}")
+    return 0
+
+
+def add_stress(sub: argparse._SubParsersAction) -> None:
+    """The `stress` subcommand's parser."""
+    from flowerpose.eval.stress import DEFAULT_LEVELS
+
+    def levels(kind: str) -> str:
+        return ",".join(f"{v:g}" for v in DEFAULT_LEVELS[kind])
+
+    p = sub.add_parser(
+        "stress", help="the robustness report: the pipeline over perturbed clouds",
+        description="Run the pipeline on each plant as it is and under seeded perturbations "
+        "of its cloud (thinned, darker or brighter, a colour cast, position noise, a view "
+        "left out; for --source scan also fewer frames and a lower resolution), scored "
+        "against the same truth. Writes stress.json, stress.md, stress.png (a panel per "
+        "perturbation: recall and plane error against its strength) and report.html.",
+        epilog="examples:\n"
+        "  flowerpose stress --source oracle --plants 3 --out stress-oracle\n"
+        "  flowerpose stress --source real ../shared/real/paper-plant-3 --repeats 3 "
+        "--out stress-real")
+    p.add_argument("--source", choices=("oracle", "scan", "rgbd", "real"), default="oracle",
+                   help="where the clouds come from, as for eval (default: %(default)s)")
+    p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
+                   help="--source real: labelled plant folders")
+    p.add_argument("--truth-scale", type=positive_number, default=None, metavar="K",
+                   help="--source real: the labels' scale, no unit (default: each folder's "
+                   "source.json, else 25 for SageMaker labels)")
+    p.add_argument("--plants", type=PLANTS, default=3, metavar="N",
+                   help="seeded synthetic plants (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (default: %(default)s)")
+    add_preset(p)
+    p.add_argument("--thin", type=_numbers("fractions"), metavar="F,...",
+                   help="fractions of the points kept, 0-1 (default: "
+                   f"{levels('thin')})")
+    p.add_argument("--exposure", type=_numbers("factors"), metavar="K,...",
+                   help="factors on linear light (default: "
+                   f"{levels('exposure')})")
+    p.add_argument("--cast", type=_numbers("changes"), metavar="C,...",
+                   help="relative changes of one channel's linear light, each on every "
+                   f"--channels (default: {levels('cast')})")
+    p.add_argument("--channels", default="rgb", choices=("r", "g", "b", "rg", "rb", "gb", "rgb"),
+                   help="the channels a cast acts on, one at a time (default: %(default)s)")
+    p.add_argument("--noise", type=_numbers("standard deviations"), metavar="M,...",
+                   help="Gaussian position noise, standard deviation in the cloud's unit "
+                   f"(metres) (default: {levels('noise')})")
+    p.add_argument("--drop-views", default="all", metavar="N|all",
+                   choices=["all", *(str(k) for k in range(27))],
+                   help="leave out each of the first N views in turn (a real plant's "
+                   "candidates files, else grid views); 0: none (default: %(default)s)")
+    p.add_argument("--frames", type=_texts, metavar="N,...",
+                   help="--source scan: frames chosen for photogrammetry (default: none)")
+    p.add_argument("--resolution", type=_texts, metavar="WxH,...",
+                   help="--source scan: camera resolutions, pixels (default: none)")
+    p.add_argument("--repeats", type=POSITIVE, default=1, metavar="N",
+                   help="seeded repeats of each random perturbation (thinning, noise) "
+                   "(default: %(default)s)")
+    p.add_argument("--stress-seed", type=SEED, default=0, metavar="S",
+                   help="seed of the perturbations (default: %(default)s)")
+    add_workers(p)
+    add_output(p, "folder for stress.json, stress.md, stress.png and report.html")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p)
+    p.set_defaults(func=cmd_stress)

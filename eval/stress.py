@@ -1,0 +1,506 @@
+"""The robustness report (`flowerpose stress`): the pipeline over seeded perturbations of its
+clouds, scored against the same truth, against the perturbation's strength.
+
+Each plant (a real plant folder, or a synthetic plant's cloud from any `eval` source) runs
+once as it is (the baseline) and once per perturbation and repeat (`flowerpose/perturb.py`
+says what each does and in what unit). For a real plant's candidates each file is thinned
+on its own (a seeded uniform subsample of each, as a coarser scan would give every view),
+a dropped view is one candidates file left out, and colour and noise act on the merged
+points; for a whole cloud a dropped view is one grid view's detections left out. For the
+scan source the capture's own knobs are perturbations too: fewer frames chosen
+(`scan.frames`) and a lower image resolution (`scan.width` x `scan.height`), each filmed
+and reconstructed once (stage cache).
+
+Writes stress.json (every row: the perturbation, its repeats, the summary as report.json's,
+flipped normals and the median points per flower found), stress.md, stress.png (a panel
+per perturbation kind: recall of visible flowers and plane error against the strength,
+the unperturbed values marked) and report.html (the same, interactive).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flowerpose.atomic import write_figure, write_text
+from flowerpose.cloudio import Cloud, read_cloud
+from flowerpose.config import to_dict
+from flowerpose.errors import InputError
+from flowerpose.eval.report import markdown_table, run_record, summarise
+from flowerpose.eval.runner import run_jobs
+from flowerpose.jsonio import read_json, write_json
+from flowerpose.perturb import KINDS, UNITS, Perturbation, perturb
+from flowerpose.stopwatch import Stopwatch
+
+#: The default strengths of each perturbation: thinning through the envelope's lower
+#: bound (50 points a flower) and beyond, exposure and a cast of one channel at the
+#: envelope's bounds and inside, position noise up to its bound (metres).
+DEFAULT_LEVELS: dict[str, tuple[float, ...]] = {
+    "thin": (0.5, 0.2, 0.1, 0.05), "exposure": (0.6, 0.8, 1.3), "cast": (-0.15, 0.15),
+    "noise": (0.0005, 0.001, 0.0015)}
+#: The operating envelope's bound of each perturbation (DESIGN.md, "The operating
+#: envelope"): stress.md marks the rows at it.
+ENVELOPE_BOUNDS: dict[str, tuple[float, ...]] = {
+    "exposure": (0.6, 1.3), "cast": (-0.15, 0.15), "noise": (0.0015,)}
+#: Capture knobs of the scan source (`scan.frames`, `scan.width` x `scan.height`).
+CAPTURE_KINDS = ("frames", "resolution")
+#: The strength at which each perturbation leaves a cloud as it is: the unperturbed run's
+#: place on its kind's curve.
+IDENTITY = {"thin": 1.0, "exposure": 1.0, "cast": 0.0, "noise": 0.0}
+#: A plane error beyond this is a flipped normal, degrees.
+FLIPPED_DEG = 90.0
+#: What stress writes into its --out folder.
+STRESS_FILES = ("stress.json", "stress.md", "stress.png", "report.html", "plants", "runs")
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One thing a plant is run under: a cloud perturbation, a scan capture's knob, or
+    neither (the baseline)."""
+
+    perturbation: Perturbation | None = None
+    capture: tuple[str, str] | None = None
+    """("frames", "100") or ("resolution", "640x360"): a scan capture setting."""
+
+    @property
+    def label(self) -> str:
+        if self.perturbation is not None:
+            return self.perturbation.label
+        if self.capture is not None:
+            return f"{self.capture[0]} {self.capture[1]}"
+        return "none"
+
+    @property
+    def kind(self) -> str:
+        if self.perturbation is not None:
+            return self.perturbation.kind
+        return self.capture[0] if self.capture is not None else "none"
+
+    @property
+    def value(self) -> float:
+        if self.perturbation is not None:
+            return self.perturbation.value
+        if self.capture is None:
+            return math.nan
+        kind, text = self.capture
+        return float(text) if kind == "frames" else float(text.split("x")[0])
+
+    def to_json(self) -> dict:
+        if self.perturbation is not None:
+            return self.perturbation.to_json()
+        if self.capture is not None:
+            unit = "frames chosen" if self.capture[0] == "frames" else "width x height, pixels"
+            return {"kind": self.capture[0], "value": self.capture[1], "unit": unit}
+        return {"kind": "none"}
+
+
+@dataclass(frozen=True)
+class StressPlan:
+    """What `flowerpose stress` runs."""
+
+    variants: tuple[Variant, ...]
+    """Every perturbation or capture knob, the baseline left out (it always runs)."""
+    repeats: int = 1
+    """Seeded repeats of each random perturbation (thinning, noise)."""
+    seed: int = 0
+    """Seed of the perturbations (each plant, perturbation and repeat draws its own)."""
+
+    def __post_init__(self):
+        if self.repeats < 1:
+            raise InputError("repeats", f"must be at least 1, got {self.repeats}")
+
+
+def plan_from(levels: dict[str, list[float]], channels: str = "rgb", drop_views: int = 0,
+              capture: dict[str, list[str]] | None = None, repeats: int = 1,
+              seed: int = 0) -> StressPlan:
+    """A plan from the strengths of each kind (`DEFAULT_LEVELS`' keys), the channels a cast
+    acts on, how many views are dropped one at a time (the first `drop_views`), and the
+    scan capture's knobs (frames, resolution)."""
+    variants: list[Variant] = []
+    for kind in KINDS:
+        if kind == "drop_view":
+            variants += [Variant(Perturbation("drop_view", k)) for k in range(drop_views)]
+            continue
+        for value in levels.get(kind, ()):
+            if kind == "cast":
+                variants += [Variant(Perturbation("cast", value, c)) for c in channels]
+            else:
+                variants.append(Variant(Perturbation(kind, value)))  # type: ignore[arg-type]
+    for kind, values in (capture or {}).items():
+        if kind not in CAPTURE_KINDS:
+            raise InputError(kind, f"not a capture knob ({', '.join(CAPTURE_KINDS)})")
+        variants += [Variant(capture=(kind, v)) for v in values]
+    variants = [v for v in variants if v.perturbation is None or not v.perturbation.is_identity()]
+    return StressPlan(tuple(variants), repeats, seed)
+
+
+def _random(variant: Variant) -> bool:
+    return variant.kind in ("thin", "noise")
+
+
+def _rng(seed: int, plant: str, variant: Variant, repeat: int) -> np.random.Generator:
+    """Each plant, perturbation and repeat's own generator, the same on every run."""
+    return np.random.default_rng([seed, repeat, zlib.crc32(plant.encode()),
+                                  zlib.crc32(variant.label.encode())])
+
+
+def perturbed_real(clouds: list[Cloud], stage: str, variant: Variant,
+                   rng: np.random.Generator) -> tuple[list[Cloud], tuple[int, ...]]:
+    """A real plant's clouds (as `read_plant_clouds` gives them) under a variant, and the
+    grid views to leave out: candidates thinned file by file, a dropped view one file left
+    out (a whole cloud: that grid view's detections), colour and noise on the merged
+    points; crops each on its own."""
+    p = variant.perturbation
+    if p is None:
+        return clouds, ()
+    if p.kind == "drop_view":
+        if stage == "cloud":
+            return clouds, (int(p.value),)
+        if stage == "crops" or int(p.value) >= len(clouds):
+            raise InputError("drop_view", f"view {int(p.value)}: the plant has "
+                             f"{len(clouds)} {stage} files" if stage == "candidates" else
+                             "crops hold one flower each: no view to drop")
+        return [c for k, c in enumerate(clouds) if k != int(p.value)], ()
+    if p.kind == "thin" or stage != "candidates":
+        return [perturb(c, p, rng) for c in clouds], ()
+    merged = Cloud(np.concatenate([c.points for c in clouds]),
+                   np.concatenate([c.colors for c in clouds]))
+    return [perturb(merged.subset(merged.first_copies()), p, rng)], ()
+
+
+def _real_job(plant: Any, variant: Variant, repeat: int, config: Any, out_dir: Path,
+              seed: int) -> dict:
+    from flowerpose.eval.real_source import evaluate_real_plant, read_plant_clouds
+
+    clouds, drop = perturbed_real(read_plant_clouds(plant), plant.stage, variant,
+                                  _rng(seed, plant.name, variant, repeat))
+    entry, timing = evaluate_real_plant(plant, config.pipeline, out_dir, config.max_distance,
+                                        clouds, drop)
+    return {"entry": entry, "points": _points_per_flower(out_dir / "flowers.json")}
+
+
+def _synthetic_job(name: str, cloud_path: Path, truth_path: Path, variant: Variant,
+                   repeat: int, config: Any, out_dir: Path, seed: int,
+                   cache: Path | None) -> dict:
+    """One synthetic plant's cloud under a cloud perturbation (or as captured), detected and
+    scored; from the stage cache when the same cloud, truth, perturbation and settings
+    were run before."""
+
+    def compute() -> dict:
+        from flowerpose.eval.match import score_plant
+        from flowerpose.eval.report import plant_entry
+        from flowerpose.eval.truth import as_labelled, read_plant_truth
+        from flowerpose.pipeline.flowers import find_flowers, write_flowers
+
+        cloud = read_cloud(cloud_path)
+        drop: tuple[int, ...] = ()
+        p = variant.perturbation
+        if p is not None and p.kind == "drop_view":
+            drop = (int(p.value),)
+        elif p is not None:
+            cloud = perturb(cloud, p, _rng(seed, name, variant, repeat))
+        result = find_flowers(cloud, config.pipeline, drop_views=drop)
+        write_flowers(out_dir / "flowers.json", result, cloud_path)
+        truth = read_plant_truth(truth_path)
+        if config.label_error_deg > 0:
+            truth = as_labelled(truth, config.label_error_deg, name)
+        entry = plant_entry(name, score_plant([f.pose for f in result.flowers], truth,
+                                              config.max_distance))
+        return {"entry": entry, "points": _points_per_flower(out_dir / "flowers.json")}
+
+    if cache is None:
+        return compute()
+    from flowerpose.cache import StageCache
+
+    settings = {"pipeline": to_dict(config.pipeline), "variant": variant.to_json(),
+                "repeat": repeat, "seed": seed, "plant": name,
+                "max_distance": config.max_distance, "label_error_deg": config.label_error_deg}
+    result, _, _ = StageCache(cache).run("stress", settings, [cloud_path, truth_path], out_dir,
+                                         ("flowers.json",), compute)
+    return result
+
+
+def _points_per_flower(flowers_json: Path) -> float | None:
+    """The median points of the flowers a run found (its density as the pipeline saw it)."""
+    points = [f.get("points") for f in read_json(flowers_json).get("flowers", [])]
+    points = [p for p in points if isinstance(p, int)]
+    return float(np.median(points)) if points else None
+
+
+@dataclass(frozen=True)
+class JobConfig:
+    """What every stress job shares: the pipeline's settings and the scoring's."""
+
+    pipeline: Any
+    max_distance: float
+    label_error_deg: float = 0.0
+
+
+def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
+               folders: list[Path] = (), plants: int = 3, seed: int = 0,
+               workers: int | None = None, cache: Path | None = None,
+               truth_scale: float | None = None) -> dict:
+    """The robustness report of real plant `folders` (source "real") or `plants` seeded
+    synthetic plants from `source`: writes stress.json, stress.md, stress.png and
+    report.html to out_dir and returns stress.json's content. `config`: an EvalConfig."""
+    from flowerpose.eval.harness import pipeline_part
+
+    watch = Stopwatch()
+    jobs_config = JobConfig(pipeline_part(config), config.score.max_distance_m,
+                            config.score.label_error_deg if source != "real" else 0.0)
+    variants = (Variant(),) + plan.variants
+    capture = [v for v in variants if v.capture is not None]
+    if capture and source != "scan":
+        raise InputError(capture[0].kind, "a capture knob needs --source scan")
+    runs = out_dir / "runs"
+    if source == "real":
+        subjects, run_config = _real_subjects(folders, truth_scale)
+        keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
+        job_args = [(plant, v, r, jobs_config, runs / _folder(v, r) / plant.name, plan.seed)
+                    for v, r in keyed for plant in subjects]
+        results = run_jobs(_real_job, job_args, workers, _describe(job_args),
+                           stage="stress", labels=[a[0].name for a in job_args])
+        names = [plant.name for plant in subjects]
+    else:
+        clouds = _synthetic_clouds(config, source, plants, seed, out_dir, workers, cache,
+                                   [v for v in variants if v.capture is not None])
+        run_config = {"source": source, "plants": plants, "seed": seed,
+                      "preset": config.sim.plant.name}
+        names = [f"seed-{s}" for s in range(seed, seed + plants)]
+        keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
+        job_args = [(name, *clouds[(v.capture, name)], v, r, jobs_config,
+                     runs / _folder(v, r) / name, plan.seed, cache)
+                    for v, r in keyed for name in names]
+        results = run_jobs(_synthetic_job, job_args, workers, _describe(job_args),
+                           stage="stress", labels=[a[0] for a in job_args])
+    rows = _rows(keyed, names, results)
+    report = {"run": run_record(), "config": {**run_config, "repeats": plan.repeats,
+                                              "stress_seed": plan.seed,
+                                              "pipeline": to_dict(jobs_config.pipeline)},
+              "baseline": rows[0], "rows": rows[1:], "seconds": round(watch.elapsed(), 2)}
+    write_json(out_dir / "stress.json", report)
+    write_text(out_dir / "stress.md", stress_markdown(report))
+    _write_figure(out_dir / "stress.png", report)
+    _write_html(out_dir / "report.html", report)
+    return report
+
+
+def _folder(variant: Variant, repeat: int) -> str:
+    return variant.label.replace(" ", "_") + (f"-r{repeat}" if repeat else "")
+
+
+def _describe(job_args: list[tuple]):
+    def describe(k: int, value: dict) -> str:
+        args = job_args[k]
+        name = args[0] if isinstance(args[0], str) else args[0].name
+        variant = next(a for a in args if isinstance(a, Variant))
+        entry = value["entry"]
+        return (f"{variant.label}: {name}: {entry['found_visible']}/{entry['visible']} found, "
+                f"{entry['fp']} fp")
+    return describe
+
+
+def _real_subjects(folders: list[Path], truth_scale: float | None) -> tuple[list, dict]:
+    from flowerpose.eval.harness import real_plants
+
+    plants = real_plants(folders, truth_scale)
+    return plants, {"source": "real", "folders": [p.describe() for p in plants]}
+
+
+def _synthetic_clouds(config: Any, source: str, plants: int, seed: int, out_dir: Path,
+                      workers: int | None, cache: Path | None, capture: list[Variant]
+                      ) -> dict[tuple, tuple[Path, Path]]:
+    """(capture knob or None, plant name) -> (cloud, truth): the plants generated once, and
+    captured once per capture setting (its own plants folder)."""
+    from flowerpose.eval.harness import capture_clouds, generate_plants
+
+    if plants < 1:
+        raise InputError("plants", f"must be at least 1, got {plants}")
+    seeds = list(range(seed, seed + plants))
+    found: dict[tuple, tuple[Path, Path]] = {}
+    for variant in [Variant(), *capture]:
+        base = out_dir / "plants" / (_folder(variant, 0) if variant.capture else "as-captured")
+        varied = config if variant.capture is None else _with_capture(config, variant.capture)
+        generate_plants(seeds, varied.sim, base, workers, cache)
+        clouds = capture_clouds(varied, source, {s: base / f"seed-{s}" for s in seeds},
+                                workers, cache)[0]
+        for s in seeds:
+            found[(variant.capture, f"seed-{s}")] = clouds[s]
+    return found
+
+
+def _with_capture(config: Any, capture: tuple[str, str]) -> Any:
+    kind, text = capture
+    if kind == "frames":
+        return dataclasses.replace(config, scan=dataclasses.replace(config.scan,
+                                                                    frames=int(text)))
+    width, height = (int(v) for v in text.split("x"))
+    return dataclasses.replace(config, scan=dataclasses.replace(config.scan, width=width,
+                                                                height=height))
+
+
+def _rows(keyed: list[tuple[Variant, int]], names: list[str], results: list[dict]) -> list[dict]:
+    """A row per variant (the baseline first): its repeats' plants summarised together."""
+    rows, k = [], 0
+    by_variant: dict[str, dict] = {}
+    for variant, _ in keyed:
+        chunk = results[k:k + len(names)]
+        k += len(names)
+        row = by_variant.setdefault(variant.label, {"variant": variant, "entries": [],
+                                                    "points": []})
+        row["entries"] += [c["entry"] for c in chunk]
+        row["points"] += [c["points"] for c in chunk if c["points"] is not None]
+    for label, row in by_variant.items():
+        entries = row["entries"]
+        plane = [e for p in entries for e in p["error_deg"]["plane"]]
+        rows.append({"label": label, "perturbation": row["variant"].to_json(),
+                     "repeats": len(entries) // len(names), "summary": summarise(entries),
+                     "flipped": sum(e > FLIPPED_DEG for e in plane),
+                     "points_per_flower": (round(float(np.median(row["points"])), 1)
+                                           if row["points"] else None),
+                     "plants": [{"plant": e["plant"], "found_visible": e["found_visible"],
+                                 "visible": e["visible"], "fp": e["fp"],
+                                 "plane": e["error_deg"]["plane"]} for e in entries]})
+    return rows
+
+
+def _cells(row: dict, baseline: dict) -> list[str]:
+    summary = row["summary"]
+    plane = summary["error_deg"]["plane"]
+    recall = summary["recall_visible"]
+    base = baseline["summary"]["recall_visible"]
+    relative = "-" if not base or recall is None else f"{recall / base:.2f}"
+    return [row["label"], str(row["repeats"]), f"{summary['found_visible']}/{summary['visible']}",
+            "-" if recall is None else f"{recall:.3f}", relative, str(summary["fp"]),
+            "-" if plane["mean"] is None else f"{plane['mean']:.2f}°",
+            "-" if plane["median"] is None else f"{plane['median']:.2f}°",
+            str(row["flipped"]),
+            "-" if row["points_per_flower"] is None else f"{row['points_per_flower']:g}"]
+
+
+def stress_markdown(report: dict) -> str:
+    """stress.md: the table of every perturbation against the baseline."""
+    header = ["perturbation", "repeats", "found (visible)", "recall", "of baseline", "FP",
+              "plane mean", "plane median", "flipped", "points a flower"]
+    rows = [_cells(report["baseline"], report["baseline"])]
+    rows += [_cells(row, report["baseline"]) for row in report["rows"]]
+    config = report["config"]
+    what = (", ".join(f["folder"] for f in config["folders"]) if config["source"] == "real"
+            else f"{config['plants']} {config['preset']} plants from seed {config['seed']}, "
+            f"{config['source']} clouds")
+    units = "; ".join(f"{k}: {v}" for k, v in UNITS.items())
+    bounds = ", ".join(f"{k} {'/'.join(f'{v:g}' for v in vs)}"
+                       for k, vs in ENVELOPE_BOUNDS.items())
+    return (f"# flowerpose stress\n\n{what}; `{report['run']['command']}` "
+            f"({report['run']['date']}, {report['seconds']} s).\n\n"
+            f"{markdown_table(header, rows, [1])}\n\nValues: {units}. The operating "
+            f"envelope's bounds: {bounds}; its density bound is 50 points a flower. A plane "
+            f"error over {FLIPPED_DEG:g}° is a flipped normal. \"of baseline\" is the "
+            "recall over the unperturbed recall.\n")
+
+
+def _series(report: dict) -> dict[str, list[dict]]:
+    """The rows by kind, each kind's rows in order of strength."""
+    kinds: dict[str, list[dict]] = {}
+    for row in report["rows"]:
+        kinds.setdefault(row["perturbation"]["kind"], []).append(row)
+    return kinds
+
+
+def _x(row: dict) -> float:
+    p = row["perturbation"]
+    value = p["value"]
+    if isinstance(value, str):
+        return float(value.split("x")[0])
+    return float(value)
+
+
+def _write_figure(path: Path, report: dict) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kinds = _series(report)
+    base = report["baseline"]["summary"]
+    figure, axes = plt.subplots(1, max(1, len(kinds)), figsize=(4.2 * max(1, len(kinds)), 3.6),
+                                squeeze=False)
+    for axis, (kind, rows) in zip(axes[0], kinds.items(), strict=False):
+        groups: dict[str, list[dict]] = {}
+        for row in rows:
+            groups.setdefault(row["perturbation"].get("channel", ""), []).append(row)
+        error_axis = axis.twinx()
+        for channel, members in groups.items():
+            if kind in IDENTITY:
+                members = [*members, {**report["baseline"], "perturbation": {
+                    "kind": kind, "value": IDENTITY[kind]}}]
+            members = sorted(members, key=_x)
+            xs = [_x(r) for r in members]
+            name = f" {channel}" if channel else ""
+            axis.plot(xs, [r["summary"]["recall_visible"] or 0 for r in members], "o-",
+                      color="tab:blue", label=f"recall{name}")
+            error_axis.plot(xs, [r["summary"]["error_deg"]["plane"]["mean"] or np.nan
+                                 for r in members], "s--", color="tab:red",
+                            label=f"plane{name}")
+        axis.axhline(base["recall_visible"] or 0, color="tab:blue", lw=0.8, ls=":")
+        if base["error_deg"]["plane"]["mean"] is not None:
+            error_axis.axhline(base["error_deg"]["plane"]["mean"], color="tab:red", lw=0.8,
+                               ls=":")
+        axis.set_ylim(0, 1.05)
+        error_axis.set_ylim(bottom=0)
+        axis.set_xlabel(f"{kind} ({_unit(rows[0])})")
+        axis.set_ylabel("recall of visible flowers", color="tab:blue")
+        error_axis.set_ylabel("plane error mean, degrees", color="tab:red")
+        axis.set_title(f"{kind} (dotted: unperturbed)")
+    figure.tight_layout()
+    written = write_figure(path, figure)
+    plt.close(figure)
+    return written
+
+
+def _unit(row: dict) -> str:
+    return row["perturbation"].get("unit", "")
+
+
+def _write_html(path: Path, report: dict) -> Path:
+    """report.html of a stress run: its table and a plotly figure per perturbation kind."""
+    import html
+
+    import plotly.graph_objects as go
+    from plotly.offline import get_plotlyjs
+    from plotly.subplots import make_subplots
+
+    kinds = _series(report)
+    base = report["baseline"]["summary"]
+    figure = make_subplots(rows=1, cols=max(1, len(kinds)),
+                           subplot_titles=[f"{k} ({_unit(r[0])})" for k, r in kinds.items()],
+                           specs=[[{"secondary_y": True}] * max(1, len(kinds))])
+    for col, (kind, rows) in enumerate(kinds.items(), start=1):
+        rows = sorted(rows, key=_x)
+        labels = [r["label"] for r in rows]
+        figure.add_trace(go.Scatter(x=[_x(r) for r in rows], text=labels, mode="markers+lines",
+                                    y=[r["summary"]["recall_visible"] for r in rows],
+                                    name=f"{kind}: recall", marker_color="royalblue"),
+                         row=1, col=col, secondary_y=False)
+        figure.add_trace(go.Scatter(x=[_x(r) for r in rows], text=labels, mode="markers",
+                                    y=[r["summary"]["error_deg"]["plane"]["mean"] for r in rows],
+                                    name=f"{kind}: plane error", marker_color="crimson"),
+                         row=1, col=col, secondary_y=True)
+        figure.add_hline(y=base["recall_visible"] or 0, line_dash="dot", line_color="royalblue",
+                         row=1, col=col)
+    figure.update_layout(height=420, showlegend=False,
+                         title="recall (blue, left) and plane error in degrees (red, right); "
+                         "dotted: unperturbed")
+    table = stress_markdown(report).split("\n\n", 2)[2].split("\n\n")[0]
+    body = (f"<h1>flowerpose stress</h1><h2>Robustness</h2>"
+            f"{figure.to_html(full_html=False, include_plotlyjs=False)}"
+            f"<pre>{html.escape(table)}</pre>")
+    page = ("<!doctype html><html><head><meta charset='utf-8'><title>flowerpose stress</title>"
+            f"<script>{get_plotlyjs()}</script></head><body>{body}</body></html>")
+    return write_text(path, page)
