@@ -83,6 +83,8 @@ WHITE_REFERENCE_SHARE = 0.2
 MIN_WHITE_POINTS = 50
 #: A channel at or above this 8-bit level may be clipped, so its ratio says nothing of a cast.
 CLIPPED_LEVEL = 250
+#: Most colours a cast is measured on (an even subsample).
+WHITE_SAMPLE = 100_000
 #: Largest gain on any channel: a stronger "cast" is not one, but a cloud without white.
 MAX_WHITE_GAIN = 1.5
 
@@ -95,6 +97,7 @@ def white_gain(colors: np.ndarray, config: ColourConfig) -> np.ndarray:
     colors = np.asarray(colors, np.uint8).reshape(-1, 3)
     if not config.white_balance or len(colors) == 0:
         return np.ones(3)
+    colors = colors[::max(1, len(colors) // WHITE_SAMPLE)]
     hsv = rgb_to_hsv(colors)
     white = petal_mask(hsv, config) & (colors.max(axis=1) < CLIPPED_LEVEL)
     if white.sum() < MIN_WHITE_POINTS:

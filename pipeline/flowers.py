@@ -130,7 +130,7 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     whose detections are left out (a robustness test: a view the detector missed)."""
     timer = Stopwatch()
     cloud = Cloud(cloud.points, white_balanced(cloud.colors, config.colour))
-    above_ground, projections = grid_views(cloud, config, timer)
+    above_ground, projections = grid_views(cloud, config, timer, balance=False)
     plant = cloud.subset(above_ground)
     detector = make_detector(config.detect, config.colour)
     detections = [[] if k in drop_views else detector(p.image, p.occupied, p.pixel_size_m)
@@ -149,11 +149,14 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
                          for view in picked])
 
 
-def grid_views(cloud: Cloud, config: PipelineConfig, timer: Stopwatch | None = None
-               ) -> tuple[np.ndarray, list[Projection]]:
+def grid_views(cloud: Cloud, config: PipelineConfig, timer: Stopwatch | None = None,
+               balance: bool = True) -> tuple[np.ndarray, list[Projection]]:
     """The views the detector sees: the indices of `cloud`'s points above the ground (metres,
     bed frame, z up), and the grid's projections of those points (their `index` maps pixels
-    into them)."""
+    into them), in white-balanced colours (`colour.white_balance`; `balance` False: the
+    cloud's colours are balanced already)."""
+    if balance:
+        cloud = Cloud(cloud.points, white_balanced(cloud.colors, config.colour))
     above_ground = remove_ground(cloud, config.ground)
     if timer is not None:
         timer.lap("ground")
@@ -266,7 +269,7 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
     spacing = crops_spacing(crops, config)
 
     def pistil_limits(sizing: Sizing) -> tuple[tuple[ClusterConfig, Density], float | None,
-                                               None]:
+                                               float | None]:
         _, cluster, density = for_cloud(config.outliers, config.cluster, sizing.scale,
                                         sizing.spacing)
         shapes = [corolla(crop.points, petal, pistil, cluster)
@@ -274,12 +277,13 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
         radius = typical_radius(shapes, cluster)
         if radius is None and shapes:
             radius = float(np.median([s.radius for s in shapes]))
-        return (cluster, density), radius, None
+        return (cluster, density), radius, spacing
 
     # The pistil search's limits are metric and counts: sized to the crops' flowers and
     # density as the cluster stage sizes its limits (`limits`).
     sizing, (cluster, density), radius = sized_to_cloud(pistil_limits,
-                                                        config.cluster.size_band_m, spacing)
+                                                        config.cluster.size_band_m,
+                                                        lambda: spacing)
     _say_sizes("pose", radius, sizing.scale, config.cluster)
     _say_density("pose", density)
     pose_config = pose_for_density(config.pose, density)

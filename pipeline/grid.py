@@ -135,8 +135,8 @@ def project(cloud: Cloud, view: View, config: GridConfig) -> Projection:
     point's pixel is owned by the nearest such point along the view direction.
     """
     n = len(cloud)
-    if n >= 1 << 24:
-        raise InputError("cloud", f"{n} points: more than the grid's float32 ranks hold")
+    if n >= 1 << 31:
+        raise InputError("cloud", f"{n} points: more than the grid's int32 index holds")
     r = int(config.splat_radius_px)
     px = float(config.pixel_size_m)
     points = cloud.points
@@ -151,21 +151,27 @@ def project(cloud: Cloud, view: View, config: GridConfig) -> Projection:
     if max(height, width) > config.max_image_px:
         raise InputError("grid.pixel_size_m", f"{px:g} m gives a {width}x{height} image for "
                          f"this cloud; use a coarser pixel (max side {config.max_image_px})")
-    rank = np.empty(n, np.int64)
-    order = np.argsort(depth)
-    rank[order] = np.arange(n)
-    # Nearest point per centre pixel, then a min-filter over the splat disc: the erosion of
-    # the rank image gives each pixel the nearest point whose splat covers it.
-    nearest = np.full(height * width, n, np.int64)
-    np.minimum.at(nearest, row * width + col, rank)
-    ranks = nearest.reshape(height, width).astype(np.float32)
+    # A z-buffer without a sort: each point's key is its depth, quantised, with its index
+    # in the low bits, exact in a float64 (53 bits); the least key at each pixel, then a
+    # min-filter of the key image over the splat disc, gives each pixel the nearest point
+    # whose splat covers it, and the key's low bits say which point that is.
+    index_bits = max(1, int(n).bit_length())
+    levels = float(2 ** (53 - index_bits) - 1)
+    span = float(np.ptp(depth)) if n else 0.0
+    quantised = np.floor((depth - (depth.min() if n else 0.0)) * (levels / span if span > 0
+                                                                   else 0.0))
+    keys = quantised * float(2 ** index_bits) + np.arange(n)
+    empty = float(2 ** 53)
+    nearest = np.full(height * width, empty)
+    np.minimum.at(nearest, row * width + col, keys)
+    nearest = nearest.reshape(height, width)
     if r > 0:
-        ranks = cv2.erode(ranks, splat_disc(r), borderType=cv2.BORDER_CONSTANT,
-                          borderValue=float(n))
-    owner_rank = ranks.astype(np.int64)
-    hit = owner_rank < n
+        nearest = cv2.erode(nearest, splat_disc(r), borderType=cv2.BORDER_CONSTANT,
+                            borderValue=empty)
     index = np.full((height, width), -1, np.int32)
-    index[hit] = order[owner_rank[hit]]
+    covered = nearest < empty
+    index[covered] = np.mod(nearest[covered], float(2 ** index_bits)).astype(np.int32)
+    hit = index >= 0
     image = np.full((height, width, 3), config.background, np.uint8)
     image[hit] = cloud.colors[index[hit]]
     depth_image = np.full((height, width), np.nan, np.float32)
