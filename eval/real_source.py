@@ -140,8 +140,10 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     else:
         scale = DEFAULT_TRUTH_SCALE if label_format == "sagemaker" else 1.0
     units = source.get("units", "auto")
-    if units not in ("auto", "m", "mm"):
-        raise InputError(where, f'"units" must be "m", "mm" or "auto", got {units!r}')
+    numeric = isinstance(units, int | float) and not isinstance(units, bool)
+    if not (units in ("auto", "m", "mm") or (numeric and math.isfinite(units) and units > 0)):
+        raise InputError(where, f'"units" must be "m", "mm", "auto" or the metres one unit '
+                         f"is (a positive number), got {units!r}")
     note = source.get("note", "")
     if not isinstance(note, str):
         raise InputError(where, '"note" must be text')

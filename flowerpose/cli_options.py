@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -123,11 +124,26 @@ def add_workers(parser: argparse.ArgumentParser) -> None:
                         help="worker processes (default: one per core)")
 
 
+def units_type(text: str) -> str | float:
+    """An argparse type: auto, m, mm, or a positive number of metres a unit."""
+    if text in ("auto", "m", "mm"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: auto, m, mm or the metres one unit of "
+                                         "the cloud is (a number)") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text!r}: metres a unit must be positive")
+    return value
+
+
 def add_units(parser: argparse.ArgumentParser, what: str) -> None:
     """--units of the cloud the command reads (`what`: "cloud", "crop")."""
-    parser.add_argument("--units", choices=("auto", "m", "mm"), default="auto",
-                        help=f"the {what}'s unit; auto decides from its extent (default: "
-                        "%(default)s)")
+    parser.add_argument("--units", type=units_type, default="auto", metavar="auto|m|mm|M",
+                        help=f"the {what}'s unit: m, mm, M metres a unit (a photogrammetry "
+                        "cloud's own unit, e.g. 0.04), or auto, decided from its extent "
+                        "(default: %(default)s)")
 
 
 def starting_config(where: str) -> Callable[[], Any]:

@@ -18,7 +18,9 @@ MAX_METRIC_EXTENT_M = 5.0
 #: Extents (file units) that identify a scan written in millimetres.
 MM_EXTENT_RANGE = (50.0, 10_000.0)
 
-Units = Literal["auto", "m", "mm"]
+#: A cloud's unit: "m", "mm", "auto" (decided from its extent), or a number, the metres one
+#: unit of the cloud is (a photogrammetry cloud's arbitrary unit, measured once by hand).
+Units = Literal["auto", "m", "mm"] | float
 
 
 @dataclass(frozen=True)
@@ -118,9 +120,17 @@ def _read_problem(said: list[str]) -> str | None:
 
 
 def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarray:
-    """Points in metres, deciding the file's unit from its extent when units="auto"; a unit
-    the extent contradicts (a metre cloud said to be in millimetres) is refused."""
+    """Points in metres, deciding the file's unit from its extent when units="auto", or
+    multiplied by `units` where it is a number (metres a unit); a unit the extent
+    contradicts (a metre cloud said to be in millimetres) is refused."""
     extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+    if isinstance(units, int | float) and not isinstance(units, bool):
+        if not (units > 0 and np.isfinite(units)):
+            raise InputError(source, f"units {units!r}: metres a unit must be a positive number")
+        if extent * units > MAX_METRIC_EXTENT_M:
+            raise InputError(source, f"extent {extent:.3g} units is {extent * units:.3g} m at "
+                             f"{units:g} m a unit: not a plant; is the unit right?")
+        return points * float(units)
     if units == "m":
         if extent > MM_EXTENT_RANGE[0]:
             raise InputError(source, f"extent {extent:.3g} units is {extent:.3g} m in metres: "

@@ -59,17 +59,25 @@ def principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 #: Tukey biweight cut-off of the robust plane, in standard deviations (from the MAD).
 ROBUST_SCALE = 4.685
 
-MIN_SPREAD_M = 2e-4
-"""Least standard deviation along the second widest principal axis for any fit, metres:
-below it the points are a blob or a line (rounding noise, not a surface) and no normal is
-defined, so the fit gives None rather than a made-up vector."""
+MIN_SPREAD_RATIO = 0.03
+"""Least standard deviation along the second widest principal axis, as a share of that
+along the widest, for any fit: below it the points are a line (a stem, a petal's edge),
+not a surface, and no normal is defined, so the fit gives None rather than a made-up
+vector. A share, not a length, so it holds in any unit (a corolla's two spreads are
+alike; a 0.2 mm wide strip of a 7 mm spread is 0.03)."""
+#: ... and the widest spread must stand out of the coordinates' rounding (a share of their
+#: size): a blob of rounding noise round one point is no surface either.
+ROUNDING = 1e-9
 
 
 def _usable(points: np.ndarray, min_points: int) -> bool:
     if len(points) < max(min_points, MIN_FIT_POINTS) or not np.isfinite(points).all():
         return False
-    spread = np.linalg.eigvalsh(np.cov(np.asarray(points, np.float64).T))
-    return bool(spread[1] > MIN_SPREAD_M**2)
+    points = np.asarray(points, np.float64)
+    spread = np.linalg.eigvalsh(np.cov(points.T))
+    size = float(np.abs(points).max())
+    return bool(spread[2] > (ROUNDING * max(size, 1e-300)) ** 2
+                and spread[1] > MIN_SPREAD_RATIO ** 2 * spread[2])
 
 
 def _unit_or_none(axis: np.ndarray) -> np.ndarray | None:

@@ -28,6 +28,7 @@ from flowerpose.pipeline.colour import (
     white_gain,
 )
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
+from flowerpose.pipeline.envelope import CloudMeasure
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.limits import (
     Density,
@@ -116,9 +117,14 @@ class FlowerResult:
     detection_flowers: list[list[int | None]] = field(default_factory=list)
     """Per view, per detection: the id of the flower most of its points went to, or None
     (its points were no flower's), so the views can number their boxes as flowers.json."""
+    measure: CloudMeasure | None = None
+    """What the run measured of its cloud against the operating envelope."""
 
     def to_json(self) -> dict:
-        return {"flowers": [f.to_json() for f in self.flowers], "timing_s": self.timing_s}
+        body = {"flowers": [f.to_json() for f in self.flowers], "timing_s": self.timing_s}
+        if self.measure is not None:
+            body["cloud"] = self.measure.to_json()
+        return body
 
 
 def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
@@ -129,7 +135,8 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     whose up is not known (a phone scan's own frame). drop_views: positions of grid views
     whose detections are left out (a robustness test: a view the detector missed)."""
     timer = Stopwatch()
-    cloud = Cloud(cloud.points, white_balanced(cloud.colors, config.colour))
+    gain = white_gain(cloud.colors, config.colour)
+    cloud = Cloud(cloud.points, relight(cloud.colors, gain))
     above_ground, projections = grid_views(cloud, config, timer, balance=False)
     plant = cloud.subset(above_ground)
     detector = make_detector(config.detect, config.colour)
@@ -140,13 +147,13 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
               for d, p in zip(detections, projections, strict=True)]
     candidates = np.unique(np.concatenate([np.zeros(0, np.int64)] + [i for v in picked for i in v]))
     timer.lap("backproject")
-    flowers = _flowers_among(plant, candidates, above_ground, config, timer, up)
+    flowers, radius = _flowers_among(plant, candidates, above_ground, config, timer, up)
     owner = np.full(len(cloud), -1, np.int64)
     for flower in flowers:
         owner[flower.crop] = flower.id
     return FlowerResult(flowers, projections, detections, timer.report(digits=6),
                         [[_owner_of(owner[above_ground[points]]) for points in view]
-                         for view in picked])
+                         for view in picked], _measured("detect", flowers, radius, gain))
 
 
 def grid_views(cloud: Cloud, config: PipelineConfig, timer: Stopwatch | None = None,
@@ -181,16 +188,32 @@ def find_flowers_in_candidates(candidates: Cloud,
     timer = Stopwatch()
     first = candidates.first_copies()
     points = candidates.subset(first)
-    points = Cloud(points.points, white_balanced(points.colors, config.colour))
-    flowers = _flowers_among(points, np.arange(len(points)), first, config, timer, None)
-    return FlowerResult(flowers, [], [], timer.report(digits=6))
+    gain = white_gain(points.colors, config.colour)
+    points = Cloud(points.points, relight(points.colors, gain))
+    flowers, radius = _flowers_among(points, np.arange(len(points)), first, config, timer, None)
+    return FlowerResult(flowers, [], [], timer.report(digits=6),
+                        measure=_measured("detect", flowers, radius, gain))
+
+
+def _measured(stage: str, flowers: list[Flower], radius: float | None,
+              gain: np.ndarray) -> CloudMeasure:
+    """The cloud's measure against the operating envelope; a warning for each bound the
+    cloud crosses."""
+    points = [len(f.crop) for f in flowers]
+    measure = CloudMeasure(float(np.median(points)) if points else None,
+                           None if radius is None else 2 * radius,
+                           tuple(float(g) for g in gain))  # type: ignore[arg-type]
+    for line in measure.outside(metric=True):
+        LOG.warning(f"{stage}: the cloud is outside the operating envelope: {line}")
+    return measure
 
 
 def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
-                   config: PipelineConfig, timer: Stopwatch, up: np.ndarray | None) -> list[Flower]:
-    """Clusters, crops and poses of the flowers among `candidates` (indices into `plant`);
-    `original` maps plant indices to those of the caller's cloud; `up` is the frame's up
-    where it is known (`PoseConfig.up_prior`)."""
+                   config: PipelineConfig, timer: Stopwatch, up: np.ndarray | None
+                   ) -> tuple[list[Flower], float | None]:
+    """Clusters, crops and poses of the flowers among `candidates` (indices into `plant`),
+    and the cloud's typical flower radius; `original` maps plant indices to those of the
+    caller's cloud; `up` is the frame's up where it is known (`PoseConfig.up_prior`)."""
     grouping = cluster_flowers(plant, candidates, config.outliers, config.cluster,
                                config.colour)
     boxes, crops = crop_flowers(plant, grouping.clusters, grouping.config)
@@ -213,7 +236,7 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     _say_density("detect", grouping.density)
     LOG.debug(f"detect: {len(candidates)} candidate points, {len(grouping.clusters)} clusters, "
               f"{len(flowers)} flowers")
-    return flowers
+    return flowers, grouping.typical_radius
 
 
 #: Limits rescaled by more than this factor either way are said at the info level: the
