@@ -81,8 +81,8 @@ class ColourConfig:
 WHITE_REFERENCE_SHARE = 0.2
 #: Fewest unclipped petal-coloured points that measure a cast; with fewer, none is removed.
 MIN_WHITE_POINTS = 50
-#: A channel at or above this 8-bit level may be clipped, so its ratio says nothing of a cast.
-CLIPPED_LEVEL = 250
+#: A channel at this 8-bit level is clipped, so its ratio says nothing of a cast.
+CLIPPED_LEVEL = 255
 #: Most colours a cast is measured on (an even subsample).
 WHITE_SAMPLE = 100_000
 #: Largest gain on any channel: a stronger "cast" is not one, but a cloud without white.

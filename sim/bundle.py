@@ -10,14 +10,17 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.scan_geometry import path_cameras
+from flowerpose.sim.degrade import degrade
 from flowerpose.sim.export import write_plant
 from flowerpose.sim.oracle import sample_oracle_cloud
 from flowerpose.sim.plant import Plant, generate_plant
 from flowerpose.sim.visibility import flower_visibility
 from flowerpose.sim.world_config import PresetName, SimConfig, sim_preset
 
-#: Stream of the seed's random numbers used for the oracle cloud (the plant uses the seed).
+#: Streams of the seed's random numbers used for the oracle cloud and its degradation (the
+#: plant uses the seed).
 ORACLE_STREAM = 1
+DEGRADE_STREAM = 2
 
 
 @dataclass(frozen=True)
@@ -61,7 +64,10 @@ def make_plant(seed: int, preset: PresetName = "realistic", points: int | None =
     visible, fraction = flower_visibility(plant, viewpoints)
     rng = np.random.default_rng([seed, ORACLE_STREAM])
     cloud, point_part, point_flower = sample_oracle_cloud(plant, config.oracle, viewpoints, rng)
-    paths = (write_plant(plant, out_dir, cloud, visible, fraction)
+    cloud, point_part, point_flower, degradation = degrade(
+        cloud, point_part, point_flower, visible, config.degrade,
+        np.random.default_rng([seed, DEGRADE_STREAM]))
+    paths = (write_plant(plant, out_dir, cloud, visible, fraction, degradation)
              if out_dir is not None else None)
     return PlantBundle(plant, viewpoints, visible, fraction, cloud, point_part, point_flower,
                        config, paths)

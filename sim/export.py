@@ -43,17 +43,23 @@ PLANT_FILES = ("plant.json", "plant.ply", "plant_labels.npz", "cloud.ply")
 
 def write_plant(plant: Plant, out_dir: str | Path, cloud: Cloud | None = None,
                 visible: np.ndarray | None = None,
-                fraction: np.ndarray | None = None) -> dict[str, Path]:
+                fraction: np.ndarray | None = None,
+                degradation: dict | None = None) -> dict[str, Path]:
     """Write plant.json, plant.ply (mesh with vertex colours), plant_labels.npz (face_part,
     face_flower) and, when given, cloud.ply into `out_dir`; returns the paths by name.
 
-    visible, fraction: (n_flowers,) from `flower_visibility`, written per flower.
+    visible, fraction: (n_flowers,) from `flower_visibility`, written per flower;
+    degradation: how cloud.ply was degraded (`sim/degrade.py`), written as plant.json's
+    "degradation".
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"truth": out / "plant.json", "mesh": out / "plant.ply",
              "labels": out / "plant_labels.npz"}
-    write_text(paths["truth"], json.dumps(truth_dict(plant, visible, fraction), indent=1) + "\n")
+    truth = truth_dict(plant, visible, fraction)
+    if degradation:
+        truth["degradation"] = degradation
+    write_text(paths["truth"], json.dumps(truth, indent=1) + "\n")
     write_file(paths["mesh"], lambda tmp: plant.mesh.export(tmp))
     write_file(paths["labels"], lambda tmp: np.savez_compressed(
         tmp, face_part=plant.face_part, face_flower=plant.face_flower))

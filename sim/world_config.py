@@ -151,6 +151,39 @@ class OracleCloudConfig:
 
 
 @dataclass(frozen=True)
+class DegradeConfig:
+    """How each plant's oracle cloud departs from a clean one, drawn per plant (seeded by
+    the plant) from these ranges (`sim/degrade.py`): a model of how field clouds vary, in
+    the operating envelope's terms. Equal ends fix a value, so a run can be matched to a
+    real cloud (e.g. `--set 'sim.degrade.points_per_flower=[113, 113]'`)."""
+
+    points_per_flower: tuple[float, float] | None = None
+    """Range of the points a visible flower holds (the median over the plant's visible
+    flowers), drawn log-uniformly; the cloud is thinned to it, never thickened. None: as
+    sampled (`oracle.points`)."""
+    exposure: tuple[float, float] = (1.0, 1.0)
+    """Range of the exposure, a factor on linear light."""
+    cast: float = 0.0
+    """Largest colour cast: one channel, drawn, has its linear light changed by a share
+    drawn uniformly within +-cast."""
+    noise_m: tuple[float, float] = (0.0, 0.0)
+    """Range of Gaussian position noise added to every coordinate, metres (on top of
+    `oracle.position_noise_m`)."""
+
+    def __post_init__(self):
+        if self.points_per_flower is not None and not (
+                0 < self.points_per_flower[0] <= self.points_per_flower[1]):
+            raise InputError("sim.degrade.points_per_flower", "must be two counts, "
+                             "0 < low <= high, or none")
+        if not 0 < self.exposure[0] <= self.exposure[1]:
+            raise InputError("sim.degrade.exposure", "must be two factors, 0 < low <= high")
+        if not 0 <= self.cast < 1:
+            raise InputError("sim.degrade.cast", "must be 0 or more, below 1")
+        if not 0 <= self.noise_m[0] <= self.noise_m[1]:
+            raise InputError("sim.degrade.noise_m", "must be two lengths, 0 <= low <= high")
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """The whole synthetic world: plant, scan path and oracle cloud."""
 
@@ -160,6 +193,8 @@ class SimConfig:
     """Scan path whose cameras decide visibility (the one the bot's planner flies)."""
     oracle: OracleCloudConfig = field(default_factory=OracleCloudConfig)
     """Oracle point cloud."""
+    degrade: DegradeConfig = field(default_factory=DegradeConfig)
+    """How the oracle cloud is degraded like a field scan, per plant (none by default)."""
 
 
 def preset(name: PresetName) -> PlantConfig:
@@ -198,6 +233,11 @@ FIELD_PETAL_CUP_JITTER = 0.1
 #: ... and its cloud: denser, noisier, foliage paled and yellowed by the texture.
 FIELD_ORACLE = {"points": 100_000, "position_noise_m": 0.002, "foliage_saturation": 0.6,
                 "foliage_value": 0.85, "foliage_hue_shift_deg": -17.0, "foliage_sheen": 0.22}
+#: ... and how its plants' clouds vary, plant by plant (`DegradeConfig`; README, "The
+#: simulator against the field"): from about 100 points a flower (a fast or phone scan,
+#: the authors' plant 3 thinned to a tenth) to about 1,000 (that plant as published),
+#: exposure and white balance as an auto-exposed camera leaves them.
+FIELD_DEGRADE = {"points_per_flower": (100.0, 1000.0), "exposure": (0.8, 1.2), "cast": 0.1}
 
 
 def sim_preset(name: PresetName) -> SimConfig:
@@ -206,5 +246,6 @@ def sim_preset(name: PresetName) -> SimConfig:
     config = SimConfig(plant=preset(name))
     if name == "field":
         config = dataclasses.replace(
-            config, oracle=dataclasses.replace(config.oracle, **FIELD_ORACLE))
+            config, oracle=dataclasses.replace(config.oracle, **FIELD_ORACLE),
+            degrade=DegradeConfig(**FIELD_DEGRADE))
     return config
