@@ -110,10 +110,12 @@ def white_gain(colors: np.ndarray, config: ColourConfig) -> np.ndarray:
     return np.clip(reference.mean() / reference, 1 / MAX_WHITE_GAIN, MAX_WHITE_GAIN)
 
 
-def white_balanced(colors: np.ndarray, config: ColourConfig) -> np.ndarray:
-    """(N, 3) uint8 colours with the cloud's cast removed (`white_gain`)."""
+def white_balanced(colors: np.ndarray, config: ColourConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) uint8 colours with the cloud's cast removed, and the gain that removed it
+    (`white_gain`; colours as they were where it is one)."""
     gain = white_gain(colors, config)
-    return np.asarray(colors, np.uint8) if np.allclose(gain, 1.0) else relight(colors, gain)
+    colors = np.asarray(colors, np.uint8)
+    return (colors if np.allclose(gain, 1.0) else relight(colors, gain)), gain
 
 
 def _in_band(values: np.ndarray, band: tuple[float, float]) -> np.ndarray:

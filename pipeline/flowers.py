@@ -25,7 +25,6 @@ from flowerpose.pipeline.colour import (
     pistil_mask,
     rgb_to_hsv,
     white_balanced,
-    white_gain,
 )
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.envelope import CloudMeasure
@@ -135,8 +134,8 @@ def find_flowers(cloud: Cloud, config: PipelineConfig = PipelineConfig(),
     whose up is not known (a phone scan's own frame). drop_views: positions of grid views
     whose detections are left out (a robustness test: a view the detector missed)."""
     timer = Stopwatch()
-    gain = white_gain(cloud.colors, config.colour)
-    cloud = Cloud(cloud.points, relight(cloud.colors, gain))
+    colors, gain = white_balanced(cloud.colors, config.colour)
+    cloud = Cloud(cloud.points, colors)
     above_ground, projections = grid_views(cloud, config, timer, balance=False)
     plant = cloud.subset(above_ground)
     detector = make_detector(config.detect, config.colour)
@@ -163,7 +162,7 @@ def grid_views(cloud: Cloud, config: PipelineConfig, timer: Stopwatch | None = N
     into them), in white-balanced colours (`colour.white_balance`; `balance` False: the
     cloud's colours are balanced already)."""
     if balance:
-        cloud = Cloud(cloud.points, white_balanced(cloud.colors, config.colour))
+        cloud = Cloud(cloud.points, white_balanced(cloud.colors, config.colour)[0])
     above_ground = remove_ground(cloud, config.ground)
     if timer is not None:
         timer.lap("ground")
@@ -188,8 +187,8 @@ def find_flowers_in_candidates(candidates: Cloud,
     timer = Stopwatch()
     first = candidates.first_copies()
     points = candidates.subset(first)
-    gain = white_gain(points.colors, config.colour)
-    points = Cloud(points.points, relight(points.colors, gain))
+    colors, gain = white_balanced(points.colors, config.colour)
+    points = Cloud(points.points, colors)
     flowers, radius = _flowers_among(points, np.arange(len(points)), first, config, timer, None)
     return FlowerResult(flowers, [], [], timer.report(digits=6),
                         measure=_measured("detect", flowers, radius, gain))
@@ -281,9 +280,10 @@ def pose_crops(crops: list[Cloud], config: PipelineConfig = PipelineConfig()
     the crops' typical flower (`segment.typical_radius`, their median corolla radius when
     none passes the coverage test); returns the poses and the stage timings."""
     timer = Stopwatch()
-    gain = white_gain(np.concatenate([c.colors for c in crops]) if crops else np.zeros((0, 3)),
-                      config.colour)
-    crops = [Cloud(c.points, relight(c.colors, gain)) for c in crops]
+    _, gain = white_balanced(np.concatenate([c.colors for c in crops]) if crops
+                             else np.zeros((0, 3), np.uint8), config.colour)
+    if not np.allclose(gain, 1.0):
+        crops = [Cloud(c.points, relight(c.colors, gain)) for c in crops]
     masks = []
     for crop in crops:
         hsv = rgb_to_hsv(crop.colors)
