@@ -58,7 +58,6 @@ class Outcome:
 def parse_requirements(texts: list[str]) -> list[Requirement]:
     """--require values, checked against the summary's keys: InputError for a malformed
     one or a key that is not a number of the summary."""
-    template = summarise([])
     requirements = []
     for text in texts:
         match = _PATTERN.match(text)
@@ -72,15 +71,26 @@ def parse_requirements(texts: list[str]) -> list[Requirement]:
             raise InputError("require", f"'{text}': {number!r} is not a number") from None
         if not math.isfinite(value):
             raise InputError("require", f"'{text}': the bound must be finite")
-        try:
-            leaf = _lookup(template, key)
-        except KeyError:
-            leaf = {}
-        if isinstance(leaf, dict):
-            raise InputError("require", f"'{text}': {key} is not a number of the report's "
-                             f"summary (its numbers: {', '.join(_leaves(template))})")
+        check_key(key, "require", f"'{text}': ")
         requirements.append(Requirement(key, op, value, text))
     return requirements
+
+
+def check_key(key: str, where: str, said: str = "") -> None:
+    """InputError unless `key` names a number of report.json's summary (dotted)."""
+    template = summarise([])
+    try:
+        leaf = _lookup(template, key)
+    except KeyError:
+        leaf = {}
+    if isinstance(leaf, dict):
+        raise InputError(where, f"{said}{key} is not a number of the report's summary (its "
+                         f"numbers: {', '.join(_leaves(template))})")
+
+
+def summary_value(summary: dict, key: str) -> float | None:
+    """The number a summary holds under a dotted key (None where there is none)."""
+    return _number(summary, key)
 
 
 def check(report: dict, requirements: list[Requirement]) -> list[Outcome]:

@@ -51,11 +51,17 @@ def summarise(plants: list[dict]) -> dict:
     """The report's summary over plant entries: totals, recalls and error statistics."""
     total = {key: sum(p[key] for p in plants)
              for key in ("gt", "visible", "detections", "found", "found_visible", "extra", "fp")}
+    recall = total["found_visible"] / total["visible"] if total["visible"] else None
+    precision = (1.0 - total["fp"] / total["detections"]) if total["detections"] else None
+    f1 = (2 * recall * precision / (recall + precision)
+          if recall is not None and precision is not None and recall + precision > 0 else
+          0.0 if recall is not None else None)
     return {**total,
             "recall": round(total["found"] / total["gt"], 4) if total["gt"] else None,
-            "recall_visible": (round(total["found_visible"] / total["visible"], 4)
-                               if total["visible"] else None),
+            "recall_visible": None if recall is None else round(recall, 4),
             "fp_rate": round(total["fp"] / total["detections"], 4) if total["detections"] else None,
+            "precision": None if precision is None else round(precision, 4),
+            "f1": None if f1 is None else round(f1, 4),
             "error_deg": {m: error_stats([e for p in plants for e in p["error_deg"][m]])
                           for m in METHODS},
             "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}

@@ -515,3 +515,128 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
     add_ray_option(p)
     add_config_options(p)
     p.set_defaults(func=cmd_stress)
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    from flowerpose.config import parse_set_options
+    from flowerpose.eval.harness import eval_config
+    from flowerpose.eval.plant_sets import parse_sets, synthetic_set
+    from flowerpose.eval.tune import (
+        TUNE_FILES,
+        TuneSpec,
+        local_storage,
+        open_study,
+        report_study,
+        run_trials,
+        score_defaults,
+        study_name,
+        user_overrides,
+        validation_default,
+    )
+    from flowerpose.eval.tune_space import parse_objectives, read_space
+    from flowerpose.stopwatch import Stopwatch
+
+    overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
+    base = eval_config(args.preset or "realistic", lambda c: configure(c, args))
+    space = tuple(read_space(args.space, base))
+    objectives = tuple(parse_objectives(args.objective))
+    train = parse_sets(args.train) if args.train else [
+        synthetic_set(args.source, args.preset or "realistic", args.plants, args.seed)]
+    validate = parse_sets(args.validate) if args.validate else validation_default(train)
+    storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
+    if args.ray not in (None, "local", "auto") and local_storage(storage) and not any(
+            host in args.ray for host in ("127.0.0.1", "localhost")):
+        raise InputError("--study", f"{storage} is on this machine's disk, which a remote "
+                         "Ray cluster does not reach: give a storage it reaches (an RDB URL, "
+                         "e.g. postgresql://..., or journal:///PATH on a shared file system)")
+    default_name, identity = study_name(space, tuple(train), objectives)
+    cache = stage_cache(args)
+    spec = TuneSpec(space, tuple(train), tuple(validate), objectives, overrides, storage,
+                    args.study_name or default_name, args.sampler_seed, args.out, cache)
+    watch = Stopwatch()
+    with owned(args.out, "tune", args.overwrite, TUNE_FILES), jobs_on(args):
+        args.out.mkdir(parents=True, exist_ok=True)
+        open_study(spec, identity, create=True)
+        from flowerpose.log import LOG
+
+        LOG.info(f"tune: study {spec.study_name}: scoring the settings without a trial's on "
+                 f"{len(train)} training and {len(validate)} validation sets")
+        timer = Stopwatch()
+        defaults = score_defaults(spec)
+        each = timer.elapsed()
+        workers = 1 if args.ray is not None else (args.workers or 1)
+        LOG.info(f"tune: one trial takes about {each:.0f} s here: {args.trials} trials, about "
+                 f"{each * args.trials / workers / 60:.1f} min on {workers} worker(s)")
+        try:
+            if args.ray is None and workers == 1:
+                run_trials(spec, args.trials)
+            else:
+                from flowerpose.eval.runner import run_jobs
+
+                tasks = args.trials if args.ray is not None else min(workers, args.trials)
+                shares = [args.trials // tasks + (k < args.trials % tasks) for k in range(tasks)]
+                run_jobs(run_trials, [(spec, n) for n in shares], workers, stage="tune",
+                         labels=[f"worker {k}" for k in range(tasks)])
+        finally:
+            report = report_study(spec, defaults, watch.elapsed())
+    from flowerpose.eval.tune import tune_markdown
+
+    print(tune_markdown(report))
+    print(f"tune: {args.out / 'tune.json'}, {args.out / 'tune.md'}, {args.out / 'tune.html'}"
+          + (f", {args.out / 'best.toml'}" if report["chosen"] else ""))
+    return 0
+
+
+def add_tune(sub: argparse._SubParsersAction) -> None:
+    """The `tune` subcommand's parser."""
+    p = sub.add_parser(
+        "tune", help="search the settings with Optuna on training plants, validate elsewhere",
+        description="Search the settings of --space with Optuna: each trial scores its "
+        "settings on the training plants (the objectives the sampler sees) and on "
+        "validation plants it never sees. The chosen trial is the training front's best on "
+        "validation. The study lives in --study, so running the command again adds trials. "
+        "Writes tune.json, tune.md, tune.html (Optuna's figures) and best.toml (the chosen "
+        "settings, for --config).",
+        epilog="examples:\n"
+        "  flowerpose tune --space space.toml --trials 40 --out tune --plants 3\n"
+        "  flowerpose tune --space space.toml --trials 100 --train oracle-10 --train "
+        "field-10 --validate ../shared/real/paper-plant-3 --workers 2 --out tune-field")
+    p.add_argument("--space", type=Path, required=True, metavar="SPACE.toml",
+                   help="the settings to search: \"KEY\" = { low = L, high = H [, log = true]"
+                   " [, int = true] } or { choices = [...] }, one line per dotted key")
+    p.add_argument("--trials", type=POSITIVE, required=True, metavar="N",
+                   help="trials this run adds to the study")
+    add_output(p, "folder for tune.json, tune.md, tune.html, best.toml (and study.db, the "
+               "default storage)")
+    p.add_argument("--train", action="append", default=[], metavar="SUITE|DIR",
+                   help="training plants: a suite's name or file, or real plant folders "
+                   "(repeatable; default: --source/--plants/--seed/--preset)")
+    p.add_argument("--validate", action="append", default=[], metavar="SUITE|DIR",
+                   help="validation plants, never shown to the search (repeatable; default: "
+                   "the seeds after each synthetic training set, none for real ones)")
+    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
+                   help="without --train: where the training plants' clouds come from "
+                   "(default: %(default)s)")
+    p.add_argument("--plants", type=PLANTS, default=3, metavar="N",
+                   help="without --train: seeded training plants (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="without --train: the first training seed (default: %(default)s)")
+    add_preset(p, None, "realistic")
+    p.add_argument("--study", metavar="STORAGE",
+                   help="the Optuna storage: an RDB URL (sqlite:///FILE, postgresql://...) or "
+                   "journal:///FILE (default: sqlite:///DIR/study.db)")
+    p.add_argument("--study-name", metavar="NAME",
+                   help="the study's name (default: made from the space, the training "
+                   "plants, the objectives and the code version)")
+    p.add_argument("--objective", action="append", default=[], metavar="max:KEY|min:KEY",
+                   help="an objective over the report summary's keys (repeatable; default: "
+                   "max:f1 and min:error_deg.plane.mean)")
+    p.add_argument("--sampler-seed", type=SEED, default=None, metavar="N",
+                   help="seed of the sampler: the same trials again, with one worker "
+                   "(default: none)")
+    p.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
+                   help="trials at once, each in a process of its own (default: 1)")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p)
+    p.set_defaults(func=cmd_tune)

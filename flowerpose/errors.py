@@ -58,7 +58,8 @@ def one_line(error: BaseException) -> str:
 #: The optional packages, by the extra that installs them (pyproject.toml).
 EXTRAS = {"mujoco": "sim", "pyrender": "sim", "trimesh": "sim", "OpenGL": "sim",
           "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot",
-          "onnxruntime": "onnx", "jwt": "bot", "ray": "ray"}
+          "onnxruntime": "onnx", "jwt": "bot", "ray": "ray", "optuna": "tune",
+          "sqlalchemy": "tune"}
 
 
 def missing_extra(module: str, needed_for: str) -> InputError | None:

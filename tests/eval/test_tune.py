@@ -1,0 +1,97 @@
+"""`flowerpose tune`: a seeded study over a tiny space, resumed, refused and failing
+cleanly, and its chosen settings taken by eval --config."""
+
+import json
+
+import pytest
+from realplants import write_real_plant
+
+from flowerpose.cli import main
+from flowerpose.eval import plant_sets
+
+SPACE = '"cluster.eps" = { low = 0.006, high = 0.014, log = true }\n' \
+        '"cluster.min_coverage" = { low = 0.2, high = 0.5 }\n'
+
+
+@pytest.fixture(scope="module")
+def plants(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tune-plants")
+    return (write_real_plant(root / "train", "candidates", seed=1),
+            write_real_plant(root / "validate", "candidates", seed=2))
+
+
+def _tune(tmp_path, plants, space=SPACE, trials=4, *extra):
+    (tmp_path / "space.toml").write_text(space)
+    return main(["tune", "--space", str(tmp_path / "space.toml"), "--trials", str(trials),
+                 "--train", str(plants[0]), "--validate", str(plants[1]),
+                 "--sampler-seed", "3", "--out", str(tmp_path / "out"), *extra])
+
+
+def test_a_seeded_study_resumes_and_its_choice_runs_in_eval(tmp_path, plants, capsys):
+    assert _tune(tmp_path, plants) == 0
+    report = json.loads((tmp_path / "out" / "tune.json").read_text())
+    assert report["counts"] == {"complete": 4, "pruned": 0, "failed": 0}
+    assert all(t["train"]["f1"] is not None and t["validate"]["f1"] is not None
+               for t in report["trials"])
+    chosen = report["chosen"]
+    assert chosen is not None and chosen["number"] in [t["number"] for t in report["front"]]
+    assert "validation F1" in report["rule"] and "defaults" in capsys.readouterr().out
+    # The same command again adds trials to the same study.
+    assert _tune(tmp_path, plants, SPACE, 2) == 0
+    again = json.loads((tmp_path / "out" / "tune.json").read_text())
+    assert again["study"] == report["study"] and again["counts"]["complete"] == 6
+    assert [t["settings"] for t in again["trials"][:4]] == [t["settings"]
+                                                            for t in report["trials"]]
+    # best.toml is a --config file eval takes, and it holds the chosen settings.
+    best = tmp_path / "out" / "best.toml"
+    assert main(["eval", "--source", "real", str(plants[1]), "--config", str(best),
+                 "--out", str(tmp_path / "eval")]) == 0
+    config = json.loads((tmp_path / "eval" / "report.json").read_text())["config"]
+    assert config["cluster"]["eps"] == pytest.approx(again["chosen"]["settings"]["cluster.eps"])
+
+
+def test_a_study_of_another_space_under_the_same_name_is_refused(tmp_path, plants, capsys):
+    assert _tune(tmp_path, plants, SPACE, 1, "--study-name", "mine") == 0
+    other = '"cluster.eps" = { low = 0.006, high = 0.02 }\n'
+    assert _tune(tmp_path, plants, other, 1, "--study-name", "mine", "--overwrite") == 2
+    assert "made with another space" in capsys.readouterr().err
+
+
+def test_a_trial_that_raises_is_recorded_as_failed_and_the_study_goes_on(tmp_path, plants,
+                                                                         monkeypatch):
+    score = plant_sets.SetScorer.score
+    calls = {"n": 0}
+
+    def flaky(self, plant_set, configure, out_dir):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the first trial's training plants (the defaults took 1 and 2)
+            raise RuntimeError("a broken reconstruction")
+        return score(self, plant_set, configure, out_dir)
+
+    monkeypatch.setattr(plant_sets.SetScorer, "score", flaky)
+    assert _tune(tmp_path, plants, SPACE, 3) == 0
+    report = json.loads((tmp_path / "out" / "tune.json").read_text())
+    assert report["counts"] == {"complete": 2, "pruned": 0, "failed": 1}
+    failed = next(t for t in report["trials"] if t["state"] == "fail")
+    assert "a broken reconstruction" in failed["error"]
+
+
+@pytest.mark.parametrize("space, said", [
+    ('"cluster.epsilon" = { low = 0.006, high = 0.01 }\n', "no such setting"),
+    ('"cluster.eps" = { low = 0.01, high = 0.01 }\n', "is empty"),
+    ('"cluster.crop" = { low = 1, high = 2 }\n', "is not a number"),
+    ('"cluster.min_points" = { low = 5, high = 40 }\n', "int = true"),
+    ('"cluster.crop" = { choices = ["near", "sideways"] }\n', "sideways"),
+    ('"cluster.eps" = 0.01\n', "expected"),
+    ("", "empty"),
+])
+def test_a_bad_space_is_one_line_and_exit_2(tmp_path, plants, capsys, space, said):
+    assert _tune(tmp_path, plants, space, 1) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1 and "space.toml" in err
+    assert not (tmp_path / "out" / "tune.json").exists()
+
+
+def test_a_bad_objective_is_refused_before_any_trial(tmp_path, plants, capsys):
+    assert _tune(tmp_path, plants, SPACE, 1, "--objective", "max:f2") == 2
+    assert "not a number of the report's summary" in capsys.readouterr().err
