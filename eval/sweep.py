@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import itertools
+from collections.abc import Iterable
 from pathlib import Path
 
 from flowerpose.atomic import write_figure, write_text
@@ -21,8 +22,11 @@ from flowerpose.eval.harness import (
     capture_clouds,
     evaluate_cloud,
     generate_plants,
+    pipeline_part,
+    real_plants,
     settings_run,
 )
+from flowerpose.eval.real_source import evaluate_real_plant
 from flowerpose.eval.report import summarise
 from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import write_json
@@ -141,16 +145,19 @@ _CAPTURE_KEYS = {"oracle": ("sim.",), "scan": ("sim.", "scan."),
 
 
 def _separate_plants(keys: list[str], source: str) -> bool:
+    if source == "real":
+        return False
     """Whether each setting needs plants (and clouds) of its own."""
     return any(key.startswith(_CAPTURE_KEYS[source]) for key in keys)
 
 
-def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle") -> tuple[str, ...]:
+def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle",
+                  folders: Iterable[Path] = ()) -> tuple[str, ...]:
     """The top-level entries `run_sweep` writes for `grid` (`outputs.OutputFolder`)."""
     count = 1
     for _, values in grid:
         count *= len(values)
-    plants = ([f"plants-{k}" for k in range(count)]
+    plants = ([] if source == "real" else [f"plants-{k}" for k in range(count)]
               if _separate_plants([k for k, _ in grid], source) else ["plants"])
     return ("sweep.csv", "sweep.png", "best.json", *plants,
             *(f"setting-{k}" for k in range(count)))
@@ -158,46 +165,56 @@ def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle") -> 
 
 def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int, seed: int,
               out_dir: Path, workers: int | None = None, source: str = "oracle",
-              cache: Path | None = None) -> dict:
+              cache: Path | None = None, folders: Iterable[Path] = ()) -> dict:
     """Evaluate every combination of the grid over `plants` seeded plants' clouds from
-    `source` (oracle, scan or rgbd); writes sweep.csv, sweep.png and best.json, and returns
+    `source` (oracle, scan or rgbd), or real plant `folders` (source "real"); writes
+    sweep.csv, sweep.png and best.json, and returns
     best.json's "best": the best setting (dotted keys, typed values), its metrics and its
     whole resolved config. Plants are generated, and for scan and rgbd filmed and
     reconstructed, once for all settings unless a setting changes them; `cache` is the
     stage cache's folder those captures are taken from and put into (None: none)."""
-    if plants < 1:
+    if source != "real" and plants < 1:
         raise InputError("plants", f"must be at least 1, got {plants}")
-    if source not in _CAPTURE_KEYS:
+    if source not in (*_CAPTURE_KEYS, "real"):
         raise InputError("source", f"'{source}': the sweep's sources are "
-                         f"{', '.join(_CAPTURE_KEYS)}")
+                         f"{', '.join(_CAPTURE_KEYS)}, real")
     watch = Stopwatch()
     keys = [key for key, _ in grid]
     settings = [dict(zip(keys, combo, strict=True))
                 for combo in itertools.product(*(values for _, values in grid))]
     configs = [apply_overrides(config, s) for s in settings]
-    seeds = list(range(seed, seed + plants))
-    separate = _separate_plants(keys, source)
-    clouds: list[dict[int, tuple[Path, Path]]] = []
-    for k, cfg in enumerate(configs):
-        if k == 0 or separate:
-            base = out_dir / (f"plants-{k}" if separate else "plants")
-            generate_plants(seeds, cfg.sim, base, workers, cache)
-            shared = capture_clouds(cfg, source, {s: base / f"seed-{s}" for s in seeds},
-                                    workers, cache)[0]
-        clouds.append(shared)
-    jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}", cache)
-            for k, cfg in enumerate(configs) for s in seeds]
-    results = run_jobs(evaluate_cloud, jobs, workers,
-                       lambda j, v: f"setting {j // len(seeds)} {v[0]['plant']}: "
+    if source == "real":
+        subjects = real_plants(list(folders), None)
+        names = [plant.name for plant in subjects]
+        jobs = [(plant, pipeline_part(cfg), out_dir / f"setting-{k}" / plant.name,
+                 cfg.score.max_distance_m) for k, cfg in enumerate(configs) for plant in subjects]
+        job = evaluate_real_plant
+    else:
+        seeds = list(range(seed, seed + plants))
+        names = [f"seed-{s}" for s in seeds]
+        separate = _separate_plants(keys, source)
+        clouds: list[dict[int, tuple[Path, Path]]] = []
+        for k, cfg in enumerate(configs):
+            if k == 0 or separate:
+                base = out_dir / (f"plants-{k}" if separate else "plants")
+                generate_plants(seeds, cfg.sim, base, workers, cache)
+                shared = capture_clouds(cfg, source, {s: base / f"seed-{s}" for s in seeds},
+                                        workers, cache)[0]
+            clouds.append(shared)
+        jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}", cache)
+                for k, cfg in enumerate(configs) for s in seeds]
+        job = evaluate_cloud
+    results = run_jobs(job, jobs, workers,
+                       lambda j, v: f"setting {j // len(names)} {v[0]['plant']}: "
                        f"{v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp",
                        stage="sweep evaluation",
-                       labels=[f"setting {k} seed-{s}" for k in range(len(configs))
-                               for s in seeds])
+                       labels=[f"setting {k} {name}" for k in range(len(configs))
+                               for name in names])
     # The values as the config holds them: 0.008 a number, "mask" a string, 14 an integer.
     typed = [{key: value_at(cfg, key) for key in keys} for cfg in configs]
     pooled, per_plant = [], []
     for k in range(len(settings)):
-        chunk = results[k * len(seeds):(k + 1) * len(seeds)]
+        chunk = results[k * len(names):(k + 1) * len(names)]
         pooled.append(_metrics([e for e, _ in chunk], [t["total"] for _, t in chunk]))
         per_plant.append([{"plant": e["plant"], **_metrics([e], [t["total"]])}
                           for e, t in chunk])
@@ -214,13 +231,15 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     write_figure(out_dir / "sweep.png", figure)
     plt.close(figure)
     best = {"setting": typed[best_index], "metrics": pooled[best_index],
-            "config": settings_run(configs[best_index], "oracle")}
+            "config": (settings_run(configs[best_index], "real", [p.stage for p in subjects])
+                       if source == "real" else settings_run(configs[best_index], "oracle"))}
     write_json(out_dir / "best.json",
                {"best": best, "grid": {key: [value_at(apply_overrides(config, {key: v}), key)
                                              for v in values] for key, values in grid},
                 "settings": [{"setting": t, "metrics": m, "plants": p}
                              for t, m, p in zip(typed, pooled, per_plant, strict=True)],
-                "plants": plants, "seed": seed, "source": source,
+                "plants": len(names), "seed": None if source == "real" else seed,
+                "source": source,
                 "seconds": round(watch.elapsed(), 2)})
     for row in rows:
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "

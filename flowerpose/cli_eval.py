@@ -223,13 +223,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_config
     from flowerpose.eval.sweep import parse_grid, run_sweep, sweep_outputs
 
+    if args.folders and args.source != "real":
+        raise InputError(args.folders[0], "plant folders are for --source real")
     config = eval_config(args.preset, lambda base: configure(base, args))
     grid = parse_grid(args.grid, config)
     cache = stage_cache(args)
-    with owned(args.out, "sweep", args.overwrite, sweep_outputs(grid, args.source)), \
+    writes = sweep_outputs(grid, args.source, args.folders)
+    with owned(args.out, "sweep", args.overwrite, writes), \
             jobs_on(args):
         best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
-                         workers=args.workers, source=args.source, cache=cache)
+                         workers=args.workers, source=args.source, cache=cache,
+                         folders=args.folders)
     if cache is not None:
         from flowerpose.cache import prune_to_limit
 
@@ -254,13 +258,17 @@ def add_sweep(sub: argparse._SubParsersAction) -> None:
         "  flowerpose sweep --grid cluster.eps=0.006,0.008 --grid grid.views=6,14 --plants 3 "
         "--out sweep\n"
         "  flowerpose sweep --source scan --plants 3 --grid cluster.eps=0.006,0.008,0.01,0.012 "
-        "--out sweep-scan")
+        "--out sweep-scan\n"
+        "  flowerpose sweep --source real ../shared/real/paper-plant-3 --grid "
+        "cluster.eps=0.008,0.01 --out sweep-real")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting's dotted key and its values; repeat for a grid over several")
-    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
+    p.add_argument("--source", choices=("oracle", "scan", "rgbd", "real"), default="oracle",
                    help="where the clouds come from, as for eval; scan and rgbd film each "
                    "plant once for every setting that does not change the plants or the "
-                   "capture (default: %(default)s)")
+                   "capture; real: labelled plant folders (DIR ...) (default: %(default)s)")
+    p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
+                   help="--source real: labelled plant folders")
     p.add_argument("--plants", type=PLANTS, default=5, metavar="N",
                    help="seeded plants per setting (default: %(default)s)")
     p.add_argument("--seed", type=SEED, default=0, metavar="S",

@@ -69,3 +69,17 @@ def test_the_sweep_figure_shows_each_settings_spread_as_a_category_and_marks_the
                        if hasattr(p, "get_x"))
     finally:
         plt.close(figure)
+
+
+def test_a_sweep_over_real_plant_folders(tmp_path):
+    from realplants import write_real_plant
+
+    from flowerpose.cli import main
+
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    assert main(["sweep", "--source", "real", str(folder), "--grid",
+                 "cluster.eps=0.008,0.01", "--out", str(tmp_path / "out")]) == 0
+    best = json.loads((tmp_path / "out" / "best.json").read_text())
+    assert [s["setting"]["cluster.eps"] for s in best["settings"]] == [0.008, 0.01]
+    assert all(s["plants"][0]["plant"] == "plant" for s in best["settings"])
+    assert best["source"] == "real" and "sim" not in best["best"]["config"]
