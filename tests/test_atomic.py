@@ -89,18 +89,20 @@ def test_a_full_disk_is_one_line_and_keeps_what_was_there(small_disk, tmp_path, 
     out = small_disk / "detect"
     assert main(["detect", str(cloud), "--out", str(out), "--set", "grid.pixel_size_m=0.0005"]) \
         == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    # One error line (this random cloud's "flowers" also draw envelope warnings).
+    err = [line for line in capsys.readouterr().err.strip().splitlines()
+           if "outside the operating envelope" not in line]
     assert len(err) == 1 and str(out) in err[0] and "cannot write" in err[0]
     assert not list(out.rglob("*.tmp*"))  # no half-written file left to trust
     report = small_disk / "report.json"
     write_json(report, {"kept": True})
-    with open(small_disk / "fill", "wb") as handle:  # fill what is left
-        try:
+    try:  # fill what is left (the detection may have left nothing)
+        with open(small_disk / "fill", "wb") as handle:
             while True:
                 handle.write(b"\0" * 65536)
                 handle.flush()
-        except OSError:
-            pass
+    except OSError:
+        pass
     with pytest.raises(InputError, match="cannot write"):
         write_json(report, {"kept": False, "padding": "x" * 200_000})
     assert report.read_text() == '{\n "kept": true\n}'
