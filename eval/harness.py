@@ -488,7 +488,21 @@ def real_plants(folders: list[Path], truth_scale: float | None) -> list:
                          "flowerpose eval --source real DIR [DIR ...]")
     plants = [read_real_plant(folder, truth_scale) for folder in folders]
     return [dataclasses.replace(plant, name=name)
-            for name, plant in zip(_unique([p.name for p in plants]), plants, strict=True)]
+            for name, plant in zip(real_names(folders), plants, strict=True)]
+
+
+def real_names(folders: Iterable[Path]) -> list[str]:
+    """Each real plant folder's name in a report: its own, or, where two folders share
+    it, with its parent's before it (PARENT-NAME); a folder given twice is refused."""
+    given = [Path(f) for f in folders]
+    resolved = [f.resolve() for f in given]
+    for k, folder in enumerate(resolved):
+        if folder in resolved[:k]:
+            raise InputError(given[k], "is given twice: each plant counts once")
+    names = [f.name for f in resolved]
+    return _unique([f"{f.parent.name}-{f.name}" if names.count(f.name) > 1 else f.name
+                    for f in resolved])
+
 
 
 def _real_jobs(folders: list[Path],
@@ -514,8 +528,7 @@ def eval_outputs(source: str, folders: Iterable[Path] = (), compared: Iterable[s
     """The top-level entries `run_eval` writes (`outputs.OutputFolder`): the reports, the
     plants (a real plant under its folder's name) and a folder per compared profile or
     method."""
-    plants = (_unique([Path(f).resolve().name for f in folders]) if source == "real"
-              else ["plants"])
+    plants = real_names(folders) if source == "real" else ["plants"]
     return (*REPORT_FILES, "report.html", "pollination.png", *plants, *compared)
 
 

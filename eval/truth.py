@@ -62,6 +62,18 @@ def read_plant_truth(path: str | Path) -> list[TruthFlower]:
                          f'{where}: "normal"'),
             radius=None if radius is None else float(radius),
             visible=visible))
+    ids = [t.id for t in truth]
+    repeated = next((i for i in ids if ids.count(i) > 1), None)
+    if repeated is not None:
+        raise InputError(path, f"flower id {repeated!r} is given {ids.count(repeated)} times: "
+                         "each flower needs an id of its own")
+    units = read_json(path).get("units", "m")
+    if units not in ("m", "mm"):
+        raise InputError(path, f'"units" must be "m" or "mm", got {units!r}')
+    if units == "mm":
+        for flower in truth:
+            flower.center = flower.center * 1e-3
+            flower.radius = None if flower.radius is None else flower.radius * 1e-3
     return truth
 
 
@@ -189,4 +201,13 @@ def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
         center = np.array(values[:3], dtype=np.float64) / scale
         truth.append(TruthFlower(id=name, center=center,
                                  normal=sagemaker_normal(*values[3:], convention=convention)))
+    seen: dict[tuple, str] = {}
+    for cuboid, flower in zip(cuboids, truth, strict=True):
+        whole = tuple(cuboid.get(key) for key in _CUBOID_KEYS)
+        for key in ("length", "width", "height"):
+            whole += (cuboid.get(key),)
+        if whole in seen:
+            raise InputError(path, f"cuboids {seen[whole]!r} and {flower.id!r} are the same "
+                             "cuboid (centre, size and angles): a label given twice")
+        seen[whole] = flower.id
     return truth

@@ -72,6 +72,11 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
             raise InputError(path, "not a PLY file (no 'ply' header)")
         header = ply_header(path)
     cloud = None if header is not None and header.vertices == 0 else _read_o3d(path)
+    if header is not None and header.ascii_rows is not None:
+        held, declared = header.ascii_rows
+        if held != declared:
+            raise InputError(path, f"the header declares {declared} rows ({header.vertices} "
+                             f"points), the file holds {held}: its header and body disagree")
     points = np.zeros((0, 3)) if cloud is None else np.asarray(cloud.points, dtype=np.float64)
     if cloud is None or len(points) == 0:
         if allow_empty:
@@ -87,6 +92,8 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
     if header is not None and header.float_colours and colors.max(initial=0.0) <= 1.0 + 1e-6:
         # Open3D divides every colour by 255; colours stored as floats in 0-1 were not bytes.
         colors = colors * 255.0
+    elif header is not None and header.wide_colours:
+        colors = colors / 257.0  # 16-bit to 8-bit: 65535 is 255
     colors = np.clip(colors + 0.5, 0, 255).astype(np.uint8)
     return Cloud(to_metres(points, units, path), colors)
 
@@ -168,6 +175,10 @@ class PlyHeader:
     """The vertex colours are stored as floats (0-1), not bytes."""
     expected_bytes: int | None
     """The file's size if every element is there (binary files of fixed-size rows)."""
+    wide_colours: bool = False
+    """The vertex colours are 16-bit (ushort, 0-65535)."""
+    ascii_rows: tuple[int, int] | None = None
+    """An ASCII file's rows: (held by its body, declared by its header)."""
 
 
 def ply_header(path: Path) -> PlyHeader:
@@ -207,15 +218,40 @@ def ply_header(path: Path) -> PlyHeader:
             if element == "vertex" and words[-1] in ("red", "green", "blue"):
                 colour_types[words[-1]] = words[1]
     expected = None
+    width = row_bytes.get("vertex", [0, 1])[1] or 1
     if fmt.startswith("binary") and fixed:
         expected = header_bytes + sum(count * width for count, width in row_bytes.values())
         if size < expected:
-            width = row_bytes.get("vertex", [0, 1])[1] or 1
             held = max(0, (size - header_bytes) // width)
             raise InputError(path, f"truncated: the header declares {vertices} points, the "
                              f"file holds {min(held, vertices)}")
+        if size - expected >= width and len(row_bytes) == 1:
+            raise InputError(path, f"the header declares {vertices} points, the file holds "
+                             f"{vertices + (size - expected) // width}: its header and body "
+                             "disagree")
+    rows = None
+    if fmt == "ascii" and any(line.startswith("format ") for line in lines):
+        rows = (_ascii_rows(path, header_bytes), sum(count for count, _ in row_bytes.values()))
+    kinds = set(colour_types.values())
+    if kinds - _COLOUR_TYPES:
+        raise InputError(path, f"colours of type {sorted(kinds - _COLOUR_TYPES)[0]}: expected "
+                         "8-bit (uchar), 16-bit (ushort) or float colours")
+    if len(kinds) > 1:
+        raise InputError(path, f"colour channels of different types ({', '.join(sorted(kinds))})")
     float_colours = any(t.startswith(("float", "double")) for t in colour_types.values())
-    return PlyHeader(fmt, vertices, float_colours, expected)
+    wide = any(t in ("ushort", "uint16") for t in colour_types.values())
+    return PlyHeader(fmt, vertices, float_colours, expected, wide, rows)
+
+
+#: Colour property types a cloud may have: 8-bit, 16-bit and float (0-1).
+_COLOUR_TYPES = {"uchar", "uint8", "ushort", "uint16", "float", "float32", "double", "float64"}
+
+
+def _ascii_rows(path: Path, header_bytes: int) -> int:
+    """The non-empty lines after an ASCII PLY's header: its rows."""
+    with open(path, "rb") as handle:
+        handle.seek(header_bytes)
+        return sum(1 for line in handle if line.strip())
 
 
 def write_cloud(path: str | Path, cloud: Cloud) -> Path:

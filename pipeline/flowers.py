@@ -387,16 +387,22 @@ def _rotation_from_z(direction: np.ndarray) -> np.ndarray:
 
 def read_flowers(path: Path) -> list[dict]:
     """The flower entries of a `flowers.json`, checked: a 3D centre and, per method, a
-    normal that is `null` or 3 finite numbers (normalised here). Errors name the file and
-    the flower."""
+    normal that is `null` or 3 finite numbers (normalised here); centres in metres (a file
+    in "mm" is converted, another unit refused). Errors name the file and the flower."""
+    document = read_json(path)
+    units = document.get("units", "m") if isinstance(document, dict) else "m"
+    if units not in ("m", "mm"):
+        raise InputError(path, f'"units" must be "m" or "mm", got {units!r}')
+    scale = 1e-3 if units == "mm" else 1.0
     checked = []
-    for k, entry in enumerate(object_list(read_json(path), "flowers", path, "flower")):
+    for k, entry in enumerate(object_list(document, "flowers", path, "flower")):
         where = f"flower {entry.get('id', k)}"
         normals = entry.get("normals")
         if not isinstance(normals, dict):
             raise InputError(path, f"{where}: 'normals' must be an object of method: "
                              "normal or null")
-        checked.append({**entry, "center": vector3(entry.get("center"), path, f"{where}: center"),
+        checked.append({**entry, "center": scale * vector3(entry.get("center"), path,
+                                                           f"{where}: center"),
                         "normals": {m: None if n is None else
                                     unit3(vector3(n, path, f"{where}: normals.{m}"), path,
                                           f"{where}: normals.{m}")
