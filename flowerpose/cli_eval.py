@@ -19,6 +19,7 @@ from flowerpose.cli_options import (
     add_ray_option,
     add_workers,
     at_least,
+    check_writable,
     configure,
     jobs_on,
     non_negative_number,
@@ -58,6 +59,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     requirements = parse_requirements(args.require)  # a bad gate says so before any work
     if (args.junit or args.summary) and not requirements:
         raise InputError("--junit" if args.junit else "--summary", "needs --require")
+    for path, flag in ((args.junit, "--junit"), (args.summary, "--summary")):
+        if path is not None:
+            check_writable(path, flag)
     config = eval_config(args.preset, lambda base: configure(base, args))
     from flowerpose.pipeline.detect import make_detector
 
@@ -134,17 +138,24 @@ def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
     outcomes = check(report, requirements)
     failed = [o for o in outcomes if not o.passed]
     title = f"flowerpose eval --source {args.source}"
-    if args.junit:
-        write_junit(args.junit, outcomes, title)
-    if args.summary:
-        write_summary(args.summary, outcomes, title)
     if failed:
         print(f"\n{len(failed)} of {len(outcomes)} requirements failed:")
         print(outcome_table(outcomes, failed_only=True))
-        return 1
-    print(f"\nall {len(outcomes)} requirements hold ({len(requirements)} on the run and on "
-          f"each of {len(report['plants'])} plants)")
-    return 0
+    else:
+        print(f"\nall {len(outcomes)} requirements hold ({len(requirements)} on the run and on "
+              f"each of {len(report['plants'])} plants)")
+    unwritten = []
+    for path, write in ((args.junit, write_junit), (args.summary, write_summary)):
+        if path is not None:
+            try:
+                write(path, outcomes, title)
+            except InputError as err:  # the disk changed during the run: said, gates kept
+                unwritten.append(str(err))
+    for line in unwritten:
+        from flowerpose.log import LOG
+
+        LOG.error(f"flowerpose: error: {line}")
+    return 1 if failed else 2 if unwritten else 0
 
 
 def add_eval(sub: argparse._SubParsersAction) -> None:

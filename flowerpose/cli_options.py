@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -59,8 +60,24 @@ def owned(folder: Path, stage: str, overwrite: bool, writes: tuple[str, ...]):
     from flowerpose.outputs import OutputFolder
 
     output = OutputFolder(folder, stage, overwrite, writes)
-    yield output
+    try:
+        yield output
+    except BaseException:
+        output.abandon()
+        raise
     output.finish()
+
+
+def check_writable(path: Path, flag: str) -> None:
+    """Refuse, before any work, a file path the command could not write at its end: a
+    folder, a missing or read-only parent folder."""
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise InputError(path, f"{flag} is a folder; give a file path")
+    if not parent.is_dir():
+        raise InputError(path, f"{flag}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise InputError(path, f"{flag}: cannot be written here (permission denied)")
 
 
 def add_cache_options(parser: argparse.ArgumentParser) -> None:

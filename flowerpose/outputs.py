@@ -15,12 +15,18 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import weakref
 from pathlib import Path
 
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json, write_json
 
 MARKER = ".flowerpose-output.json"
+#: The lock a command holds on its output folder while it runs: a second command into the
+#: same folder is refused (the operating system releases it when the process ends).
+LOCK = ".flowerpose-output.lock"
+#: The folder's own bookkeeping, never counted as its contents.
+BOOKKEEPING = (MARKER, LOCK)
 
 
 def _previous(folder: Path) -> dict | None:
@@ -68,7 +74,7 @@ def check_output(folder: str | Path, stage: str, overwrite: bool = False,
         raise InputError(folder, "is a file, not a folder")
     if not folder.is_dir():
         return
-    entries = sorted(p.name for p in folder.iterdir() if p.name != MARKER)
+    entries = sorted(p.name for p in folder.iterdir() if p.name not in BOOKKEEPING)
     previous = _previous(folder)
     _refuse_foreign(folder, stage, writes, _own_earlier(folder, stage))
     if not entries or overwrite or (previous is not None and previous["stage"] == stage):
@@ -100,15 +106,20 @@ class OutputFolder:
         self.stage = stage
         self.writes = tuple(writes)
         check_output(self.folder, stage, overwrite, writes)
-        previous = _previous(self.folder) if self.folder.is_dir() else None
-        own = _own_earlier(self.folder, stage) if self.folder.is_dir() else set()
+        self.created = not self.folder.exists()
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._lock = _lock(self.folder, stage)
+        # A command that fails without finishing still lets go of the folder.
+        self._unlock = weakref.finalize(self, os.close, self._lock)
+        previous = _previous(self.folder)
+        own = _own_earlier(self.folder, stage)
         if previous is not None and previous["stage"] == stage:
             for name in previous["files"]:
                 stale = (self.folder / name).resolve()
                 if self.folder.resolve() in stale.parents:  # never outside the folder
                     _remove(stale)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self._foreign = {p.name for p in self.folder.iterdir() if p.name != MARKER} - own
+        self._foreign = {p.name for p in self.folder.iterdir()
+                         if p.name not in BOOKKEEPING} - own
         self.files: list[str] = []
         self._write(complete=False)
 
@@ -131,6 +142,38 @@ class OutputFolder:
     def finish(self) -> None:
         """The stage's output is whole."""
         self._write(complete=True)
+        self.release()
+
+    def release(self) -> None:
+        """Give up the folder's lock (the process ending does too)."""
+        self._unlock()
+
+    def abandon(self) -> None:
+        """The command ended without output: a folder it made and left holding only its
+        bookkeeping is removed, so a refused command leaves nothing behind."""
+        self.release()
+        if self.created and self.folder.is_dir() and all(
+                p.name in BOOKKEEPING for p in self.folder.iterdir()):
+            for name in BOOKKEEPING:
+                with contextlib.suppress(FileNotFoundError):
+                    (self.folder / name).unlink()
+            with contextlib.suppress(OSError):
+                self.folder.rmdir()
+
+
+def _lock(folder: Path, stage: str) -> int:
+    """An exclusive lock on the folder for this process; InputError when another command
+    holds it."""
+    import fcntl
+
+    handle = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(handle)
+        raise InputError(folder, f"is in use by another running flowerpose command; wait for "
+                         f"it or choose another folder for {stage}") from None
+    return handle
 
 
 def publish(staging: Path, folder: str | Path, stage: str, overwrite: bool = False) -> Path:

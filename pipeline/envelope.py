@@ -17,6 +17,9 @@ import numpy as np
 POINTS_PER_FLOWER = (50, 2000)
 #: Flower diameters, metres (a strawberry flower: 2-6 cm across).
 FLOWER_DIAMETER_M = (0.02, 0.06)
+#: A measured size says the cloud crosses a bound only beyond this factor of it: twice a
+#: corolla's measured radius runs up to a tenth over the petal tips' span.
+SIZE_TOLERANCE = 1.25
 #: Largest colour cast, the relative change of one channel's linear light.
 MAX_CAST = 0.15
 #: Exposure, a factor on linear light, and Gaussian position noise, metres: within these
@@ -46,7 +49,7 @@ class CloudMeasure:
                          f"(median), outside the {low}-{high} the pipeline is built for")
         low, high = FLOWER_DIAMETER_M
         if metric and self.flower_diameter is not None and not (
-                low <= self.flower_diameter <= high):
+                low / SIZE_TOLERANCE <= self.flower_diameter <= high * SIZE_TOLERANCE):
             lines.append(f"its flowers measure {100 * self.flower_diameter:.1f} cm across, "
                          f"outside {100 * low:g}-{100 * high:g} cm: is the cloud in metres "
                          "(--units)?")

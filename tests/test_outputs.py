@@ -149,3 +149,28 @@ def test_overwrite_never_writes_a_report_or_plant_over_a_file_it_did_not_write(p
                  "--overwrite"]) == 2
     assert "report.md: was not written by flowerpose eval" in capsys.readouterr().err
     assert (out / "report.md").read_text() == "my notes"
+
+
+def test_a_folder_in_use_is_refused_and_a_refused_command_leaves_nothing(tmp_path, capsys):
+    from flowerpose.cli import main
+    from flowerpose.outputs import OutputFolder
+
+    busy = OutputFolder(tmp_path / "busy", "eval", writes=("report.json",))
+    assert main(["eval", "--source", "oracle", "--plants", "1", "--out",
+                 str(tmp_path / "busy")]) == 2
+    assert "in use by another running flowerpose command" in capsys.readouterr().err
+    busy.finish()
+    # A real plant folder that is no plant: refused inside the run, no folder left.
+    (tmp_path / "empty").mkdir()
+    assert main(["eval", "--source", "real", str(tmp_path / "empty"), "--out",
+                 str(tmp_path / "never")]) == 2
+    assert not (tmp_path / "never").exists()
+
+
+def test_an_unwritable_junit_path_is_refused_before_the_run(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    assert main(["eval", "--source", "oracle", "--plants", "1", "--require", "recall>=0.5",
+                 "--junit", str(tmp_path / "missing" / "gates.xml"),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert "does not exist" in capsys.readouterr().err and not (tmp_path / "out").exists()
