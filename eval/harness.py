@@ -226,8 +226,9 @@ def _describe_entry(k: int, value: tuple[dict, dict]) -> str:
     entry, timing = value
     plane = error_stats(entry["error_deg"]["plane"])["mean"]
     plane_text = f", plane {plane:.1f}°" if plane is not None else ""
-    return (f"{entry['plant']}: {entry['gt']} flowers, {entry['visible']} visible, "
-            f"{entry['found']} found, {entry['fp']} fp{plane_text} ({timing['total']:.2f} s)")
+    return (f"{entry['plant']} scored: {entry['gt']} flowers, {entry['visible']} visible, "
+            f"{entry['found']} found, {entry['fp']} fp{plane_text} (detection "
+            f"{timing['total']:.2f} s)")
 
 
 #: The sections of an EvalConfig each source reads besides the pipeline's: the synthetic
@@ -309,7 +310,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
                                       "config": sections_run(other, starts)}
     for method in methods:
         results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
-                           workers, _describe_entry, stage=f"method {method.name}",
+                           workers, lambda k, v, name=method.name: f"{name}: "
+                           + _describe_entry(k, v), stage=f"method {method.name}",
                            labels=[job[1] for job in jobs])
         others = [entry for entry, _ in results]
         extra.setdefault("compare", {})[method.name] = {
@@ -651,6 +653,14 @@ def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant
     if not (max_distance > 0 and math.isfinite(max_distance)):
         raise InputError("score.max_distance_m", f"must be positive, got {max_distance}")
     estimates = read_flowers(flowers_path)
+    if truth_format == "plant":
+        from flowerpose.eval.truth import is_sagemaker
+        from flowerpose.jsonio import read_json
+
+        document = read_json(truth_path)
+        if isinstance(document, dict) and "flowers" not in document and is_sagemaker(document):
+            raise InputError(truth_path, "holds SageMaker Ground Truth cuboids, not a "
+                             "plant.json: add `truth_format` sagemaker")
     truth = (read_plant_truth(truth_path) if truth_format == "plant"
              else read_sagemaker_truth(truth_path, truth_scale))
     watch = Stopwatch()

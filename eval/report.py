@@ -146,7 +146,8 @@ def table_rows(report: dict) -> tuple[list[str], list[list[str]], int]:
     s = report["summary"]
     pct = 100.0 * s["found"] / s["gt"] if s["gt"] else 0.0
     rows.append(["Total", str(s["gt"]), str(s["visible"]), f"{s['found']} ({pct:.1f})",
-                 str(s["extra"]), str(s["fp"]), "-", "-", "-"])
+                 str(s["extra"]), str(s["fp"])]
+                + [f"{s['error_deg'][m]['n']} normals" for m in TABLE_METHODS])
     for stat, label in (("mean", "Mean"), ("median", "Median"), ("std", "Std Dev")):
         rows.append([label, "-", "-", "-", "-", "-"]
                     + [_deg(s["error_deg"][m][stat]) for m in TABLE_METHODS])
@@ -203,8 +204,12 @@ def summary_lines(report: dict) -> list[str]:
             lines.append(f"{m}: mean {st['mean']:.2f}°, median {st['median']:.2f}°, "
                          f"std {st['std']:.2f}° over {st['n']} flowers, {s['failed'][m]} failed "
                          f"(paper mean {PAPER['mean'][m]}°)")
-    if "total" in report["timing_s"]:
-        lines.append(f"wall time {report['timing_s']['total']:.1f} s")
+    timing = report["timing_s"]
+    if "wall" in timing:
+        lines.append(f"wall time {timing['wall']:.1f} s from the command's start (its stages "
+                     f"{timing.get('total', 0.0):.1f} s)")
+    elif "total" in timing:
+        lines.append(f"wall time {timing['total']:.1f} s")
     return lines
 
 

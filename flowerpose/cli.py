@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from typing import Any
 
 from flowerpose import cli_eval, cli_field, cli_stages
@@ -106,16 +107,29 @@ def _add_verbosity(parser: argparse.ArgumentParser, default: Any) -> None:
                         help="say more: debugging detail")
 
 
+def _standard_streams() -> None:
+    """A closed standard output or error (`flowerpose ... >&-`) becomes /dev/null: what the
+    command says there goes nowhere, and the command still runs and ends cleanly."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            stream = open(os.devnull, "w")  # noqa: SIM115 - for the rest of the process
+            setattr(sys, name, stream)
+            setattr(sys, f"__{name}__", stream)
+
+
 def main(argv: list[str] | None = None) -> int:
     from flowerpose.log import configure as configure_log
     from flowerpose.log import third_party
     from flowerpose.processes import Terminated, terminate_cleanly
 
+    _standard_streams()
     parser = build_parser()
     if not (sys.argv[1:] if argv is None else argv):
         parser.print_help()  # a bare `flowerpose`: what it can do, not an error
         return 0
+    started = time.monotonic()
     args = parser.parse_args(argv)
+    args.started = started
     configure_log(args.verbose - args.quiet)
     terminate_cleanly()
     try:

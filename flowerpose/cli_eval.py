@@ -89,8 +89,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from flowerpose.cache import prune_to_limit
 
         prune_to_limit(cache)
+    import time
+
     from flowerpose.eval.report import comparison_table, summary_lines, table
 
+    report["timing_s"]["wall"] = round(time.monotonic() - getattr(args, "started",
+                                                                  time.monotonic()), 1)
     print(table(report))
     for line in summary_lines(report):
         print(line)

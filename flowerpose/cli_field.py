@@ -325,6 +325,10 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         obstacles, corolla = cloud.points, flower_coloured(cloud.colors)
     elif args.plant_cloud is not None:
         raise InputError(args.plant_cloud, "no such cloud")
+    elif cloud_path is not None:
+        raise InputError(cloud_path, f"no such cloud: {args.flowers} names it as the plant's "
+                         "cloud, which the plan is checked against for collisions; give "
+                         "--plant-cloud")
     else:
         obstacles = None
         LOG.warning("warning: no plant cloud (--plant-cloud, or the one flowers.json names): "

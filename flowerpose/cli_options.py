@@ -113,7 +113,16 @@ def stage_cache(args: argparse.Namespace) -> Path | None:
     if args.no_cache and args.cache is not None:
         raise InputError("--no-cache", "and --cache contradict each other: choose one")
     max_cache_bytes()  # a bad limit says so before any work
-    return None if args.no_cache else (args.cache or default_cache_dir())
+    if args.no_cache:
+        return None
+    folder = args.cache or default_cache_dir()
+    source = "--cache" if args.cache is not None else "FLOWERPOSE_CACHE"
+    if folder.exists() and not folder.is_dir():
+        raise InputError(folder, f"the stage cache ({source}) is a file, not a folder")
+    if folder.is_dir() and not os.access(folder, os.W_OK):
+        raise InputError(folder, f"the stage cache ({source}) cannot be written "
+                         "(permission denied)")
+    return folder
 
 
 def add_overwrite(parser: argparse.ArgumentParser) -> None:

@@ -130,7 +130,8 @@ def add_reconstruct(sub: argparse._SubParsersAction) -> None:
     add_output(p, "folder for cloud.ply, the sparse model and reconstruction.json")
     add_setting_flags(p, _reconstruct_base, {"--dense-poses": "dense_poses"},
                       metavars={"--dense-poses": "{refined,recorded}"})
-    add_config_options(p, profile=False, detector=False)
+    add_config_options(p, profile=False, detector=False,
+                       example="dense.voxel_size_m=0.0025 (metres)")
     p.set_defaults(func=cmd_reconstruct)
 
 

@@ -154,11 +154,11 @@ def library_output(taken: str) -> Iterator[list[str]]:
 
 
 def eta(elapsed: float, done: int, total: int) -> str:
-    """"(12 s, about 30 s left)": the `elapsed` seconds and, at the rate so far, the time
-    the rest of `total` will take."""
+    """"(12 s in, about 30 s left)": the `elapsed` seconds and, at the rate so far, the
+    time the rest of `total` will take."""
     left = elapsed / done * (total - done) if done else float("nan")
-    return f"({_duration(elapsed)}" + (f", about {_duration(left)} left)" if done < total
-                                       else ")")
+    return f"({_duration(elapsed)} in" + (f", about {_duration(left)} left)" if done < total
+                                          else ")")
 
 
 def _duration(seconds: float) -> str:

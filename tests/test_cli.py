@@ -80,7 +80,7 @@ def test_eval_writes_the_report_contract(tmp_path, capsys):
                            "--out", out, "--set", "cluster.eps=0.01")
     assert code == 0
     # Progress: a line per plant with the time it took (the last: nothing left).
-    assert re.search(r"^\[1/1\] seed-1: .* \(\d+ s\)$", err, re.MULTILINE), err
+    assert re.search(r"^\[1/1\] seed-1 scored: .* \(\d+ s in\)$", err, re.MULTILINE), err
     code, quiet_text, quiet_err = _run(capsys, "eval", "-q", "--source", "oracle", "--plants",
                                        1, "--seed", 1, "--workers", 1, "--out", out,
                                        "--set", "cluster.eps=0.01")

@@ -6,10 +6,10 @@ from flowerpose.log import LOG, VERBOSITY_ENV, Tally, configure, eta
 
 
 def test_eta_says_the_time_so_far_and_left_at_the_rate_so_far():
-    assert eta(10.0, 1, 3) == "(10 s, about 20 s left)"
-    assert eta(10.0, 3, 3) == "(10 s)"
-    assert eta(150.0, 1, 2) == "(2 min 30 s, about 2 min 30 s left)"
-    assert eta(5.0, 0, 2) == "(5 s, about ? left)"
+    assert eta(10.0, 1, 3) == "(10 s in, about 20 s left)"
+    assert eta(10.0, 3, 3) == "(10 s in)"
+    assert eta(150.0, 1, 2) == "(2 min 30 s in, about 2 min 30 s left)"
+    assert eta(5.0, 0, 2) == "(5 s in, about ? left)"
 
 
 def test_verbosity_sets_what_is_said_here_and_in_workers(monkeypatch, capsys):
@@ -24,7 +24,7 @@ def test_verbosity_sets_what_is_said_here_and_in_workers(monkeypatch, capsys):
         configure(0)
         with Tally(2) as tally:
             tally.finished("plant a")
-        assert capsys.readouterr().err.startswith("[1/2] plant a (0 s, about 0 s left)")
+        assert capsys.readouterr().err.startswith("[1/2] plant a (0 s in, about 0 s left)")
         configure(1)
         assert LOG.isEnabledFor(logging.DEBUG)
         import os
@@ -104,6 +104,6 @@ def test_a_loop_that_reports_now_and_then_says_its_count_and_time_left(capsys):
         assert [line.split(" (")[0] for line in lines] == [
             "matched 100/300 pairs", "matched 200/300 pairs", "matched 300/300 pairs"]
         assert all("left)" in line for line in lines[:-1]) and tally.done == 300
-        assert lines[-1].endswith("(0 s)")  # done: the time it took
+        assert lines[-1].endswith("(0 s in)")  # done: the time it took
     finally:
         configure(0)
