@@ -6,7 +6,8 @@ height along it, R the corolla radius (`segment.corolla`). The corolla is the ri
 0.3 R <= r <= R within 0.3 R of the petal surface (h = a + b r^2 fitted to the ring); the
 centre is r < 0.3 R, from just behind the petal base to 0.3 R in front of it; leaves are
 the points farther than 1.5 typical radii from every flower. Statistics per flower:
-points, diameter 2R, petal thickness (RMS distance of the corolla to its plane), cupping
+points, diameter 2R, petal thickness (RMS distance of the corolla to its plane), roughness
+(the median distance of a corolla point from its 8 neighbours' plane), cupping
 b R (rim rise over radius, positive cupped up), the share of corolla points that fail the
 petal colour test and the share of the crop that is neither corolla nor centre (leaves
 and stems inside the crop); per point class, the HSV distribution. Geometry, not colour,
@@ -52,6 +53,9 @@ TOLERANCES: dict[str, tuple[str, float, str]] = {
     "diameter": ("ratio", 1.2, "the radius limits are in flower radii, but the fixed ones "
                  "(DBSCAN eps, the split distance) are not"),
     "thickness": ("ratio", 1.3, "petal thickness against diameter is the plane fit's noise"),
+    "roughness": ("ratio", 1.5, "how far a petal point lies off the plane of its 8 nearest "
+                  "neighbours: a reconstruction's smooth surface or a jittered one, which "
+                  "decides how fast the orientation cues fade when the cloud is thinned"),
     "cupping": ("difference", 0.05, "the median rim rise per radius decides the curved fits"),
     "petal_colour_fail": ("difference", 0.05, "a petal point lost to colour is lost to the fit"),
     "leaf_in_crop": ("difference", 0.10, "leaves in a crop pull the crop-centroid offset"),
@@ -182,11 +186,31 @@ def _flower_stats(sample: Sample, j: int, config: PipelineConfig) -> dict[str, A
     return {
         "points": len(points), "diameter": 2 * radius,
         "thickness": float(np.sqrt(np.mean((corolla_points @ plane) ** 2))),
+        "roughness": local_roughness(points[petals]),
         "cupping": float(curve * radius),
         "petal_colour_fail": float(1.0 - petal_mask(hsv[petals], config.colour).mean()),
         "leaf_in_crop": float(1.0 - (petals | centre).mean()),
         "hsv": {"petal": hsv[petals], "centre": hsv[centre]},
     }
+
+
+#: Neighbours of the local plane `local_roughness` measures each point against.
+ROUGHNESS_NEIGHBOURS = 8
+
+
+def local_roughness(points: np.ndarray) -> float:
+    """The median distance of points (N, 3) from the least-squares plane of their
+    ROUGHNESS_NEIGHBOURS nearest neighbours (themselves among them), the cloud's unit: near
+    0 for a smooth reconstructed surface, about the noise for a jittered one."""
+    from scipy.spatial import cKDTree
+
+    k = min(ROUGHNESS_NEIGHBOURS, len(points) - 1)
+    if k < 3:
+        return float("nan")
+    _, nearest = cKDTree(points).query(points, k=k + 1)
+    around = points[nearest] - points[nearest].mean(axis=1, keepdims=True)
+    normals = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))[1][:, :, 0]
+    return float(np.median(np.abs(np.einsum("ni,ni->n", around[:, 0], normals))))
 
 
 def _leaf_hsv(sample: Sample, typical: float) -> np.ndarray:
@@ -203,7 +227,7 @@ def _leaf_hsv(sample: Sample, typical: float) -> np.ndarray:
 def _summary(values: np.ndarray) -> dict[str, float]:
     if len(values) == 0:
         return {f"p{q}": None for q in PERCENTILES}
-    return {f"p{q}": round(float(v), 4) for q, v in
+    return {f"p{q}": float(f"{v:.4g}") for q, v in
             zip(PERCENTILES, np.percentile(values, PERCENTILES), strict=True)}
 
 
@@ -217,8 +241,8 @@ def statistics(samples: list[Sample], config: PipelineConfig) -> dict[str, Any]:
                          "no labelled flower was found, so there is nothing to describe")
     typical = float(np.median([f["diameter"] for f in flowers])) / 2
     raw = {key: np.array([f[key] for f in flowers], np.float64)
-           for key in ("points", "diameter", "thickness", "cupping", "petal_colour_fail",
-                       "leaf_in_crop")}
+           for key in ("points", "diameter", "thickness", "roughness", "cupping",
+                       "petal_colour_fail", "leaf_in_crop")}
     hsv = {"petal": np.concatenate([f["hsv"]["petal"] for f in flowers]),
            "centre": np.concatenate([f["hsv"]["centre"] for f in flowers]),
            "leaf": np.concatenate([_leaf_hsv(s, typical) for s in samples])}
@@ -253,8 +277,8 @@ def compare(real: dict[str, Any], synthetic: dict[str, Any]) -> list[dict[str, A
                      "tolerance": tolerance, "holds": bool(holds), "why": why})
 
     mapping = {"points": "points_per_flower", "diameter": "diameter", "thickness": "thickness",
-               "cupping": "cupping", "petal_colour_fail": "petal_colour_fail",
-               "leaf_in_crop": "leaf_in_crop"}
+               "roughness": "roughness", "cupping": "cupping",
+               "petal_colour_fail": "petal_colour_fail", "leaf_in_crop": "leaf_in_crop"}
     for key, tolerance_key in mapping.items():
         row(f"{key} (median)", tolerance_key, real[key]["p50"], synthetic[key]["p50"])
     row("leaf points of petal colour", "leaf_petal_colour", real["leaf_petal_colour"],
@@ -278,11 +302,12 @@ def _plot(path: Path, real: dict[str, Any], synthetic: dict[str, Any], names: tu
 
     panels = [("points", "points per flower", None), ("diameter", "diameter", None),
               ("thickness", "petal thickness (RMS to plane)", None),
+              ("roughness", "roughness (off the local plane)", None),
               ("cupping", "cupping (rim rise / radius)", None)]
     for part in ("petal", "centre", "leaf"):
         for k, channel in enumerate(("hue (degrees)", "saturation", "value")):
             panels.append((f"hsv_{part}", f"{part} {channel}", k))
-    fig, axes = plt.subplots(4, 4, figsize=(16, 12))
+    fig, axes = plt.subplots(5, 4, figsize=(16, 15))
     for ax, (key, title, channel) in zip(axes.ravel(), panels, strict=False):
         for side, colour, label in ((real, "tab:red", names[0]), (synthetic, "tab:blue",
                                                                    names[1])):

@@ -121,6 +121,26 @@ def jitter(cloud: Cloud, sigma: float, rng: np.random.Generator) -> Cloud:
     return Cloud(cloud.points + rng.normal(0.0, sigma, cloud.points.shape), cloud.colors)
 
 
+#: Plane waves summed into a smooth displacement field (`smooth_noise`).
+WAVES = 24
+
+
+def smooth_noise(points: np.ndarray, sigma: float, wavelength: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """(N, 3) a smooth random displacement of points (N, 3): per axis a sum of WAVES plane
+    waves of random directions and phases, wavelengths within x0.7-1.4 of `wavelength`,
+    scaled to a standard deviation of `sigma` (the points' unit). Neighbouring points move
+    together, as a reconstruction's surface errors do; independent noise moves each alone."""
+    if sigma == 0 or len(points) == 0:
+        return np.zeros_like(points)
+    directions = rng.normal(size=(3, WAVES, 3))
+    directions /= np.linalg.norm(directions, axis=2, keepdims=True)
+    lengths = wavelength * rng.uniform(0.7, 1.4, (3, WAVES, 1))
+    phases = rng.uniform(0, 2 * np.pi, (3, WAVES))
+    waves = np.einsum("nd,awd->anw", points, directions * (2 * np.pi / lengths)) + phases[:, None]
+    return (np.cos(waves).sum(axis=2) * (sigma * np.sqrt(2.0 / WAVES))).T
+
+
 def perturb(cloud: Cloud, perturbation: Perturbation, rng: np.random.Generator) -> Cloud:
     """The cloud under one perturbation (a view dropped acts on detections or files, not
     on a cloud: the cloud comes back as it is)."""

@@ -7,6 +7,7 @@ import numpy as np
 import trimesh
 
 from flowerpose.cloudio import Cloud
+from flowerpose.perturb import smooth_noise
 from flowerpose.sim.pieces import Part
 from flowerpose.sim.plant import Plant
 from flowerpose.sim.raycast import make_scene, seen_from_any
@@ -98,6 +99,9 @@ def sample_oracle_cloud(plant: Plant, config: OracleCloudConfig, viewpoints: np.
         weight = rng.random(int(sheened.sum()))[:, None]
         colors[sheened] = np.rint((1.0 - weight) * colors[sheened] + weight * SHEEN_RGB
                                   ).astype(np.uint8)
-    if config.position_noise_m > 0:
+    if config.position_noise_m > 0 and config.position_noise_wavelength_m > 0:
+        points = points + smooth_noise(points, config.position_noise_m,
+                                       config.position_noise_wavelength_m, rng)
+    elif config.position_noise_m > 0:
         points = points + rng.normal(0.0, config.position_noise_m, points.shape)
     return Cloud(points, colors), plant.face_part[faces].copy(), plant.face_flower[faces].copy()

@@ -35,14 +35,26 @@ def test_statistics_of_flowers_of_known_size_cupping_and_colour(tmp_path):
     assert stats["petal_colour_fail"]["p50"] < 0.02
     assert stats["leaf_petal_colour"] == 0.0
     rows = compare(stats, stats)
-    assert all(row["holds"] for row in rows) and len(rows) == 15
+    assert all(row["holds"] for row in rows) and len(rows) == 16
+
+
+def test_roughness_tells_a_smooth_surface_from_a_jittered_one():
+    from flowerpose.eval.fidelity import local_roughness
+    from flowerpose.perturb import smooth_noise
+
+    rng = np.random.default_rng(3)
+    disc = np.c_[rng.uniform(-0.02, 0.02, (3000, 2)), np.zeros(3000)]
+    smooth = disc + smooth_noise(disc, 0.0005, 0.01, rng)
+    jittered = disc + rng.normal(0, 0.0005, disc.shape)
+    assert local_roughness(smooth) < 0.2 * local_roughness(jittered)
+    assert local_roughness(jittered) == pytest.approx(0.0005, rel=0.6)
 
 
 def test_the_command_compares_a_real_folder_with_a_seeded_plant(tmp_path, plant0, capsys):
     real = write_real_plant(tmp_path / "real", "candidates")
     assert main(["fidelity", str(real), str(plant0[1]), "--out", str(tmp_path / "f")]) == 0
     report = json.loads((tmp_path / "f" / "fidelity.json").read_text())
-    assert report["of"] == 15 and report["synthetic"]["plants"] == [plant0[1].name]
+    assert report["of"] == 16 and report["synthetic"]["plants"] == [plant0[1].name]
     # Generated flowers are 2-3.5 cm across; these test flowers 4 cm.
     sizes = {r["statistic"]: r for r in report["comparison"]}
     assert not sizes["diameter (median)"]["holds"]
