@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from flowerpose import __version__
-from flowerpose.cli import main
+from flowerpose.cli import build_parser, main
 from flowerpose.cloudio import Cloud, write_cloud
 
 
@@ -348,3 +348,58 @@ def test_library_advice_names_settings_and_the_command_line_says_its_flags():
         "load --firmware-params, or take it as home (--home-here); frames chosen while "
         "recording (`choose`)")
 
+
+
+def _set_example(parser) -> str | None:
+    """The KEY=VALUE a command's --set help gives as its example, if any."""
+    for action in parser._actions:
+        if "--set" in action.option_strings:
+            found = re.search(r"e\.g\. (\S+=\S+)", str(action.help))
+            return found.group(1) if found else None
+    return None
+
+
+def _subparsers():
+    parser = build_parser()
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+#: The commands whose help examples run in seconds here, in the order one's output feeds
+#: the next; each also runs with its --set example added.
+QUICK = ("plant", "detect", "pose", "score", "cache")
+
+
+def test_the_quick_help_examples_run_as_written_with_their_set_example(tmp_path, monkeypatch,
+                                                                      capsys):
+    monkeypatch.chdir(tmp_path)
+    commands = _subparsers()
+    for name in QUICK:
+        for example in _examples(commands[name].epilog or ""):
+            if "candidates.ply" in example:  # a detector's candidates the user brings
+                (tmp_path / "candidates.ply").write_bytes(
+                    (tmp_path / "plant3" / "cloud.ply").read_bytes())
+            argv = shlex.split(example)[1:]
+            assert main(argv) == 0, (example, capsys.readouterr().err)
+            setting = _set_example(commands[name])
+            if setting is not None:
+                again = argv + ["--set", setting]
+                if "--out" in argv:
+                    again += ["--overwrite"]
+                assert main(again) == 0, (example, setting, capsys.readouterr().err)
+
+
+def test_every_set_example_names_a_setting_its_command_reads():
+    from flowerpose.config import apply_overrides, parse_set_options
+    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.hardware.pollinate import PollinateConfig
+    from flowerpose.pipeline.flowers import PipelineConfig
+    from flowerpose.pipeline.frames import FrameSelectConfig
+    from flowerpose.pipeline.reconstruct import ReconstructConfig
+
+    bases = {"reconstruct": ReconstructConfig, "frames": FrameSelectConfig,
+             "pollinate": PollinateConfig,
+             "detect": PipelineConfig, "pose": PipelineConfig, "bench": PipelineConfig}
+    for name, parser in _subparsers().items():
+        setting = _set_example(parser)
+        if setting is not None:
+            apply_overrides(bases.get(name, EvalConfig)(), parse_set_options([setting]))
