@@ -281,6 +281,11 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         raise InputError("task", "pollinate needs synthetic plants, whose geometry judges "
                          "the visits: not --source real")
     watch = Stopwatch()
+    from flowerpose.log import LOG
+
+    LOG.info(f"eval: {len(list(folders))} real plants" if source == "real" else
+             f"eval: {plants} {config.sim.plant.name} plants from seed {seed}, {source} clouds"
+             f" -> {out_dir}")
     if source == "real":
         jobs, described = _real_jobs(list(folders), truth_scale)
         timing, extra = {}, {}

@@ -113,7 +113,7 @@ def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
                            _task_gpus(gpu, stage))
     results: list[Any] = [None] * len(jobs)
     pool = _pool(min(workers or os.cpu_count() or 1, len(jobs)))
-    with Tally(len(jobs) if describe is not None else 0) as tally:
+    with Tally(len(jobs) if describe is not None else 0, stage) as tally:
 
         def report(k: int, value: Any) -> None:
             if describe is not None:
@@ -183,7 +183,7 @@ def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
     results: list[Any] = [None] * len(jobs)
     failures: list[tuple[str, BaseException]] = []
     pending = list(refs)
-    with Tally(len(jobs) if describe is not None else 0) as tally:
+    with Tally(len(jobs) if describe is not None else 0, stage) as tally:
         try:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
