@@ -10,7 +10,7 @@ import sys
 import time
 from typing import Any
 
-from flowerpose import cli_eval, cli_field, cli_stages
+from flowerpose import cli_data, cli_eval, cli_field, cli_stages
 from flowerpose.cli_flags import SettingHelp, flag_for, say_flags
 from flowerpose.errors import InputError, JobsFailed, missing_extra
 from flowerpose.hardware.bot_errors import BotError
@@ -34,6 +34,7 @@ COMMANDS = (
     cli_eval.add_fidelity,
     cli_eval.add_cache,
     cli_eval.add_bench,
+    cli_data.add_data,
 )
 
 
