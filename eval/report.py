@@ -93,7 +93,25 @@ def run_record() -> dict[str, Any]:
 
     return {"flowerpose": __version__, "commit": git_commit(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "command": shlex.join(["flowerpose", *sys.argv[1:]])}
+            "command": shlex.join(["flowerpose", *sys.argv[1:]]), "machine": machine()}
+
+
+def machine() -> dict[str, Any]:
+    """What a run's numbers were measured on: the system, the processor and its cores (a
+    time is only worth its machine)."""
+    import os
+    import platform
+
+    processor = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as info:
+            names = [line.split(":", 1)[1].strip() for line in info
+                     if line.startswith("model name")]
+        processor = names[0] if names else processor
+    except OSError:
+        pass
+    return {"system": platform.platform(terse=True), "processor": processor,
+            "cores": os.cpu_count(), "python": platform.python_version()}
 
 
 def build_report(config: dict, plants: list[dict], timing_s: dict[str, float],

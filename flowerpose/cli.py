@@ -31,6 +31,7 @@ COMMANDS = (
     cli_eval.add_sweep,
     cli_eval.add_stress,
     cli_eval.add_tune,
+    cli_eval.add_results,
     cli_eval.add_fidelity,
     cli_eval.add_cache,
     cli_eval.add_bench,

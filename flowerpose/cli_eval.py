@@ -663,3 +663,27 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
     add_ray_option(p)
     add_config_options(p)
     p.set_defaults(func=cmd_tune)
+
+
+def cmd_results(args: argparse.Namespace) -> int:
+    from flowerpose.eval.results import results_markdown
+
+    print(results_markdown(args.reports, args.title, not args.no_paper), end="")
+    return 0
+
+
+def add_results(sub: argparse._SubParsersAction) -> None:
+    """The `results` subcommand's parser."""
+    p = sub.add_parser(
+        "results", help="a results page (Markdown) made from eval reports",
+        description="Print a Markdown results page made from eval report.json files: a row "
+        "per report (what ran, flowers found of the visible, false positives, the fits' "
+        "errors) and the paper's own numbers, with each row's command, code version, date "
+        "and machine under the table.",
+        epilog="example:\n  flowerpose results runs/oracle-10/report.json > results.md")
+    p.add_argument("reports", type=Path, nargs="+", metavar="REPORT.json",
+                   help="eval reports (report.json)")
+    p.add_argument("--title", default="Results", help="the page's title (default: %(default)s)")
+    p.add_argument("--no-paper", action="store_true",
+                   help="leave out the paper's own row (default: include it)")
+    p.set_defaults(func=cmd_results)

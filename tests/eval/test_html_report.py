@@ -44,3 +44,18 @@ def test_an_eval_report_opens_from_disk_with_its_tables_and_3d_view(tmp_path, ca
     # The 3D view drew the normals: red estimated and green true segments and ids.
     assert _near(image, (220, 30, 30)) > 200 and _near(image, (20, 160, 60)) > 200
     assert len(np.unique(image.reshape(-1, 3), axis=0)) > 1000  # not a blank page
+
+
+def test_a_results_page_is_made_from_reports_with_what_made_them(tmp_path, capsys):
+    from realplants import write_real_plant
+
+    from flowerpose.cli import main
+
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    assert main(["eval", "--source", "real", str(folder), "--out", str(tmp_path / "r")]) == 0
+    capsys.readouterr()
+    assert main(["results", str(tmp_path / "r" / "report.json")]) == 0
+    page = capsys.readouterr().out
+    assert "| real: plant [1]" in page and "4 of 4" in page and "the paper" in page
+    assert "flowerpose eval --source real" in page and "cores" in page
+    assert main(["results", str(folder / "labels.json")]) == 2
