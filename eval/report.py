@@ -89,11 +89,13 @@ def git_commit() -> str | None:
 def run_record() -> dict[str, Any]:
     """flowerpose's version, its git commit when run from a checkout, the time (UTC, ISO
     8601) and the command line of this run."""
+    import flowerpose
     from flowerpose import __version__
 
+    arguments = flowerpose.invocation if flowerpose.invocation is not None else sys.argv[1:]
     return {"flowerpose": __version__, "commit": git_commit(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "command": shlex.join(["flowerpose", *sys.argv[1:]]), "machine": machine()}
+            "command": shlex.join(["flowerpose", *arguments]), "machine": machine()}
 
 
 def machine() -> dict[str, Any]:

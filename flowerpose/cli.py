@@ -130,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()  # a bare `flowerpose`: what it can do, not an error
         return 0
     started = time.monotonic()
+    import flowerpose
+
+    flowerpose.invocation = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     args.started = started
     configure_log(args.verbose - args.quiet)
