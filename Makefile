@@ -6,14 +6,14 @@ BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup eval test lint bench
+.PHONY: setup eval test lint bench docs
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
 	bash scripts/setup-system.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[all,test]'
+	$(BIN)/python -m pip install -q -e '.[all,test,docs]'
 	touch $@
 
 eval: setup
@@ -27,3 +27,7 @@ lint: setup
 
 bench: setup
 	$(BIN)/flowerpose bench
+
+docs: setup
+	$(BIN)/python scripts/cli_reference.py
+	$(BIN)/mkdocs build --strict

@@ -1,0 +1,32 @@
+"""The documentation: the command-line reference is the parsers' own help, and the site
+builds with no warning (links, anchors, included files)."""
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from flowerpose.cli_reference import markdown
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_command_line_reference_is_the_parsers_help():
+    page = ROOT / "docs" / "reference" / "cli.md"
+    assert page.read_text() == markdown(), (
+        "docs/reference/cli.md is stale: run python scripts/cli_reference.py")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("mkdocs") is None,
+                    reason="MkDocs is not installed here (the [docs] extra; make test has it)")
+def test_the_site_builds_strictly(tmp_path):
+    built = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir",
+                            str(tmp_path / "site")], cwd=ROOT, capture_output=True, text=True,
+                           env={"NO_MKDOCS_2_WARNING": "1", "PATH": "/usr/bin:/bin"},
+                           timeout=300)
+    assert built.returncode == 0, built.stderr[-2000:]
+    assert (tmp_path / "site" / "reference" / "cli" / "index.html").is_file()
+    assert "Operating envelope".lower() in (tmp_path / "site" / "design" / "index.html"
+                                            ).read_text().lower()
