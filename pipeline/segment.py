@@ -410,12 +410,17 @@ def corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
 
 def typical_radius(corollas: list[Corolla], config: ClusterConfig,
                    points: list[int] | None = None) -> float | None:
-    """The median radius of the corollas that pass the coverage test, each counted by its
-    `points` (once each without): the flower size of this cloud, in its unit (None when
-    none passes). Counted by points, the typical flower is the one a typical flower point
-    belongs to: a cloud's many specks of sheen, each a dozen points, do not outvote its
-    flowers of hundreds."""
+    """The median radius of the corollas that pass the coverage test and, where a flower
+    needs one (`require_pistil`), have a pistil (all that pass, where none has), each
+    counted by its `points` (once each without): the flower size of this cloud, in its unit
+    (None when none passes). Counted by points, the typical flower is the one a typical
+    flower point belongs to, so a cloud's many specks of sheen, each a dozen points, do not
+    outvote its flowers of hundreds; and a blob of sheen or stereo fringe, which has no
+    pistil, does not count at all."""
     passed = [k for k, c in enumerate(corollas) if c.coverage >= config.min_coverage]
+    with_pistil = [k for k in passed if corollas[k].has_pistil]
+    if config.require_pistil and with_pistil:
+        passed = with_pistil
     weights = [1 if points is None else points[k] for k in passed]
     return _weighted_median([corollas[k].radius for k in passed], weights)
 

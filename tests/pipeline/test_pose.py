@@ -213,5 +213,8 @@ def test_one_offset_pulled_far_off_is_one_vote_not_a_veto(seed):
     crowded = Cloud(np.vstack([crop.points, leaves]),
                     np.vstack([crop.colors, np.tile(np.array(GREEN, np.uint8), (600, 1))]))
     assert angle_deg(estimate_pose(crowded).normals["plane"], normal) < 5.0
-    unclipped = estimate_pose(crowded, PoseConfig(offset_clip=None)).normals["plane"]
-    assert angle_deg(unclipped, normal) > 170.0  # what the clip prevents
+    whole = PoseConfig(offset_clip=None, crop_reach=None)  # the whole crop, unclipped
+    assert angle_deg(estimate_pose(crowded, whole).normals["plane"], normal) > 170.0
+    # Either the clip or the crop's reach alone keeps the leaves from deciding.
+    for config in (PoseConfig(crop_reach=None), PoseConfig(offset_clip=None)):
+        assert angle_deg(estimate_pose(crowded, config).normals["plane"], normal) < 5.0
