@@ -283,11 +283,10 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     watch = Stopwatch()
     from flowerpose.log import LOG
 
-    LOG.info(f"eval: {len(list(folders))} real plants" if source == "real" else
-             f"eval: {plants} {config.sim.plant.name} plants from seed {seed}, {source} clouds"
-             f" -> {out_dir}")
+    # The start line comes after the inputs are checked: bad input is one line, the error.
     if source == "real":
         jobs, described = _real_jobs(list(folders), truth_scale)
+        LOG.info(f"eval: {len(jobs)} real plants -> {out_dir}")
         timing, extra = {}, {}
         starts = [plant["stage"] for plant in described]
         run_config = {"source": source, "folders": described,
@@ -296,6 +295,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     else:
         if plants < 1:
             raise InputError("plants", f"must be at least 1, got {plants}")
+        LOG.info(f"eval: {plants} {config.sim.plant.name} plants from seed {seed}, "
+                 f"{source} clouds -> {out_dir}")
         jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers,
                                               cache)
         starts = ["cloud"]
@@ -492,7 +493,7 @@ def real_plants(folders: list[Path], truth_scale: float | None) -> list:
 
     if not folders:
         raise InputError("source", "real needs at least one labelled plant folder: "
-                         "flowerpose eval --source real DIR [DIR ...]")
+                         "--source real DIR [DIR ...]")
     plants = [read_real_plant(folder, truth_scale) for folder in folders]
     return [dataclasses.replace(plant, name=name)
             for name, plant in zip(real_names(folders), plants, strict=True)]

@@ -191,8 +191,11 @@ def test_no_cache_and_a_cache_folder_contradict_before_any_work(tmp_path, capsys
                      str(tmp_path / "out")]) == 2
         assert "contradict" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
-    with pytest.raises(SystemExit):  # the sweep's sources are the generated plants'
-        main(["sweep", "--source", "real", "--grid", "cluster.eps=0.01", "--out", "x"])
+    # A sweep on real plants needs their folders, said before any work.
+    assert main(["sweep", "--source", "real", "--grid", "cluster.eps=0.01", "--out",
+                 str(tmp_path / "out")]) == 2
+    assert "needs at least one labelled plant folder" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_the_cache_command_says_what_is_held_and_prunes_only_entries(tmp_path, capsys,

@@ -83,9 +83,11 @@ def test_a_wrong_truth_scale_is_said_as_the_flag_that_set_it(tmp_path, capsys):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     assert main(["eval", "--source", "real", str(folder), "--truth-scale", "1", "--out",
                  str(tmp_path / "out")]) == 2
+    # The scale is judged on the plant's points, once the run has started: its start
+    # line, then the error, alone.
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("flowerpose: error:")
-    assert "is the scale right? (--truth-scale, or truth_scale in source.json)" in err[0]
+    assert [line.startswith("flowerpose: error:") for line in err] == [False, True]
+    assert "is the scale right? (--truth-scale, or truth_scale in source.json)" in err[1]
 
 def _bad(tmp_path, make):
     folder = tmp_path / "bad"
