@@ -15,7 +15,7 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.config import to_dict
-from flowerpose.eval.report import markdown_table
+from flowerpose.eval.report import markdown_table, run_record
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
@@ -83,21 +83,30 @@ def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
         results.append({"points": len(cloud), "flowers": len(runs[0].flowers),
                         "median_s": median,
                         "runs_total_s": [round(r.timing_s["total"], 4) for r in runs]})
-    stages = list(results[0]["median_s"])
-    print(markdown_table(["points", "flowers", *stages],
-                         [[f"{r['points']:,}", str(r["flowers"]),
-                           *(f"{r['median_s'][s]:.3f}" for s in stages)] for r in results]))
-    print(f"seconds, median of {repeat} runs on {os.cpu_count()} cores; the published code: "
-          f"{UPSTREAM_SECONDS[0]}-{UPSTREAM_SECONDS[1]} s a plant")
     simulator = simulator_seconds(seed, repeat)
-    print("| simulator step | seconds | budget |\n|---|---|---|")
-    for name, seconds in simulator.items():
-        budget = SIMULATOR_BUDGET_S[name]
-        print(f"| {name} | {seconds:.3f} | {budget:g}{'' if seconds <= budget else ' (over)'} |")
-    report = {"results": results, "simulator_s": simulator,
+    report = {"run": run_record(), "results": results, "simulator_s": simulator,
               "simulator_budget_s": SIMULATOR_BUDGET_S, "repeat": repeat, "seed": seed,
               "cpu_count": os.cpu_count(), "config": to_dict(config)}
+    print(bench_markdown(report), end="")
     if out is not None:
         write_json(out / "bench.json", report)
         print(f"bench: {out / 'bench.json'}")
     return report
+
+
+def bench_markdown(report: dict) -> str:
+    """bench.json as Markdown: seconds per pipeline stage at each size, then the simulator's
+    steps against their budgets."""
+    results = report["results"]
+    stages = list(results[0]["median_s"])
+    pipeline = markdown_table(["points", "flowers", *stages],
+                              [[f"{r['points']:,}", str(r["flowers"]),
+                                *(f"{r['median_s'][s]:.3f}" for s in stages)] for r in results])
+    simulator = markdown_table(
+        ["simulator step", "seconds", "budget"],
+        [[name, f"{seconds:.3f}", f"{report['simulator_budget_s'][name]:g}"
+          + ("" if seconds <= report["simulator_budget_s"][name] else " (over)")]
+         for name, seconds in report["simulator_s"].items()])
+    return (f"{pipeline}\n\nseconds, median of {report['repeat']} runs on "
+            f"{report['cpu_count']} cores; the published code: {UPSTREAM_SECONDS[0]}-"
+            f"{UPSTREAM_SECONDS[1]} s a plant\n\n{simulator}\n")

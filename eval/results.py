@@ -1,7 +1,8 @@
 """Results pages made from runs (`flowerpose results REPORT.json ...`): the numbers a
-document shows, with what made them, never typed in by hand.
+document shows, with what made them, never typed in by hand. Eval reports become a table's
+rows; stress and bench reports become sections of their own.
 
-Each report becomes a row: what ran (the suite and its version, or the source, preset and
+Each eval report becomes a row: what ran (the suite and its version, or the source, preset and
 plants, or the real folders), the flowers found of the visible, false positives, the plane
 error's mean and median and the other fits' means, and under the table, per row, the
 command, the code (version and commit), the date and the machine.
@@ -31,34 +32,66 @@ def _deg(stats: dict) -> str:
     return "-" if stats.get("mean") is None else f"{stats['mean']:.2f}°"
 
 
+def _provenance(k: int, run: dict) -> str:
+    """A run's footnote: its command, code version and commit, date and machine."""
+    machine = run.get("machine") or {}
+    where = (f"{machine.get('processor', '?')}, {machine.get('cores', '?')} cores, "
+             f"{machine.get('system', '?')}" if machine else "machine not recorded")
+    commit = (run.get("commit") or "not a git checkout")[:12]
+    return (f"[{k}] `{run['command']}`; flowerpose {run['flowerpose']} ({commit}), "
+            f"{run['date']}, {where}.")
+
+
+def _kind(path: Path, report: object) -> str:
+    """Which run wrote this file: an eval's report.json, a stress.json or a bench.json."""
+    if isinstance(report, dict) and "run" in report:
+        if "summary" in report:
+            return "eval"
+        if "baseline" in report and "rows" in report:
+            return "stress"
+        if "results" in report and "simulator_s" in report:
+            return "bench"
+    raise InputError(path, "not an eval report.json, a stress.json or a bench.json "
+                     "(made by this version)")
+
+
 def results_markdown(paths: list[Path], title: str = "Results", paper: bool = True) -> str:
-    """The results page of these report.json files (and the paper's own numbers as the last
-    row, with `paper`)."""
-    rows, notes = [], []
+    """The results page of these runs: a table row per eval report.json (and the paper's
+    own numbers as the last row, with `paper`), then a section per stress.json (robustness)
+    and per bench.json (speed); every run's provenance under its table."""
+    from flowerpose.eval.bench import bench_markdown
+    from flowerpose.eval.stress import stress_markdown
+
+    rows, notes, sections = [], [], []
     for k, path in enumerate(paths, start=1):
         report = read_json(path)
-        if not isinstance(report, dict) or "summary" not in report or "run" not in report:
-            raise InputError(path, "not an eval report.json (no run or summary)")
+        kind = _kind(path, report)
+        if kind == "stress":
+            # Its own page's title becomes a section of this one.
+            body = stress_markdown(report).split("\n", 1)[1]
+            sections.append(f"## Robustness [{k}]\n{body}\n{_provenance(k, report['run'])}\n")
+            continue
+        if kind == "bench":
+            sections.append(f"## Speed [{k}]\n\n{bench_markdown(report)}\n"
+                            f"{_provenance(k, report['run'])}\n")
+            continue
         s = report["summary"]
         plane = s["error_deg"]["plane"]
         rows.append([f"{_what(report)} [{k}]", f"{s['found_visible']} of {s['visible']}",
                      str(s["fp"]), _deg(plane),
                      "-" if plane.get("median") is None else f"{plane['median']:.2f}°",
                      _deg(s["error_deg"]["superellipsoid"]), _deg(s["error_deg"]["paraboloid"])])
-        run = report["run"]
-        machine = run.get("machine") or {}
-        where = (f"{machine.get('processor', '?')}, {machine.get('cores', '?')} cores, "
-                 f"{machine.get('system', '?')}" if machine else "machine not recorded")
-        commit = (run.get("commit") or "not a git checkout")[:12]
-        notes.append(f"[{k}] `{run['command']}`; flowerpose {run['flowerpose']} ({commit}), "
-                     f"{run['date']}, {where}.")
-    if paper:
+        notes.append(_provenance(k, report["run"]))
+    if paper and rows:
         rows.append(paper_row())
     header = ["run", "found (visible)", "FP", "plane mean", "plane median", "superellipsoid",
               "paraboloid"]
-    return (f"# {title}\n\nMade by `flowerpose results` from the runs' report.json files; "
-            "each row's command, code, date and machine are under the table.\n\n"
-            f"{markdown_table(header, rows)}\n\n" + "\n".join(f"- {n}" for n in notes) + "\n")
+    page = (f"# {title}\n\nMade by `flowerpose results` from the runs' own files; each "
+            "run's command, code, date and machine are under its table.\n")
+    if rows:
+        page += (f"\n## Accuracy\n\n{markdown_table(header, rows)}\n\n"
+                 + "\n".join(f"- {n}" for n in notes) + "\n")
+    return page + "".join(f"\n{section}" for section in sections)
 
 
 def paper_row() -> list[str]:

@@ -675,14 +675,17 @@ def cmd_results(args: argparse.Namespace) -> int:
 def add_results(sub: argparse._SubParsersAction) -> None:
     """The `results` subcommand's parser."""
     p = sub.add_parser(
-        "results", help="a results page (Markdown) made from eval reports",
-        description="Print a Markdown results page made from eval report.json files: a row "
-        "per report (what ran, flowers found of the visible, false positives, the fits' "
-        "errors) and the paper's own numbers, with each row's command, code version, date "
-        "and machine under the table.",
-        epilog="example:\n  flowerpose results runs/oracle-10/report.json > results.md")
+        "results", help="a results page (Markdown) made from runs' reports",
+        description="Print a Markdown results page made from runs' own files: a table row "
+        "per eval report.json (what ran, flowers found of the visible, false positives, the "
+        "fits' errors) beside the paper's own numbers, then a robustness section per "
+        "stress.json and a speed section per bench.json, each run's command, code version, "
+        "date and machine under its table.",
+        epilog="example:\n  flowerpose results runs/oracle-10/report.json "
+        "runs/stress3/stress.json runs/bench/bench.json > results.md")
     p.add_argument("reports", type=Path, nargs="+", metavar="REPORT.json",
-                   help="eval reports (report.json)")
+                   help="eval report.json, stress.json or bench.json files, in the page's "
+                   "order")
     p.add_argument("--title", default="Results", help="the page's title (default: %(default)s)")
     p.add_argument("--no-paper", action="store_true",
                    help="leave out the paper's own row (default: include it)")

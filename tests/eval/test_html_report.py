@@ -1,6 +1,7 @@
 """report.html in a real headless browser (Chromium): the tables are there and the 3D
 view renders the cloud with the estimated and true normals."""
 
+import re
 import shutil
 import subprocess
 
@@ -59,3 +60,31 @@ def test_a_results_page_is_made_from_reports_with_what_made_them(tmp_path, capsy
     assert "| real: plant [1]" in page and "4 of 4" in page and "the paper" in page
     assert "flowerpose eval --source real" in page and "cores" in page
     assert main(["results", str(folder / "labels.json")]) == 2
+
+
+def test_a_results_page_has_a_section_per_stress_and_bench_run(tmp_path, capsys):
+    from realplants import write_real_plant
+
+    from flowerpose.cli import main
+    from flowerpose.eval.report import run_record
+    from flowerpose.jsonio import write_json
+
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    assert main(["stress", "--source", "real", str(folder), "--thin", "0.5", "--exposure",
+                 "0.8", "--cast", "0.1", "--noise", "0.0005", "--drop-views", "0",
+                 "--out", str(tmp_path / "s")]) == 0
+    bench = {"run": run_record(), "repeat": 3, "seed": 3, "cpu_count": 2,
+             "results": [{"points": 125000, "flowers": 18,
+                          "median_s": {"grid": 0.125, "total": 0.5}}],
+             "simulator_s": {"plant": 1.5, "visibility": 4.0},
+             "simulator_budget_s": {"plant": 2.0, "visibility": 3.0}}
+    write_json(tmp_path / "bench.json", bench)
+    capsys.readouterr()
+    assert main(["results", str(tmp_path / "s" / "stress.json"), str(tmp_path / "bench.json"),
+                 "--no-paper"]) == 0
+    page = capsys.readouterr().out
+    assert "## Accuracy" not in page and "the paper" not in page
+    assert "## Robustness [1]" in page and "| thin 0.5 " in page
+    assert "[1] `flowerpose stress --source real" in page
+    assert "## Speed [2]" in page and "| 125,000 " in page and "0.125" in page
+    assert re.search(r"\| visibility +\| 4\.000 +\| 3 \(over\)", page)
