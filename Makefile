@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup eval test lint bench docs
+.PHONY: setup eval test lint bench docs results
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
@@ -27,6 +27,9 @@ lint: setup
 
 bench: setup
 	$(BIN)/flowerpose bench
+
+results: setup
+	bash scripts/results.sh
 
 docs: setup
 	$(BIN)/python scripts/cli_reference.py

@@ -37,7 +37,8 @@ def _provenance(k: int, run: dict) -> str:
     machine = run.get("machine") or {}
     where = (f"{machine.get('processor', '?')}, {machine.get('cores', '?')} cores, "
              f"{machine.get('system', '?')}" if machine else "machine not recorded")
-    commit = (run.get("commit") or "not a git checkout")[:12]
+    commit = run.get("commit") or "not a git checkout"
+    commit = commit[:12] + ("+dirty" if commit.endswith("+dirty") else "")
     return (f"[{k}] `{run['command']}`; flowerpose {run['flowerpose']} ({commit}), "
             f"{run['date']}, {where}.")
 

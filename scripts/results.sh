@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# The runs behind docs/results.md and the README's results table, then the page itself
+# (`make results`). Each run writes under runs/ (ignored by git); the page cites each run's
+# command, code, date and machine. About 15 minutes on 2 cores.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+flowerpose=.venv/bin/flowerpose
+real=${FLOWERPOSE_SHARED:-../shared}/real/paper-plant-3
+if [[ ! -d $real ]]; then
+    real=runs/paper-plant-3
+    [[ -d $real ]] || $flowerpose data fetch paper-plant-3 --to "$real"
+fi
+$flowerpose eval --suite oracle-10 --out runs/oracle-10 -q
+$flowerpose eval --suite field-10 --out runs/field-10 -q
+$flowerpose eval --source real "$real" --compare upstream --out runs/real3 -q
+$flowerpose stress --source real "$real" --thin 0.5,0.2,0.1,0.05 --repeats 3 --drop-views 3 \
+    --out runs/stress-real3 -q
+$flowerpose bench --points 125000 1000000 --out runs/bench -q
+$flowerpose results runs/oracle-10/report.json runs/field-10/report.json \
+    runs/real3/report.json runs/stress-real3/stress.json runs/bench/bench.json \
+    > docs/results.md.partial
+mv docs/results.md.partial docs/results.md
+# The README's table is the page's accuracy table, without the footnote marks.
+.venv/bin/python - <<'PY'
+import re
+from pathlib import Path
+
+page = Path("docs/results.md").read_text(encoding="utf-8")
+table = re.sub(r" \[\d+\]", "", page.split("## Accuracy\n\n", 1)[1].split("\n\n", 1)[0])
+readme = Path("README.md")
+text = readme.read_text(encoding="utf-8")
+start = text.index("<!-- results:start")
+start = text.index("\n", start) + 1
+end = text.index("<!-- results:end -->")
+readme.write_text(text[:start] + table + "\n" + text[end:], encoding="utf-8")
+PY
+echo "docs/results.md, README.md"
