@@ -88,7 +88,7 @@ class EvalConfig(PipelineConfig):
 
 
 #: The field preset's camera and photogrammetry for the scan source, calibrated on the
-#: authors' plant 3 with `flowerpose fidelity` (README, "The simulator against the field"):
+#: authors' plant 3 with `flowerpose fidelity` (DESIGN.md, "The simulator against the field"):
 #: an auto-exposed camera brightens the render (the real petals' median value 0.89), and
 #: Polycam's cloud of that plant holds about 800 points a flower, as a 2.5 mm voxel does.
 FIELD_CAMERA_GAIN = 1.5

@@ -181,7 +181,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
                    "real = labelled real plant folders (DIR ...)")
     p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
                    help="--source real: labelled plant folders (labels.json and cloud.ply, "
-                   "candidates/*.ply or crops/*.ply; README, \"Real plants\")")
+                   "candidates/*.ply or crops/*.ply; docs/guides/own-scan.md)")
     p.add_argument("--truth-scale", type=positive_number, default=None, metavar="K",
                    help="--source real: the factor the labelled cloud was scaled by, no unit "
                    "(default: each folder's source.json, else 25 for SageMaker labels)")

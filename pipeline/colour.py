@@ -40,8 +40,9 @@ class ColourConfig:
     petal_min_value: float = 0.40
     """Petal: value at least this. Deviation: upstream's 0.75 suits petals in full light
     only; in images of a scan most of a petal is seen from its shaded side or edge-on (value
-    0.4-0.7), so photogrammetry clouds were missing half their flowers (README, "Colour
-    thresholds"). Saturation separates white from green and brown."""
+    0.4-0.7), so photogrammetry clouds were missing half their flowers
+    (docs/deviations.md, "Colour thresholds"). Saturation separates white from green and
+    brown."""
     petal_reject_hue: tuple[float, float] = (40.0, 140.0)
     """Petal: a point in this hue band (degrees: yellow to green) is no petal once its
     saturation reaches `petal_reject_saturation` (upstream's petal rule)."""

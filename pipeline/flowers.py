@@ -227,7 +227,9 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     for box, crop, crop_cloud in zip(boxes, crops, crop_clouds, strict=True):
         pose = estimate_pose(crop_cloud, pose_config, config.colour, pose_cluster,
                              grouping.typical_radius, up)
-        if config.cluster.require_pistil and not pose.pistil_found:
+        if not pose.pistil_found and config.cluster.require_pistil and (
+                density.factor >= config.cluster.pistil_optional_density
+                or all(normal is None for normal in pose.normals.values())):
             continue
         flowers.append(Flower(len(flowers), pose, box, original[crop]))
     timer.lap("pose")

@@ -228,7 +228,7 @@ def preset(name: PresetName) -> PlantConfig:
 
 
 #: The field preset, calibrated on the authors' plant 3 with `flowerpose fidelity`
-#: (README, "The simulator against the field"): its flowers (artificial ones among them)
+#: (DESIGN.md, "The simulator against the field"): its flowers (artificial ones among them)
 #: are 4-6 cm across, their corollas more often curl down than cup, unevenly.
 FIELD_FLOWER_DIAMETER_M = (0.042, 0.058)
 FIELD_RECEPTACLE_RADIUS_M = (0.006, 0.0075)
@@ -242,8 +242,8 @@ FIELD_PETAL_CUP_JITTER = 0.3
 FIELD_ORACLE = {"points": 100_000, "position_noise_m": 0.0005,
                 "position_noise_wavelength_m": 0.01, "foliage_saturation": 0.6,
                 "foliage_value": 0.85, "foliage_hue_shift_deg": -17.0, "foliage_sheen": 0.1}
-#: ... and how its plants' clouds vary, plant by plant (`DegradeConfig`; README, "The
-#: simulator against the field"): from about 100 points a flower (a fast or phone scan,
+#: ... and how its plants' clouds vary, plant by plant (`DegradeConfig`; DESIGN.md,
+#: "The simulator against the field"): from about 100 points a flower (a fast or phone scan,
 #: the authors' plant 3 thinned to a tenth) to about 1,000 (that plant as published),
 #: exposure and white balance as an auto-exposed camera leaves them.
 FIELD_DEGRADE = {"points_per_flower": (100.0, 1000.0), "exposure": (0.8, 1.2), "cast": 0.1}

@@ -4,7 +4,7 @@ import logging
 
 import numpy as np
 import pytest
-from candidate_flowers import candidate_flowers
+from candidate_flowers import PISTIL, candidate_flowers
 
 from flowerpose.cloudio import Cloud, to_metres
 from flowerpose.config import apply_overrides
@@ -38,6 +38,30 @@ def test_flowers_of_60_points_are_found_and_posed(seed):
     # Counts stated for one density (the paper's) find none of them.
     stated = apply_overrides(PipelineConfig(), {"cluster": {"density_reference": "none"}})
     assert _matched(cloud, centres, normals, stated) == {}
+
+
+def _without_pistil(cloud: Cloud, centre: np.ndarray) -> Cloud:
+    """The cloud without the pistil-coloured points of the flower at `centre`."""
+    yellow = ((cloud.colors == PISTIL).all(axis=1)
+              & (np.linalg.norm(cloud.points - centre, axis=1) < 0.03))
+    return cloud.subset(np.flatnonzero(~yellow))
+
+
+@pytest.mark.parametrize("seed", [4, 6])
+def test_a_flower_whose_pistil_is_not_seen_counts_only_in_a_sparse_cloud(seed):
+    # Sparse, a receptacle shows as a handful of points or none, and a corolla whose
+    # sepals orient it is a flower; dense, a corolla without one is not (sheen, stereo
+    # fringe). (Seeds whose crop takes in enough of the sepals to orient it.)
+    for points, kept in ((60, True), (1500, False)):
+        cloud, centres, normals = candidate_flowers(points, seed)
+        found = _matched(_without_pistil(cloud, centres[2]), centres, normals)
+        assert sorted(set(found) - {2}) == [0, 1, 3, 4, 5]
+        assert (2 in found) == kept
+        if kept:  # oriented by its sepals
+            assert found[2] < 10.0
+    always = apply_overrides(PipelineConfig(), {"cluster": {"pistil_optional_density": 0}})
+    sparse, centres, normals = candidate_flowers(60, seed)
+    assert 2 not in _matched(_without_pistil(sparse, centres[2]), centres, normals, always)
 
 
 def test_a_cloud_in_millimetres_and_in_metres_give_the_same_flowers():

@@ -200,6 +200,33 @@ def test_the_up_prior_never_overrides_a_downward_flower_s_receptacle(seed):
 
 
 @pytest.mark.parametrize("seed", range(3))
+def test_a_yellowed_sepal_behind_a_curled_corolla_is_not_its_pistil(seed):
+    # Curled back, the corolla's centroid lies behind the receptacle, nearer a fleck of
+    # yellow-green sepal 6 mm behind it than the receptacle: taken for the pistil, it
+    # would turn the normal over.
+    crop, normal = flower(seed, rim=-0.006)
+    fleck = CENTRE - 0.006 * normal + np.random.default_rng(seed).normal(0.0, 7e-4, (8, 3))
+    flecked = Cloud(np.vstack([crop.points, fleck]),
+                    np.vstack([crop.colors, np.tile(np.array(STEM_YELLOW, np.uint8), (8, 1))]))
+    pose = estimate_pose(flecked)
+    assert angle_deg(pose.normals["plane"], normal) < 5.0
+    assert np.linalg.norm(pose.center - CENTRE) < 0.002
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_up_prior_leaves_a_tilted_downward_flower_to_its_own_offsets(seed):
+    # A flower facing 45 degrees below the horizon with a low receptacle has little
+    # evidence of its own; the prior, meant for flowers facing the cameras above, must
+    # not turn it over.
+    crop, normal = flower(seed, rim=0.0, dome_side=0.6, sepals=0,
+                          rotation=Rotation.from_rotvec([np.radians(135.0), 0.0, 0.0]))
+    up = np.array([0.0, 0.0, 1.0])
+    assert angle_deg(estimate_pose(crop, up=up).normals["plane"], normal) < 5.0
+    plain_cosine = PoseConfig(up_prior_power=1.0)
+    assert angle_deg(estimate_pose(crop, plain_cosine, up=up).normals["plane"], normal) > 170
+
+
+@pytest.mark.parametrize("seed", range(3))
 def test_one_offset_pulled_far_off_is_one_vote_not_a_veto(seed):
     # Leaves well in front of the flower, beyond the petals and the sepal reach, drag the
     # crop's centroid forward: unclipped, that one offset outweighs the receptacle and the
