@@ -85,15 +85,15 @@ class PoseConfig:
     offset of 0.45 radii the wrong way outvoted the other two and flipped a flower of the
     default eval's seed 1; clipped at 0.15, 0 flips there and none added on the oracle,
     hard, field or real data; at 0.07 the hard preset lost 3. None: no clip."""
-    crop_reach: float | None = None
+    crop_reach: float | None = 1.0
     """"combined": the crop's centroid is taken over its points within this many corolla
-    radii of the pistil, so a leaf above or beside the flower that its crop took in does not
-    vote. None (default): the whole crop (upstream's rule), whose stems and sepals below a
-    cupped corolla keep its vote right. Measured at 1.0 radius: the field-10 suite gains 2
-    flipped normals (plane mean 12.11 -> 14.33 degrees; 2.0 changes nothing), and the
-    hard preset, the authors' plant 3 and its thinned copies are unchanged; it was meant
-    for a leaf above a face-up flower on one reconstruction, which the offset clip
-    already outvotes."""
+    radii of the pistil (the receptacle, sepals and petal base), so a leaf above or beside
+    the flower that its crop took in does not vote. None: the whole crop (upstream's
+    rule). On a full-loop reconstruction (`eval --suite scan-3`, seed 0) a leaf above a
+    face-up flower pulled both the whole crop's centroid and the support offset the wrong
+    way and flipped it; at 1.0 it is right. The oracle, hard and field presets (at their
+    own densities and fixed at 116 and 706 points a flower) and the authors' plant 3 with
+    its thinned copies score the same either way."""
     up_prior: float = 0.2
     """"combined", in a bed frame only (a whole plant's cloud, z up; never for candidates
     or crops, whose frame is arbitrary): the bed's up direction counts as this many corolla

@@ -504,13 +504,19 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
     flower = white | centre
     candidates = _thinned_to_reference(plant.points, candidates, flower_coloured, config)
 
+    # Parts depend on the applied limits alone: a pass whose sizing leaves them as they
+    # were (a dense cloud's, at its counts as stated) reuses them.
+    parts_at: dict[tuple[OutlierConfig, ClusterConfig], list[np.ndarray]] = {}
+
     def at(sizing: Sizing) -> tuple[tuple[list[np.ndarray], float | None, ClusterConfig,
                                           Density], float | None, float | None]:
         sized_outliers, sized, density = for_cloud(outliers, config, sizing.scale,
                                                    sizing.spacing)
         area = None if sizing.spacing is None else sizing.spacing ** 2
-        clusters, typical, size = _group(plant, candidates, white, centre, sized_outliers,
-                                         sized, area)
+        key = (sized_outliers, sized)
+        if key not in parts_at:
+            parts_at[key] = _parts(plant, candidates, white, centre, sized_outliers, sized)
+        clusters, typical, size = _group(plant, parts_at[key], white, centre, sized, area)
         members = np.concatenate([np.zeros(0, np.int64), *clusters])
         return ((clusters, typical, sized, density), size,
                 cloud_spacing(plant.points[members[flower[members]]], sized))
@@ -553,16 +559,14 @@ def cloud_spacing(points: np.ndarray, config: ClusterConfig) -> float | None:
     return None if area is None or area <= 0 else float(np.sqrt(area))
 
 
-def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.ndarray,
-           outliers: OutlierConfig, config: ClusterConfig, cloud_area: float | None
-           ) -> tuple[list[np.ndarray], float | None, float | None]:
-    """One grouping of `cluster_flowers` at these limits: the flowers, their typical radius
-    (`typical_radius`), and their size: the median radius of the flowers kept, each
-    counted by its points, so that a cloud's small fragments, which shrink with the limits,
-    do not decide how big its flowers are. white, centre: cloud-sized masks of petal and
-    pistil colour."""
+def _parts(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.ndarray,
+           outliers: OutlierConfig, config: ClusterConfig) -> list[np.ndarray]:
+    """The candidate flowers of one grouping at these limits (indices into the cloud):
+    outliers removed, DBSCAN clusters of a flower's colours (`min_flower_fraction`,
+    `min_white_fraction`), each split between its pistils. white, centre: cloud-sized
+    masks of petal and pistil colour."""
     if len(candidates) == 0:
-        return [], None, None
+        return []
     kept = candidates[remove_outliers(plant.points[candidates], outliers)]
     labels = dbscan(plant.points[kept], config.eps, config.min_points)
     order = np.argsort(labels, kind="stable")
@@ -580,6 +584,18 @@ def _group(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.n
                  if config.split_touching else np.zeros(len(members), np.int64))
         parts.extend(part for part in (members[split == j] for j in range(split.max() + 1))
                      if len(part) >= config.min_points)
+    return parts
+
+
+def _group(plant: Cloud, parts: list[np.ndarray], white: np.ndarray, centre: np.ndarray,
+           config: ClusterConfig, cloud_area: float | None
+           ) -> tuple[list[np.ndarray], float | None, float | None]:
+    """The flowers among one grouping's parts (`_parts`): their typical radius
+    (`typical_radius`), and their size: the median radius of the flowers kept, each
+    counted by its points, so that a cloud's small fragments, which shrink with the limits,
+    do not decide how big its flowers are."""
+    if not parts:
+        return [], None, None
 
     def analyse(part: np.ndarray) -> Corolla:
         return corolla(plant.points[part], white[part], centre[part], config, cloud_area)

@@ -242,6 +242,6 @@ def test_one_offset_pulled_far_off_is_one_vote_not_a_veto(seed):
     assert angle_deg(estimate_pose(crowded).normals["plane"], normal) < 5.0
     whole = PoseConfig(offset_clip=None, crop_reach=None)  # the whole crop, unclipped
     assert angle_deg(estimate_pose(crowded, whole).normals["plane"], normal) > 170.0
-    # Either the clip (default) or a crop's reach alone keeps the leaves from deciding.
-    for config in (PoseConfig(), PoseConfig(offset_clip=None, crop_reach=1.0)):
+    # Either the clip or the crop's reach alone keeps the leaves from deciding.
+    for config in (PoseConfig(crop_reach=None), PoseConfig(offset_clip=None)):
         assert angle_deg(estimate_pose(crowded, config).normals["plane"], normal) < 5.0
