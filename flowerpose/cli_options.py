@@ -8,6 +8,7 @@ import argparse
 import contextlib
 import math
 import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -78,6 +79,15 @@ def check_writable(path: Path, flag: str) -> None:
         raise InputError(path, f"{flag}: the folder {parent} does not exist")
     if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise InputError(path, f"{flag}: cannot be written here (permission denied)")
+    # Permissions do not tell all (root, read-only or special file systems): the end of the
+    # run writes through a temporary file beside the path, so make one now.
+    try:
+        handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".check", dir=parent)
+    except OSError as err:
+        raise InputError(path, f"{flag}: cannot be written here ({err.strerror or err})"
+                         ) from None
+    os.close(handle)
+    os.unlink(name)
 
 
 def add_cache_options(parser: argparse.ArgumentParser) -> None:

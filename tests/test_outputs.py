@@ -2,6 +2,7 @@
 and a failed reconstruction leaves the earlier one."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -174,3 +175,14 @@ def test_an_unwritable_junit_path_is_refused_before_the_run(tmp_path, capsys):
                  "--junit", str(tmp_path / "missing" / "gates.xml"),
                  "--out", str(tmp_path / "out")]) == 2
     assert "does not exist" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_a_junit_folder_that_refuses_files_is_found_before_the_run(tmp_path, capsys):
+    # /proc passes a permission check as root, yet takes no new file.
+    from flowerpose.cli import main
+
+    assert main(["eval", "--source", "oracle", "--plants", "1", "--require", "recall>=0.5",
+                 "--junit", "/proc/gates.xml", "--out", str(tmp_path / "out")]) == 2
+    assert "cannot be written here" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
