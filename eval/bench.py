@@ -22,7 +22,7 @@ from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
 from flowerpose.sim.world_config import sim_preset
 from flowerpose.stopwatch import Stopwatch
 
-#: The published code's time per plant (upstream.md), for the printed comparison.
+#: The published code's time per plant (docs/deviations.md), for the printed comparison.
 UPSTREAM_SECONDS = (78, 105)
 
 #: Seconds each simulator step may take for one realistic plant on this 2-core machine: a

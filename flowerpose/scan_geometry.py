@@ -14,7 +14,8 @@ from flowerpose.errors import InputError
 
 @dataclass(frozen=True)
 class ScanPathConfig:
-    """The cylinder + dome scan path (upstream.md, "Scan path"), in metres and degrees."""
+    """The cylinder + dome scan path (docs/guides/simulated-farmbot.md, "Filming a
+    plant"), in metres and degrees."""
 
     cylinder_radius_m: float = 0.5
     """Distance of the cylinder's cameras from the plant axis (the paper: 500 mm)."""

@@ -1,6 +1,7 @@
 """The serial Farmduino backend: the bot on FarmBot's own firmware over USB serial (pyserial).
 
-`FarmduinoBot` speaks the Farmduino protocol (reference/farmbot.md) defensively:
+`FarmduinoBot` speaks the Farmduino protocol (docs/guides/physical-bot.md, "The wire
+protocol") defensively:
 
 - One command at a time, each with a Q number (1-999, cycling), sent once the previous one
   got its final reply: `R02` done, or `R03 V<code>` (a typed error from `error_for_code`),

@@ -20,8 +20,8 @@ The camera head (the paper's end effector on the universal tool mount, UTM):
   of the pitch axis, so the optical axis always passes through the pitch axis and the yaw
   axis: a camera position and a look-at point fix the head pose in closed form.
 
-Servo commands (upstream.md, "Scan path"): command degrees 0-180 on Farmduino pins 6 (yaw)
-and 5 (pitch) from the geometric angle a in degrees,
+Servo commands (docs/guides/physical-bot.md, "The camera head"): command degrees 0-180 on
+Farmduino pins 6 (yaw) and 5 (pitch) from the geometric angle a in degrees,
 ``yaw_cmd = (180 - a) / 180 * 120 + 40`` and ``pitch_cmd = (180 - a) / 180 * 120 + 30``:
 120 command degrees per 180 geometric degrees (270-degree servos), the command falling as
 the angle grows. Commands 0-180 therefore reach geometric yaw -30 to 240 degrees and

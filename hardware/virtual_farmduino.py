@@ -2,7 +2,8 @@
 
 `VirtualFarmduino` answers on a real device path that pyserial opens (`os.openpty`), and
 keeps a stable symlink to it (`path`, like /dev/serial/by-id) that survives a simulated
-reconnect. It behaves as farmbot-arduino-firmware 6.6 does (reference/farmbot.md):
+reconnect. It behaves as farmbot-arduino-firmware 6.6 does (docs/guides/physical-bot.md,
+"The wire protocol"):
 
 - Opening the port resets the board (as DTR does on a real one): `R99 ARDUINO STARTUP
   COMPLETE` after the boot time, the position counters at 0 wherever the gantry stands

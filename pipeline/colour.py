@@ -3,7 +3,7 @@
 One model for every stage: detection (white petal pixels around a yellow centre), the
 flower test on clusters, and the per-flower petal / pistil split of the pose stage all
 read the same `ColourConfig`. HSV with hue in degrees [0, 360) and saturation and value
-in [0, 1], the units upstream.md gives every threshold in.
+in [0, 1], the units the published method states its thresholds in (docs/deviations.md).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
     """HSV of uint8 RGB colours.
 
     rgb: (..., 3) uint8. Returns (..., 3) float32: hue in degrees [0, 360), saturation
-    and value in [0, 1] (the units upstream.md uses for every threshold).
+    and value in [0, 1] (the published method's units).
     """
     rgb = np.asarray(rgb)
     if rgb.size == 0:

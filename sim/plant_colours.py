@@ -1,6 +1,6 @@
 """Plant colours in HSV, chosen to sit where the pipeline's thresholds expect them.
 
-Hue in degrees, saturation and value in [0, 1], as in upstream.md. Petals are white
+Hue in degrees, saturation and value in [0, 1], the colour model's units. Petals are white
 (S <= 0.12, V >= 0.86), the receptacle and anthers yellow (H 48-58, S >= 0.6), leaves
 green (H 85-130, S 0.5-0.85, V 0.27-0.62, never whitish), peduncles yellow-green (H 62-86,
 so a few points fall in the pistil hue range as on real stems). Limits hold per vertex,
