@@ -90,7 +90,7 @@ def _unit_or_none(axis: np.ndarray) -> np.ndarray | None:
 #: Plane directions the robust plane's start is chosen among (a Fibonacci hemisphere, about
 #: 7 degrees apart), and the most points it judges them on (an even subsample).
 START_DIRECTIONS = 256
-START_SAMPLE = 2000
+START_SAMPLE = 500
 
 
 def _hemisphere(count: int) -> np.ndarray:
