@@ -226,7 +226,7 @@ def summary_lines(report: dict) -> list[str]:
                          f"(paper mean {PAPER['mean'][m]}°)")
     timing = report["timing_s"]
     if "wall" in timing:
-        lines.append(f"wall time {timing['wall']:.1f} s from the command's start (its stages "
+        lines.append(f"wall time {timing['wall']:.1f} s since the command was launched (its stages "
                      f"{timing.get('total', 0.0):.1f} s)")
     elif "total" in timing:
         lines.append(f"wall time {timing['total']:.1f} s")

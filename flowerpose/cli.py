@@ -14,6 +14,7 @@ from flowerpose import cli_data, cli_eval, cli_field, cli_stages
 from flowerpose.cli_flags import SettingHelp, flag_for, say_flags
 from flowerpose.errors import InputError, JobsFailed, missing_extra
 from flowerpose.hardware.bot_errors import BotError
+from flowerpose.stopwatch import process_age
 
 #: The subcommands in the order `flowerpose --help` lists them: each module adds its own.
 COMMANDS = (
@@ -129,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     if not (sys.argv[1:] if argv is None else argv):
         parser.print_help()  # a bare `flowerpose`: what it can do, not an error
         return 0
-    started = time.monotonic()
+    # Launched as a program, the clock starts with the process (imports included).
+    started = time.monotonic() - (process_age() if argv is None else 0.0)
     import flowerpose
 
     flowerpose.invocation = list(sys.argv[1:] if argv is None else argv)

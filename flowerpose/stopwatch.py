@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 
 class Stopwatch:
@@ -49,3 +50,18 @@ class Stopwatch:
         if digits is None:
             return seconds
         return {name: round(value, digits) for name, value in seconds.items()}
+
+
+def process_age() -> float:
+    """Seconds since this process was launched (Linux: /proc), so a command's printed wall
+    time includes the interpreter's start and imports, as the user waited them; 0 where the
+    system does not say."""
+    import os
+
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return max(0.0, uptime - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return 0.0
+

@@ -1,5 +1,9 @@
 """The one stopwatch: steps add up by name, laps follow each other, the total covers all."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from flowerpose import stopwatch
@@ -43,3 +47,14 @@ def test_laps_follow_each_other_and_round_on_report(clock):
     watch.lap("dense")
     assert watch.report(digits=3) == {"sparse": 1.235, "dense": 2.0, "total": 3.235}
     assert watch.elapsed() == pytest.approx(3.23456)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux's /proc")
+def test_the_process_age_counts_from_the_launch():
+    # A process that waited 0.3 s before asking is at least that old (the interpreter's
+    # start and imports come on top): a command's wall time starts where the user's wait did.
+    script = ("import time; time.sleep(0.3); "
+              "from flowerpose.stopwatch import process_age; print(process_age())")
+    age = float(subprocess.run([sys.executable, "-c", script], capture_output=True,
+                               text=True, check=True).stdout)
+    assert age >= 0.3
