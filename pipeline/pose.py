@@ -81,10 +81,10 @@ class PoseConfig:
     """"combined": each of the three offsets counts at most this many corolla radii either
     way (about a receptacle's protrusion, and the offsets' typical size), so one pulled far
     off (a crop centroid dragged by a neighbour's petals in front of the flower) is one
-    vote, not a veto. On the day's 22 reconstructed scans (226 matched flowers) a crop
-    offset of 0.45 radii the wrong way outvoted the other two and flipped a flower of the
-    default eval's seed 1; clipped at 0.15, 0 flips there and none added on the oracle,
-    hard, field or real data; at 0.07 the hard preset lost 3. None: no clip."""
+    vote, not a veto. Measured on reconstructed scans (226 matched flowers): a crop offset
+    of 0.45 radii the wrong way outvoted the other two and flipped a flower; clipped at
+    0.15, no flip there and none added on the oracle, hard, field or real data; at 0.07
+    the hard preset lost 3. None: no clip."""
     crop_reach: float | None = 1.0
     """"combined": the crop's centroid is taken over its points within this many corolla
     radii of the pistil (the receptacle, sepals and petal base), so a leaf above or beside
