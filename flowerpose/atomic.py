@@ -41,6 +41,14 @@ def _fsync(path: str | Path, directory: bool = False) -> None:
         os.close(handle)
 
 
+def temporary_beside(path: Path, suffix: str) -> Path:
+    """A new empty file in `path`'s folder, named after it and hidden (raises OSError where
+    the folder takes no file): where a write goes before it is renamed over `path`."""
+    handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix, dir=path.parent)
+    os.close(handle)
+    return Path(name)
+
+
 def write_file(path: str | Path, write: Callable[[Path], object]) -> Path:
     """Write `path` through `write(temporary)`, which fills a temporary path in the same
     folder with the same suffix (writers that go by the suffix see the right one). A
@@ -48,13 +56,10 @@ def write_file(path: str | Path, write: Callable[[Path], object]) -> Path:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
-                                        dir=path.parent)
-        os.close(handle)
-        os.chmod(name, 0o666 & ~_UMASK)
+        temporary = temporary_beside(path, f".tmp{path.suffix}")
+        os.chmod(temporary, 0o666 & ~_UMASK)
     except OSError as err:
         raise InputError(path, f"cannot write ({err.strerror or err})") from None
-    temporary = Path(name)
     try:
         if write(temporary) is False:
             raise InputError(path, "cannot write (the writer failed: is the disk full?)")

@@ -8,11 +8,11 @@ import argparse
 import contextlib
 import math
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from flowerpose.atomic import temporary_beside
 from flowerpose.errors import InputError
 
 
@@ -82,12 +82,10 @@ def check_writable(path: Path, flag: str) -> None:
     # Permissions do not tell all (root, read-only or special file systems): the end of the
     # run writes through a temporary file beside the path, so make one now.
     try:
-        handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".check", dir=parent)
+        temporary_beside(parent / path.name, ".check").unlink()
     except OSError as err:
         raise InputError(path, f"{flag}: cannot be written here ({err.strerror or err})"
                          ) from None
-    os.close(handle)
-    os.unlink(name)
 
 
 def add_cache_options(parser: argparse.ArgumentParser) -> None:

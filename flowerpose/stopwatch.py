@@ -4,6 +4,7 @@ named steps and of the whole, from `time.perf_counter`."""
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -56,8 +57,6 @@ def process_age() -> float:
     """Seconds since this process was launched (Linux: /proc), so a command's printed wall
     time includes the interpreter's start and imports, as the user waited them; 0 where the
     system does not say."""
-    import os
-
     try:
         ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
         uptime = float(Path("/proc/uptime").read_text().split()[0])

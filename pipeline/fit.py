@@ -137,12 +137,13 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
     """
     if not _usable(points, min_points):
         return None
-    centroid, values, vectors = principal_axes(points)
-    if not np.isfinite(values).all():
-        return None
-    normal = vectors[:, 2]
     if robust_iterations:
         centroid, normal = _least_median_plane(points)
+    else:
+        centroid, values, vectors = principal_axes(points)
+        if not np.isfinite(values).all():
+            return None
+        normal = vectors[:, 2]
     for _ in range(robust_iterations):
         distance = (points - centroid) @ normal
         scale = ROBUST_SCALE * 1.4826 * float(np.median(np.abs(distance - np.median(distance))))
