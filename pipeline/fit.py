@@ -110,15 +110,16 @@ def _least_median_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     the reweighted fit. points: (N, 3), any unit."""
     sample = points[::max(1, len(points) // START_SAMPLE)]
     directions = _hemisphere(START_DIRECTIONS)
-    heights = np.sort(sample @ directions.T, axis=0)
+    # (direction, point): each direction's heights sorted along a contiguous row.
+    heights = np.sort(directions @ sample.T, axis=1)
     half = (len(sample) + 1) // 2
-    widths = heights[half - 1:] - heights[:len(sample) - half + 1]
-    start = widths.argmin(axis=0)
-    best = int(widths[start, np.arange(len(directions))].argmin())
+    widths = heights[:, half - 1:] - heights[:, :len(sample) - half + 1]
+    start = widths.argmin(axis=1)
+    best = int(widths[np.arange(len(directions)), start].argmin())
     normal = directions[best]
-    low = heights[start[best], best]
+    low = heights[best, start[best]]
     height = points @ normal
-    inside = (height >= low) & (height <= low + widths[start[best], best])
+    inside = (height >= low) & (height <= low + widths[best, start[best]])
     return points[inside].mean(axis=0), normal
 
 

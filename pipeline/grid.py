@@ -168,15 +168,15 @@ def project(cloud: Cloud, view: View, config: GridConfig) -> Projection:
     if r > 0:
         nearest = cv2.erode(nearest, splat_disc(r), borderType=cv2.BORDER_CONSTANT,
                             borderValue=empty)
-    index = np.full((height, width), -1, np.int32)
-    covered = nearest < empty
-    index[covered] = np.mod(nearest[covered], float(2 ** index_bits)).astype(np.int32)
-    hit = index >= 0
-    image = np.full((height, width, 3), config.background, np.uint8)
-    image[hit] = cloud.colors[index[hit]]
-    depth_image = np.full((height, width), np.nan, np.float32)
-    depth_image[hit] = depth[index[hit]]
-    return Projection(view, image, index, depth_image, origin, px)
+    # Keys are integers below 2**53, exact as int64; an uncovered pixel's index is -1,
+    # which picks the background appended as the last row of the colours and depths.
+    index = np.where(nearest < empty, nearest.astype(np.int64) & ((1 << index_bits) - 1),
+                     -1).astype(np.int32)
+    colours = np.vstack([cloud.colors, np.full((1, 3), config.background, np.uint8)])
+    depths = np.append(depth.astype(np.float32), np.float32(np.nan))
+    # np.take, not fancy indexing: several times faster for rows of 3 bytes.
+    return Projection(view, np.take(colours, index, axis=0), index, np.take(depths, index),
+                      origin, px)
 
 
 def project_all(cloud: Cloud, config: GridConfig) -> list[Projection]:
