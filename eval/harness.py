@@ -351,8 +351,10 @@ TASKS = ("pose", "pollinate")
 def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_dir: Path,
                workers: int | None, extra: dict) -> None:
     """Each synthetic plant's visits from its estimates and from its truth, scored, into
-    its entry (`pollination`, `pollination_ceiling`); the success against pose error into
-    `extra` and out_dir/pollination.png."""
+    its entry (`pollination`, `pollination_ceiling`); the success against pose error and
+    against the approach's angle off the axis (`approach_angle.py`) into `extra` and
+    out_dir/pollination.png."""
+    from flowerpose.eval.approach_angle import summarise_curve
     from flowerpose.eval.pollination import success_by_error, write_success_plot
 
     results = run_jobs(_pollinate_job, [(job, config, out_dir) for job in jobs], workers,
@@ -360,7 +362,7 @@ def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_d
                        f"{len(v[0]['flowers'])} flowers ({v[1]['successes']} from the true "
                        "poses)", stage="pollinate", labels=[job[1] for job in jobs])
     errors = {}
-    for entry, (estimated, ceiling) in zip(entries, results, strict=True):
+    for entry, (estimated, ceiling, _) in zip(entries, results, strict=True):
         entry["pollination"], entry["pollination_ceiling"] = estimated, ceiling
         detected = {m["detection"]: m for m in entry["matches"]}
         for outcome in estimated["flowers"]:
@@ -370,12 +372,19 @@ def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_d
     rows = success_by_error([{"plant": e["plant"], **e["pollination"]} for e in entries],
                             errors)
     extra["pollination_by_error"] = rows
+    curve = summarise_curve([result[2] for result in results]) if results else []
+    if curve:
+        extra["pollination_by_angle"] = curve
     if any(r["flowers"] for r in rows):
-        write_success_plot(out_dir / "pollination.png", rows)
+        write_success_plot(out_dir / "pollination.png", rows, curve, config.pollinate.cone_deg,
+                           config.pollination.max_angle_deg)
 
 
-def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict, dict]:
-    """One synthetic plant's pollination from its estimates, and from its true poses."""
+def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path
+                   ) -> tuple[dict, dict, list[dict]]:
+    """One synthetic plant's pollination from its estimates and from its true poses, and
+    its success against the approach's angle (`approach_angle.py`)."""
+    from flowerpose.eval.approach_angle import approach_curve
     from flowerpose.eval.pollination import plan_and_score
     from flowerpose.eval.pollination_contact import ContactWorld
     from flowerpose.sim.export import read_plant
@@ -384,11 +393,13 @@ def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path) -> tuple[dict,
     plant_dir = out_dir / "plants" / name
     cloud = read_cloud(cloud_path)
     world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
-    return tuple(plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
-                                config.pollinate, config.pollination,
-                                flight_json=plant_dir / flight, world=world)
-                 for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),
-                                         (None, "flight_ceiling.json")))
+    estimated, ceiling = (plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
+                                         config.pollinate, config.pollination,
+                                         flight_json=plant_dir / flight, world=world)
+                          for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),
+                                                  (None, "flight_ceiling.json")))
+    curve = approach_curve(world, cloud, config.pollinate, config.pollination)
+    return estimated, ceiling, curve
 
 
 def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:

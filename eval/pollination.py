@@ -54,9 +54,16 @@ class PollinationScoreConfig:
     touch_radius_m: float = 0.004
     """The swab's centre within this of the true centre: the receptacle is 6-8 mm wide, and
     an 8 mm swab there covers the anthers round it."""
-    max_angle_deg: float = 20.0
-    """The approach within this of the true axis: further off, the swab meets the petals'
-    inner side before the centre (a 30 mm corolla cupped 3-4 mm)."""
+    max_angle_deg: float = 45.0
+    """The approach within this of the true axis: the widest angle the contact replay
+    measures (`curve_angles_deg`, `approach_angle.py`), in which the swab's touch did not
+    depend on the angle (the visits lost at 40-50 degrees pushed leaves on the way in; a
+    corolla 30 mm wide cupped 3-4 mm leaves the shaft 15 mm over its rim at 45)."""
+    curve_angles_deg: tuple[float, ...] = ()
+    """Angles off the true axis at which every flower's visit is replayed for the
+    success-against-angle curve (`approach_angle.py`; report.json's `pollination_by_angle`,
+    pollination.png), e.g. [0, 10, 20, 30, 40, 45, 50]; each costs about one more planning
+    and flight of every flower. Empty: not measured."""
     max_push_m: float = 0.01
     """How far the tool may push any point of a leaflet or petiole from where it grew."""
     contact: ContactConfig = field(default_factory=ContactConfig)
@@ -96,20 +103,27 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
     plan = plan_pollination(estimates, None if cloud is None else cloud.points, plan_config,
                             tool=tool, corolla=None if cloud is None
                             else flower_coloured(cloud.colors))
-    timeline = Timeline()
     with tempfile.TemporaryDirectory() as scratch:  # a fresh flight, never a resumed one
-        flight = fly_pollination(KinematicBot(observer=timeline.add), plan, Path(scratch),
-                                 source={"backend": "simulated"}, progress=False)
+        timeline, flown, flight = flown_visits(plan, Path(scratch))
     if flight_json is not None:
         write_json(flight_json, flight)
     world = world or ContactWorld(plant, config.contact, tool)
-    flown = {int(d["flower"]): (d["t0"], d["t1"]) for d in flight["done"]}
-    outcomes = [_judge(f, nearest.get(f.id), plan, flown, timeline, world, config, tool)
+    outcomes = [judge(f, nearest.get(f.id), plan, flown, timeline, world, config, tool)
                 for f in truth]
     return {"visits": len(plan.planned), "planned_s": round(plan.duration_s, 1),
             "flown_s": round(flight["sessions"][-1]["bot_time_end"], 1)
             if flight["sessions"] else 0.0,
             "flowers": outcomes, **tally(outcomes)}
+
+
+def flown_visits(plan, scratch: Path) -> tuple[Timeline, dict[int, tuple[float, float]], dict]:
+    """`plan` flown by the executor on a simulated bot (its record in the empty folder
+    `scratch`): the bot's timeline, each flower's visit as (start, end) on the bot's clock,
+    and the flight's record."""
+    timeline = Timeline()
+    flight = fly_pollination(KinematicBot(observer=timeline.add), plan, scratch,
+                             source={"backend": "simulated"}, progress=False)
+    return timeline, {int(d["flower"]): (d["t0"], d["t1"]) for d in flight["done"]}, flight
 
 
 def _match(truth: list, entries: list[dict], distance_m: float) -> dict[int, int | None]:
@@ -134,7 +148,7 @@ def _rest_time(timeline: Timeline, t0: float, t1: float) -> float:
     return rest.t0 + rest.elapsed / 2
 
 
-def _judge(flower, detection: int | None, plan, flown: dict[int, tuple[float, float]],
+def judge(flower, detection: int | None, plan, flown: dict[int, tuple[float, float]],
            timeline: Timeline, world: ContactWorld, config: PollinationScoreConfig,
            tool: PollinatorTool) -> dict:
     """One true flower's outcome: success or the first cause of failure."""
@@ -222,8 +236,12 @@ def _rate(outcomes: list[str]) -> float | None:
     return round(outcomes.count("success") / len(outcomes), 4) if outcomes else None
 
 
-def write_success_plot(path: Path, rows: list[dict]) -> Path:
-    """pollination.png: success rate against the pose's plane error."""
+def write_success_plot(path: Path, rows: list[dict], curve: list[dict] = (),
+                       cone_deg: float | None = None, max_angle_deg: float | None = None
+                       ) -> Path:
+    """pollination.png: success rate against the pose's plane error; with `curve`
+    (`approach_angle.summarise_curve`), beside it success against the approach's angle off
+    the true axis, the planner's cone and the score's angle limit marked."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -234,7 +252,11 @@ def write_success_plot(path: Path, rows: list[dict]) -> Path:
     used = [r for r in rows if r["flowers"]]
     if not used:
         raise InputError(path, "no detected flower to plot")
-    figure, axis = plt.subplots(figsize=(7, 3.5))
+    curve = [r for r in curve if r["planned"]]
+    figure, axes = plt.subplots(1, 2 if curve else 1, figsize=(11 if curve else 7, 3.5),
+                                squeeze=False, gridspec_kw={"width_ratios": [3, 2]}
+                                if curve else None)
+    axis = axes[0][0]
     labels = [f"{r['from_deg']}-{r['to_deg']}" for r in used]
     x = np.arange(len(used))
     for offset, key, count, colour, name in (
@@ -250,7 +272,29 @@ def write_success_plot(path: Path, rows: list[dict]) -> Path:
     axis.set_ylabel("pollination success")
     axis.set_ylim(0, 1.15)
     axis.legend(loc="upper right", fontsize=8)
+    if curve:
+        _plot_curve(axes[0][1], curve, cone_deg, max_angle_deg)
     figure.tight_layout()
     write_file(path, lambda tmp: figure.savefig(tmp, format="png", dpi=120))
     plt.close(figure)
     return path
+
+
+def _plot_curve(axis, curve: list[dict], cone_deg: float | None,
+                max_angle_deg: float | None) -> None:
+    """Success against the approach's angle off the true axis, with the planned count at
+    each point."""
+    angles = [r["angle_deg"] for r in curve]
+    rates = [r["success_rate"] for r in curve]
+    axis.plot(angles, rates, "o-", color="#3f7f1f", label="of the approaches planned")
+    for angle, rate, r in zip(angles, rates, curve, strict=True):
+        axis.annotate(str(r["planned"]), (angle, rate), textcoords="offset points",
+                      xytext=(0, 5), ha="center", fontsize=7)
+    for value, style, name in ((cone_deg, "--", "the planner's cone"),
+                               (max_angle_deg, ":", "the score's limit")):
+        if value is not None:
+            axis.axvline(value, linestyle=style, color="grey", label=name)
+    axis.set_xlabel("approach off the true axis, degrees (the count above each point)")
+    axis.set_ylabel("touch success (contact replay)")
+    axis.set_ylim(0, 1.15)
+    axis.legend(loc="lower left", fontsize=8)

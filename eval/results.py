@@ -1,6 +1,7 @@
 """Results pages made from runs (`flowerpose results REPORT.json ...`): the numbers a
 document shows, with what made them, never typed in by hand. Eval reports become a table's
-rows; stress and bench reports become sections of their own.
+rows (a pollination run's, a row of the pollination section instead); stress and bench
+reports become sections of their own.
 
 Each eval report becomes a row: what ran (the suite and its version, or the source, preset and
 plants, or the real folders), the flowers found of the visible, false positives, the plane
@@ -64,6 +65,7 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
     from flowerpose.eval.stress import stress_markdown
 
     rows, notes, sections = [], [], []
+    pollination, curves, pollination_notes = [], [], []
     for k, path in enumerate(paths, start=1):
         report = read_json(path)
         kind = _kind(path, report)
@@ -77,6 +79,11 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
                             f"{_provenance(k, report['run'])}\n")
             continue
         s = report["summary"]
+        if "pollination" in s:
+            pollination.append(pollination_row(report, k))
+            curves.extend(curve_rows(report, k))
+            pollination_notes.append(_provenance(k, report["run"]))
+            continue
         plane = s["error_deg"]["plane"]
         rows.append([f"{_what(report)} [{k}]", f"{s['found_visible']} of {s['visible']}",
                      str(s["fp"]), _deg(plane),
@@ -92,7 +99,47 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
     if rows:
         page += (f"\n## Accuracy\n\n{markdown_table(header, rows)}\n\n"
                  + "\n".join(f"- {n}" for n in notes) + "\n")
+    if pollination:
+        page += (f"\n## Pollination\n\n{markdown_table(POLLINATION_HEADER, pollination)}\n\n"
+                 "The planner's ceiling plans from the true poses. Flight: the planned bot "
+                 "time of the visits from the estimated poses, all plants.\n")
+        if curves:
+            page += ("\nSuccess against the approach's angle off the true axis (the contact "
+                     "replay, the angle rule left out):\n\n"
+                     f"{markdown_table(CURVE_HEADER, curves)}\n")
+        page += "\n" + "\n".join(f"- {n}" for n in pollination_notes) + "\n"
     return page + "".join(f"\n{section}" for section in sections)
+
+
+POLLINATION_HEADER = ["run", "flowers", "visits", "pollinated", "planner's ceiling",
+                      "unreachable", "pose off", "collision", "flight"]
+CURVE_HEADER = ["run", "off the axis", "planned", "pollinated", "failures"]
+
+
+def _rate(part: dict) -> str:
+    return f"{part['successes']} ({100 * (part['success_rate'] or 0):.1f} %)"
+
+
+def pollination_row(report: dict, k: int) -> list[str]:
+    """A pollination run's row: flowers, visits, successes from the estimated poses and
+    from the true ones, failures by cause and the planned flight time."""
+    s = report["summary"]
+    ours, ceiling = s["pollination"], s["pollination_ceiling"]
+    flowers = sum(len(p["pollination"]["flowers"]) for p in report["plants"])
+    minutes = sum(p["pollination"]["planned_s"] for p in report["plants"]) / 60
+    failures = ours["failures"]
+    return [f"{_what(report)} [{k}]",
+            str(flowers), str(ours["visits"]), _rate(ours), _rate(ceiling),
+            str(failures["unreachable"]), str(failures["pose off"]), str(failures["collision"]),
+            f"{minutes:.1f} min"]
+
+
+def curve_rows(report: dict, k: int) -> list[list[str]]:
+    """A pollination run's success against the approach's angle, a row an angle."""
+    return [[f"[{k}]", f"{r['angle_deg']:g}°", f"{r['planned']} of {r['flowers']}",
+             "-" if r["success_rate"] is None else _rate(r),
+             ", ".join(f"{n} {cause}" for cause, n in r["failures"].items()) or "-"]
+            for r in report.get("pollination_by_angle", [])]
 
 
 def paper_row() -> list[str]:

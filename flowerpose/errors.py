@@ -59,7 +59,7 @@ def one_line(error: BaseException) -> str:
 EXTRAS = {"mujoco": "sim", "pyrender": "sim", "trimesh": "sim", "OpenGL": "sim",
           "pycolmap": "recon", "farmbot": "bot", "serial": "bot", "paho": "bot",
           "onnxruntime": "onnx", "jwt": "bot", "ray": "ray", "optuna": "tune",
-          "sqlalchemy": "tune"}
+          "sqlalchemy": "tune", "ompl": "plan"}
 
 
 def missing_extra(module: str, needed_for: str) -> InputError | None:

@@ -222,12 +222,15 @@ def tool_forward(pose: HeadPose, tool: PollinatorTool = PAPER_TOOL,
 
 
 def tool_at(tip, direction, tool: PollinatorTool = PAPER_TOOL,
-            geometry: BotGeometry = PAPER_BOT) -> HeadPose:
+            geometry: BotGeometry = PAPER_BOT, flip: bool = False) -> HeadPose:
     """The head pose that puts the pollinator's tip at `tip` with its shaft along
     `direction` (the way it moves to touch): the inverse of `tool_forward`.
 
     tip: (3,) or (N, 3), metres, bed frame. direction: (3,) or (N, 3), any length but 0.
-    Like `look_at`, the pose is not checked against the bot's limits.
+    flip: the head's other solution for the same shaft direction (yaw + pi, pi - pitch:
+    the head upside down, its housings and the shaft's offset on the other side), where the
+    servos reach it without their own flip (else the same pose). Like `look_at`, the pose
+    is not checked against the bot's limits.
     """
     direction = np.asarray(direction, np.float64)
     length = np.linalg.norm(direction, axis=-1, keepdims=True)
@@ -235,6 +238,8 @@ def tool_at(tip, direction, tool: PollinatorTool = PAPER_TOOL,
         raise InputError("tool_at", "the tool's direction is a zero vector")
     ahead = direction / length
     yaw, pitch = _look_angles(ahead)
+    if flip:
+        yaw, pitch = yaw + np.pi, np.pi - pitch
     # The image's down is that of the angles the servos will take, which may be flipped.
     servo_yaw, servo_pitch = _servo_angles(HeadPose(np.zeros(yaw.shape + (3,)), yaw, pitch),
                                            geometry)

@@ -3,7 +3,9 @@
 A visit brings the pollinator's swab (`geometry.PollinatorTool`, `kinematics.tool_at`) to a
 flower's centre along the flower's axis: from the top of Z it descends to a pre-approach
 pose `standoff_m` out along the axis, moves straight in until the swab touches the centre,
-rests, and retreats the same way. Every pose is checked against the gantry's travel, the
+rests, and retreats the same way. Where the straight descent is blocked (a leaf over the
+flower), the head comes down a path round the foliage instead (`approach_path`, OMPL), and
+climbs back up it after the visit. Every pose is checked against the gantry's travel, the
 servos' range and the soil clearance (naming the limit that fails), and every move against
 the plant's cloud: the head's housings and the shaft keep `clearance_m` from it, except
 that the shaft may pass through the target flower's own corolla (its points of a flower's
@@ -18,6 +20,7 @@ the open face of the corolla, so the swab moves along minus the normal.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -25,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.approach_path import joint_state, plan_path
 from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL, BotGeometry, PollinatorTool
 from flowerpose.hardware.kinematics import (
     HeadPose,
@@ -53,10 +57,12 @@ class PollinateConfig:
     """How far past the flower's centre the swab goes, to touch it with a little force."""
     dwell_s: float = 1.0
     """Seconds the swab rests on the flower."""
-    cone_deg: float = 15.0
+    cone_deg: float = 40.0
     """Largest angle between an approach and the flower's axis, for a flower whose axis
-    cannot be taken (out of reach, or blocked): below the 20 degrees off the true axis that
-    still pollinates (`eval/pollination.py`), leaving 5 for the pose's own error."""
+    cannot be taken (out of reach, or blocked): the contact replay (`eval/approach_angle.py`)
+    found the swab's touch independent of the angle up to 45 degrees off the true axis, the
+    widest it measures, leaving 5 for the pose's own error. The nearest direction that is
+    clear is taken, so a wide cone costs only the flowers it makes reachable."""
     cone_step_deg: float = 5.0
     """Angle between the rings of directions tried inside that cone."""
     cone_azimuths: int = 8
@@ -79,13 +85,33 @@ class PollinateConfig:
     """Least height of the swab above the soil."""
     samples_per_move: int = 12
     """Poses checked along each move."""
+    path_checks: int = 4000
+    """Most clearance tests the search for a path round the plant may make for one approach
+    direction, where the straight descent to it is blocked (0: straight descents only). A
+    count, not a time, so a plan is the same on any machine (a resumed flight re-plans it)."""
+    path_tries: int = 3
+    """Approach directions (the axis first, then the cone's) a path is searched for, per
+    flower: a flower whose pre-approach pose is walled in costs each try's whole search."""
+    path_box_m: float = 0.15
+    """The path's search box: this far beyond the pre-approach pose across the bed and below
+    it, up to the top of Z, within the gantry's travel."""
+    path_bend_m: float = 0.01
+    """The path's search keeps this much more than `clearance_m` from the plant: room for
+    the bend of a FarmBot move (each axis on its own profile), so most of the path's
+    segments fly as one move (with 2 mm, a path round a leaf took 23 moves, with 10 mm 7)."""
+    path_step_m: float = 0.005
+    """Spacing of the clearance tests along the path's segments while searching (an angle
+    counts as `approach_path.ANGLE_LEVER_M` metres a radian); each segment is then checked
+    as flown, `samples_per_move` poses a move."""
 
     def __post_init__(self):
         for name in ("standoff_m", "clearance_m", "touch_radius_m", "straight_within_m",
-                     "cone_step_deg"):
+                     "cone_step_deg", "path_box_m", "path_step_m", "path_tries", "path_bend_m"):
             if not getattr(self, name) > 0:
                 raise InputError(name, f"must be positive, got "
                                  f"{getattr(self, name)}")
+        if self.path_checks < 0:
+            raise InputError("path_checks", f"must be 0 or more, got {self.path_checks}")
         if not 0 <= self.cone_deg < 90:
             raise InputError("cone_deg", f"must be 0 or more, below 90, got "
                              f"{self.cone_deg}")
@@ -120,6 +146,10 @@ class Visit:
     """The pose that touches the centre."""
     approach_moves: list[HeadPose] = field(default_factory=list)
     """The gantry positions (one pose each) the approach is cut into, the last `touch`."""
+    path: list[HeadPose] = field(default_factory=list)
+    """The way down from the top of Z above `pre` to it, where the straight descent is
+    blocked: waypoints, each flown as a gantry move with the head still and then the head's
+    turn, the last `pre` (empty: the straight descent)."""
 
     def to_json(self) -> dict:
         entry = {"flower": self.flower, "status": self.status}
@@ -131,14 +161,15 @@ class Visit:
                 "touch_gantry_m": self.touch.gantry.round(6).tolist(),
                 "yaw_rad": round(float(self.pre.yaw), 6),
                 "pitch_rad": round(float(self.pre.pitch), 6),
-                "approach_moves": len(self.approach_moves)}
+                "approach_moves": len(self.approach_moves),
+                "path": [[round(float(v), 6) for v in joint_state(p)] for p in self.path]}
 
 
 @dataclass(frozen=True)
 class Move:
     """One gantry move of the plan, or a rest: what it is and the pose it ends at."""
 
-    kind: Literal["lift", "travel", "descend", "approach", "dwell", "retreat"]
+    kind: Literal["lift", "travel", "descend", "approach", "dwell", "retreat", "climb"]
     flower: int
     pose: HeadPose
 
@@ -219,28 +250,61 @@ def _plan_visit(flower: Flower, points: np.ndarray, corolla: np.ndarray,
                 tree: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
                 tool: PollinatorTool, profile: MotionProfile) -> Visit:
     """The visit along the flower's axis, else along the nearest direction in the cone
-    that is reachable and clear; else why not."""
+    that is reachable and clear: down the straight descent, or where that is blocked a path
+    round the plant (`path_tries` directions at most); else why not."""
     axes, angles = _directions(flower.normal, config)
     distance = np.linalg.norm(points - flower.center, axis=1)
     near_flower = ((corolla & (distance <= config.touch_radius_m))
                    | (distance <= config.calyx_radius_m))
     others = cKDTree(points[~near_flower]) if (~near_flower).any() else None
-    first_reason = ""
-    for axis, angle in zip(axes, angles, strict=True):
-        approach = -axis
-        pre = tool_at(flower.center + config.standoff_m * axis, approach, tool, geometry)
-        touch = tool_at(flower.center - config.press_m * axis, approach, tool, geometry)
-        reason = _unreachable(pre, touch, config, geometry, tool)
+    first_reason, tries = "", 0
+    blocked: Counter[str] = Counter()
+    for axis, angle, flip in _candidates(axes, angles):
+        approach, out = -axis, flower.center + config.standoff_m * axis
+        pre = tool_at(out, approach, tool, geometry, flip)
+        if flip and _same_solution(pre, tool_at(out, approach, tool, geometry)):
+            continue
+        touch = tool_at(flower.center - config.press_m * axis, approach, tool, geometry, flip)
+        reason, kind = _unreachable(pre, touch, config, geometry, tool), "out of reach"
         if not reason:
             steps = _straight(pre, touch, config, profile)
-            reason = _blocked(pre, steps, tree, others, config, geometry, tool, profile)
+            reason = _approach_blocked(pre, steps, tree, others, config, geometry, tool,
+                                       profile)
+            kind = ("the camera head meets the plant on the way in"
+                    if reason.startswith("the camera head")
+                    else "the pollinator meets the plant on the way in")
+        if not reason:
+            reason = _descent_blocked(pre, tree, config, geometry, tool, profile)
+            kind = "the way down is blocked (no path searched)"
+            path: list[HeadPose] = []
+            if reason and tries < config.path_tries and config.path_checks:
+                tries += 1
+                path = _route(pre, tree, config, geometry, tool, profile, seed=flower.id)
+                kind = "the way down is blocked and no path round the plant was found"
+                reason = "" if path else (f"{reason}, and no path round the plant was found "
+                                          f"in {config.path_checks} clearance tests")
             if not reason:
-                return Visit(flower.id, "planned", "", approach, float(angle), pre,
-                             touch, steps)
+                return Visit(flower.id, "planned", "", approach, float(angle), pre, touch,
+                             steps, path)
         first_reason = first_reason or reason
+        blocked[kind] += 1
+    tally = ", ".join(f"{count} {kind}" for kind, count in blocked.most_common())
     return Visit(flower.id, "unreachable",
-                 f"along its axis: {first_reason}; no approach within {config.cone_deg:g} "
-                 "degrees of it does better")
+                 f"along its axis: {first_reason}; of the {sum(blocked.values())} approaches "
+                 f"within {config.cone_deg:g} degrees of it (the head either way up): {tally}")
+
+
+def _candidates(axes: np.ndarray, angles: np.ndarray):
+    """(axis, angle, flip) in the order tried: each direction with the head's usual
+    solution, then upside down (`kinematics.tool_at`'s flip)."""
+    for axis, angle in zip(axes, angles, strict=True):
+        yield axis, angle, False
+        yield axis, angle, True
+
+
+def _same_solution(a: HeadPose, b: HeadPose) -> bool:
+    """Whether two poses put the servos at the same angles."""
+    return bool(np.allclose(joint_state(a)[3:], joint_state(b)[3:]))
 
 
 def _unreachable(pre: HeadPose, touch: HeadPose, config: PollinateConfig,
@@ -288,27 +352,132 @@ def _top_over(pose: HeadPose, geometry: BotGeometry) -> HeadPose:
     return HeadPose(gantry, pose.yaw, pose.pitch)
 
 
-def _blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None,
-             others: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
-             tool: PollinatorTool, profile: MotionProfile) -> str:
-    """Where the visit's descent or approach comes too close to the plant ("" if never):
-    the head's housings to any point, the shaft to any but the target flower's own."""
+def _gap(poses: HeadPose, tree: cKDTree, shaft_tree: cKDTree | None, reach_m: float,
+         geometry: BotGeometry, tool: PollinatorTool) -> tuple[float, str]:
+    """Least distance, metres, from the plant to the head's housings (any point of `tree`)
+    or the pollinator's shaft (any point of `shaft_tree`) over `poses`, and which of the two
+    it is ("camera head" or "pollinator")."""
+    head = head_gap(poses, tree, reach_m, geometry)
+    shaft = (shaft_tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min()
+             if shaft_tree is not None else np.inf)
+    return (head, "camera head") if head <= shaft else (float(shaft), "pollinator")
+
+
+def _too_close(poses: HeadPose, tree: cKDTree, shaft_tree: cKDTree | None, name: str,
+               config: PollinateConfig, geometry: BotGeometry, tool: PollinatorTool) -> str:
+    """Where `poses` (the move called `name`) come within `clearance_m` of the plant ("" if
+    nowhere)."""
+    gap, part = _gap(poses, tree, shaft_tree, config.clearance_m, geometry, tool)
+    if gap >= config.clearance_m:
+        return ""
+    return (f"the {part} passes {gap * 1000:.0f} mm from the plant on the {name} (least "
+            f"{config.clearance_m * 1000:.0f} mm)")
+
+
+def _descent_blocked(pre: HeadPose, tree: cKDTree | None, config: PollinateConfig,
+                     geometry: BotGeometry, tool: PollinatorTool,
+                     profile: MotionProfile) -> str:
+    """Where the straight descent from the top of Z to `pre` comes too close to the plant
+    (the head and the shaft to any point; "" if never)."""
     if tree is None:
         return ""
-    samples = config.samples_per_move
-    moves = [("descent", poses_along(_top_over(pre, geometry), pre, profile, samples), True)]
+    poses = poses_along(_top_over(pre, geometry), pre, profile, config.samples_per_move)
+    return _too_close(poses, tree, tree, "descent", config, geometry, tool)
+
+
+def _approach_blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None,
+                      others: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
+                      tool: PollinatorTool, profile: MotionProfile) -> str:
+    """Where the approach from `pre` in to the centre comes too close to the plant ("" if
+    never): the head's housings to any point, the shaft to any but the target flower's own."""
+    if tree is None:
+        return ""
     for a, b in zip([pre, *steps[:-1]], steps, strict=True):
-        moves.append(("approach", poses_along(a, b, profile, samples), False))
-    for name, poses, tool_to_all in moves:
-        head = head_gap(poses, tree, config.clearance_m, geometry)
-        shaft_tree = tree if tool_to_all else others
-        shaft = (shaft_tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min()
-                 if shaft_tree is not None else np.inf)
-        if min(head, shaft) < config.clearance_m:
-            part = "camera head" if head <= shaft else "pollinator"
-            return (f"the {part} passes {min(head, shaft) * 1000:.0f} mm from the plant on "
-                    f"the {name} (least {config.clearance_m * 1000:.0f} mm)")
+        poses = poses_along(a, b, profile, config.samples_per_move)
+        reason = _too_close(poses, tree, others, "approach", config, geometry, tool)
+        if reason:
+            return reason
     return ""
+
+
+def _route(pre: HeadPose, tree: cKDTree | None, config: PollinateConfig,
+           geometry: BotGeometry, tool: PollinatorTool, profile: MotionProfile,
+           seed: int) -> list[HeadPose]:
+    """A way down from the top of Z above `pre` to it round the plant (`approach_path`), as
+    flown: each segment cut into moves whose flight, either way, keeps `clearance_m` from
+    the plant. The search keeps `path_bend_m` more, for the moves' bends. Empty when none
+    is found."""
+    if tree is None:
+        return []
+    start = _top_over(pre, geometry)
+
+    def clear(pose: HeadPose) -> bool:
+        # The room for bends tapers to none at the pre-approach pose, which itself may keep
+        # only `clearance_m`: the moves near it are short, and all are checked as flown.
+        taper = min(1.0, float(np.linalg.norm(pose.gantry - pre.gantry)) / BEND_TAPER_M)
+        margin = config.clearance_m + config.path_bend_m * taper
+        return (not _unreachable(pose, pose, config, geometry, tool)
+                and _gap(pose, tree, tree, margin, geometry, tool)[0] >= margin)
+
+    box = np.array([config.path_box_m, config.path_box_m])
+    lower = np.concatenate([np.maximum(pre.gantry[:2] - box, geometry.gantry_min[:2]),
+                            [max(pre.gantry[2] - config.path_box_m, geometry.gantry_min[2])],
+                            [geometry.yaw_range_rad[0], geometry.pitch_range_rad[0]]])
+    upper = np.concatenate([np.minimum(pre.gantry[:2] + box, geometry.gantry_max[:2]),
+                            [geometry.gantry_max[2]],
+                            [geometry.yaw_range_rad[1], geometry.pitch_range_rad[1]]])
+    path, _ = plan_path(start, pre, clear, lower, upper, config.path_checks,
+                        config.path_step_m, seed)
+    if path is None:
+        return []
+    flown: list[HeadPose] = []
+    for a, b in zip([start, *path[:-1]], path, strict=True):
+        pieces = _flyable(a, b, tree, config, geometry, tool, profile)
+        if pieces is None:
+            return []
+        flown.extend(pieces)
+    flown[-1] = pre
+    return flown
+
+
+#: Distance from the pre-approach pose over which a path's room for bends
+#: (`PollinateConfig.path_bend_m`) grows from none to all of it, metres.
+BEND_TAPER_M = 0.05
+
+
+def _flown(a: HeadPose, b: HeadPose, profile: MotionProfile, samples: int) -> HeadPose:
+    """The poses the executor takes from a to b: the gantry on its motion profile with the
+    head still, then the head's turn."""
+    move = poses_along(HeadPose(a.gantry, a.yaw, a.pitch), HeadPose(b.gantry, a.yaw, a.pitch),
+                       profile, samples)
+    share = np.linspace(0.0, 1.0, samples)
+    return HeadPose(np.vstack([move.gantry, np.tile(b.gantry, (samples, 1))]),
+                    np.concatenate([move.yaw, a.yaw + share * (b.yaw - a.yaw)]),
+                    np.concatenate([move.pitch, a.pitch + share * (b.pitch - a.pitch)]))
+
+
+def _flyable(a: HeadPose, b: HeadPose, tree: cKDTree, config: PollinateConfig,
+             geometry: BotGeometry, tool: PollinatorTool,
+             profile: MotionProfile) -> list[HeadPose] | None:
+    """The segment from a to b (joint space) cut into the fewest equal moves (up to 64)
+    whose flight down and back up keeps `clearance_m` from the plant and within the bot's
+    limits: the poses they end at, the last b; None where no cut does."""
+    ends = np.array([joint_state(a), joint_state(b)])
+    for count in (1, 2, 4, 8, 16, 32, 64):
+        share = np.arange(count + 1)[:, None] / count
+        poses = [HeadPose(s[:3], s[3], s[4]) for s in ends[0] + share * (ends[1] - ends[0])]
+        fine = True
+        for u, v in zip(poses, poses[1:], strict=False):
+            both = [_flown(u, v, profile, config.samples_per_move),
+                    _flown(v, u, profile, config.samples_per_move)]
+            if any(_unreachable(p, p, config, geometry, tool)
+                   or _gap(p, tree, tree, config.clearance_m, geometry, tool)[0]
+                   < config.clearance_m for p in both):
+                fine = False
+                break
+        if fine:
+            return poses[1:]
+    return None
 
 
 def head_gap(poses: HeadPose, tree: cKDTree, reach_m: float,
@@ -370,17 +539,21 @@ def _short_order(visits: list[Visit], start: np.ndarray, geometry: BotGeometry,
 
 def _moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry) -> list[Move]:
     """The moves of the visits in order: up to the top of Z, across, down to the
-    pre-approach pose, in to the centre, a rest, back out (the head turns at the top)."""
+    pre-approach pose (straight, or along the visit's path), in to the centre, a rest, back
+    out (and up the path). The head turns at the top, and at a path's waypoints."""
     moves = [Move("lift", -1, _top_over(HeadPose(start, 0.0, 0.0), geometry))]
     for visit in visits:
         here = moves[-1].pose
         if moves[-1].kind != "lift":
             moves.append(Move("lift", visit.flower, _top_over(here, geometry)))
-        moves.append(Move("travel", visit.flower, _top_over(visit.pre, geometry)))
-        moves.append(Move("descend", visit.flower, visit.pre))
+        top = _top_over(visit.pre, geometry)
+        moves.append(Move("travel", visit.flower, top))
+        moves.extend(Move("descend", visit.flower, p) for p in visit.path or [visit.pre])
         moves.extend(Move("approach", visit.flower, step) for step in visit.approach_moves)
         moves.append(Move("dwell", visit.flower, visit.touch))
         moves.append(Move("retreat", visit.flower, visit.pre))
+        if visit.path:  # back up the way it came
+            moves.extend(Move("climb", visit.flower, p) for p in [*visit.path[-2::-1], top])
     if visits:
         moves.append(Move("lift", -1, _top_over(visits[-1].pre, geometry)))
     return moves

@@ -6,7 +6,8 @@ the harness (`eval/pollination.py`), so what the harness scores is what a bot is
 do. Before anything moves, every pose of the plan is checked against the connected bot's
 own travel and head limits, and its position must be known (homed). Each visit starts
 from the top of Z where the bot stands: up, across, the head turned, down to the
-pre-approach pose, in to the flower's centre, a rest, back out.
+pre-approach pose (straight, or along the visit's path round the plant, the head turning at
+its waypoints), in to the flower's centre, a rest, back out (and up the path).
 
 After every visit `flight.json` records, atomically, which flowers were pollinated and
 when on the bot's clock, so a flight cut short (an error, Ctrl-C, a dropped link) resumes
@@ -129,13 +130,19 @@ def fly_pollination(bot: Bot, plan: PollinationPlan, out_dir: Path, *, source: d
                 t0 = bot.now()
                 here = bot.position()
                 bot.move_to([here[0], here[1], top])  # every visit starts from the top of Z
+                angles = None
                 for move in moves[flower]:
                     if move.kind == "dwell":
                         bot.dwell(plan.config.dwell_s)
                         continue
                     bot.move_to(move.pose.gantry)
-                    if move.kind == "travel":  # the head turns at the top, clear of the plant
-                        bot.set_head(*head_angles(move.pose))
+                    # The head turns at the top, clear of the plant, and at a path's waypoints
+                    # once the gantry is there, as the planner checked the path.
+                    wanted = head_angles(move.pose)
+                    if move.kind == "travel" or (move.kind in ("descend", "climb")
+                                                 and not np.allclose(wanted, angles)):
+                        bot.set_head(*wanted)
+                        angles = wanted
                 flight["done"].append({"flower": flower, "t0": round(t0, 4),
                                        "t1": round(bot.now(), 4)})
                 write_json(path, flight)

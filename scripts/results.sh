@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The runs behind docs/results.md and the README's results table, then the page itself
 # (`make results`). Each run writes under runs/ (ignored by git); the page cites each run's
-# command, code, date and machine. About 15 minutes on 2 cores.
+# command, code, date and machine. About 30 minutes on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 flowerpose=.venv/bin/flowerpose
@@ -16,9 +16,13 @@ $flowerpose eval --source real "$real" --compare upstream --out runs/real3 -q
 $flowerpose stress --source real "$real" --thin 0.5,0.2,0.1,0.05 --repeats 3 --drop-views 3 \
     --out runs/stress-real3 -q
 $flowerpose bench --points 125000 1000000 --out runs/bench -q
+$flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
+    --set 'pollination.curve_angles_deg=[0, 10, 20, 30, 40, 45, 50]' --out runs/pollinate-10 -q
+$flowerpose eval --task pollinate --source oracle --preset field --plants 10 --seed 0 \
+    --out runs/pollinate-field-10 -q
 $flowerpose results runs/oracle-10/report.json runs/field-10/report.json \
-    runs/real3/report.json runs/stress-real3/stress.json runs/bench/bench.json \
-    > docs/results.md.partial
+    runs/real3/report.json runs/pollinate-10/report.json runs/pollinate-field-10/report.json \
+    runs/stress-real3/stress.json runs/bench/bench.json > docs/results.md.partial
 mv docs/results.md.partial docs/results.md
 # The README's table is the page's accuracy table, without the footnote marks.
 .venv/bin/python - <<'PY'

@@ -1,6 +1,7 @@
 """Pollination scored on synthetic plants: the planner's ceiling on an easy plant, poses
 that are off, the report's sections, and a task that cannot run."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -52,7 +53,9 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
                            *args)
     ceiling = plan_and_score(folder, None, *args)
     assert exact["successes"] == ceiling["successes"]
-    off = plan_and_score(folder, _flowers_json(tmp_path / "off.json", bundle.plant, 35.0),
+    # Beyond the score's angle limit however the planner's cone turns the approach.
+    tilt = PollinationScoreConfig().max_angle_deg + PollinateConfig().cone_deg + 5.0
+    off = plan_and_score(folder, _flowers_json(tmp_path / "off.json", bundle.plant, tilt),
                          *args)
     assert off["successes"] == 0
     assert all(o["outcome"] in ("pose off", "unreachable", "collision")
@@ -63,7 +66,11 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
 def test_eval_reports_pollination_and_its_curve(tmp_path):
     from flowerpose.eval.harness import eval_config, run_eval
 
-    report = run_eval(eval_config("easy"), source="oracle", plants=1, seed=2, workers=1,
+    config = eval_config("easy")
+    angles = (0.0, 30.0)
+    config = dataclasses.replace(config, pollination=dataclasses.replace(
+        config.pollination, curve_angles_deg=angles))
+    report = run_eval(config, source="oracle", plants=1, seed=2, workers=1,
                       out_dir=tmp_path / "run", task="pollinate")
     summary = report["summary"]
     for key in ("pollination", "pollination_ceiling"):
@@ -71,10 +78,25 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
     plant = report["plants"][0]
     assert len(plant["pollination"]["flowers"]) == plant["gt"]
     assert sum(r["flowers"] for r in report["pollination_by_error"]) > 0
+    curve = report["pollination_by_angle"]
+    assert [r["angle_deg"] for r in curve] == list(angles)
+    assert all(r["flowers"] == plant["gt"] and 0 <= r["successes"] <= r["planned"]
+               <= r["flowers"] for r in curve)
+    assert curve[0]["planned"] > 0
     assert (tmp_path / "run" / "pollination.png").stat().st_size > 0
     flight = json.loads((tmp_path / "run" / "plants" / plant["plant"] / "flight.json").read_text())
     assert flight["status"] == "complete"
     assert len(flight["done"]) == plant["pollination"]["visits"]
+    # The results page gives the run a row of its pollination section, and its curve.
+    from flowerpose.eval.results import results_markdown
+
+    page = results_markdown([tmp_path / "run" / "report.json"])
+    assert "## Pollination" in page and "## Accuracy" not in page
+    row = next(line for line in page.splitlines() if line.startswith("| 1 plants from seed 2"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1:3] == [str(plant["gt"]), str(summary["pollination"]["visits"])]
+    assert cells[3].startswith(f"{summary['pollination']['successes']} (")
+    assert page.count("| [1] ") == len(angles)
 
 
 def test_pollination_needs_synthetic_plants(tmp_path, capsys):

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from flowerpose.hardware.geometry import PAPER_BOT
 from flowerpose.hardware.kinematics import HeadPose, joint_positions, tool_at, tool_forward
@@ -14,6 +15,7 @@ from flowerpose.hardware.pollinate import (
     PollinateConfig,
     _short_order,
     _transfer_cost,
+    head_gap,
     plan_pollination,
 )
 
@@ -208,7 +210,21 @@ def test_a_leaf_inside_the_heads_housing_blocks_the_axis_though_far_from_its_cen
     leaf = centres[1] + rotations[1] @ np.array([0.0, 0.02, 0.0])  # in the pitch box
     assert np.linalg.norm(head_points(clear.pre)[0] - leaf, axis=1).min() > 0.02
     (visit,) = _plan([flower], leaf[None, :]).visits
-    assert visit.status == "unreachable" or visit.off_axis_deg > 0
+    # The usual head blocked, the visit turns the head upside down or leaves the axis.
+    assert visit.status == "planned"
+    assert visit.off_axis_deg > 0 or not np.allclose(joint_positions(visit.pre)[3:],
+                                                     joint_positions(clear.pre)[3:])
+    assert head_gap(visit.pre, cKDTree(leaf[None, :]), 0.05) >= PollinateConfig().clearance_m
+
+
+def test_the_upside_down_head_puts_the_tip_where_the_usual_one_does():
+    tip, direction = CENTER + [0.0, 0.0, 0.05], np.array([0.3, 0.1, -1.0])
+    usual, flipped = (tool_at(tip, direction, flip=flip) for flip in (False, True))
+    assert not np.allclose(joint_positions(usual)[3:], joint_positions(flipped)[3:])
+    for pose in (usual, flipped):
+        at, ahead = tool_forward(pose)
+        np.testing.assert_allclose(at, tip, atol=1e-9)
+        np.testing.assert_allclose(ahead, direction / np.linalg.norm(direction), atol=1e-9)
 
 
 def test_a_leaf_over_the_flower_blocks_the_shaft_unless_it_has_a_flowers_colour():
