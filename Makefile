@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup eval test lint bench docs results
+.PHONY: setup eval test test-fast lint bench docs results
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
@@ -21,6 +21,10 @@ eval: setup
 
 test: setup
 	$(BIN)/python -m pytest -q
+
+# The tests of under a second each, while working (the full suite is `make test`).
+test-fast: setup
+	$(BIN)/python -m pytest -q -m "not slow"
 
 lint: setup
 	$(BIN)/ruff check .

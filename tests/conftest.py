@@ -1,4 +1,5 @@
-"""Fixtures shared across the test packages."""
+"""Fixtures shared across the test packages, and the markers: `slow` (a test of a second
+or more: `make test-fast` leaves them out) and `hardware` (every test of tests/hardware)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,14 @@ import pytest
 
 from flowerpose.sim.bundle import PlantBundle, make_plant
 
+HARDWARE = Path(__file__).parent / "hardware"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if HARDWARE in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.hardware)
+
 
 @pytest.fixture(scope="session")
 def plant0(tmp_path_factory) -> tuple[PlantBundle, Path]:
@@ -16,7 +25,16 @@ def plant0(tmp_path_factory) -> tuple[PlantBundle, Path]:
     return make_plant(0, out_dir=out), out
 
 
+@pytest.fixture(scope="session")
+def session_stage_cache(tmp_path_factory) -> Path:
+    """The stage cache the session's tests share, never the user's."""
+    return tmp_path_factory.mktemp("stage-cache")
+
+
 @pytest.fixture(autouse=True)
-def private_stage_cache(tmp_path_factory, monkeypatch):
-    """Every test's stage cache is its own (`flowerpose.cache`): none reads the user's."""
-    monkeypatch.setenv("FLOWERPOSE_CACHE", str(tmp_path_factory.mktemp("stage-cache")))
+def stage_cache(session_stage_cache, monkeypatch):
+    """Every test reads and fills the session's stage cache (`flowerpose.cache`): a plant,
+    scan or detection one test made is taken by the next that asks for the same, as a user's
+    second run takes it (an entry's key holds its inputs, settings and code). The tests of
+    the cache itself pass a root of their own."""
+    monkeypatch.setenv("FLOWERPOSE_CACHE", str(session_stage_cache))

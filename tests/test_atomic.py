@@ -79,6 +79,7 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(mount)], capture_output=True)
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_and_keeps_what_was_there(small_disk, tmp_path, capsys):
     from flowerpose.cli import main
 

@@ -32,6 +32,7 @@ def _assert_one_line_error(code, err, *words):
         assert word in errors[0]
 
 
+@pytest.mark.slow
 def test_detect_pose_score_chain(plant0, tmp_path, capsys):
     _, plant_dir = plant0
     out = tmp_path / "det"
@@ -73,6 +74,7 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
     assert report["summary"]["error_deg"]["plane"]["mean"] < 4.0
 
 
+@pytest.mark.slow
 def test_eval_writes_the_report_contract(tmp_path, capsys):
     out = tmp_path / "eval"
     code, text, err = _run(capsys, "eval", "--source", "oracle", "--plants", 1, "--seed", 1,
@@ -131,6 +133,7 @@ def test_a_cloud_without_flowers_gives_an_empty_result(tmp_path, capsys):
     assert len(o3d.io.read_point_cloud(str(tmp_path / "out" / "flowers.ply")).points) == 0
 
 
+@pytest.mark.slow
 def test_a_millimetre_cloud_is_converted_and_said(plant0, tmp_path, capsys):
     bundle, _ = plant0
     path = write_cloud(tmp_path / "mm.ply", Cloud(bundle.cloud.points * 1000, bundle.cloud.colors))
@@ -185,6 +188,7 @@ def _grey_cloud(path):
     (["eval", "--source", "oracle", "--plants", "2", "--workers", "2", "--out", "{tmp}/e",
       "--set", "grid.pixel_size_m=0.00001"], ["grid.pixel_size_m"]),
 ])
+@pytest.mark.slow
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     import open3d as o3d
 
@@ -246,6 +250,7 @@ def test_a_bare_command_shows_the_help_and_the_version_is_one_line(capsys):
     assert capsys.readouterr().out.strip() == f"flowerpose {__version__}"
 
 
+@pytest.mark.slow
 def test_python_dash_m_runs_the_command_line():
     result = subprocess.run([sys.executable, "-m", "flowerpose", "--version"],
                             capture_output=True, text=True)
@@ -369,6 +374,7 @@ def _subparsers():
 QUICK = ("plant", "detect", "pose", "score", "cache")
 
 
+@pytest.mark.slow
 def test_the_quick_help_examples_run_as_written_with_their_set_example(tmp_path, monkeypatch,
                                                                       capsys):
     monkeypatch.chdir(tmp_path)

@@ -67,6 +67,7 @@ def test_a_corrupted_or_interrupted_fetch_leaves_nothing(tmp_path, tiny, monkeyp
 
 @pytest.mark.skipif(not SHARED_REAL.is_dir(), reason="the authors' plant is in ../shared/real, "
                     "beside the repository (CI has it); not here")
+@pytest.mark.slow
 def test_the_papers_plant_from_a_mirror_is_a_real_plant_folder_eval_reads(tmp_path, capsys):
     published = data.PLANTS["paper-plant-3"]
     sources = {item.local: SHARED_REAL / "paper-plant-3" / item.local for item in published.files}

@@ -21,6 +21,7 @@ def test_the_command_line_reference_is_the_parsers_help():
 
 @pytest.mark.skipif(importlib.util.find_spec("mkdocs") is None,
                     reason="MkDocs is not installed here (the [docs] extra; make test has it)")
+@pytest.mark.slow
 def test_the_site_builds_strictly(tmp_path):
     built = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir",
                             str(tmp_path / "site")], cwd=ROOT, capture_output=True, text=True,

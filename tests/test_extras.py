@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import EXTRAS
@@ -19,6 +20,7 @@ def _core(*args):
                           text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_detect_runs_on_the_core_install_and_the_extras_are_named(tmp_path):
     rng = np.random.default_rng(0)
     leaves = Cloud(rng.random((2000, 3)) * [0.3, 0.3, 0.2],

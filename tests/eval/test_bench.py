@@ -1,10 +1,13 @@
 """The speed benchmark measures the pipeline's stages and the simulator's steps and writes
 bench.json; it never asserts a speed (this machine is shared)."""
 
+import pytest
+
 from flowerpose.eval.bench import SIMULATOR_BUDGET_S, run_bench
 from flowerpose.jsonio import read_json
 
 
+@pytest.mark.slow
 def test_bench_times_every_pipeline_stage_and_simulator_step(tmp_path, capsys):
     report = run_bench([20000], repeat=1, seed=3, out=tmp_path)
     (result,) = report["results"]
@@ -17,6 +20,7 @@ def test_bench_times_every_pipeline_stage_and_simulator_step(tmp_path, capsys):
     assert shown.count("simulator step") == 1 and "| plant " in shown
 
 
+@pytest.mark.slow
 def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
     import json
 
@@ -36,6 +40,7 @@ def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
     assert not (tmp_path / "no").exists()
 
 
+@pytest.mark.slow
 def test_bench_takes_its_cloud_from_the_stage_cache_when_made_before(tmp_path, monkeypatch):
     from flowerpose.sim import bundle
 

@@ -61,6 +61,7 @@ def test_rle_decodes_in_pycocotools_to_the_same_mask():
         assert sum(encoded["counts"]) == mask.size
 
 
+@pytest.mark.slow
 def test_coco_export_loads_in_pycocotools_with_the_detectors_views_and_exact_masks(
         exports, plant0):
     folder, manifest = exports["coco"]
@@ -167,6 +168,7 @@ def test_the_split_is_by_plant_seeded_and_deterministic():
         split_plants(seeds[:1], 0.2, 0)
 
 
+@pytest.mark.slow
 def test_frames_are_scan_camera_images_with_their_flowers_masks(tmp_path, capsys):
     out = tmp_path / "frames"
     assert main(["dataset", "--plants", "1", "--val-fraction", "0", "--views", "frames",
@@ -202,6 +204,7 @@ def test_bad_requests_are_one_line_before_any_work(tmp_path, capsys):
     assert not (tmp_path / "d").exists()
 
 
+@pytest.mark.slow
 def test_a_model_trained_on_the_export_runs_as_the_onnx_detector(exports, tmp_path):
     folder, manifest = exports["coco"]
     model = tmp_path / "flower.onnx"

@@ -50,6 +50,7 @@ def test_roughness_tells_a_smooth_surface_from_a_jittered_one():
     assert local_roughness(jittered) == pytest.approx(0.0005, rel=0.6)
 
 
+@pytest.mark.slow
 def test_the_command_compares_a_real_folder_with_a_seeded_plant(tmp_path, plant0, capsys):
     real = write_real_plant(tmp_path / "real", "candidates")
     assert main(["fidelity", str(real), str(plant0[1]), "--out", str(tmp_path / "f")]) == 0
@@ -68,6 +69,7 @@ def test_crops_cannot_be_described_and_say_so(tmp_path, plant0, capsys):
     assert "fidelity needs cloud.ply or candidates/" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_field_preset_makes_large_flowers_and_a_paled_sheened_cloud():
     field = make_plant(1, preset="field")
     realistic = make_plant(1, preset="realistic")

@@ -11,6 +11,7 @@ from flowerpose.errors import InputError
 from flowerpose.eval.gates import parse_requirements
 
 
+@pytest.mark.slow
 def test_a_run_that_meets_its_gates_exits_0_and_one_that_misses_exits_1(tmp_path, capsys):
     one = write_real_plant(tmp_path / "one", "crops")
     two = write_real_plant(tmp_path / "two", "crops", labelled=3)  # its 4th flower: a FP

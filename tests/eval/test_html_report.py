@@ -27,6 +27,7 @@ def _near(image_rgb, colour, tolerance=40):
     return int((np.abs(image_rgb.astype(int) - colour).max(axis=2) <= tolerance).sum())
 
 
+@pytest.mark.slow
 def test_an_eval_report_opens_from_disk_with_its_tables_and_3d_view(tmp_path, capsys):
     out = tmp_path / "eval"
     assert main(["eval", "-q", "--source", "oracle", "--plants", "1", "--seed", "1",
@@ -62,6 +63,7 @@ def test_a_results_page_is_made_from_reports_with_what_made_them(tmp_path, capsy
     assert main(["results", str(folder / "labels.json")]) == 2
 
 
+@pytest.mark.slow
 def test_a_results_page_has_a_section_per_stress_and_bench_run(tmp_path, capsys):
     from realplants import write_real_plant
 

@@ -85,6 +85,7 @@ def test_labels_given_twice_are_refused_and_touching_ones_stay(tmp_path, capsys)
     assert cuboids  # the helper the labels come from
 
 
+@pytest.mark.slow
 def test_repeated_ids_a_folder_twice_and_folders_named_alike(tmp_path, capsys):
     from realplants import write_real_plant
 

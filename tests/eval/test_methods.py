@@ -29,6 +29,7 @@ shutil.copy(out + "/d/flowers.json", out + "/flowers.json")
 '''
 
 
+@pytest.mark.slow
 def test_external_methods_are_scored_beside_the_pipeline_and_failures_reported(tmp_path,
                                                                              capsys):
     script = tmp_path / "method.py"
@@ -64,6 +65,7 @@ def test_a_malformed_method_is_bad_input(text, words):
         parse_method(text)
 
 
+@pytest.mark.slow
 def test_a_package_registers_a_method_by_name(tmp_path, monkeypatch):
     # An installed package as importlib.metadata finds one: its module and its dist-info.
     site = tmp_path / "site"
@@ -87,6 +89,7 @@ def test_a_package_registers_a_method_by_name(tmp_path, monkeypatch):
         parse_method("unknown")
 
 
+@pytest.mark.slow
 def test_compare_takes_a_profile_a_detector_and_a_command_side_by_side(tmp_path, capsys,
                                                                       monkeypatch):
     monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent.parent))  # for the workers

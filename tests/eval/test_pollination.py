@@ -34,6 +34,7 @@ def _flowers_json(path, plant, tilt_deg=0.0):
     return path
 
 
+@pytest.mark.slow
 def test_the_true_poses_pollinate_every_flower_the_planner_can_reach(easy_plant):
     folder, bundle = easy_plant
     result = plan_and_score(folder, None, bundle.cloud, 0.02, PollinateConfig(),
@@ -45,6 +46,7 @@ def test_the_true_poses_pollinate_every_flower_the_planner_can_reach(easy_plant)
     assert set(result["failures"]) == set(CAUSES)
 
 
+@pytest.mark.slow
 def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_plant,
                                                                          tmp_path):
     folder, bundle = easy_plant
@@ -63,6 +65,7 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
     assert off["failures"]["pose off"] >= 1
 
 
+@pytest.mark.slow
 def test_eval_reports_pollination_and_its_curve(tmp_path):
     from flowerpose.eval.harness import eval_config, run_eval
 

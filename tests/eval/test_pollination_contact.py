@@ -21,6 +21,7 @@ def world():
     return ContactWorld(make_plant(2, "easy").plant)
 
 
+@pytest.mark.slow
 def test_the_patches_cover_the_plant_but_its_soil(world):
     patches = world.patches
     assert len(patches.hulls) == len(patches.part) == len(patches.flower) > 100

@@ -24,6 +24,7 @@ def _rows(folder: Path) -> list[dict]:
                 for row in csv.DictReader(handle)]
 
 
+@pytest.mark.slow
 def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
     config = eval_config("realistic")
     grid = parse_grid(["cluster.min_points=10,20"], config)
@@ -37,6 +38,7 @@ def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
     assert sum(session.tasks_by_node.values()) == 2 + 2 * 2  # plants, then evaluations
 
 
+@pytest.mark.slow
 def test_a_failing_job_is_tried_again_then_named_and_the_others_are_kept(tmp_path):
     from flowerpose.eval.runner import on_ray
 

@@ -51,6 +51,7 @@ def test_each_stage_finds_every_labelled_flower_and_its_normal(tmp_path, stage):
         "cloud": ("colour", "ground", "grid", "detect", "outliers", "cluster", "pose")}[stage]}
 
 
+@pytest.mark.slow
 def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_path):
     unlisted = write_real_plant(tmp_path / "unlisted", "candidates", labelled=3)
     listed = write_real_plant(tmp_path / "listed", "candidates", labelled=3,

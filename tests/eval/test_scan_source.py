@@ -21,6 +21,7 @@ def small_eval(tmp_path_factory):
     return run_eval(config, source="scan", plants=1, seed=0, out_dir=out), out
 
 
+@pytest.mark.slow
 def test_a_small_scan_finds_the_flowers_and_their_normals(small_eval):
     report, _ = small_eval
     summary = report["summary"]
@@ -30,6 +31,7 @@ def test_a_small_scan_finds_the_flowers_and_their_normals(small_eval):
     assert summary["error_deg"]["plane"]["median"] < 5.0
 
 
+@pytest.mark.slow  # the module's scan
 def test_the_report_holds_the_scans_settings_and_draws_its_camera_path(small_eval):
     report, out = small_eval
     assert "scan" in report["config"] and not {"rgbd", "fusion"} & set(report["config"])
@@ -37,6 +39,7 @@ def test_the_report_holds_the_scans_settings_and_draws_its_camera_path(small_eva
     assert "camera path (80 frames)" in (out / "report.html").read_text()
 
 
+@pytest.mark.slow  # the module's scan
 def test_the_cloud_is_metric_and_on_the_truth(small_eval):
     report, out = small_eval
     quality = report["reconstruction"]["seed-0"]
@@ -50,6 +53,7 @@ def test_the_cloud_is_metric_and_on_the_truth(small_eval):
     assert written["dense_method"] == ("patch_match" if cuda_available() else "sgbm")
 
 
+@pytest.mark.slow  # the module's scan
 def test_frames_without_a_camera_file_are_refused_before_any_work(small_eval, tmp_path):
     _, out = small_eval
     frames = out / "plants" / "seed-0" / "frames"
@@ -62,6 +66,7 @@ def test_frames_without_a_camera_file_are_refused_before_any_work(small_eval, tm
 
 
 @pytest.mark.skipif(cuda_available(), reason="this pycolmap has CUDA")
+@pytest.mark.slow  # the module's scan
 def test_patch_match_without_cuda_says_what_it_needs(small_eval, tmp_path):
     _, out = small_eval
     plant = out / "plants" / "seed-0"

@@ -15,6 +15,7 @@ def _levels(**given):
     return {"thin": [], "exposure": [], "cast": [], "noise": [], **given}
 
 
+@pytest.mark.slow
 def test_stress_of_a_real_plant_is_seeded_and_reports_every_perturbation(tmp_path):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     plan = plan_from(_levels(thin=[0.5], cast=[0.15], noise=[0.001]), channels="r",
@@ -36,6 +37,7 @@ def test_stress_of_a_real_plant_is_seeded_and_reports_every_perturbation(tmp_pat
     assert "drop_view 1" in (tmp_path / "a" / "stress.md").read_text()
 
 
+@pytest.mark.slow
 def test_stress_command_line_and_its_refusals(tmp_path, capsys):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     assert main(["stress", "--source", "real", str(folder), "--thin", "0.5", "--exposure",

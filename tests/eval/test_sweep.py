@@ -4,12 +4,14 @@ import csv
 import json
 
 import numpy as np
+import pytest
 
 from flowerpose.config import apply_overrides
 from flowerpose.eval.harness import eval_config
 from flowerpose.eval.sweep import METRICS, parse_grid, run_sweep, sweep_figure
 
 
+@pytest.mark.slow
 def test_a_tiny_sweep_names_the_best_setting_with_its_whole_typed_config(tmp_path):
     # The base asks 2000 points of a cluster (no flower has them); the grid tries it and 20.
     base = apply_overrides(eval_config("realistic"), {"cluster.min_points": "2000"})
@@ -71,6 +73,7 @@ def test_the_sweep_figure_shows_each_settings_spread_as_a_category_and_marks_the
         plt.close(figure)
 
 
+@pytest.mark.slow
 def test_a_sweep_over_real_plant_folders(tmp_path):
     from realplants import write_real_plant
 

@@ -27,6 +27,7 @@ def _tune(tmp_path, plants, space=SPACE, trials=4, *extra):
                  "--sampler-seed", "3", "--out", str(tmp_path / "out"), *extra])
 
 
+@pytest.mark.slow
 def test_a_seeded_study_resumes_and_its_choice_runs_in_eval(tmp_path, plants, capsys):
     assert _tune(tmp_path, plants) == 0
     report = json.loads((tmp_path / "out" / "tune.json").read_text())
@@ -50,6 +51,7 @@ def test_a_seeded_study_resumes_and_its_choice_runs_in_eval(tmp_path, plants, ca
     assert config["cluster"]["eps"] == pytest.approx(again["chosen"]["settings"]["cluster.eps"])
 
 
+@pytest.mark.slow
 def test_a_study_of_another_space_under_the_same_name_is_refused(tmp_path, plants, capsys):
     assert _tune(tmp_path, plants, SPACE, 1, "--study-name", "mine") == 0
     other = '"cluster.eps" = { low = 0.006, high = 0.02 }\n'
@@ -57,6 +59,7 @@ def test_a_study_of_another_space_under_the_same_name_is_refused(tmp_path, plant
     assert "made with another space" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_trial_that_raises_is_recorded_as_failed_and_the_study_goes_on(tmp_path, plants,
                                                                          monkeypatch):
     score = plant_sets.SetScorer.score

@@ -50,6 +50,7 @@ def leaf_over_flower() -> np.ndarray:
     return sheet([*CENTER[:2], head_top_over_pre() + 0.03], (0.14, 0.14), 2)
 
 
+@pytest.mark.slow
 def test_a_flower_under_a_leaf_is_reached_down_a_path_that_keeps_its_clearance():
     leaf, flower = leaf_over_flower(), Flower(0, CENTER, UP)
     (straight,) = plan_pollination([flower], leaf, PollinateConfig(path_checks=0)).visits
@@ -74,6 +75,7 @@ def test_a_flower_under_a_leaf_is_reached_down_a_path_that_keeps_its_clearance()
     assert beside
 
 
+@pytest.mark.slow
 def test_the_same_problem_gives_the_same_plan():
     leaf, flower = leaf_over_flower(), Flower(0, CENTER, UP)
     first, again = (plan_pollination([flower], leaf) for _ in range(2))
@@ -82,6 +84,7 @@ def test_the_same_problem_gives_the_same_plan():
         assert a.kind == b.kind and np.array_equal(joint_state(a.pose), joint_state(b.pose))
 
 
+@pytest.mark.slow
 def test_a_flower_walled_in_is_refused_saying_no_path_was_found():
     height = head_top_over_pre() + 0.03
     half = 0.2
@@ -100,6 +103,7 @@ def test_a_flower_walled_in_is_refused_saying_no_path_was_found():
     assert "the way down is blocked and no path round the plant was found" in visit.reason
 
 
+@pytest.mark.slow
 def test_the_executor_flies_the_paths_waypoints_on_a_virtual_farmduino(tmp_path, capsys):
     virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
     from flowerpose.cli import main

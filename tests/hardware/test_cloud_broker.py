@@ -82,6 +82,7 @@ def _assert_scanned(device: FarmbotOS, manifest: dict) -> None:
                                atol=0.01)
 
 
+@pytest.mark.slow
 def test_a_scan_over_a_plain_broker_warns_that_the_token_crosses_unencrypted(plain, tmp_path,
                                                                               capsys):
     _, device = plain
@@ -93,6 +94,7 @@ def test_a_scan_over_a_plain_broker_warns_that_the_token_crosses_unencrypted(pla
     assert "unencrypted" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_scan_over_tls_checks_the_broker_certificate(tls, tmp_path, monkeypatch, capsys):
     _, device, cert = tls
     # Not trusted: an error naming the certificate, never a fall back to plain MQTT.
@@ -108,6 +110,7 @@ def test_a_scan_over_tls_checks_the_broker_certificate(tls, tmp_path, monkeypatc
     assert "unencrypted" not in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_broker_dropped_mid_move_interrupts_the_scan_which_resumes_when_it_is_back(
         plain, tmp_path):
     broker, device = plain

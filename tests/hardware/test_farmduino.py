@@ -200,6 +200,7 @@ def _stop_once_moving(device: VirtualFarmduino, bot: FarmduinoBot) -> None:
     threading.Thread(target=stop, daemon=True).start()
 
 
+@pytest.mark.slow
 def test_emergency_stop_from_another_thread_mid_move(device):
     activities = []
     # A 2.66 m X move takes 35 s simulated, 3.5 s of wall time: a stop that lands as it
@@ -234,6 +235,7 @@ def test_emergency_stop_from_another_thread_mid_move(device):
             assert activities[-1].kind == "dwell" and activities[-1].elapsed < 50.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("report_period_s", [0.5, 5.0])
 def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch,
                                                                     report_period_s):
@@ -457,6 +459,7 @@ def test_a_board_reset_mid_move_stops_with_position_lost_until_homed(device):
                                    atol=1e-9)
 
 
+@pytest.mark.slow
 def test_the_simulated_scan_through_the_serial_path(tmp_path):
     """What `flowerpose scan --sim --via-farmduino` runs, on a small plan at 64 x 48."""
     signal.setitimer(signal.ITIMER_REAL, 60.0)  # renders in a process pool: allow more

@@ -123,6 +123,7 @@ def _run(capsys, *argv):
     return code, out, err
 
 
+@pytest.mark.slow
 def test_pollinate_flies_on_a_virtual_farmduino_after_homing(tmp_path, capsys):
     virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
     flowers = _flowers_file(tmp_path)
@@ -161,6 +162,7 @@ def test_flying_without_the_plants_cloud_is_refused_before_connecting(tmp_path, 
     assert not (tmp_path / "visits").exists()
 
 
+@pytest.mark.slow
 def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, monkeypatch):
     from cloud_fakes import FakeDevice, fake_factory, make_token
 

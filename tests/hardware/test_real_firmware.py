@@ -69,6 +69,7 @@ def test_connect_writes_the_bots_settings_and_refuses_a_homing_it_cannot_finish(
         assert time.monotonic() - started < 2.0
 
 
+@pytest.mark.slow
 def test_moves_and_servos_then_an_emergency_stop_mid_move_and_an_unlock(board):
     with FarmduinoBot(board, camera=CAMERA, clock_scale=1.0) as bot:
         bot.home_here()

@@ -105,6 +105,7 @@ def _small_field_scan(monkeypatch, tmp_path: Path, fps: float):
     return tmp_path / "scan", small
 
 
+@pytest.mark.slow
 def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys, monkeypatch):
     device = FakeDevice(position_mm=(500.0, 300.0, -200.0))
     monkeypatch.setenv("FARMBOT_TOKEN", json.dumps(make_token()))
@@ -153,6 +154,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
     assert make_token()["token"]["encoded"] not in (scan / "scan.json").read_text()
 
 
+@pytest.mark.slow
 def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, capsys,
                                                                        monkeypatch):
     virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
@@ -169,6 +171,7 @@ def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, 
     assert len(trajectory) > 0 and trajectory.frame[-1] == len(frame_files(scan)) - 1
 
 
+@pytest.mark.slow
 def test_a_board_on_its_defaults_scans_with_the_bots_settings_or_homed_by_hand(tmp_path, capsys,
                                                                                monkeypatch):
     """No endstops or encoders (the firmware's defaults): homing is refused in one line

@@ -51,6 +51,7 @@ class _StallsAt(SimBot):
         super().move_to(xyz, speed_fraction)
 
 
+@pytest.mark.slow
 def test_scan_records_frames_poses_and_truth_then_resumes(plant_dir, tmp_path):
     plan = _plan(plant_dir)
     scan = tmp_path / "scan"
@@ -87,6 +88,7 @@ def test_scan_records_frames_poses_and_truth_then_resumes(plant_dir, tmp_path):
         visibility["visible"][str(f["id"])] for f in truth["flowers"]]
 
 
+@pytest.mark.slow
 def test_frame_selection_picks_the_frames_the_simulator_left_sharp(plant_dir, tmp_path):
     scan = tmp_path / "scan"
     with SimBot([plant_dir], CONFIG) as bot:
@@ -107,6 +109,7 @@ def test_frame_selection_picks_the_frames_the_simulator_left_sharp(plant_dir, tm
     assert np.all(got[has_sharp] > 0.9), (got, best)
 
 
+@pytest.mark.slow
 def test_the_configured_camera_processing_and_light_reach_the_recorded_frames(plant_dir,
                                                                             tmp_path):
     plan = dataclasses.replace(_plan(plant_dir), waypoints=_plan(plant_dir).waypoints[:2])

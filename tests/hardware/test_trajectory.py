@@ -197,6 +197,7 @@ def test_a_recorded_scan_gets_the_pose_of_every_frame_and_a_resumed_one_continue
     assert np.all(np.diff(trajectory.t) > 0)  # the timeline continues
 
 
+@pytest.mark.slow
 def test_a_cloud_scan_with_a_usb_camera_makes_a_scan_folder_the_frame_stage_reads(tmp_path):
     """The whole field chain in real time: the cloud backend (fake client), a USB camera
     (fake capture), the recorder and the executor; then `frames` on the folder."""
@@ -230,6 +231,7 @@ def test_a_cloud_scan_with_a_usb_camera_makes_a_scan_folder_the_frame_stage_read
     assert len(chosen["frames"]) == 5
 
 
+@pytest.mark.slow
 def test_scan_json_counts_a_waypoint_done_only_once_its_kept_frames_are_on_disk(tmp_path,
                                                                               monkeypatch):
     """A power cut runs no clean-up, so every scan.json written mid-scan must be safe to

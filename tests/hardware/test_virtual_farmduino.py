@@ -209,6 +209,7 @@ def test_input_while_busy_is_discarded_except_e_and_abort(device, link):
     assert "R87 Q7" in lines and lines[-1] == "R03 V1 Q7" and device.locked
 
 
+@pytest.mark.slow
 def test_a_stop_takes_as_long_as_the_real_firmwares_and_discards_what_comes_meanwhile():
     """farmbot-arduino-firmware 6.6.23: R87 within about 50 ms of the E, position reports
     while it stops, R03 V1 220-250 ms after the E; input before that R03 is dropped. From
@@ -407,6 +408,7 @@ def test_injected_faults_on_the_line(device, link):
     assert device.firmware_position_mm()[1] == 0.0 and device.joints()[1] > 0.1
 
 
+@pytest.mark.slow
 def test_a_dropped_link_comes_back_behind_the_same_symlink(device, link):
     _approve(link)
     device.drop_next_move(0.3, down_s=1.0)
@@ -429,6 +431,7 @@ def test_time_scale_is_checked():
         VirtualFarmduino(time_scale=0)
 
 
+@pytest.mark.slow
 def test_command_line_serves_until_ctrl_c():
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen([sys.executable, "-m", "flowerpose.cli", "farmduino", "--virtual",

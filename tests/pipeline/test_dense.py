@@ -141,6 +141,7 @@ def result(scene):
     return reconstruct_dense(scene, config=CONFIG)
 
 
+@pytest.mark.slow
 def test_points_lie_on_the_true_surfaces(result):
     cloud, report = result
     assert len(cloud) > 5000, report["points"]

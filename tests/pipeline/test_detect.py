@@ -1,5 +1,6 @@
 import cv2
 import numpy as np
+import pytest
 from flower_views import WHITE, YELLOW, flower_view
 
 from flowerpose.pipeline.colour import ColourConfig
@@ -66,6 +67,7 @@ def test_each_detection_is_numbered_with_the_flower_it_became(plant0):
     assert (plain != numbered).any()  # the numbers are drawn
 
 
+@pytest.mark.slow
 def test_a_plugin_detector_runs_in_place_of_the_colour_detector(plant0, tmp_path, capsys):
     import json
 

@@ -115,6 +115,7 @@ def test_bad_models_are_one_line_naming_the_file(tmp_path):
             OnnxDetector(path, DetectConfig())(image, occupied, 0.001)
 
 
+@pytest.mark.slow
 def test_detect_runs_an_onnx_model_in_place_of_the_colour_detector(plant0, tmp_path, capsys):
     import json
 

@@ -149,6 +149,7 @@ def check_reconstruction(result, workdir: Path, positions: np.ndarray) -> None:
     assert set(written["seconds"]) >= {"features", "matching", "alignment", "total"}
 
 
+@pytest.mark.slow
 def test_a_rendered_scene_comes_back_in_the_bed_frame(scene, tmp_path):
     frames_dir, positions = scene
     result = reconstruct_sparse(frames_dir, tmp_path / "work", SfmConfig())
@@ -156,6 +157,7 @@ def test_a_rendered_scene_comes_back_in_the_bed_frame(scene, tmp_path):
     check_reconstruction(result, tmp_path / "work", positions)
 
 
+@pytest.mark.slow
 def test_incremental_mapping_with_estimated_intrinsics(images, tmp_path):
     positions, rotations = ring_poses()
     frames_dir = frames_folder(tmp_path / "scene", images, positions, rotations, camera=False)
@@ -167,6 +169,7 @@ def test_incremental_mapping_with_estimated_intrinsics(images, tmp_path):
     check_reconstruction(result, tmp_path / "work", positions)
 
 
+@pytest.mark.slow
 def test_refined_poses_stay_in_the_bed_frame_when_recorded_positions_are_noisy(
         images, tmp_path):
     positions, rotations = ring_poses()
@@ -296,6 +299,7 @@ def test_config_is_documented_and_overridable():
         apply_overrides(SfmConfig(), {"mode": "global"})
 
 
+@pytest.mark.slow
 def test_refined_poses_for_dense_stereo_match_the_recorded_ones(scene, tmp_path):
     from flowerpose.pipeline.reconstruct import refined_poses, sparse_intrinsics
 

@@ -5,12 +5,14 @@ import dataclasses
 import json
 
 import numpy as np
+import pytest
 
 from flowerpose.sim.bundle import make_plant
 from flowerpose.sim.degrade import points_per_flower
 from flowerpose.sim.world_config import DegradeConfig, sim_preset
 
 
+@pytest.mark.slow
 def test_a_fixed_density_is_what_the_flowers_hold_and_plant_json_records_the_draw(tmp_path):
     config = dataclasses.replace(sim_preset("easy"), degrade=DegradeConfig(
         points_per_flower=(60.0, 60.0), exposure=(0.7, 0.7), cast=0.1, noise_m=(5e-4, 5e-4)))

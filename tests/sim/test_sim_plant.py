@@ -53,6 +53,7 @@ def _own_pedicel(plant: Plant, flower) -> np.ndarray:
             & (radial <= PEDICEL_RADIUS_M + 1e-4).all(1))
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_plant():
     a = generate_plant(3, preset("realistic"))
     b = generate_plant(3, preset("realistic"))
@@ -69,6 +70,7 @@ def test_same_seed_gives_identical_plant():
         other.mesh.vertices, a.mesh.vertices)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SEEDS))
 def test_counts_within_preset_ranges(name):
     config = preset(name)
@@ -158,6 +160,7 @@ def test_vertex_colours_sit_in_the_pipeline_ranges():
         assert check(h, s, v).mean() > 0.99, part.name
 
 
+@pytest.mark.slow
 def test_flowers_keep_clearance_from_everything_else():
     for seed, name in ((0, "realistic"), (1, "realistic"), (2, "realistic"), (0, "hard")):
         plant = cached_plant(seed, name)

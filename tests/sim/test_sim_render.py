@@ -210,6 +210,7 @@ def test_sun_casts_shadows_and_close_is_safe():
         renderer.render(pose, SMALL)
 
 
+@pytest.mark.slow
 def test_renders_alongside_mujoco():
     mujoco = pytest.importorskip("mujoco")
     model = mujoco.MjModel.from_xml_string(
