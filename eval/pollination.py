@@ -57,8 +57,8 @@ class PollinationScoreConfig:
     max_angle_deg: float = 45.0
     """The approach within this of the true axis: the widest angle the contact replay
     measures (`curve_angles_deg`, `approach_angle.py`), in which the swab's touch did not
-    depend on the angle (the visits lost at 40-50 degrees pushed leaves on the way in; a
-    corolla 30 mm wide cupped 3-4 mm leaves the shaft 15 mm over its rim at 45)."""
+    depend on the angle (the few visits it lost were collisions on the way in, not misses;
+    a corolla 30 mm wide cupped 3-4 mm leaves the shaft 15 mm over its rim at 45)."""
     curve_angles_deg: tuple[float, ...] = ()
     """Angles off the true axis at which every flower's visit is replayed for the
     success-against-angle curve (`approach_angle.py`; report.json's `pollination_by_angle`,
@@ -68,6 +68,15 @@ class PollinationScoreConfig:
     """How far the tool may push any point of a leaflet or petiole from where it grew."""
     contact: ContactConfig = field(default_factory=ContactConfig)
     """The plant in MuJoCo: its contact patches and how its leaves give way."""
+
+    def __post_init__(self):
+        if not 0 < self.max_angle_deg <= 180:
+            raise InputError("pollination.max_angle_deg", f"must be above 0 and at most 180, "
+                             f"got {self.max_angle_deg}")
+        bad = [a for a in self.curve_angles_deg if not 0 <= a < 90]
+        if bad:
+            raise InputError("pollination.curve_angles_deg", f"angles off the axis must be 0 "
+                             f"or more and below 90 degrees, got {bad}")
 
 
 #: Parts of another flower that a visit must not touch (its sepals sit behind the petals,

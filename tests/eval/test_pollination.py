@@ -108,3 +108,15 @@ def test_pollination_needs_synthetic_plants(tmp_path, capsys):
     assert main(["eval", "--source", "real", str(tmp_path), "--task", "pollinate",
                  "--out", str(tmp_path / "out")]) == 2
     assert "pollinate needs synthetic plants" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("settings, key", [
+    ({"curve_angles_deg": (0.0, 95.0)}, "pollination.curve_angles_deg"),
+    ({"curve_angles_deg": (-5.0,)}, "pollination.curve_angles_deg"),
+    ({"max_angle_deg": 0.0}, "pollination.max_angle_deg"),
+])
+def test_angles_out_of_range_are_refused_naming_the_setting(settings, key):
+    from flowerpose.errors import InputError
+
+    with pytest.raises(InputError, match=key):
+        PollinationScoreConfig(**settings)
