@@ -120,3 +120,46 @@ def test_angles_out_of_range_are_refused_naming_the_setting(settings, key):
 
     with pytest.raises(InputError, match=key):
         PollinationScoreConfig(**settings)
+
+
+@pytest.mark.slow
+def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in_mujoco(
+        tmp_path):
+    """The planner's path round a leaf, flown by the executor and replayed in the contact
+    world: the swab rests on the pistil and neither tool nor head touches the leaf."""
+    import sys
+    from pathlib import Path
+
+    import trimesh
+
+    pytest.importorskip("ompl")
+    sys.path.insert(0, str(Path(__file__).parents[1] / "sim"))
+    from simhelpers import box, handmade_plant
+
+    from flowerpose.cloudio import Cloud
+    from flowerpose.eval.pollination import flown_visits, judge
+    from flowerpose.eval.pollination_contact import ContactWorld
+    from flowerpose.hardware.geometry import PAPER_TOOL
+    from flowerpose.hardware.kinematics import head_boxes
+    from flowerpose.hardware.pollinate import Flower, plan_pollination
+    from flowerpose.sim.pieces import Part
+
+    center, up = np.array([1.5, 0.75, 0.15]), np.array([0.0, 0.0, 1.0])
+    (clear,) = plan_pollination([Flower(0, center, up)], None).visits
+    centres, rotations, half = head_boxes(clear.pre)
+    over_head = max(float((centres[k] + np.abs(rotations[k]) @ half[k])[2]) for k in range(2))
+    plant = handmade_plant([(center, up)], [box([*center[:2], over_head + 0.03],
+                                                [0.14, 0.14, 0.004])])
+    points, faces = trimesh.sample.sample_surface_even(plant.mesh, 20000, seed=0)
+    cloud = Cloud(np.asarray(points), np.asarray(plant.mesh.visual.face_colors[faces][:, :3],
+                                                 np.uint8))
+    plan = plan_pollination([Flower(0, center, up)], cloud.points)
+    (visit,) = plan.visits
+    assert visit.status == "planned" and visit.path
+    timeline, flown, _ = flown_visits(plan, tmp_path)
+    world = ContactWorld(plant)
+    outcome = judge(plant.flowers[0], 0, plan, flown, timeline, world,
+                    PollinationScoreConfig(), PAPER_TOOL)
+    assert outcome["outcome"] == "success", outcome
+    touched = world.fly(timeline, *flown[0]).patches
+    assert not np.isin(world.patches.part[touched], [int(Part.LEAF)]).any()
