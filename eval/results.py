@@ -11,6 +11,7 @@ command, the code (version and commit), the date and the machine.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from flowerpose.errors import InputError
@@ -128,7 +129,10 @@ def pollination_row(report: dict, k: int) -> list[str]:
     flowers = sum(len(p["pollination"]["flowers"]) for p in report["plants"])
     minutes = sum(p["pollination"]["planned_s"] for p in report["plants"]) / 60
     failures = ours["failures"]
-    return [f"{_what(report)} [{k}]",
+    # Reports do not record a preset yet; the command that made the run names it.
+    preset = re.search(r"--preset[ =](\S+)", report["run"].get("command", ""))
+    what = _what(report) + (f", {preset.group(1)} preset" if preset else "")
+    return [f"{what} [{k}]",
             str(flowers), str(ours["visits"]), _rate(ours), _rate(ceiling),
             str(failures["unreachable"]), str(failures["pose off"]), str(failures["collision"]),
             f"{minutes:.1f} min"]
