@@ -23,21 +23,8 @@ from flowerpose.cloudio import Cloud
 from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, flown_visits, judge
 from flowerpose.eval.pollination_contact import ContactWorld
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
-from flowerpose.hardware.pollinate import Flower, PollinateConfig, plan_pollination
+from flowerpose.hardware.pollinate import Flower, PollinateConfig, plan_pollination, tilted
 from flowerpose.pipeline.colour import flower_coloured
-
-
-def tilted(normal: np.ndarray, angle_deg: float, azimuth_rad: float) -> np.ndarray:
-    """The unit direction `angle_deg` off the unit `normal` (3,), turned `azimuth_rad` about
-    it from a fixed reference across it."""
-    normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(normal, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(normal, u)
-    theta = np.radians(angle_deg)
-    return np.cos(theta) * normal + np.sin(theta) * (np.cos(azimuth_rad) * u
-                                                     + np.sin(azimuth_rad) * v)
 
 
 def approach_curve(world: ContactWorld, cloud: Cloud, plan_config: PollinateConfig,
@@ -47,6 +34,8 @@ def approach_curve(world: ContactWorld, cloud: Cloud, plan_config: PollinateConf
     per angle, the approaches planned and each one's outcome (`judge` without the angle
     rule). world: the plant's contact world (its plant read; the plant's seed seeds the
     azimuths); cloud: its cloud (metres, bed frame), the planner's obstacles."""
+    if not config.curve_angles_deg:
+        return []
     plant = world.plant
     unjudged = dataclasses.replace(config, max_angle_deg=180.0)
     along = dataclasses.replace(plan_config, cone_deg=0.0)

@@ -50,12 +50,12 @@ def pose_of(states: np.ndarray) -> HeadPose:
 
 def plan_path(start: HeadPose, goal: HeadPose, clear: Callable[[HeadPose], bool],
               lower: np.ndarray, upper: np.ndarray, checks: int, step_m: float,
-              seed: int = 0) -> tuple[list[HeadPose] | None, int]:
+              seed: int = 0) -> list[HeadPose] | None:
     """A path from `start` to `goal` (single poses) whose every state, at `step_m` along each
     straight segment, passes `clear` (a pose -> whether it keeps clear), within the joint
-    bounds `lower`..`upper` ((5,) each, as `joint_state`). Returns the waypoints after the
-    start, the last `goal` (None: none found), and the clearance tests spent, at most
-    `checks` for the search and SIMPLIFY_SHARE more for shortening it."""
+    bounds `lower`..`upper` ((5,) each, as `joint_state`), spending at most `checks`
+    clearance tests on the search and SIMPLIFY_SHARE more on shortening it. Returns the
+    waypoints after the start, the last `goal`; None where none is found."""
     from ompl import base as ob
     from ompl import geometric as og
     from ompl import util as ou
@@ -64,9 +64,9 @@ def plan_path(start: HeadPose, goal: HeadPose, clear: Callable[[HeadPose], bool]
     low, high = np.asarray(lower, np.float64) * scale, np.asarray(upper, np.float64) * scale
     ends = np.array([joint_state(start), joint_state(goal)]) * scale
     if np.any(ends < low - 1e-9) or np.any(ends > high + 1e-9):
-        return None, 0
+        return None
     if not (clear(start) and clear(goal)):  # OMPL would search on for a valid end
-        return None, 2
+        return None
     ou.setLogLevel(ou.LOG_NONE)  # OMPL says every search on stderr; what matters is returned
     ou.RNG.setSeed(int(seed) + 1)  # OMPL's seeds must be positive
     space = ob.RealVectorStateSpace(5)
@@ -99,11 +99,11 @@ def plan_path(start: HeadPose, goal: HeadPose, clear: Callable[[HeadPose], bool]
     search = ob.PlannerTerminationCondition(
         lambda: spent[0] >= checks or time.monotonic() > deadline)
     if not setup.solve(search) or not setup.haveExactSolutionPath():
-        return None, spent[0]
+        return None
     budget = spent[0] + int(SIMPLIFY_SHARE * checks)
     setup.simplifySolution(ob.PlannerTerminationCondition(
         lambda: spent[0] >= budget or time.monotonic() > deadline))
     path = setup.getSolutionPath()
     waypoints = np.array([[path.getState(i)[k] for k in range(5)]
                           for i in range(1, path.getStateCount() - 1)]).reshape(-1, 5) / scale
-    return [*(pose_of(w) for w in waypoints), goal], spent[0]
+    return [*(pose_of(w) for w in waypoints), goal]

@@ -228,22 +228,28 @@ def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
     return PollinationPlan(ordered + unreachable, moves, float(duration), config)
 
 
-def _directions(normal: np.ndarray, config: PollinateConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(K, 3) unit axes to approach along (the flower's own first, then rings further off
-    it) and (K,) their angles off it, degrees."""
-    normal = normal / np.linalg.norm(normal)
+def tilted(normal: np.ndarray, angle_deg, azimuth_rad) -> np.ndarray:
+    """Unit directions `angle_deg` off the unit `normal` (3,), turned `azimuth_rad` about it
+    from a fixed reference across it: (3,) for scalars, (K, 3) for (K,) arrays."""
+    normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
     helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(normal, helper)
     u /= np.linalg.norm(u)
     v = np.cross(normal, u)
+    theta = np.radians(np.asarray(angle_deg, np.float64))[..., None]
+    phi = np.asarray(azimuth_rad, np.float64)[..., None]
+    return np.cos(theta) * normal + np.sin(theta) * (np.cos(phi) * u + np.sin(phi) * v)
+
+
+def _directions(normal: np.ndarray, config: PollinateConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 3) unit axes to approach along (the flower's own first, then rings further off
+    it) and (K,) their angles off it, degrees."""
     rings = np.arange(config.cone_step_deg, config.cone_deg + 1e-9, config.cone_step_deg)
     azimuths = 2 * np.pi * np.arange(config.cone_azimuths) / config.cone_azimuths
-    theta = np.radians(np.repeat(rings, len(azimuths)))
-    phi = np.tile(azimuths, len(rings))
-    off = (np.cos(theta)[:, None] * normal + np.sin(theta)[:, None]
-           * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v))
-    return (np.vstack([normal, off]),
-            np.concatenate([[0.0], np.degrees(theta)]))
+    theta = np.repeat(rings, len(azimuths))
+    off = tilted(normal, theta, np.tile(azimuths, len(rings))).reshape(-1, 3)
+    return (np.vstack([normal / np.linalg.norm(normal), off]),
+            np.concatenate([[0.0], theta]))
 
 
 def _plan_visit(flower: Flower, points: np.ndarray, corolla: np.ndarray,
@@ -426,8 +432,8 @@ def _route(pre: HeadPose, tree: cKDTree | None, config: PollinateConfig,
     upper = np.concatenate([np.minimum(pre.gantry[:2] + box, geometry.gantry_max[:2]),
                             [geometry.gantry_max[2]],
                             [geometry.yaw_range_rad[1], geometry.pitch_range_rad[1]]])
-    path, _ = plan_path(start, pre, clear, lower, upper, config.path_checks,
-                        config.path_step_m, seed)
+    path = plan_path(start, pre, clear, lower, upper, config.path_checks, config.path_step_m,
+                     seed)
     if path is None:
         return []
     flown: list[HeadPose] = []
