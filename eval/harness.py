@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from flowerpose.cloudio import read_cloud
-from flowerpose.config import require, to_dict
+from flowerpose.config import apply_overrides, load_preset, require, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
@@ -48,11 +48,8 @@ from flowerpose.pipeline.flowers import (
     write_normals_ply,
 )
 from flowerpose.pipeline.rgbd import FusionConfig
-from flowerpose.sim.world_config import PresetName, SimConfig, sim_preset
+from flowerpose.sim.world_config import PresetName, SimConfig
 from flowerpose.stopwatch import Stopwatch
-
-#: The paper's estimate of its hand labels' error, degrees (the field preset's).
-FIELD_LABEL_ERROR_DEG = 5.0
 
 
 @dataclass(frozen=True)
@@ -87,28 +84,12 @@ class EvalConfig(PipelineConfig):
     """`eval --task pollinate`: what counts as a pollinated flower (`eval/pollination.py`)."""
 
 
-#: The field preset's camera and photogrammetry for the scan source, calibrated on the
-#: authors' plant 3 with `flowerpose fidelity` (DESIGN.md, "The simulator against the field"):
-#: an auto-exposed camera brightens the render (the real petals' median value 0.89), and
-#: Polycam's cloud of that plant holds about 800 points a flower, as a 2.5 mm voxel does.
-FIELD_CAMERA_GAIN = 1.5
-FIELD_VOXEL_M = 0.0025
-
-
 def eval_config(preset: PresetName, configure: Callable[[Any], Any] = lambda c: c) -> EvalConfig:
-    """The harness config for a preset with the user's overrides applied; "field" also
-    scores against truth normals moved by the hand labels' error (`ScoreConfig`) and films
-    with the field camera and photogrammetry (`FIELD_CAMERA_GAIN`, `FIELD_VOXEL_M`)."""
-    config = EvalConfig(sim=sim_preset(preset))
-    if preset == "field":
-        scan = config.scan
-        reconstruct = dataclasses.replace(scan.reconstruct, dense=dataclasses.replace(
-            scan.reconstruct.dense, voxel_size_m=FIELD_VOXEL_M))
-        config = dataclasses.replace(
-            config, score=ScoreConfig(label_error_deg=FIELD_LABEL_ERROR_DEG),
-            scan=dataclasses.replace(scan, reconstruct=reconstruct, sensor=dataclasses.replace(
-                scan.sensor, gain=FIELD_CAMERA_GAIN)))
-    return configure(config)
+    """The harness config for a preset (assets/presets/NAME.toml over the defaults: "field"
+    also scores against truth tilted by the hand labels' error and films with the field
+    camera and photogrammetry) with the user's overrides applied."""
+    settings, _ = load_preset(preset)
+    return configure(apply_overrides(EvalConfig(), settings))
 
 
 def pipeline_part(config: PipelineConfig) -> PipelineConfig:
@@ -258,7 +239,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
              folders: Iterable[Path] = (), truth_scale: float | None = None,
              compare: dict[str, EvalConfig] | None = None,
              suite: dict | None = None, methods: Iterable[ExternalMethod] = (),
-             cache: Path | None = None, task: str = "pose") -> dict:
+             cache: Path | None = None, task: str = "pose",
+             assets: dict[str, dict[str, str]] | None = None) -> dict:
     """The benchmark: returns report.json's content and writes report.json, report.md and,
     per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
 
@@ -271,7 +253,9 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     `cache`: the stage cache's folder (`flowerpose.cache`), which the scan and RGB-D sources'
     captures are taken from and put into; None runs every stage. `task` "pollinate" also
     plans, flies and scores pollination visits on each synthetic plant (`pollination.py`),
-    from the pipeline's poses and from the true ones.
+    from the pipeline's poses and from the true ones. `assets`: the preset and profile the
+    settings came from, each {"name", "sha256"} (`report.assets_record`), recorded as
+    report["run"]["assets"].
     """
     if source not in SOURCES:
         raise InputError("source", f"'{source}': one of {', '.join(SOURCES)}")
@@ -331,6 +315,8 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     if suite is not None:
         extra["suite"] = suite
     report = build_report(run_config, entries, timing, extra)
+    if assets:
+        report["run"]["assets"] = assets
     if task == "pollinate":
         from flowerpose.eval.pollination import summarise_pollination
 

@@ -98,6 +98,20 @@ def run_record() -> dict[str, Any]:
             "command": shlex.join(["flowerpose", *arguments]), "machine": machine()}
 
 
+def assets_record(preset: str | None, profile: str | None) -> dict[str, dict[str, str]]:
+    """The shipped settings files a run's settings came from, each {"name", "sha256"} of
+    its content: "preset" (assets/presets) and "profile" (assets/configs), where given.
+    Two reports of one suite version compare only where these agree."""
+    from flowerpose.config import preset_hash, profile_hash
+
+    record = {}
+    if preset is not None:
+        record["preset"] = {"name": preset, "sha256": preset_hash(preset)}
+    if profile is not None:
+        record["profile"] = {"name": profile, "sha256": profile_hash(profile)}
+    return record
+
+
 def machine() -> dict[str, Any]:
     """What a run's numbers were measured on: the system, the processor and its cores (a
     time is only worth its machine)."""

@@ -45,6 +45,22 @@ def _provenance(k: int, run: dict) -> str:
             f"{run['date']}, {where}.")
 
 
+def _check_comparable(path: Path, report: dict, seen: dict[tuple, tuple[Path, dict]]) -> None:
+    """Refuse a report of a suite version already on the page whose preset or profile
+    files differ (report["run"]["assets"]): the same suite name and version would then
+    stand for different settings."""
+    suite = report.get("suite")
+    if not suite:
+        return
+    key = (suite["name"], suite["version"], "pollination" in report.get("summary", {}))
+    assets = report["run"].get("assets", {})
+    if key in seen and seen[key][1] != assets:
+        raise InputError(path, f"suite {suite['name']} v{suite['version']} ran with other "
+                         f"preset or profile files than {seen[key][0]} (their hashes differ): "
+                         "the two do not compare")
+    seen.setdefault(key, (path, assets))
+
+
 def _kind(path: Path, report: object) -> str:
     """Which run wrote this file: an eval's report.json, a stress.json or a bench.json."""
     if isinstance(report, dict) and "run" in report:
@@ -67,9 +83,11 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
 
     rows, notes, sections = [], [], []
     pollination, curves, pollination_notes = [], [], []
+    suites: dict[tuple, tuple[Path, dict]] = {}
     for k, path in enumerate(paths, start=1):
         report = read_json(path)
         kind = _kind(path, report)
+        _check_comparable(path, report, suites)
         if kind == "stress":
             # Its own page's title becomes a section of this one.
             body = stress_markdown(report).split("\n", 1)[1]

@@ -78,13 +78,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     out = args.out or _default_out()
     plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
     from flowerpose.eval.harness import eval_outputs
+    from flowerpose.eval.report import assets_record
 
     writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
     with owned(out, "eval", args.overwrite, writes), jobs_on(args):
         report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
                           out_dir=out, workers=args.workers, folders=args.folders,
                           truth_scale=args.truth_scale, compare=compare, suite=suite,
-                          methods=methods, cache=cache, task=args.task)
+                          methods=methods, cache=cache, task=args.task,
+                          assets=assets_record(None if args.source == "real" else args.preset,
+                                               args.profile))
     if cache is not None and args.source != "real":
         from flowerpose.cache import prune_to_limit
 

@@ -149,8 +149,13 @@ def add_preset(parser: argparse.ArgumentParser, default: str | None = "realistic
                shown: str = "%(default)s") -> None:
     """--preset: the synthetic plants' preset (`shown`: the default the help says, where
     `default` None leaves it to the command)."""
-    parser.add_argument("--preset", choices=PRESETS, default=default,
-                        help=f"{PRESET_HELP} (default: {shown})")
+    from flowerpose.config import load_preset, preset_names
+
+    names = preset_names()
+    described = "; ".join(f"{name}: {load_preset(name)[1]}" for name in names)
+    parser.add_argument("--preset", choices=names, default=default, metavar="NAME",
+                        help=f"the synthetic world, one of assets/presets ({described}) "
+                             f"(default: {shown})")
 
 
 def add_workers(parser: argparse.ArgumentParser) -> None:
@@ -258,14 +263,6 @@ def plant_xy(text: str) -> tuple[float, float]:
     if not (abs(x) < float("inf") and abs(y) < float("inf")):
         raise argparse.ArgumentTypeError(f"expected two finite numbers, got {text!r}")
     return x, y
-
-
-#: Plant presets (sim/world_config.py): the README describes each.
-PRESETS = ("easy", "realistic", "hard", "field")
-
-
-PRESET_HELP = ("synthetic plants: easy, realistic (the benchmark), hard, or field (calibrated "
-               "on a real scan, with the hand labels' error in the scoring)")
 
 
 SEED = at_least(0)

@@ -176,23 +176,58 @@ def parse_set_options(items: list[str]) -> dict[str, str]:
     return out
 
 
-def profile_names() -> list[str]:
-    """The named settings profiles shipped in assets/configs (`--profile NAME`)."""
+def _asset_names(folder: str) -> list[str]:
+    """The names of the TOML files shipped in assets/FOLDER."""
     from importlib.resources import files
 
-    folder = files("flowerpose.assets") / "configs"
-    return sorted(p.name.removesuffix(".toml") for p in folder.iterdir()
-                  if p.name.endswith(".toml"))
+    return sorted(p.name.removesuffix(".toml") for p in (files("flowerpose.assets") / folder)
+                  .iterdir() if p.name.endswith(".toml"))
+
+
+def _asset(folder: str, kind: str, name: str) -> tuple[dict[str, Any], str]:
+    """A shipped TOML file's settings and its content's SHA-256 (hex); errors name the
+    file, or the known names for a name that is not there."""
+    import hashlib
+    from importlib.resources import as_file, files
+
+    known = _asset_names(folder)
+    if name not in known:
+        raise InputError(kind, f"no {kind} {name!r} (known: {', '.join(known)})")
+    with as_file(files("flowerpose.assets") / folder / f"{name}.toml") as path:
+        return load_toml(path), hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def profile_names() -> list[str]:
+    """The named settings profiles shipped in assets/configs (`--profile NAME`)."""
+    return _asset_names("configs")
 
 
 def load_profile(name: str) -> dict[str, Any]:
     """The settings of a named profile (assets/configs/NAME.toml), as nested dicts."""
-    from importlib.resources import as_file, files
+    return _asset("configs", "profile", name)[0]
 
-    if name not in profile_names():
-        raise InputError("profile", f"no profile {name!r} (known: {', '.join(profile_names())})")
-    with as_file(files("flowerpose.assets") / "configs" / f"{name}.toml") as path:
-        return load_toml(path)
+
+def profile_hash(name: str) -> str:
+    """The SHA-256 (hex) of a named profile's file, recorded in reports made with it."""
+    return _asset("configs", "profile", name)[1]
+
+
+def preset_names() -> list[str]:
+    """The synthetic world's presets shipped in assets/presets (`--preset NAME`)."""
+    return _asset_names("presets")
+
+
+def load_preset(name: str) -> tuple[dict[str, Any], str]:
+    """A named preset (assets/presets/NAME.toml): its settings over the eval config's keys
+    (`sim.*`, `score.*`, `scan.*`), nested, and its description (the `[preset]` table)."""
+    data = dict(_asset("presets", "preset", name)[0])
+    header = data.pop("preset", {})
+    return data, str(header.get("description", "")) if isinstance(header, dict) else ""
+
+
+def preset_hash(name: str) -> str:
+    """The SHA-256 (hex) of a named preset's file, recorded in reports made with it."""
+    return _asset("presets", "preset", name)[1]
 
 
 def load_toml(path: Path) -> dict[str, Any]:
@@ -212,10 +247,7 @@ def load_toml(path: Path) -> dict[str, Any]:
 
 def suite_names() -> list[str]:
     """The named benchmark suites shipped in assets/suites (`eval --suite NAME`)."""
-    from importlib.resources import files
-
-    return sorted(p.name.removesuffix(".toml") for p in (files("flowerpose.assets") / "suites")
-                  .iterdir() if p.name.endswith(".toml"))
+    return _asset_names("suites")
 
 
 #: What a suite fixes of an eval, and the type of each.
@@ -224,20 +256,22 @@ SUITE_KEYS = {"source": str, "preset": str, "plants": int, "seed": int}
 
 def load_suite(name: str) -> dict[str, Any]:
     """A named suite (assets/suites/NAME.toml): {"name", "version", "description", "eval":
-    {source, preset, plants, seed}}; errors name the file."""
-    from importlib.resources import as_file, files
+    {source, preset, plants, seed}}; errors name the file, and a preset that is not one of
+    assets/presets."""
+    from importlib.resources import files
 
-    if name not in suite_names():
-        raise InputError("suite", f"no suite {name!r} (known: {', '.join(suite_names())})")
-    with as_file(files("flowerpose.assets") / "suites" / f"{name}.toml") as path:
-        data = load_toml(path)
-        header, fixed = data.get("suite", {}), data.get("eval", {})
-        version = header.get("version")
-        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-            raise InputError(path, "[suite] needs a version, a whole number from 1")
-        if set(fixed) != set(SUITE_KEYS) or not all(
-                isinstance(fixed[k], t) and not isinstance(fixed[k], bool)
-                for k, t in SUITE_KEYS.items()):
-            raise InputError(path, f"[eval] must give exactly {', '.join(SUITE_KEYS)}")
+    data = _asset("suites", "suite", name)[0]
+    path = files("flowerpose.assets") / "suites" / f"{name}.toml"
+    header, fixed = data.get("suite", {}), data.get("eval", {})
+    version = header.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise InputError(path, "[suite] needs a version, a whole number from 1")
+    if set(fixed) != set(SUITE_KEYS) or not all(
+            isinstance(fixed[k], t) and not isinstance(fixed[k], bool)
+            for k, t in SUITE_KEYS.items()):
+        raise InputError(path, f"[eval] must give exactly {', '.join(SUITE_KEYS)}")
+    if fixed["preset"] not in preset_names():
+        raise InputError(path, f"preset {fixed['preset']!r} is not one of assets/presets "
+                         f"({', '.join(preset_names())})")
     return {"name": name, "version": version,
             "description": str(header.get("description", "")), "eval": fixed}

@@ -1,40 +1,21 @@
 """Configuration of the synthetic world: plant generator, oracle cloud, scan viewpoints.
 
-Three plant presets. All share the plant's size (26-31 cm high, 34-42 cm across, like the
-paper's 38 x 30 cm plants), the flower size (2-3.5 cm across, a yellow receptacle 6-8 mm
-wide), the 25 cm soil disc and the colours. They differ in:
-
-- ``easy``: a tidy plant for smoke tests. 7-10 leaves; 4-8 open flowers, all with 5
-  petals, facing at most 45 degrees off straight up; nearly flat corollas (petal tips
-  between 0.1 of the petal length below and 0.2 above the petal base); no flower under a
-  leaf, no touching flowers, no buds or fruit.
-- ``realistic`` (the benchmark default): 12-18 trifoliate leaves; 6-20 open flowers on
-  inflorescences of 1-3, 5 petals (6-8 in about one flower in seven); corollas from curled
-  down (-0.45) to cupped up (+0.4); normals from facing up through sideways to facing down
-  (0-150 degrees from vertical, 80% within 90 degrees of up, azimuth mostly away from the
-  plant axis); 15% of inflorescences start a few centimetres under a leaflet; 15% of second
-  and third flowers touch their neighbour at the rim; 0-4 green buds and 0-3 green or red
-  fruit as distractors.
-- ``field``: the realistic plant calibrated on a real scan (the authors' plant 3, with
-  `flowerpose fidelity`): 4.2-5.8 cm flowers, corollas from curled down (-0.35) to cupped
-  (+0.2) and uneven, and an oracle cloud like a photogrammetry one: denser, noisier, its
-  foliage paled and yellowed. Its scoring adds the hand labels' error (`score`).
-- ``hard``: a crowded plant. 16-24 leaves; 10-24 flowers; stronger curl (-0.6 to +0.5);
-  more flowers sideways and facing down (up to 170 degrees from vertical, 30% beyond 90)
-  and a wider azimuth spread; 30% of inflorescences under leaflets; 35% touching; 2-8 buds
-  and 2-6 fruit.
+The defaults are the realistic plant (the benchmark's) and a clean oracle cloud. The
+presets (easy, realistic, hard, field) are data, not code: each is a TOML file of settings
+in assets/presets, over these and the harness's keys, and its description says what it
+varies; `sim_preset` reads one.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
-from typing import Literal
 
+from flowerpose.config import apply_overrides, load_preset
 from flowerpose.errors import InputError
 from flowerpose.scan_geometry import ScanPathConfig
 
-PresetName = Literal["easy", "realistic", "hard", "field"]
+#: A preset's name: one of assets/presets (`flowerpose.config.preset_names`).
+PresetName = str
 
 
 @dataclass(frozen=True)
@@ -202,59 +183,13 @@ class SimConfig:
 
 
 def preset(name: PresetName) -> PlantConfig:
-    """The plant config of a named preset (see the module docstring)."""
-    realistic = PlantConfig()
-    if name == "realistic":
-        return realistic
-    if name == "easy":
-        return dataclasses.replace(
-            realistic, name="easy", leaves=(7, 10), flowers=(4, 8), petal_counts=(5,),
-            petal_count_weights=(1.0,), cup=(-0.1, 0.2), petal_cup_jitter=0.03,
-            polar_bins_deg=(0.0, 20.0, 45.0), polar_bin_weights=(0.6, 0.4),
-            azimuth_spread_deg=30.0, hidden_probability=0.0, cluster_probability=0.0,
-            buds=(0, 0), fruit=(0, 0))
-    if name == "hard":
-        return dataclasses.replace(
-            realistic, name="hard", leaves=(16, 24), flowers=(10, 24), cup=(-0.6, 0.5),
-            petal_cup_jitter=0.1, polar_bins_deg=(0.0, 30.0, 60.0, 90.0, 120.0, 170.0),
-            polar_bin_weights=(0.2, 0.25, 0.25, 0.17, 0.13), azimuth_spread_deg=70.0,
-            hidden_probability=0.3, cluster_probability=0.35, buds=(2, 8), fruit=(2, 6))
-    if name == "field":
-        return dataclasses.replace(
-            realistic, name="field", flower_diameter_m=FIELD_FLOWER_DIAMETER_M,
-            receptacle_radius_m=FIELD_RECEPTACLE_RADIUS_M, cup=FIELD_CUP,
-            petal_cup_jitter=FIELD_PETAL_CUP_JITTER)
-    raise InputError("preset", f"unknown plant preset {name!r} (easy, realistic, hard, field)")
-
-
-#: The field preset, calibrated on the authors' plant 3 with `flowerpose fidelity`
-#: (DESIGN.md, "The simulator against the field"): its flowers (artificial ones among them)
-#: are 4-6 cm across, their corollas more often curl down than cup, unevenly.
-FIELD_FLOWER_DIAMETER_M = (0.042, 0.058)
-FIELD_RECEPTACLE_RADIUS_M = (0.006, 0.0075)
-FIELD_CUP = (-0.45, 0.1)
-FIELD_PETAL_CUP_JITTER = 0.3
-#: ... and its cloud: denser, noisier, foliage paled and yellowed by the texture.
-#: Its surface errors are smooth (`flowerpose fidelity`'s roughness: a real
-#: reconstruction's petal points lie 0.06 mm off their neighbours' plane, an independently
-#: jittered cloud's 0.6 mm), and thinning them does not make them worse; the petals' own
-#: unevenness gives the corolla its thickness.
-FIELD_ORACLE = {"points": 100_000, "position_noise_m": 0.0005,
-                "position_noise_wavelength_m": 0.01, "foliage_saturation": 0.6,
-                "foliage_value": 0.85, "foliage_hue_shift_deg": -17.0, "foliage_sheen": 0.1}
-#: ... and how its plants' clouds vary, plant by plant (`DegradeConfig`; DESIGN.md,
-#: "The simulator against the field"): from about 100 points a flower (a fast or phone scan,
-#: the authors' plant 3 thinned to a tenth) to about 1,000 (that plant as published),
-#: exposure and white balance as an auto-exposed camera leaves them.
-FIELD_DEGRADE = {"points_per_flower": (100.0, 1000.0), "exposure": (0.8, 1.2), "cast": 0.1}
+    """The plant config of a named preset (`sim_preset`)."""
+    return sim_preset(name).plant
 
 
 def sim_preset(name: PresetName) -> SimConfig:
-    """The whole synthetic world of a named preset: its plants and, for "field", the
-    degraded oracle cloud too."""
-    config = SimConfig(plant=preset(name))
-    if name == "field":
-        config = dataclasses.replace(
-            config, oracle=dataclasses.replace(config.oracle, **FIELD_ORACLE),
-            degrade=DegradeConfig(**FIELD_DEGRADE))
-    return config
+    """The whole synthetic world of a named preset: its `sim.*` settings in
+    assets/presets/NAME.toml over the defaults (the realistic plant and a clean oracle
+    cloud)."""
+    settings, _ = load_preset(name)
+    return apply_overrides(SimConfig(), settings.get("sim", {}), prefix="sim.")
