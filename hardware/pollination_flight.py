@@ -18,18 +18,17 @@ at the next visit instead of starting over; the visit it was cut in is flown aga
 from __future__ import annotations
 
 import hashlib
-import time
 from pathlib import Path
 
 import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot, check_head, check_target
+from flowerpose.hardware.flight_journal import Journal, folder_lock
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
 from flowerpose.hardware.pollinate import Move, PollinationPlan
-from flowerpose.jsonio import read_json, write_json
+from flowerpose.jsonio import read_json
 from flowerpose.log import LOG, Tally
-from flowerpose.stopwatch import Stopwatch
 
 FLIGHT_NAME = "flight.json"
 """The flight's record in its folder: the plan's fingerprint, the visits done, sessions."""
@@ -77,6 +76,14 @@ def check_flight(bot: Bot, plan: PollinationPlan) -> None:
                              f"{error}") from None
 
 
+#: Held (flock) by the one flight flying from a folder; the OS lets go when it dies.
+LOCK_NAME = ".flight.lock"
+
+#: What the record says when it belongs to another plan.
+OTHER_PLAN = ("records the flight of another plan (other flowers, settings or cloud); "
+              "choose a new folder")
+
+
 def read_flight(out_dir: Path, plan: PollinationPlan) -> dict | None:
     """The flight of `plan` recorded in out_dir (None: none yet); one of another plan is
     refused, so a resume never mixes two plans."""
@@ -85,76 +92,66 @@ def read_flight(out_dir: Path, plan: PollinationPlan) -> dict | None:
         return None
     previous = read_json(path)
     if previous.get("plan_id") != flight_id(plan):
-        raise InputError(path, "records the flight of another plan (other flowers, "
-                         "settings or cloud); choose a new folder")
+        raise InputError(path, OTHER_PLAN)
     return previous
 
 
 def fly_pollination(bot: Bot, plan: PollinationPlan, out_dir: Path, *, source: dict,
                     progress: bool = True) -> dict:
-    """Fly `plan` with `bot`, recording into out_dir/flight.json; resumes a flight of the
-    same plan already recorded there. Returns flight.json's content: `done`, one entry a
-    visit flown ({"flower", "t0", "t1"}: bot-clock seconds from its lift to its retreat's
-    end), `status` ("complete", or "interrupted" when an error cut it), `sessions`."""
+    """Fly `plan` with `bot`, recording into out_dir/flight.json (`flight_journal`); resumes
+    a flight of the same plan already recorded there, and refuses a folder another flight
+    is flying from. Returns flight.json's content: `done`, one entry a visit flown
+    ({"flower", "t0", "t1"}: bot-clock seconds from its lift to its retreat's end), `status`
+    ("complete", or "interrupted" when an error cut it), `sessions`."""
     out_dir = Path(out_dir)
-    path = out_dir / FLIGHT_NAME
-    fingerprint = flight_id(plan)
+    with folder_lock(out_dir, LOCK_NAME, "pollination flight"):
+        return _fly(bot, plan, out_dir, source, progress)
+
+
+def _fly(bot: Bot, plan: PollinationPlan, out_dir: Path, source: dict, progress: bool) -> dict:
     order = [v.flower for v in plan.planned]
-    flight = {"version": 1, "plan_id": fingerprint, "source": source, "visits": order,
-              "done": [], "status": "running", "sessions": []}
-    previous = read_flight(out_dir, plan)
-    if previous is not None:
-        flight.update(done=list(previous.get("done", [])),
-                      sessions=list(previous.get("sessions", [])))
+    journal = Journal.open(out_dir / FLIGHT_NAME, flight_id(plan),
+                           {"source": source, "visits": order, "done": []}, kept=("done",),
+                           other_plan=OTHER_PLAN,
+                           redone="the visit it was cut in is flown again")
+    flight = journal.record
     done = {int(entry["flower"]) for entry in flight["done"]}
     pending = [flower for flower in order if flower not in done]
     if not pending:
         flight["status"] = "complete"
         if progress:
-            LOG.info(f"pollinate: {path} holds this plan's flight, complete: nothing flown "
-                     "(choose a new folder to fly it again)")
+            LOG.info(f"pollinate: {journal.path} holds this plan's flight, complete: nothing "
+                     "flown (choose a new folder to fly it again)")
         return flight
     check_flight(bot, plan)
     if done and progress:
-        LOG.info(f"pollinate: resuming at visit {len(done) + 1} of {len(order)}")
-    session = {"started_visit": len(done), "bot_time_start": bot.now(),
-               "wall_start": time.time()}
-    flight["sessions"].append(session)
-    write_json(path, flight)
+        LOG.info(f"pollinate: resuming at visit {len(done) + 1} of {len(order)}"
+                 + (" (the last session ended without closing)" if journal.cut else ""))
     moves = visit_moves(plan)
     top = bot.info.travel_max[2]
-    wall = Stopwatch()
-    try:
-        with Tally(len(pending) if progress else 0, "visits") as tally:
-            for flower in pending:
-                t0 = bot.now()
-                here = bot.position()
-                bot.move_to([here[0], here[1], top])  # every visit starts from the top of Z
-                angles = None
-                for move in moves[flower]:
-                    if move.kind == "dwell":
-                        bot.dwell(plan.config.dwell_s)
-                        continue
-                    bot.move_to(move.pose.gantry)
-                    # The head turns at the top, clear of the plant, and at a path's waypoints
-                    # once the gantry is there, as the planner checked the path.
-                    wanted = head_angles(move.pose)
-                    if move.kind == "travel" or (move.kind in ("descend", "climb")
-                                                 and not np.allclose(wanted, angles)):
-                        bot.set_head(*wanted)
-                        angles = wanted
-                flight["done"].append({"flower": flower, "t0": round(t0, 4),
-                                       "t1": round(bot.now(), 4)})
-                write_json(path, flight)
-                tally.advance(1)
+    with journal.session(bot, started_visit=len(done)), \
+            Tally(len(pending) if progress else 0, "visits") as tally:
+        for flower in pending:
+            t0 = bot.now()
             here = bot.position()
-            bot.move_to([here[0], here[1], top])
-        flight["status"] = "complete"
-    except BaseException as err:
-        flight["status"] = "interrupted"
-        session["error"] = f"{type(err).__name__}: {err}"
-        raise
-    finally:
-        session.update(bot_time_end=bot.now(), wall_s=round(wall.elapsed(), 3))
-        write_json(path, flight)
+            bot.move_to([here[0], here[1], top])  # every visit starts from the top of Z
+            angles = None
+            for move in moves[flower]:
+                if move.kind == "dwell":
+                    bot.dwell(plan.config.dwell_s)
+                    continue
+                bot.move_to(move.pose.gantry)
+                # The head turns at the top, clear of the plant, and at a path's waypoints
+                # once the gantry is there, as the planner checked the path.
+                wanted = head_angles(move.pose)
+                if move.kind == "travel" or (move.kind in ("descend", "climb")
+                                             and not np.allclose(wanted, angles)):
+                    bot.set_head(*wanted)
+                    angles = wanted
+            flight["done"].append({"flower": flower, "t0": round(t0, 4),
+                                   "t1": round(bot.now(), 4)})
+            journal.save()
+            tally.advance(1)
+        here = bot.position()
+        bot.move_to([here[0], here[1], top])
     return flight

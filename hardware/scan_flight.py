@@ -11,22 +11,17 @@ the waypoints still in the camera's queue or open bin a second flight, never a h
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import hashlib
-import os
-import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot
+from flowerpose.hardware.flight_journal import Journal, folder_lock
 from flowerpose.hardware.scan_plan import ScanPlan
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG, Tally
-from flowerpose.stopwatch import Stopwatch
 
 
 def plan_id(plan: ScanPlan) -> str:
@@ -42,26 +37,6 @@ def _progress(message: str) -> None:
 
 #: Held (flock) by the one scan recording into a folder; the OS lets go when it dies.
 LOCK_NAME = ".scan.lock"
-
-
-@contextlib.contextmanager
-def scan_lock(out_dir: Path) -> Iterator[None]:
-    """The scan folder for this process alone: a second scan into it is refused with one
-    line instead of interleaving its frames with the first's."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with open(out_dir / LOCK_NAME, "a+") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.seek(0)
-            holder = lock.read().strip() or "another process"
-            raise InputError(out_dir, f"another scan ({holder}) is recording into this folder;"
-                             " wait for it to end or choose another scan folder") from None
-        lock.seek(0)
-        lock.truncate()
-        lock.write(f"pid {os.getpid()}")
-        lock.flush()
-        yield
 
 
 def check_scan_folder(out_dir: Path) -> None:
@@ -86,7 +61,7 @@ def run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, *, source: dict,
     (`scan_lock`) and one that holds files but no scan (`check_scan_folder`)."""
     out_dir = Path(out_dir)
     check_scan_folder(out_dir)
-    with scan_lock(out_dir):
+    with folder_lock(out_dir, LOCK_NAME, "scan"):
         return _run_scan(bot, plan, out_dir, source, progress)
 
 
@@ -97,28 +72,14 @@ def _recorded(ends: list[float], recorded_until: float) -> int:
 
 
 def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: bool) -> dict:
-    manifest_path = out_dir / "scan.json"
-    fingerprint = plan_id(plan)
-    manifest = {"version": 1, "plan_id": fingerprint, "source": source, "plan": plan.to_json(),
-                "waypoints": len(plan.waypoints), "completed": 0, "status": "running",
-                "sessions": []}
-    cut = False  # the last session died without closing
-    if manifest_path.exists():
-        previous = read_json(manifest_path)
-        if previous.get("plan_id") != fingerprint:
-            raise InputError(out_dir, "holds a different scan (another plant or path); "
-                             "choose a new scan folder")
-        manifest.update(completed=int(previous.get("completed", 0)),
-                        sessions=list(previous.get("sessions", [])),
-                        source=previous.get("source", source))  # the first session's
-        cut = (previous.get("status") == "running" and bool(manifest["sessions"])
-               and "bot_time_end" not in manifest["sessions"][-1])
-        if cut:
-            # We hold the lock, so its session is not running: it died without closing.
-            manifest["sessions"][-1]["error"] = ("ended without closing (power cut or killed); "
-                                                 "waypoints whose frames were not yet on disk "
-                                                 "are flown again")
-    start = manifest["completed"]
+    journal = Journal.open(
+        out_dir / "scan.json", plan_id(plan),
+        {"source": source, "plan": plan.to_json(), "waypoints": len(plan.waypoints),
+         "completed": 0}, kept=("completed", "source"),  # the first session's source
+        other_plan="holds a different scan (another plant or path); choose a new scan folder",
+        redone="waypoints whose frames were not yet on disk are flown again")
+    manifest = journal.record
+    start = int(manifest["completed"])
     if start >= len(plan.waypoints):
         if progress:
             _progress(f"scan: {out_dir} holds this plan's scan, complete: nothing recorded "
@@ -127,58 +88,44 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         return manifest
     if start and progress:
         _progress(f"scan: resuming at waypoint {start} of {len(plan.waypoints)}"
-                  + (" (the last session ended without closing)" if cut else ""))
+                  + (" (the last session ended without closing)" if journal.cut else ""))
     out_dir.mkdir(parents=True, exist_ok=True)
     intrinsics = bot.camera.intrinsics()
-    if manifest_path.exists() and (out_dir / "camera.json").exists():
+    if journal.path.exists() and (out_dir / "camera.json").exists():
         recorded = read_json(out_dir / "camera.json")
         if any(not np.isclose(float(recorded.get(k, np.nan)), float(v))
                for k, v in intrinsics.items() if isinstance(v, int | float)):
             raise InputError(out_dir / "camera.json", "the scan was recorded with other camera "
                              "settings; resume with the same ones or choose a new scan folder")
-    session = {"started_waypoint": start, "bot_time_start": bot.now(),
-               "wall_start": time.time(), "source": source}
-    manifest["sessions"].append(session)
-    write_json(manifest_path, manifest)  # first: a folder with anything in it is a scan
     ends: list[float] = []  # bot-clock end of each waypoint flown in this session
-    recording = False
-    wall = Stopwatch()
-    try:
-        write_json(out_dir / "camera.json", intrinsics)
-        bot.camera.start_recording(out_dir / "video.mp4")
-        recording = True
-        with Tally(len(plan.waypoints) - start if progress else 0, "waypoints") as tally:
-            for waypoint in plan.waypoints[start:]:
-                bot.move_to(waypoint.pose.gantry)
-                bot.set_head(float(waypoint.pose.yaw), float(waypoint.pose.pitch))
-                bot.dwell(plan.config.pause_s)
-                ends.append(bot.now())
-                # Done only once its frames are on disk with their poses: the camera may still
-                # hold some in a queue or an open bin, which a power cut would lose.
-                manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
-                write_json(manifest_path, manifest)
-                LOG.debug(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
-                          f"({waypoint.kind}) at bot clock {bot.now():.1f} s")
-                tally.advance(1, f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} at "
-                              f"bot clock {bot.now():.0f} s" if progress
-                              and (waypoint.index + 1) % 20 == 0 else None)
-        manifest["status"] = "complete"
-    except BaseException as err:
-        manifest["status"] = "interrupted"
-        session["error"] = f"{type(err).__name__}: {err}"
-        raise
-    finally:
+    # The session is written first: a folder with anything in it is a scan.
+    with journal.session(bot, started_waypoint=start, source=source) as session:
+        recording = False
         try:
-            if recording:
-                session["frames"] = bot.camera.stop_recording().frames
-        except BaseException as err:
-            manifest["status"] = "interrupted"
-            session.setdefault("error", f"{type(err).__name__}: {err}")
-            raise
+            write_json(out_dir / "camera.json", intrinsics)
+            bot.camera.start_recording(out_dir / "video.mp4")
+            recording = True
+            with Tally(len(plan.waypoints) - start if progress else 0, "waypoints") as tally:
+                for waypoint in plan.waypoints[start:]:
+                    bot.move_to(waypoint.pose.gantry)
+                    bot.set_head(float(waypoint.pose.yaw), float(waypoint.pose.pitch))
+                    bot.dwell(plan.config.pause_s)
+                    ends.append(bot.now())
+                    # Done only once its frames are on disk with their poses: the camera may
+                    # still hold some in a queue or an open bin, which a power cut would lose.
+                    manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
+                    journal.save()
+                    LOG.debug(f"scan: waypoint {waypoint.index + 1}/{len(plan.waypoints)} "
+                              f"({waypoint.kind}) at bot clock {bot.now():.1f} s")
+                    tally.advance(1, f"scan: waypoint {waypoint.index + 1}/"
+                                  f"{len(plan.waypoints)} at bot clock {bot.now():.0f} s"
+                                  if progress and (waypoint.index + 1) % 20 == 0 else None)
         finally:
-            manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
-            session.update(bot_time_end=bot.now(), wall_s=round(wall.elapsed(), 3))
-            write_json(manifest_path, manifest)
+            try:
+                if recording:
+                    session["frames"] = bot.camera.stop_recording().frames
+            finally:
+                manifest["completed"] = start + _recorded(ends, bot.camera.recorded_until())
     return manifest
 
 

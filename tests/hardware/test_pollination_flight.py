@@ -217,3 +217,27 @@ def test_flying_without_credentials_is_refused_before_the_plan_is_written(tmp_pa
                         "--cloud")
     assert code == 2 and "FARMBOT_TOKEN" in err.splitlines()[-1]
     assert not (tmp_path / "visits").exists()
+
+
+def test_a_flight_into_a_folder_another_is_flying_from_is_refused_and_a_dead_one_is_marked(
+        tmp_path):
+    from flowerpose.hardware.flight_journal import folder_lock
+    from flowerpose.hardware.pollination_flight import LOCK_NAME
+
+    plan = plan_pollination(_flowers(), None)
+    with folder_lock(tmp_path, LOCK_NAME, "pollination flight"):  # another process's
+        with pytest.raises(InputError, match=r"another pollination flight \(pid \d+\)"):
+            fly_pollination(KinematicBot(), plan, tmp_path, source={})
+    assert not (tmp_path / FLIGHT_NAME).exists()
+    # A session that never wrote its end died (a power cut): the resume says so in it, as a
+    # scan's does, and flies on.
+    bot = _CutBot(cut_at=3)
+    with pytest.raises(StallError):
+        fly_pollination(bot, plan, tmp_path, source={})
+    record = read_json(tmp_path / FLIGHT_NAME)
+    record["status"] = "running"
+    del record["sessions"][0]["bot_time_end"], record["sessions"][0]["error"]
+    (tmp_path / FLIGHT_NAME).write_text(json.dumps(record))
+    flight = fly_pollination(KinematicBot(), plan, tmp_path, source={})
+    assert flight["status"] == "complete"
+    assert flight["sessions"][0]["error"].startswith("ended without closing")

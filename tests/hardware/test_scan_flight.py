@@ -66,11 +66,12 @@ def test_an_interrupted_scan_resumes_at_the_next_waypoint(tmp_path):
 
 
 def test_a_second_scan_into_a_folder_being_recorded_is_refused(tmp_path):
-    from flowerpose.hardware.scan_flight import scan_lock
+    from flowerpose.hardware.flight_journal import folder_lock
+    from flowerpose.hardware.scan_flight import LOCK_NAME
 
     plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
-    with scan_lock(tmp_path):  # as a scan in another process holds it
-        with pytest.raises(InputError, match=r"another scan \(pid \d+\) is recording"):
+    with folder_lock(tmp_path, LOCK_NAME, "scan"):  # as a scan in another process holds it
+        with pytest.raises(InputError, match=r"another scan \(pid \d+\) is under way"):
             run_scan(_bot(), plan, tmp_path, source=SOURCE, progress=False)
     assert not (tmp_path / "scan.json").exists()
     assert run_scan(_bot(), plan, tmp_path, source=SOURCE, progress=False)["status"] == \

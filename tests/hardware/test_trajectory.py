@@ -238,7 +238,7 @@ def test_scan_json_counts_a_waypoint_done_only_once_its_kept_frames_are_on_disk(
     resume from: the frames the recording keeps from before the waypoints it calls done are
     already on disk with their trajectory rows, none in the writer's queue or the frame
     keeper's open bin."""
-    import flowerpose.hardware.scan_flight as scan
+    import flowerpose.hardware.flight_journal as journal
 
     plan = plan_scan(np.array([1.5, 0.75]), 0.25, ScanConfig(SMALL.path, pause_s=0.05))
     config = UsbCameraConfig(width=64, height=48, settle_s=0.0,
@@ -252,7 +252,7 @@ def test_scan_json_counts_a_waypoint_done_only_once_its_kept_frames_are_on_disk(
             on_disk = set(read_trajectory(rows).frame) if rows.exists() else set()
             snapshots.append((document["completed"], on_disk))
 
-    monkeypatch.setattr(scan, "write_json", write_and_snapshot)
+    monkeypatch.setattr(journal, "write_json", write_and_snapshot)  # scan.json's writer
     recorder = TrajectoryRecorder(lambda clock: UsbCamera(
         "/dev/v4l/by-id/fake", clock, config, capture=lambda _: FakeCapture(fps=300.0)))
 
