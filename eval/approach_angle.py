@@ -24,29 +24,30 @@ from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, flown_vi
 from flowerpose.eval.pollination_contact import ContactWorld
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
 from flowerpose.hardware.pollinate import Flower, PollinateConfig, plan_pollination, tilted
-from flowerpose.pipeline.colour import flower_coloured
+from flowerpose.pipeline.colour import ColourConfig, flower_coloured
 
 
 def approach_curve(world: ContactWorld, cloud: Cloud, plan_config: PollinateConfig,
-                   config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL
-                   ) -> list[dict]:
+                   config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
+                   colour: ColourConfig | None = None) -> list[dict]:
     """One plant's visits at each of `config.curve_angles_deg` off its flowers' true axes:
     per angle, the approaches planned and each one's outcome (`judge` without the angle
     rule). world: the plant's contact world (its plant read; the plant's seed seeds the
-    azimuths); cloud: its cloud (metres, bed frame), the planner's obstacles."""
+    azimuths); cloud: its cloud (metres, bed frame), the planner's obstacles; colour: the
+    run's colour model, which tells each target's own corolla."""
     if not config.curve_angles_deg:
         return []
     plant = world.plant
     unjudged = dataclasses.replace(config, max_angle_deg=180.0)
     along = dataclasses.replace(plan_config, cone_deg=0.0)
-    corolla = flower_coloured(cloud.colors)
+    corolla = flower_coloured(cloud.colors, colour)
     rows = []
     for k, angle in enumerate(config.curve_angles_deg):
         flowers = []
         for flower in plant.flowers:
             azimuth = np.random.default_rng([plant.seed, flower.id, k]).uniform(0.0, 2.0 * np.pi)
             flowers.append(Flower(flower.id, np.asarray(flower.center, np.float64),
-                                  tilted(flower.normal, angle, azimuth)))
+                                  tilted(flower.normal, angle, azimuth), float(flower.radius)))
         plan = plan_pollination(flowers, cloud.points, along, tool=tool, corolla=corolla)
         with tempfile.TemporaryDirectory() as scratch:
             timeline, flown, _ = flown_visits(plan, Path(scratch))

@@ -131,13 +131,13 @@ def frame_samples(bundle: PlantBundle, config: EvalConfig, count: int) -> list[S
     intrinsics = intrinsics_from_config(CameraConfig(width=scan.width, height=scan.height))
     poser = MujocoPoser()
     samples = []
-    with PlantRenderer([masked], scan.render) as renderer:
+    with PlantRenderer([masked], scan.camera.render) as renderer:
         for k in picked:
             waypoint = plan.waypoints[k]
             pose = poser.camera_to_bed(waypoint.pose.gantry, float(waypoint.pose.yaw),
                                        float(waypoint.pose.pitch))
             out = renderer.render(pose, intrinsics, Output.RGB | Output.INSTANCE)
-            rgb, _ = apply_sensor(out.rgb, np.zeros(2), plan.config.pause_s, scan.sensor,
+            rgb, _ = apply_sensor(out.rgb, np.zeros(2), plan.config.pause_s, scan.camera.sensor,
                                   np.random.default_rng([plant.seed, int(k)]))
             samples.append(Sample(f"seed-{plant.seed}_frame-{k:03d}", rgb, out.instance))
     return samples
@@ -224,8 +224,9 @@ def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: Data
         "plants": plants,
         "config": {"dataset": to_dict(dataset), "sim": to_dict(config.sim),
                    "ground": to_dict(config.ground), "grid": to_dict(config.grid),
-                   **({"scan": {k: to_dict(config.scan)[k] for k in
-                                ("width", "height", "sensor", "render")}}
+                   **({"scan": {"width": config.scan.width, "height": config.scan.height,
+                                "sensor": to_dict(config.scan.camera.sensor),
+                                "render": to_dict(config.scan.camera.render)}}
                       if dataset.views == "frames" else {})}}
     write_json(out / "dataset.json", manifest)
     output.finish()

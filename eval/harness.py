@@ -21,6 +21,7 @@ from flowerpose.cloudio import read_cloud
 from flowerpose.config import apply_overrides, load_preset, require, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.html_report import PlantView, write_html_report
+from flowerpose.eval.kinds import SOURCES, TASKS
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.methods import ExternalMethod, run_method
 from flowerpose.eval.pollination import PollinationScoreConfig
@@ -228,12 +229,6 @@ def settings_run(config: EvalConfig, source: str, starts: Iterable[Start] = ("cl
             **{name: to_dict(getattr(config, name)) for name in SOURCE_SECTIONS[source]}}
 
 
-#: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
-#: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
-#: labelled plants (`real_source.py`).
-SOURCES = ("scan", "oracle", "rgbd", "real")
-
-
 def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: int = 0,
              out_dir: Path = Path("runs/eval"), workers: int | None = None,
              folders: Iterable[Path] = (), truth_scale: float | None = None,
@@ -330,10 +325,6 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
     return report
 
 
-#: What an eval measures: the poses (Table I), or pollination visits with them as well.
-TASKS = ("pose", "pollinate")
-
-
 def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_dir: Path,
                workers: int | None, extra: dict) -> None:
     """Each synthetic plant's visits from its estimates and from its truth, scored, into
@@ -381,10 +372,12 @@ def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path
     world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
     estimated, ceiling = (plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
                                          config.pollinate, config.pollination,
-                                         flight_json=plant_dir / flight, world=world)
+                                         flight_json=plant_dir / flight, world=world,
+                                         colour=config.colour)
                           for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),
                                                   (None, "flight_ceiling.json")))
-    curve = approach_curve(world, cloud, config.pollinate, config.pollination)
+    curve = approach_curve(world, cloud, config.pollinate, config.pollination,
+                           colour=config.colour)
     return estimated, ceiling, curve
 
 

@@ -14,7 +14,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from flowerpose.eval.truth import TruthFlower
-from flowerpose.pipeline.pose import METHODS, FlowerPose
+from flowerpose.pipeline.methods import METHODS
+from flowerpose.pipeline.pose import FlowerPose
 
 #: Largest centre distance of a match, metres (DESIGN.md and the paper: 2 cm).
 MAX_MATCH_DISTANCE = 0.02

@@ -16,7 +16,7 @@ from tabulate import SEPARATING_LINE, tabulate
 
 from flowerpose.atomic import write_text
 from flowerpose.jsonio import write_json
-from flowerpose.pipeline.pose import METHODS
+from flowerpose.pipeline.methods import METHODS
 
 #: The paper's Table I column order, with its published numbers for comparison.
 TABLE_METHODS = ("superellipsoid", "paraboloid", "plane")

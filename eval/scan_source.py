@@ -8,49 +8,47 @@ visibility), frames/ (`flowerpose frames`), reconstruction/ (`flowerpose reconst
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from flowerpose.cache import StageCache
 from flowerpose.config import require, to_dict
+from flowerpose.hardware.sim_camera import SimCameraConfig
+from flowerpose.pipeline.frames import FrameSelectConfig
 from flowerpose.pipeline.reconstruct import ReconstructConfig
 from flowerpose.scan_geometry import ScanPathConfig
-from flowerpose.sim.render_config import RenderConfig
-from flowerpose.sim.sensor import SensorConfig
 from flowerpose.stopwatch import Stopwatch
+
+#: Frames the eval's simulated camera renders a second of bot time: half the scan
+#: command's (`SimCameraConfig.frame_rate_hz`), about 560 frames of a 20-minute scan, plenty
+#: to choose 200 from, in half the rendering.
+EVAL_FRAME_RATE_HZ = 0.3
 
 
 @dataclass(frozen=True)
 class ScanSourceConfig:
-    """The simulated scan and photogrammetry behind `eval --source scan`."""
+    """The simulated scan and photogrammetry behind `eval --source scan`: the video's size,
+    the simulated camera, the frames chosen and the reconstruction, each the config of the
+    stage that reads it (`flowerpose scan --sim`, `frames`, `reconstruct`)."""
 
     width: int = 1280
     """Video width, pixels (the paper's 1280 x 720)."""
     height: int = 720
     """Video height, pixels."""
-    frame_rate_hz: float = 0.3
-    """Frames rendered per second of bot time (the last frame of every pause comes on
-    top). 0.3 renders about 560 frames of a 20-minute scan, plenty to choose `frames` from;
-    `flowerpose scan --sim` renders 0.6 by default."""
-    frames: int = 200
-    """Frames chosen for photogrammetry, the sharpest of as many bins (the paper: 200)."""
-    workers: int | None = None
-    """Render processes (default: every core)."""
-    sensor: SensorConfig = field(default_factory=SensorConfig)
-    """The camera's imperfections and colour processing (the field preset's: `eval_config`)."""
-    render: RenderConfig = field(default_factory=RenderConfig)
-    """The light on the bed (the field preset's: `eval_config`)."""
+    camera: SimCameraConfig = field(
+        default_factory=lambda: SimCameraConfig(frame_rate_hz=EVAL_FRAME_RATE_HZ))
+    """The simulated camera's recording: frame rate (`EVAL_FRAME_RATE_HZ` here), render
+    workers, imperfections (`sensor`) and light (`render`); the field preset's sensor gain."""
+    frames: FrameSelectConfig = field(default_factory=FrameSelectConfig)
+    """How frames are chosen for photogrammetry (`flowerpose frames`)."""
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
+    """Photogrammetry (`flowerpose reconstruct`)."""
 
     def __post_init__(self):
-        require(self.width >= 16 and self.height >= 16, "scan.width",
+        require(self.width >= 16 and self.height >= 16, "width",
                 "width and height must be at least 16 pixels")
-        require(self.frames >= 3, "scan.frames", "photogrammetry needs at least 3 frames")
-        require(self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz),
-                "scan.frame_rate_hz", f"must be positive, got {self.frame_rate_hz}")
-        require(self.workers is None or self.workers >= 1, "scan.workers",
-                f"must be at least 1, got {self.workers}")
+        require(self.frames.count >= 3, "frames", "photogrammetry needs at least 3 frames "
+                "(scan.frames.count)")
 
 
 def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
@@ -64,14 +62,10 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
     from flowerpose.hardware.sim_bot import (
         SimBot,
         SimBotConfig,
-        SimCameraConfig,
         write_scan_truth,
     )
 
-    bot_config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=config.frame_rate_hz,
-                                                     workers=config.workers,
-                                                     sensor=config.sensor, render=config.render),
-                              width=config.width, height=config.height)
+    bot_config = SimBotConfig(camera=config.camera, width=config.width, height=config.height)
     if via_farmduino:
         from flowerpose.hardware.serial_sim_bot import SimulatedSerialBot
 
@@ -101,7 +95,7 @@ def scan_and_choose(plant_dir: Path, config: ScanSourceConfig,
     """The capture's first steps: film the plant in plant_dir (plant_dir/scan) and choose
     its frames (plant_dir/frames). Returns the frames recorded and chosen, and seconds."""
     from flowerpose.hardware.sim_bot import plan_plant_scan
-    from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
+    from flowerpose.pipeline.frames import select_frames
     from flowerpose.sim.export import read_plant
 
     watch = Stopwatch()
@@ -109,8 +103,7 @@ def scan_and_choose(plant_dir: Path, config: ScanSourceConfig,
     manifest = scan_plant(plant_dir, scan_dir, config,
                           plan_plant_scan(read_plant(plant_dir), path))
     watch.lap("scan")
-    chosen = select_frames(scan_dir, plant_dir / "frames", FrameSelectConfig(count=config.frames),
-                           progress=False)
+    chosen = select_frames(scan_dir, plant_dir / "frames", config.frames, progress=False)
     watch.lap("frames")
     return {"recorded": sum(s.get("frames", 0) for s in manifest["sessions"]),
             "frames": len(chosen["frames"]), "seconds": watch.report(digits=3, total=None)}
@@ -169,7 +162,8 @@ def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
     if cache_root is None:
         return capture_scan(plant_dir, config, path)
     cache = StageCache(cache_root)
-    camera = {k: v for k, v in to_dict(config).items() if k not in ("workers", "reconstruct")}
+    camera = {k: v for k, v in to_dict(config).items() if k != "reconstruct"}
+    camera["camera"].pop("workers")  # how many render processes changes no frame
     scan_settings = {"scan": camera, "viewpoints": to_dict(path or ScanPathConfig())}
     scanned, scan_cached, scan_key = cache.run(
         "scan", scan_settings, plant_inputs(plant_dir), plant_dir, SCAN_FILES,

@@ -8,7 +8,7 @@ on its own (a seeded uniform subsample of each, as a coarser scan would give eve
 a dropped view is one candidates file left out, and colour and noise act on the merged
 points; for a whole cloud a dropped view is one grid view's detections left out. For the
 scan source the capture's own knobs are perturbations too: fewer frames chosen
-(`scan.frames`) and a lower image resolution (`scan.width` x `scan.height`), each filmed
+(`scan.frames.count`) and a lower image resolution (`scan.width` x `scan.height`), each filmed
 and reconstructed once (stage cache).
 
 Writes stress.json (every row: the perturbation, its repeats, the summary as report.json's,
@@ -48,7 +48,7 @@ DEFAULT_LEVELS: dict[str, tuple[float, ...]] = {
 #: envelope"): stress.md marks the rows at it.
 ENVELOPE_BOUNDS: dict[str, tuple[float, ...]] = {
     "exposure": (0.6, 1.3), "cast": (-0.15, 0.15), "noise": (0.0015,)}
-#: Capture knobs of the scan source (`scan.frames`, `scan.width` x `scan.height`).
+#: Capture knobs of the scan source (`scan.frames.count`, `scan.width` x `scan.height`).
 CAPTURE_KINDS = ("frames", "resolution")
 #: The strength at which each perturbation leaves a cloud as it is: the unperturbed run's
 #: place on its kind's curve.
@@ -338,8 +338,8 @@ def _synthetic_clouds(config: Any, source: str, plants: int, seed: int, out_dir:
 def _with_capture(config: Any, capture: tuple[str, str]) -> Any:
     kind, text = capture
     if kind == "frames":
-        return dataclasses.replace(config, scan=dataclasses.replace(config.scan,
-                                                                    frames=int(text)))
+        return dataclasses.replace(config, scan=dataclasses.replace(
+            config.scan, frames=dataclasses.replace(config.scan.frames, count=int(text))))
     width, height = (int(v) for v in text.split("x"))
     return dataclasses.replace(config, scan=dataclasses.replace(config.scan, width=width,
                                                                 height=height))

@@ -29,6 +29,7 @@ from flowerpose.cli_options import (
 )
 from flowerpose.config import profile_names, suite_names
 from flowerpose.errors import InputError
+from flowerpose.eval.kinds import SOURCES, SYNTHETIC_SOURCES, TASKS
 
 #: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
 SCAN_PLANTS = 2
@@ -177,7 +178,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
         "  flowerpose eval --source oracle --plants 2 --out runs/oracle\n"
         "  flowerpose eval --source real ../shared/real/paper-plant-3 --compare upstream\n"
         "  flowerpose eval --suite oracle-10 --require 'recall_visible>=0.95'")
-    p.add_argument("--source", choices=("scan", "oracle", "rgbd", "real"), default=None,
+    p.add_argument("--source", choices=SOURCES, default=None,
                    help="where clouds come from: scan = the simulated bot films each plant "
                    "and photogrammetry reconstructs it (default); oracle = the plant's "
                    "surfaces sampled directly; rgbd = a simulated depth camera's views fused; "
@@ -209,7 +210,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
                    "{out} (a folder to write flowers.json into), e.g. "
                    "mine='python detect.py {cloud} {out}', or NAME alone for a method an "
                    "installed package registers (repeatable; default: none)")
-    p.add_argument("--task", choices=("pose", "pollinate"), default="pose",
+    p.add_argument("--task", choices=TASKS, default="pose",
                    help="pose: score the flower poses (Table I); pollinate: also plan, fly "
                    "and score a pollinator visit to each synthetic flower, from the "
                    "estimated poses and from the true ones (summary.pollination; "
@@ -281,7 +282,7 @@ def add_sweep(sub: argparse._SubParsersAction) -> None:
         "cluster.eps=0.008,0.01 --out sweep-real")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting's dotted key and its values; repeat for a grid over several")
-    p.add_argument("--source", choices=("oracle", "scan", "rgbd", "real"), default="oracle",
+    p.add_argument("--source", choices=SOURCES, default="oracle",
                    help="where the clouds come from, as for eval; scan and rgbd film each "
                    "plant once for every setting that does not change the plants or the "
                    "capture; real: labelled plant folders (DIR ...) (default: %(default)s)")
@@ -496,7 +497,7 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
         "  flowerpose stress --source oracle --plants 3 --out stress-oracle\n"
         "  flowerpose stress --source real ../shared/real/paper-plant-3 --repeats 3 "
         "--out stress-real")
-    p.add_argument("--source", choices=("oracle", "scan", "rgbd", "real"), default="oracle",
+    p.add_argument("--source", choices=SOURCES, default="oracle",
                    help="where the clouds come from, as for eval (default: %(default)s)")
     p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
                    help="--source real: labelled plant folders")
@@ -640,7 +641,7 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", action="append", default=[], metavar="SUITE|DIR",
                    help="validation plants, never shown to the search (repeatable; default: "
                    "the seeds after each synthetic training set, none for real ones)")
-    p.add_argument("--source", choices=("oracle", "scan", "rgbd"), default="oracle",
+    p.add_argument("--source", choices=SYNTHETIC_SOURCES, default="oracle",
                    help="without --train: where the training plants' clouds come from "
                    "(default: %(default)s)")
     p.add_argument("--plants", type=PLANTS, default=3, metavar="N",

@@ -8,10 +8,11 @@ from pathlib import Path
 
 from flowerpose.cli_flags import PHRASES_ATTRIBUTE, add_setting_flags
 from flowerpose.cli_options import (
+    RENAMED_ATTRIBUTE,
     add_config_options,
     add_output,
     configure,
-    only_settings,
+    moved_under,
     owned,
     plant_xy,
     positive_number,
@@ -19,31 +20,28 @@ from flowerpose.cli_options import (
 )
 from flowerpose.errors import InputError
 from flowerpose.log import LOG
+from flowerpose.pipeline.methods import METHODS
 
 #: What `flowerpose scan --sim` reads of a config: the path (the oracle's cameras) and the
 #: simulated camera (SCAN_FLAGS gives four of them flags).
-SCAN_SETTINGS = ("sim.viewpoints.", "scan.sensor.", "scan.render.", "scan.frame_rate_hz",
-                 "scan.workers", "scan.width", "scan.height")
+SCAN_SETTINGS = ("sim.viewpoints", "scan.camera", "scan.width", "scan.height")
 
 
-SCAN_FLAGS = {"--frame-rate": "scan.frame_rate_hz", "--width": "scan.width",
-              "--height": "scan.height", "--workers": "scan.workers"}
-
-
-#: `scan --sim`'s frames per second of bot time: twice an eval's, for a user filming one
-#: plant to choose frames from.
-SCAN_SIM_FRAME_RATE_HZ = 0.6
+SCAN_FLAGS = {"--frame-rate": "scan.camera.frame_rate_hz", "--width": "scan.width",
+              "--height": "scan.height", "--workers": "scan.camera.workers"}
 
 
 def _scan_base():
-    """`flowerpose scan`'s starting settings: an eval's, at SCAN_SIM_FRAME_RATE_HZ."""
+    """`flowerpose scan`'s starting settings: an eval's, with the simulated camera's own
+    frame rate (`SimCameraConfig`; an eval renders fewer, `EVAL_FRAME_RATE_HZ`)."""
     import dataclasses
 
     from flowerpose.eval.harness import EvalConfig
+    from flowerpose.hardware.sim_camera import SimCameraConfig
 
     config = EvalConfig()
-    return dataclasses.replace(config, scan=dataclasses.replace(
-        config.scan, frame_rate_hz=SCAN_SIM_FRAME_RATE_HZ))
+    return dataclasses.replace(config, scan=dataclasses.replace(config.scan,
+                                                                camera=SimCameraConfig()))
 
 
 def _add_field_bot_options(p: argparse.ArgumentParser) -> None:
@@ -87,8 +85,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     from flowerpose.hardware.sim_bot import plan_plant_scan
     from flowerpose.sim.export import read_plant
 
-    only_settings(args, "scan --sim", SCAN_SETTINGS)
-    config = configure(_scan_base(), args)
+    config = configure(_scan_base(), args, reads=SCAN_SETTINGS, command="scan --sim")
     camera = config.scan
     plant = read_plant(args.plant)
     plan = plan_plant_scan(plant, config.sim.viewpoints)  # the oracle's cameras, flown
@@ -121,8 +118,8 @@ def _scan_field(args: argparse.Namespace) -> int:
     if args.plant_at is None:
         raise InputError("--plant-at", "needed with --port and --cloud: where the plant's stem "
                          "stands, X,Y in metres in the bed frame")
-    only_settings(args, "scan --port/--cloud", ("scan.width", "scan.height"))
-    size = configure(_scan_base(), args).scan
+    size = configure(_scan_base(), args, reads=("scan.width", "scan.height"),
+                     command="scan --port/--cloud").scan
     _check_field_bot_flags(args)
     plan = plan_field_scan(args.plant_at, args.plant_height, args.plant_radius)
     x, y = args.plant_at
@@ -229,8 +226,8 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
                    "backend and a virtual Farmduino (100 x real time)")
     add_config_options(p, profile=False, detector=False,
                         example="sim.viewpoints.azimuth_step_deg=30 (degrees; --sim reads "
-                        "sim.viewpoints.*, scan.sensor.*, scan.render.* and the four scan.* "
-                        "its flags set; --port and --cloud scan.width and scan.height)")
+                        "sim.viewpoints.*, scan.camera.*, scan.width and scan.height; --port and "
+                        "--cloud scan.width and scan.height)")
     p.set_defaults(func=cmd_scan)
 
 
@@ -289,7 +286,9 @@ def _home_field_bot(args: argparse.Namespace, bot) -> None:
         bot.home()
 
 
-_pollinate_base = starting_config("flowerpose.hardware.pollinate:PollinateConfig")
+_pollinate_base = starting_config("flowerpose.hardware.pollinate:PollinateSettings")
+
+
 
 
 def cmd_pollinate(args: argparse.Namespace) -> int:
@@ -304,7 +303,8 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         raise InputError("pollinate", "choose one bot: --port PORT or --cloud, not both")
     flying = bool(args.port or args.cloud) and not args.dry_run
     _check_field_bot_flags(args)
-    config = configure(_pollinate_base(), args)
+    settings = configure(_pollinate_base(), args)
+    config = settings.pollinate
     document = read_json(args.flowers)
     if document.get("frame", "bed") != "bed":
         raise InputError(args.flowers, f"is in its cloud's own frame ({document['frame']}, a "
@@ -322,7 +322,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         from flowerpose.pipeline.colour import flower_coloured
 
         cloud = read_cloud(cloud_path, units="m")
-        obstacles, corolla = cloud.points, flower_coloured(cloud.colors)
+        obstacles, corolla = cloud.points, flower_coloured(cloud.colors, settings.colour)
     elif args.plant_cloud is not None:
         raise InputError(args.plant_cloud, "no such cloud")
     elif cloud_path is not None:
@@ -412,7 +412,7 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plant-cloud", type=Path, metavar="CLOUD.ply",
                    help="the plant's cloud in the bed frame, for collision checks (default: "
                    "the cloud flowers.json names as its source)")
-    p.add_argument("--method", choices=("plane", "superellipsoid", "paraboloid"),
+    p.add_argument("--method", choices=METHODS,
                    default="plane", help="whose normal is the flower's axis (default: "
                    "%(default)s)")
     add_output(p, "folder for pollination.json")
@@ -421,9 +421,11 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
                    "and fly nothing")
     _add_field_bot_options(p)
     add_config_options(p, profile=False, detector=False,
-                        example="standoff_m=0.04 (metres; the keys of pollination.json's "
-                        "config)")
-    p.set_defaults(func=cmd_pollinate)
+                        example="pollinate.standoff_m=0.04 (metres; pollinate reads "
+                        "pollinate.*, pollination.json's config, and colour.*, which tells a "
+                        "target's own corolla)")
+    p.set_defaults(func=cmd_pollinate, **{RENAMED_ATTRIBUTE: moved_under(
+        "flowerpose.hardware.pollinate:PollinateConfig", "pollinate")})
 
 
 def cmd_farmduino(args: argparse.Namespace) -> int:

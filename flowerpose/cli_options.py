@@ -8,22 +8,13 @@ import argparse
 import contextlib
 import math
 import os
+import typing
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from flowerpose.atomic import temporary_beside
 from flowerpose.errors import InputError
-
-
-def only_settings(args: argparse.Namespace, command: str, prefixes: tuple[str, ...]) -> None:
-    """Refuse --set keys the command does not read (they would be silently ignored)."""
-    from flowerpose.config import parse_set_options
-
-    for key in parse_set_options(args.set):
-        if not key.startswith(prefixes):
-            raise InputError(f"--set {key}", f"{command} takes "
-                             f"{', '.join(k + '*' if k.endswith('.') else k for k in prefixes)}")
 
 
 def add_config_options(parser: argparse.ArgumentParser, profile: bool = True,
@@ -185,6 +176,29 @@ def add_units(parser: argparse.ArgumentParser, what: str) -> None:
                         "(default: %(default)s)")
 
 
+#: The argparse attribute that holds a function giving a command's renamed setting keys,
+#: {old key: new key} (`config.renamed`).
+RENAMED_ATTRIBUTE = "renamed_settings"
+
+
+def moved_under(where: str, section: str) -> Callable[[], dict[str, str]]:
+    """A command's renamed keys (`RENAMED_ATTRIBUTE`) where its settings, the dataclass
+    "module:Class" at the top once, now sit under `section` as they do in eval:
+    {"count": "scan.frames.count", "dense.*": "scan.reconstruct.dense.*", ...}."""
+    module, name = where.split(":")
+
+    def renames() -> dict[str, str]:
+        import dataclasses
+        import importlib
+
+        cls = getattr(importlib.import_module(module), name)
+        hints = typing.get_type_hints(cls)
+        return {(f"{f.name}.*" if dataclasses.is_dataclass(hints[f.name]) else f.name):
+                (f"{section}.{f.name}.*" if dataclasses.is_dataclass(hints[f.name])
+                 else f"{section}.{f.name}") for f in dataclasses.fields(cls)}
+    return renames
+
+
 def starting_config(where: str) -> Callable[[], Any]:
     """A command's starting settings, "module:Class" made with its defaults, imported when
     first asked for, so the command line starts without importing every stage."""
@@ -197,21 +211,64 @@ def starting_config(where: str) -> Callable[[], Any]:
     return base
 
 
-def configure(base: Any, args: argparse.Namespace, flags: bool = True) -> Any:
+def configure(base: Any, args: argparse.Namespace, flags: bool = True,
+              reads: tuple[str, ...] | None = None, command: str = "") -> Any:
     """`base` with the --profile, then the --config file, then the settings' flags
-    (`flags`), then each --set, applied."""
+    (`flags`), then each --set, applied; renamed keys (`config.RENAMED_SETTINGS`, and the
+    command's own, `RENAMED_ATTRIBUTE`) are taken under their new names, with a warning.
+    `reads`: the sections ("pose") and keys ("scan.width") `command` reads; a --config or
+    --set key outside them is refused in one line, since it would be silently ignored."""
     from flowerpose.cli_flags import given_settings
-    from flowerpose.config import apply_overrides, load_profile, load_toml, parse_set_options
+    from flowerpose.config import (
+        RENAMED_SETTINGS,
+        apply_overrides,
+        load_profile,
+        load_toml,
+        parse_set_options,
+        renamed,
+    )
 
+    command_renames = getattr(args, RENAMED_ATTRIBUTE, None)
+    renames = {**RENAMED_SETTINGS, **(command_renames() if command_renames else {})}
     config = base
     if getattr(args, "profile", None) is not None:
         config = apply_overrides(config, load_profile(args.profile))
     if args.config is not None:
-        config = apply_overrides(config, load_toml(args.config))
+        config = apply_overrides(config, _read_only(renamed(load_toml(args.config), renames),
+                                                    reads, command, str(args.config), base))
     detector = getattr(args, "detector", None)
-    sets = ((given_settings(args) if flags else []) + args.set
-            + ([f"detect.detector={detector}"] if detector else []))
-    return apply_overrides(config, parse_set_options(sets))
+    sets = _read_only(renamed(parse_set_options(args.set), renames), reads, command, "--set",
+                      base)
+    flagged = ((given_settings(args) if flags else [])
+               + ([f"detect.detector={detector}"] if detector else []))
+    return apply_overrides(apply_overrides(config, parse_set_options(flagged)), sets)
+
+
+def _read_only(settings: dict[str, Any], reads: tuple[str, ...] | None, command: str,
+               where: str, base: Any) -> dict[str, Any]:
+    """`settings` (dotted keys), each one of `reads`' sections or keys, else InputError."""
+    if reads is None:
+        return settings
+    import dataclasses
+    import functools
+
+    def shown(name: str) -> str:
+        section = dataclasses.is_dataclass(functools.reduce(getattr, name.split("."), base))
+        return f"{name}.*" if section else name
+
+    for key in settings:
+        if not any(key == r or key.startswith(r + ".") for r in reads):
+            source = f"--set {key}" if where == "--set" else where
+            raise InputError(source, f"{'' if where == '--set' else key + ': '}{command} "
+                             f"reads {', '.join(shown(r) for r in reads)}, not this")
+    return settings
+    for key in settings:
+        if not any(key == r or key.startswith(r + ".") for r in reads):
+            source = f"--set {key}" if where == "--set" else where
+            raise InputError(source, f"{'' if where == '--set' else key + ': '}{command} "
+                             f"reads {', '.join(r + '.*' if '.' not in r else r for r in reads)}"
+                             ", not this")
+    return settings
 
 
 def at_least(minimum: int, maximum: int | None = None, why: str = ""):

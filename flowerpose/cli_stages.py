@@ -11,17 +11,17 @@ from flowerpose.cli_flags import add_setting_flags
 from flowerpose.cli_options import (
     CLOUD_POINTS,
     PLANTS,
+    RENAMED_ATTRIBUTE,
     SEED,
     add_config_options,
     add_output,
     add_preset,
     add_units,
     configure,
-    only_settings,
+    moved_under,
     owned,
     starting_config,
 )
-from flowerpose.errors import InputError
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
@@ -29,11 +29,8 @@ def cmd_plant(args: argparse.Namespace) -> int:
     from flowerpose.sim.bundle import make_plant
     from flowerpose.sim.export import PLANT_FILES
 
-    for key in (item.split("=")[0].strip() for item in args.set):
-        if not key.startswith("sim."):
-            raise InputError(f"--set {key}", "plant takes the synthetic world's settings: "
-                             "sim.plant.*, sim.oracle.*, sim.viewpoints.*")
-    sim = eval_config(args.preset, lambda base: configure(base, args)).sim
+    sim = eval_config(args.preset, lambda base: configure(base, args, reads=("sim",),
+                                                          command="plant")).sim
     with owned(args.out, "plant", args.overwrite, PLANT_FILES):
         bundle = make_plant(args.seed, points=args.points, out_dir=args.out, config=sim)
     visible = int(sum(bundle.visible))
@@ -63,13 +60,16 @@ def add_plant(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_plant)
 
 
-_frames_base = starting_config("flowerpose.pipeline.frames:FrameSelectConfig")
+#: `frames` and `reconstruct` read their sections of an eval's settings, under the keys an
+#: eval gives them (`scan.frames.*`, `scan.reconstruct.*`).
+_scan_stage_base = starting_config("flowerpose.pipeline.scan_stages:ScanStagesConfig")
 
 
 def cmd_frames(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.frames import select_frames
 
-    config = configure(_frames_base(), args)
+    config = configure(_scan_stage_base(), args, reads=("scan.frames",),
+                       command="frames").scan.frames
     result = select_frames(args.scan, args.out, config, overwrite=args.overwrite)
     sharp = [f["sharpness"] for f in result["frames"]]
     print(f"{len(result['frames'])} of {result['recorded']} frames chosen in "
@@ -88,24 +88,25 @@ def add_frames(sub: argparse._SubParsersAction) -> None:
         epilog="example:\n  flowerpose frames scan3 --count 200 --out frames3")
     p.add_argument("scan", type=Path, metavar="SCAN_DIR",
                    help="a scan folder from flowerpose scan (frames/, trajectory.csv)")
-    add_setting_flags(p, _frames_base, {"--count": "count", "--crop": "crop_px",
-                                        "--brightness-penalty": "brightness_penalty"},
+    add_setting_flags(p, _scan_stage_base, {"--count": "scan.frames.count",
+                                            "--crop": "scan.frames.crop_px",
+                                            "--brightness-penalty":
+                                                "scan.frames.brightness_penalty"},
                       metavars={"--count": "N", "--crop": "PX"},
                       switches=("--brightness-penalty",))
     add_output(p, "folder for the chosen frames, frames.json and camera.json")
     add_config_options(p, profile=False, detector=False,
-                        example="brightness_target=110 (HSV value, 0-255; the keys of "
-                        "frames.json's config)")
-    p.set_defaults(func=cmd_frames)
-
-
-_reconstruct_base = starting_config("flowerpose.pipeline.reconstruct:ReconstructConfig")
+                        example="scan.frames.brightness_target=110 (HSV value, 0-255; frames "
+                        "reads scan.frames.*, frames.json's config)")
+    p.set_defaults(func=cmd_frames, **{RENAMED_ATTRIBUTE: moved_under(
+        "flowerpose.pipeline.frames:FrameSelectConfig", "scan.frames")})
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.reconstruct import reconstruct
 
-    config = configure(_reconstruct_base(), args)
+    config = configure(_scan_stage_base(), args, reads=("scan.reconstruct",),
+                       command="reconstruct").scan.reconstruct
     result = reconstruct(args.frames, args.out, config, overwrite=args.overwrite)
     report = result.report
     rms = report["alignment_rms_m"]
@@ -128,11 +129,13 @@ def add_reconstruct(sub: argparse._SubParsersAction) -> None:
     p.add_argument("frames", type=Path, metavar="FRAMES_DIR",
                    help="a folder from flowerpose frames (frames.json, frames/, camera.json)")
     add_output(p, "folder for cloud.ply, the sparse model and reconstruction.json")
-    add_setting_flags(p, _reconstruct_base, {"--dense-poses": "dense_poses"},
+    add_setting_flags(p, _scan_stage_base, {"--dense-poses": "scan.reconstruct.dense_poses"},
                       metavars={"--dense-poses": "{refined,recorded}"})
     add_config_options(p, profile=False, detector=False,
-                       example="dense.voxel_size_m=0.0025 (metres)")
-    p.set_defaults(func=cmd_reconstruct)
+                       example="scan.reconstruct.dense.voxel_size_m=0.0025 (metres; "
+                       "reconstruct reads scan.reconstruct.*, reconstruction.json's config)")
+    p.set_defaults(func=cmd_reconstruct, **{RENAMED_ATTRIBUTE: moved_under(
+        "flowerpose.pipeline.reconstruct:ReconstructConfig", "scan.reconstruct")})
 
 
 _dataset_base = starting_config("flowerpose.eval.dataset:DatasetConfig")
@@ -191,6 +194,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.jsonio import write_json
     from flowerpose.outputs import OutputFolder, check_output
     from flowerpose.pipeline.flowers import (
+        SECTIONS_FROM,
         PipelineConfig,
         find_flowers,
         find_flowers_in_candidates,
@@ -201,7 +205,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     )
     from flowerpose.pipeline.views import write_views
 
-    config = configure(PipelineConfig(), args)
+    config = configure(PipelineConfig(), args, reads=SECTIONS_FROM[
+        "candidates" if args.candidates else "cloud"], command="detect"
+        + (" --candidates" if args.candidates else ""))
     out: Path = args.out
     writes = ("flowers.json", "flowers.ply", "normals.ply", "config.json", "views", "crops",
               "report.html")
@@ -258,11 +264,11 @@ def add_detect(sub: argparse._SubParsersAction) -> None:
 
 def cmd_pose(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
-    from flowerpose.pipeline.flowers import PipelineConfig
+    from flowerpose.pipeline.flowers import SECTIONS_FROM, PipelineConfig
     from flowerpose.pipeline.pose import estimate_pose
     from flowerpose.pipeline.segment import oriented_box
 
-    config = configure(PipelineConfig(), args)
+    config = configure(PipelineConfig(), args, reads=SECTIONS_FROM["crops"], command="pose")
     crop = read_cloud(args.crop, units=args.units)
     entry = {"id": 0, **estimate_pose(crop, config.pose, config.colour, config.cluster).to_json(),
              "box": oriented_box(crop.points).to_json()}
@@ -289,8 +295,7 @@ _eval_base = starting_config("flowerpose.eval.harness:EvalConfig")
 def cmd_score(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import EvalConfig, score_files
 
-    only_settings(args, "score", ("score.",))
-    config = configure(EvalConfig(), args)
+    config = configure(EvalConfig(), args, reads=("score",), command="score")
     report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,
                          config.score.max_distance_m)
     from flowerpose.eval.report import REPORT_FILES, summary_lines, table, write_report

@@ -156,13 +156,59 @@ def apply_overrides(config: Any, overrides: dict[str, Any], prefix: str = "") ->
             changes[name] = apply_overrides(current, value, prefix=f"{key}.")
         else:
             changes[name] = _coerce(value, hints[name], key)
-    return dataclasses.replace(config, **changes)
+    try:
+        return dataclasses.replace(config, **changes)
+    except InputError as error:
+        # A section's own check names its field; the user set it under its full key.
+        if prefix and error.source in hints:
+            raise InputError(f"{prefix}{error.source}", error.problem) from None
+        raise
 
 
 def require(condition: bool, key: str, problem: str) -> None:
     """Raise InputError(key, problem) unless `condition`: for config __post_init__ checks."""
     if not condition:
         raise InputError(key, problem)
+
+
+#: Settings renamed in this version, {old key: new key}, taken under the new name with a
+#: warning until the next: a key ending ".*" renames every key under it.
+RENAMED_SETTINGS = {
+    "scan.frames": "scan.frames.count",
+    "scan.frame_rate_hz": "scan.camera.frame_rate_hz",
+    "scan.workers": "scan.camera.workers",
+    "scan.sensor.*": "scan.camera.sensor.*",
+    "scan.render.*": "scan.camera.render.*",
+}
+
+
+def renamed(overrides: dict[str, Any], renames: dict[str, str]) -> dict[str, Any]:
+    """`overrides` (dotted keys, or nested tables from TOML) as dotted keys, each key that
+    was renamed (`renames`, {old: new}; "KEY.*" for every key under KEY) under its new
+    name, with a warning that names the new one: an old key keeps working for a version."""
+    from flowerpose.log import LOG
+
+    out: dict[str, Any] = {}
+    for key, value in _dotted(overrides).items():
+        new = renames.get(key)
+        for old, replacement in renames.items():
+            if new is None and old.endswith(".*") and key.startswith(old[:-1]):
+                new = replacement[:-1] + key[len(old) - 1:]
+        if new is not None:
+            LOG.warning(f"warning: the setting {key} is now {new}; the old name works until "
+                        "the next version")
+        out[new or key] = value
+    return out
+
+
+def _dotted(overrides: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if isinstance(value, dict):
+            out.update(_dotted(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 def parse_set_options(items: list[str]) -> dict[str, str]:

@@ -143,8 +143,9 @@ def support_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
 
 
 def flower_coloured(rgb: np.ndarray, config: ColourConfig | None = None) -> np.ndarray:
-    """(N,) bool: RGB colours (N, 3) uint8 of a petal or a pistil (a pollination visit's
-    target corolla may be only these)."""
-    hsv = rgb_to_hsv(np.asarray(rgb, np.uint8))
+    """(N,) bool: RGB colours (N, 3) uint8 of a cloud that are a petal's or a pistil's, its
+    cast removed first as the detector removes it (`white_balanced`): a pollination
+    visit's target corolla may be only these."""
     config = config or ColourConfig()
+    hsv = rgb_to_hsv(white_balanced(rgb, config)[0])
     return petal_mask(hsv, config) | pistil_mask(hsv, config)

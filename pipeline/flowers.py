@@ -403,8 +403,12 @@ def read_flowers(path: Path) -> list[dict]:
         if not isinstance(normals, dict):
             raise InputError(path, f"{where}: 'normals' must be an object of method: "
                              "normal or null")
-        checked.append({**entry, "center": scale * vector3(entry.get("center"), path,
-                                                           f"{where}: center"),
+        box = entry.get("box")
+        if isinstance(box, dict) and "extent" in box:
+            box = {**box, "extent": scale * vector3(box["extent"], path, f"{where}: box.extent")}
+        checked.append({**entry, **({"box": box} if box is not None else {}),
+                        "center": scale * vector3(entry.get("center"), path,
+                                                  f"{where}: center"),
                         "normals": {m: None if n is None else
                                     unit3(vector3(n, path, f"{where}: normals.{m}"), path,
                                           f"{where}: normals.{m}")

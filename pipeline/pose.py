@@ -33,10 +33,8 @@ from flowerpose.pipeline.fit import (
     fit_superellipsoid,
     principal_axes,
 )
+from flowerpose.pipeline.methods import METHODS
 from flowerpose.pipeline.segment import ClusterConfig, corolla, the_pistil
-
-#: Fitting methods, in the order reports list them.
-METHODS = ("plane", "superellipsoid", "paraboloid")
 
 DirectionReference = Literal["combined", "crop", "petal_base", "petal_surface"]
 

@@ -17,7 +17,7 @@ $flowerpose stress --source real "$real" --thin 0.5,0.2,0.1,0.05 --repeats 3 --d
     --out runs/stress-real3 -q
 $flowerpose bench --points 125000 1000000 --out runs/bench -q
 $flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
-    --set 'pollination.curve_angles_deg=[0, 10, 20, 30, 40, 45, 50]' --out runs/pollinate-10 -q
+    --set 'pollination.curve_angles_deg=[0, 15, 30, 45, 55, 65, 75]' --out runs/pollinate-10 -q
 $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --seed 0 \
     --out runs/pollinate-field-10 -q
 $flowerpose results runs/oracle-10/report.json runs/field-10/report.json \

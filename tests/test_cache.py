@@ -104,7 +104,8 @@ def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monk
     (plant / "reconstruction" / "cloud.ply").unlink()
     (plant / "frames" / "frames" / "frame_000004.jpg").unlink()
     # Workers change no output: the entries are reused, their files put back.
-    again = capture_scan_cached(plant, dataclasses.replace(config, workers=1), None, root)
+    again = capture_scan_cached(plant, dataclasses.replace(
+        config, camera=dataclasses.replace(config.camera, workers=1)), None, root)
     assert (len(runs["scan"]), len(runs["reconstruct"])) == (1, 1)
     assert again["cached"] == ["scan", "frames", "reconstruct"] and again["recorded"] == 10
     assert again["seconds"] == {"scan": 0.0, "frames": 0.0, "reconstruct": 0.0}
@@ -113,7 +114,8 @@ def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monk
     assert (plant / "frames" / "frames" / "frame_000004.jpg").is_file()  # the chosen frames
     entry = next((root / "scan").iterdir())
     assert not (entry / "scan" / "frames").exists()  # not the scan's every frame
-    capture_scan_cached(plant, dataclasses.replace(config, frames=100), None, root)
+    capture_scan_cached(plant, dataclasses.replace(
+        config, frames=dataclasses.replace(config.frames, count=100)), None, root)
     capture_scan_cached(plant, config, ScanPathConfig(azimuth_step_deg=30.0), root)
     assert len(runs["scan"]) == 3  # another frame count, another path: scanned again
     (plant / "plant.json").write_text(json.dumps({"another": "plant"}))

@@ -177,7 +177,7 @@ def _grey_cloud(path):
     (["frames", "{tmp}/scan", "--count", "0", "--out", "{tmp}/f"], ["--count", "at least 1"]),
     (["frames", "{tmp}/scan", "--set", "crop_px=2", "--out", "{tmp}/f"], ["--crop", "3 pixels"]),
     (["frames", "{tmp}/scan", "--set", "count=many", "--out", "{tmp}/f"], ["whole number"]),
-    (["score", "{badjson}", "{badjson}", "--set", "cluster.eps=0.01"], ["score takes score.*"]),
+    (["score", "{badjson}", "{badjson}", "--set", "cluster.eps=0.01"], ["score reads score.*"]),
     (["scan", "--sim", "--plant", "{tmp}", "--width", "8", "--out", "{tmp}/s"],
      ["--width", "16 pixels"]),
     (["detect"], ["required"]),
@@ -314,25 +314,30 @@ def test_a_setting_flag_is_its_setting_with_its_docstring_and_default(capsys):
     when not given, and help written from the setting's docstring."""
     from flowerpose.cli import build_parser
     from flowerpose.cli_options import configure
-    from flowerpose.cli_stages import _frames_base
+    from flowerpose.cli_stages import _scan_stage_base
     from flowerpose.config import setting_doc
 
     parser = build_parser()
 
     def configured(*extra):
-        return configure(_frames_base(), parser.parse_args(["frames", "s", "--out", "o",
-                                                             *extra]))
+        return configure(_scan_stage_base(), parser.parse_args(["frames", "s", "--out", "o",
+                                                                 *extra])).scan.frames
 
     by_flag = configured("--count", "7", "--brightness-penalty")
-    assert by_flag == configured("--set", "count=7", "--set", "brightness_penalty=true")
+    assert by_flag == configured("--set", "scan.frames.count=7",
+                                 "--set", "scan.frames.brightness_penalty=true")
     assert (by_flag.count, by_flag.brightness_penalty) == (7, True)
-    assert configured() == _frames_base()
+    # The keys frames took before they were eval's keys work for a version, with a warning.
+    assert configured("--set", "count=7", "--set", "brightness_penalty=true") == by_flag
+    assert "the setting count is now scan.frames.count" in capsys.readouterr().err
+    assert configured() == _scan_stage_base().scan.frames
     with pytest.raises(SystemExit):
         parser.parse_args(["frames", "--help"])
     shown = " ".join(capsys.readouterr().out.split())
-    doc = setting_doc(_frames_base(), "crop_px")
+    doc = setting_doc(_scan_stage_base(), "scan.frames.crop_px")
     assert doc and doc.rstrip(".") in shown
-    assert f"default: {_frames_base().crop_px}; the same as --set crop_px=" in shown
+    crop = _scan_stage_base().scan.frames.crop_px
+    assert f"default: {crop}; the same as --set scan.frames.crop_px=" in shown
 
 
 def test_library_advice_names_settings_and_the_command_line_says_its_flags():
@@ -397,13 +402,10 @@ def test_the_quick_help_examples_run_as_written_with_their_set_example(tmp_path,
 def test_every_set_example_names_a_setting_its_command_reads():
     from flowerpose.config import apply_overrides, parse_set_options
     from flowerpose.eval.harness import EvalConfig
-    from flowerpose.hardware.pollinate import PollinateConfig
+    from flowerpose.hardware.pollinate import PollinateSettings
     from flowerpose.pipeline.flowers import PipelineConfig
-    from flowerpose.pipeline.frames import FrameSelectConfig
-    from flowerpose.pipeline.reconstruct import ReconstructConfig
 
-    bases = {"reconstruct": ReconstructConfig, "frames": FrameSelectConfig,
-             "pollinate": PollinateConfig,
+    bases = {"pollinate": PollinateSettings,
              "detect": PipelineConfig, "pose": PipelineConfig, "bench": PipelineConfig}
     for name, parser in _subparsers().items():
         setting = _set_example(parser)

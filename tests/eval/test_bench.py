@@ -36,7 +36,7 @@ def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
     capsys.readouterr()
     assert main(["plant", "--seed", "0", "--out", str(tmp_path / "no"), "--set",
                  "cluster.eps=0.1"]) == 2
-    assert "plant takes the synthetic world's settings" in capsys.readouterr().err
+    assert "plant reads sim.*, not this" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
 

@@ -95,7 +95,7 @@ def test_the_field_preset_films_with_the_field_camera_and_keeps_polycams_density
     field, realistic = eval_config("field"), eval_config("realistic")
     # An auto-exposed camera brightens the render; Polycam's ~800 points a flower is a
     # 2.5 mm voxel (the values the field preset's file gives).
-    assert field.scan.sensor.gain == 1.5 > realistic.scan.sensor.gain == 1.0
+    assert field.scan.camera.sensor.gain == 1.5 > realistic.scan.camera.sensor.gain == 1.0
     assert field.scan.reconstruct.dense.voxel_size_m == 0.0025
     assert realistic.scan.reconstruct.dense.voxel_size_m < 0.0025
     assert field.score.label_error_deg > 0 == realistic.score.label_error_deg

@@ -11,7 +11,8 @@ from flowerpose.eval.harness import eval_config, run_eval
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.reconstruct import reconstruct
 
-SMALL = {"scan.width": 640, "scan.height": 360, "scan.frame_rate_hz": 0.05, "scan.frames": 80}
+SMALL = {"scan.width": 640, "scan.height": 360, "scan.camera.frame_rate_hz": 0.05,
+         "scan.frames.count": 80}
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,7 @@ def test_a_small_scan_finds_the_flowers_and_their_normals(small_eval):
 def test_the_report_holds_the_scans_settings_and_draws_its_camera_path(small_eval):
     report, out = small_eval
     assert "scan" in report["config"] and not {"rgbd", "fusion"} & set(report["config"])
-    assert report["config"]["scan"]["frames"] == 80
+    assert report["config"]["scan"]["frames"]["count"] == 80
     assert "camera path (80 frames)" in (out / "report.html").read_text()
 
 

@@ -464,7 +464,8 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     """What `flowerpose scan --sim --via-farmduino` runs, on a small plan at 64 x 48."""
     signal.setitimer(signal.ITIMER_REAL, 60.0)  # renders in a process pool: allow more
     from flowerpose.hardware.serial_sim_bot import SimulatedSerialBot
-    from flowerpose.hardware.sim_bot import SimBotConfig, SimCameraConfig
+    from flowerpose.hardware.sim_bot import SimBotConfig
+    from flowerpose.hardware.sim_camera import SimCameraConfig
     from flowerpose.scanio import frame_files, read_trajectory
     from flowerpose.sim.bundle import make_plant
 

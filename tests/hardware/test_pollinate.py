@@ -243,3 +243,38 @@ def test_flower_coloured_points_are_petals_and_pistils():
 
     rgb = np.array([[245, 245, 240], [230, 200, 40], [60, 140, 50], [120, 90, 60]], np.uint8)
     assert flower_coloured(rgb).tolist() == [True, True, False, False]
+
+
+def test_a_neighbours_petals_inside_the_touch_radius_stay_obstacles_once_the_radius_is_known():
+    # A neighbour's petals 16 mm over a flower's centre: within the 2 cm its own corolla
+    # may reach, beyond the rim of a flower 10 mm in radius (and 3 mm), within one of 14.
+    grid = np.linspace(-0.003, 0.003, 4)
+    disc = np.array([[x, y, 0.016] for x in grid for y in grid]) + CENTER
+    petals = np.ones(len(disc), bool)
+    for radius, blocked in ((None, False), (0.010, True), (0.014, False)):
+        flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]), radius)
+        (visit,) = plan_pollination([flower], disc, PollinateConfig(cone_deg=0.0,
+                                                                    path_checks=0),
+                                    corolla=petals).visits
+        assert (visit.status == "unreachable") == blocked, (radius, visit)
+
+
+def test_a_flowers_radius_is_read_from_its_box_in_its_files_unit(tmp_path):
+    from flowerpose.hardware.pollinate import read_visit_flowers
+    from flowerpose.pipeline.flowers import read_flowers
+
+    path = tmp_path / "flowers.json"
+    path.write_text(json.dumps({"units": "mm", "flowers": [
+        {"id": 0, "center": [1500, 750, 200], "normals": {"plane": [0, 0, 1]},
+         "box": {"extent": [30.0, 5.0, 24.0]}},
+        {"id": 1, "center": [1500, 750, 200], "normals": {"plane": [0, 0, 1]}}]}))
+    flowers, _ = read_visit_flowers(read_flowers(path))
+    assert flowers[0].radius == pytest.approx(0.012) and flowers[1].radius is None
+
+
+def test_the_planners_flower_colours_are_the_runs_colour_model():
+    from flowerpose.pipeline.colour import ColourConfig, flower_coloured
+
+    petal = np.array([[245, 245, 240]] * 60, np.uint8)
+    assert flower_coloured(petal).all()
+    assert not flower_coloured(petal, ColourConfig(petal_min_value=0.99)).any()

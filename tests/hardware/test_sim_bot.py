@@ -11,7 +11,8 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
-from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, SimCameraConfig, write_scan_truth
+from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, write_scan_truth
+from flowerpose.hardware.sim_camera import SimCameraConfig
 from flowerpose.jsonio import read_json
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_frames
 from flowerpose.scan_geometry import ScanPathConfig

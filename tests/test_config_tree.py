@@ -1,0 +1,57 @@
+"""One config tree: a setting has one dotted key in every command, old keys keep working a
+version with a warning, a command refuses keys it does not read, and a section's check
+names the full key."""
+
+import pytest
+
+from flowerpose.cli import build_parser, main
+from flowerpose.cli_options import configure
+
+
+def _configured(base, *argv):
+    return configure(base, build_parser().parse_args(list(argv)))
+
+
+def test_an_evals_renamed_scan_keys_reach_the_embedded_sections_with_a_warning(capsys):
+    from flowerpose.eval.harness import EvalConfig
+
+    old = _configured(EvalConfig(), "eval", "--set", "scan.frame_rate_hz=0.1",
+                      "--set", "scan.sensor.gain=1.2", "--set", "scan.frames=50")
+    err = capsys.readouterr().err
+    new = _configured(EvalConfig(), "eval", "--set", "scan.camera.frame_rate_hz=0.1",
+                      "--set", "scan.camera.sensor.gain=1.2", "--set", "scan.frames.count=50")
+    assert old == new and new.scan.camera.sensor.gain == 1.2 and new.scan.frames.count == 50
+    assert "the setting scan.frames is now scan.frames.count" in err
+    assert "the setting scan.sensor.gain is now scan.camera.sensor.gain" in err
+    assert capsys.readouterr().err == ""  # the new keys: no warning
+
+
+def test_pollinate_takes_eval_keys_and_the_runs_colour_model(capsys):
+    from flowerpose.cli_field import _pollinate_base
+
+    argv = ["pollinate", "f.json", "--plant-at", "1.5,0.75", "--out", "o"]
+    settings = _configured(_pollinate_base(), *argv, "--set", "pollinate.standoff_m=0.04",
+                           "--set", "colour.petal_min_value=0.5")
+    assert settings.pollinate.standoff_m == 0.04 and settings.colour.petal_min_value == 0.5
+    assert capsys.readouterr().err == ""
+    assert _configured(_pollinate_base(), *argv, "--set", "standoff_m=0.04") .pollinate == \
+        settings.pollinate
+    assert "the setting standoff_m is now pollinate.standoff_m" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["pose", "crop.ply", "--set", "grid.views=6"], "pose reads colour.*, cluster.*, pose.*"),
+    (["detect", "c.ply", "--candidates", "--out", "{tmp}/d", "--set", "ground.plane_distance_m=1"],
+     "detect --candidates reads colour.*, outliers.*, cluster.*, pose.*"),
+    (["frames", "s", "--out", "{tmp}/f", "--set", "cluster.eps=0.1"], "frames reads scan.frames.*"),
+    (["eval", "--set", "scan.camera.frame_rate_hz=-1", "--out", "{tmp}/e"],
+     "scan.camera.frame_rate_hz: must be positive"),
+    (["pollinate", "f.json", "--plant-at", "1.5,0.75", "--out", "{tmp}/p",
+      "--set", "pollinate.cone_deg=95"], "pollinate.cone_deg: must be 0 or more, below 90"),
+])
+def test_a_key_a_command_does_not_read_or_a_bad_value_is_one_line_naming_the_full_key(
+        argv, words, tmp_path, capsys):
+    assert main([a.replace("{tmp}", str(tmp_path)) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert words in err and len(err.strip().splitlines()) == 1
+    assert not any(tmp_path.iterdir())
