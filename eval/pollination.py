@@ -56,10 +56,11 @@ class PollinationScoreConfig:
     an 8 mm swab there covers the anthers round it."""
     max_angle_deg: float = 60.0
     """The approach within this of the true axis. The contact replay (`curve_angles_deg`,
-    `approach_angle.py`; 10 realistic plants, seeds 0-9) found the swab's touch independent
-    of the angle to 75 degrees: every planned visit at 45, 55, 65 and 75 touched its pistil
-    and nothing else. 60 keeps the shaft 9 mm over the rim of a flat corolla 30 mm wide
-    (4 mm at 75, about a cupped corolla's depth)."""
+    `approach_angle.py`; 10 realistic plants, seeds 0-9, at 0-75 degrees: docs/results.md)
+    found the swab's touch independent of the angle to 75 degrees: no visit missed its
+    pistil, and the few lost (97-100 % pollinated at every angle, 0 included) touched a leaf
+    or a neighbour on the way in. 60 keeps the shaft 9 mm over the rim of a flat corolla
+    30 mm wide (4 mm at 75, about a cupped corolla's depth)."""
     curve_angles_deg: tuple[float, ...] = ()
     """Angles off the true axis at which every flower's visit is replayed for the
     success-against-angle curve (`approach_angle.py`; report.json's `pollination_by_angle`,
