@@ -262,13 +262,6 @@ def _read_only(settings: dict[str, Any], reads: tuple[str, ...] | None, command:
             raise InputError(source, f"{'' if where == '--set' else key + ': '}{command} "
                              f"reads {', '.join(shown(r) for r in reads)}, not this")
     return settings
-    for key in settings:
-        if not any(key == r or key.startswith(r + ".") for r in reads):
-            source = f"--set {key}" if where == "--set" else where
-            raise InputError(source, f"{'' if where == '--set' else key + ': '}{command} "
-                             f"reads {', '.join(r + '.*' if '.' not in r else r for r in reads)}"
-                             ", not this")
-    return settings
 
 
 def at_least(minimum: int, maximum: int | None = None, why: str = ""):
