@@ -24,23 +24,24 @@ from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, flown_vi
 from flowerpose.eval.pollination_contact import ContactWorld
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
 from flowerpose.hardware.pollinate import Flower, PollinateConfig, plan_pollination, tilted
-from flowerpose.pipeline.colour import ColourConfig, flower_coloured
+from flowerpose.pipeline.colour import flower_coloured
 
 
 def approach_curve(world: ContactWorld, cloud: Cloud, plan_config: PollinateConfig,
                    config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
-                   colour: ColourConfig | None = None) -> list[dict]:
+                   corolla: np.ndarray | None = None) -> list[dict]:
     """One plant's visits at each of `config.curve_angles_deg` off its flowers' true axes:
     per angle, the approaches planned and each one's outcome (`judge` without the angle
     rule). world: the plant's contact world (its plant read; the plant's seed seeds the
-    azimuths); cloud: its cloud (metres, bed frame), the planner's obstacles; colour: the
-    run's colour model, which tells each target's own corolla."""
+    azimuths); cloud: its cloud (metres, bed frame), the planner's obstacles; corolla: its
+    points of a flower's colour by the run's colour model (`flower_coloured`; None: by the
+    default model), which may be a target's own corolla."""
     if not config.curve_angles_deg:
         return []
     plant = world.plant
     unjudged = dataclasses.replace(config, max_angle_deg=180.0)
     along = dataclasses.replace(plan_config, cone_deg=0.0)
-    corolla = flower_coloured(cloud.colors, colour)
+    corolla = flower_coloured(cloud.colors) if corolla is None else corolla
     rows = []
     for k, angle in enumerate(config.curve_angles_deg):
         flowers = []

@@ -364,20 +364,22 @@ def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path
     from flowerpose.eval.approach_angle import approach_curve
     from flowerpose.eval.pollination import plan_and_score
     from flowerpose.eval.pollination_contact import ContactWorld
+    from flowerpose.pipeline.colour import flower_coloured
     from flowerpose.sim.export import read_plant
 
     _, name, cloud_path, _ = job
     plant_dir = out_dir / "plants" / name
     cloud = read_cloud(cloud_path)
     world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
+    corolla = flower_coloured(cloud.colors, config.colour)  # once: three plans use it
     estimated, ceiling = (plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
                                          config.pollinate, config.pollination,
                                          flight_json=plant_dir / flight, world=world,
-                                         colour=config.colour)
+                                         corolla=corolla)
                           for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),
                                                   (None, "flight_ceiling.json")))
     curve = approach_curve(world, cloud, config.pollinate, config.pollination,
-                           colour=config.colour)
+                           corolla=corolla)
     return estimated, ceiling, curve
 
 

@@ -39,7 +39,7 @@ from flowerpose.hardware.pollinate import (
 from flowerpose.hardware.pollination_flight import fly_pollination
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import write_json
-from flowerpose.pipeline.colour import ColourConfig, flower_coloured
+from flowerpose.pipeline.colour import flower_coloured
 from flowerpose.sim.contact import ContactConfig
 from flowerpose.sim.pieces import FLOWER_PARTS, Part
 
@@ -92,14 +92,16 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
                    match_distance_m: float, plan_config: PollinateConfig,
                    config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
                    flight_json: Path | None = None, world: ContactWorld | None = None,
-                   colour: ColourConfig | None = None) -> dict:
+                   corolla: np.ndarray | None = None) -> dict:
     """One plant's pollination: plan from flowers.json's poses (None: the true poses) with
     the plant's cloud (bed frame, metres; None: reach alone) as obstacles, fly
     the plan on a simulated bot, replay the flight through the plant in MuJoCo and judge
     every open flower of the plant in plant_dir (`flowerpose plant`'s folder). The flight's
     record goes to flight_json when given; `world`: the plant's contact world (and the plant
-    read once), when the caller has one; `colour`: the run's colour model, which tells
-    each target's own corolla in the cloud. Returns the per-plant report section."""
+    read once), when the caller has one; `corolla`: the cloud's points of a flower's colour
+    by the run's colour model (`flower_coloured`), which may be a target's own corolla,
+    when the caller has them (else by the default model). Returns the per-plant report
+    section."""
     from flowerpose.pipeline.flowers import read_flowers
     from flowerpose.sim.export import read_plant
 
@@ -116,7 +118,8 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
         nearest = _match(truth, entries, match_distance_m)
     plan = plan_pollination(estimates, None if cloud is None else cloud.points, plan_config,
                             tool=tool, corolla=None if cloud is None
-                            else flower_coloured(cloud.colors, colour))
+                            else corolla if corolla is not None
+                            else flower_coloured(cloud.colors))
     with tempfile.TemporaryDirectory() as scratch:  # a fresh flight, never a resumed one
         timeline, flown, flight = flown_visits(plan, Path(scratch))
     if flight_json is not None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import math
 import os
 import typing
@@ -140,13 +141,20 @@ def add_preset(parser: argparse.ArgumentParser, default: str | None = "realistic
                shown: str = "%(default)s") -> None:
     """--preset: the synthetic plants' preset (`shown`: the default the help says, where
     `default` None leaves it to the command)."""
-    from flowerpose.config import load_preset, preset_names
-
-    names = preset_names()
-    described = "; ".join(f"{name}: {load_preset(name)[1]}" for name in names)
+    names, described = _presets_described()
     parser.add_argument("--preset", choices=names, default=default, metavar="NAME",
                         help=f"the synthetic world, one of assets/presets ({described}) "
                              f"(default: {shown})")
+
+
+@functools.cache
+def _presets_described() -> tuple[list[str], str]:
+    """The shipped presets' names and "name: description; ...", read once for every
+    command's --preset."""
+    from flowerpose.config import load_preset, preset_names
+
+    names = preset_names()
+    return names, "; ".join(f"{name}: {load_preset(name)[1]}" for name in names)
 
 
 def add_workers(parser: argparse.ArgumentParser) -> None:
@@ -250,7 +258,6 @@ def _read_only(settings: dict[str, Any], reads: tuple[str, ...] | None, command:
     if reads is None:
         return settings
     import dataclasses
-    import functools
 
     def shown(name: str) -> str:
         section = dataclasses.is_dataclass(functools.reduce(getattr, name.split("."), base))

@@ -68,10 +68,8 @@ class Journal:
         record = {"version": 1, "plan_id": fingerprint, **fresh, "status": "running",
                   "sessions": []}
         cut = False
-        if path.exists():
-            previous = read_json(path)
-            if previous.get("plan_id") != fingerprint:
-                raise InputError(path, other_plan)
+        previous = cls.read(path, fingerprint, other_plan)
+        if previous is not None:
             record.update({key: previous[key] for key in kept if key in previous},
                           sessions=list(previous.get("sessions", [])))
             cut = (previous.get("status") == "running" and bool(record["sessions"])
@@ -79,6 +77,17 @@ class Journal:
             if cut:  # the lock is ours, so that session is not running: it died
                 record["sessions"][-1].setdefault("error", f"{CUT_SHORT}; {redone}")
         return cls(path, record, cut)
+
+    @staticmethod
+    def read(path: Path, fingerprint: str, other_plan: str) -> dict[str, Any] | None:
+        """The record at `path` of the plan `fingerprint` (None: none yet); one of another
+        plan is refused with `other_plan`, so a resume never mixes two plans."""
+        if not path.exists():
+            return None
+        previous = read_json(path)
+        if previous.get("plan_id") != fingerprint:
+            raise InputError(path, other_plan)
+        return previous
 
     def save(self) -> None:
         """Write the record (atomically: a cut write leaves the last one whole)."""

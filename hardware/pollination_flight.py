@@ -27,7 +27,6 @@ from flowerpose.hardware.bot import Bot, check_head, check_target
 from flowerpose.hardware.flight_journal import Journal, folder_lock
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
 from flowerpose.hardware.pollinate import Move, PollinationPlan
-from flowerpose.jsonio import read_json
 from flowerpose.log import LOG, Tally
 
 FLIGHT_NAME = "flight.json"
@@ -87,13 +86,7 @@ OTHER_PLAN = ("records the flight of another plan (other flowers, settings or cl
 def read_flight(out_dir: Path, plan: PollinationPlan) -> dict | None:
     """The flight of `plan` recorded in out_dir (None: none yet); one of another plan is
     refused, so a resume never mixes two plans."""
-    path = Path(out_dir) / FLIGHT_NAME
-    if not path.exists():
-        return None
-    previous = read_json(path)
-    if previous.get("plan_id") != flight_id(plan):
-        raise InputError(path, OTHER_PLAN)
-    return previous
+    return Journal.read(Path(out_dir) / FLIGHT_NAME, flight_id(plan), OTHER_PLAN)
 
 
 def fly_pollination(bot: Bot, plan: PollinationPlan, out_dir: Path, *, source: dict,

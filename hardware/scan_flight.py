@@ -35,6 +35,9 @@ def _progress(message: str) -> None:
     LOG.info(message)
 
 
+#: What scan.json says when it belongs to another plan.
+OTHER_SCAN = "holds a different scan (another plant or path); choose a new scan folder"
+
 #: Held (flock) by the one scan recording into a folder; the OS lets go when it dies.
 LOCK_NAME = ".scan.lock"
 
@@ -76,7 +79,7 @@ def _run_scan(bot: Bot, plan: ScanPlan, out_dir: Path, source: dict, progress: b
         out_dir / "scan.json", plan_id(plan),
         {"source": source, "plan": plan.to_json(), "waypoints": len(plan.waypoints),
          "completed": 0}, kept=("completed", "source"),  # the first session's source
-        other_plan="holds a different scan (another plant or path); choose a new scan folder",
+        other_plan=OTHER_SCAN,
         redone="waypoints whose frames were not yet on disk are flown again")
     manifest = journal.record
     start = int(manifest["completed"])
@@ -133,13 +136,8 @@ def approach_start(bot: Bot, plan: ScanPlan, out_dir: Path) -> None:
     """Lift the head to the top of Z where the bot stands, then travel over the waypoint the
     scan starts (or resumes) at: the scan's first move then only descends, where a direct
     move from wherever the bot stood might sweep through the plant."""
-    start = 0
-    if (out_dir / "scan.json").exists():
-        manifest = read_json(out_dir / "scan.json")
-        if manifest.get("plan_id") != plan_id(plan):
-            raise InputError(out_dir, "holds a different scan (another plant or path); "
-                             "choose a new scan folder")
-        start = int(manifest.get("completed", 0))
+    manifest = Journal.read(out_dir / "scan.json", plan_id(plan), OTHER_SCAN)
+    start = 0 if manifest is None else int(manifest.get("completed", 0))
     if start >= len(plan.waypoints):
         return
     here = bot.position()
