@@ -4,8 +4,9 @@ For each labelled flower the pipeline finds, its crop is described in the frame 
 true normal round the pipeline's centre (the pistil): r is the distance from the axis, h the
 height along it, R the corolla radius (`segment.corolla`). The corolla is the ring
 0.3 R <= r <= R within 0.3 R of the petal surface (h = a + b r^2 fitted to the ring); the
-centre is r < 0.3 R, from just behind the petal base to 0.3 R in front of it; leaves are
-the points farther than 1.5 typical radii from every flower. Statistics per flower:
+centre is r < 0.3 R, from just behind the petal base to 0.3 R in front of it; the stalk is
+r < 0.6 R from 0.3 R to 1.5 R behind the petal base (sepals and peduncle, and petals that
+curl back); leaves are the points farther than 1.5 typical radii from every flower. Statistics per flower:
 points, diameter 2R, petal thickness (RMS distance of the corolla to its plane), roughness
 (the median distance of a corolla point from its 8 neighbours' plane), cupping
 b R (rim rise over radius, positive cupped up), the share of corolla points that fail the
@@ -43,6 +44,10 @@ RING_INNER = 0.3
 SLAB = 0.3
 #: The centre reaches this many corolla radii behind the petal base (the receptacle's foot).
 BASE_DEPTH = 0.05
+#: The stalk: within this many corolla radii of the axis, from SLAB to STALK_DEPTH radii
+#: behind the petal base.
+STALK_ACROSS = 0.6
+STALK_DEPTH = 1.5
 #: Leaves: points farther than this many typical radii from every flower.
 LEAF_DISTANCE = 1.5
 
@@ -61,6 +66,9 @@ TOLERANCES: dict[str, tuple[str, float, str]] = {
     "leaf_in_crop": ("difference", 0.10, "leaves in a crop pull the crop-centroid offset"),
     "leaf_petal_colour": ("difference", 0.05, "leaf points of petal colour are what the "
                           "flower test and the corolla coverage must reject"),
+    "stalk_pistil_colour": ("difference", 0.05, "a stalk point of pistil colour behind the "
+                            "corolla can stand in for a pistil the cloud lost and flip the "
+                            "normal"),
     "hue": ("difference", 10.0, "degrees: the colour bands are 15-20 degrees wide"),
     "saturation": ("difference", 0.05, "the petal band ends at 0.39, the pistil's at 0.30"),
     "value": ("difference", 0.05, "the petal band starts at 0.40"),
@@ -179,6 +187,8 @@ def _flower_stats(sample: Sample, j: int, config: PipelineConfig) -> dict[str, A
     lift = height - base
     centre = (across < RING_INNER * radius) & (lift >= -BASE_DEPTH * radius) & (
         lift <= SLAB * radius)
+    stalk = (across < STALK_ACROSS * radius) & (lift < -SLAB * radius) & (
+        lift >= -STALK_DEPTH * radius)
     if petals.sum() < 10:
         return None
     corolla_points = points[petals] - points[petals].mean(axis=0)
@@ -190,7 +200,7 @@ def _flower_stats(sample: Sample, j: int, config: PipelineConfig) -> dict[str, A
         "cupping": float(curve * radius),
         "petal_colour_fail": float(1.0 - petal_mask(hsv[petals], config.colour).mean()),
         "leaf_in_crop": float(1.0 - (petals | centre).mean()),
-        "hsv": {"petal": hsv[petals], "centre": hsv[centre]},
+        "hsv": {"petal": hsv[petals], "centre": hsv[centre], "stalk": hsv[stalk]},
     }
 
 
@@ -245,6 +255,7 @@ def statistics(samples: list[Sample], config: PipelineConfig) -> dict[str, Any]:
                        "petal_colour_fail", "leaf_in_crop")}
     hsv = {"petal": np.concatenate([f["hsv"]["petal"] for f in flowers]),
            "centre": np.concatenate([f["hsv"]["centre"] for f in flowers]),
+           "stalk": np.concatenate([f["hsv"]["stalk"] for f in flowers]),
            "leaf": np.concatenate([_leaf_hsv(s, typical) for s in samples])}
     out: dict[str, Any] = {"plants": [s.name for s in samples], "flowers": len(flowers)}
     out.update({key: _summary(values) for key, values in raw.items()})
@@ -253,6 +264,8 @@ def statistics(samples: list[Sample], config: PipelineConfig) -> dict[str, Any]:
                   for part, values in hsv.items()}
     out["leaf_petal_colour"] = round(float(petal_mask(hsv["leaf"], config.colour).mean()), 4) \
         if len(hsv["leaf"]) else None
+    out["stalk_pistil_colour"] = round(float(
+        pistil_mask(hsv["stalk"], config.colour).mean()), 4) if len(hsv["stalk"]) else None
     out["_raw"] = {**raw, **{f"hsv_{part}": values for part, values in hsv.items()}}
     return out
 
@@ -283,6 +296,8 @@ def compare(real: dict[str, Any], synthetic: dict[str, Any]) -> list[dict[str, A
         row(f"{key} (median)", tolerance_key, real[key]["p50"], synthetic[key]["p50"])
     row("leaf points of petal colour", "leaf_petal_colour", real["leaf_petal_colour"],
         synthetic["leaf_petal_colour"])
+    row("stalk points of pistil colour", "stalk_pistil_colour", real["stalk_pistil_colour"],
+        synthetic["stalk_pistil_colour"])
     for part in ("petal", "centre", "leaf"):
         # The hue of a white is noise (its saturation is near 0): petals are judged by
         # saturation and value only.
@@ -304,7 +319,7 @@ def _plot(path: Path, real: dict[str, Any], synthetic: dict[str, Any], names: tu
               ("thickness", "petal thickness (RMS to plane)", None),
               ("roughness", "roughness (off the local plane)", None),
               ("cupping", "cupping (rim rise / radius)", None)]
-    for part in ("petal", "centre", "leaf"):
+    for part in ("petal", "centre", "stalk", "leaf"):
         for k, channel in enumerate(("hue (degrees)", "saturation", "value")):
             panels.append((f"hsv_{part}", f"{part} {channel}", k))
     fig, axes = plt.subplots(5, 4, figsize=(16, 15))

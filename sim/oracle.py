@@ -19,19 +19,23 @@ OVERSAMPLE = 1.5
 
 #: Parts whose colours the photogrammetry texture pales (`OracleCloudConfig.foliage_*`).
 FOLIAGE = (Part.LEAF, Part.PETIOLE, Part.PEDUNCLE, Part.SEPAL, Part.BUD, Part.CROWN)
+#: The foliage whose hue moves by `OracleCloudConfig.stalk_hue_shift_deg`.
+STALKS = (Part.PETIOLE, Part.PEDUNCLE, Part.SEPAL)
 
 
 #: The sky's pale grey that sheen on leaves blends toward, 8-bit RGB.
 SHEEN_RGB = np.array([205.0, 210.0, 218.0])
 
 
-def _pale(colors: np.ndarray, config: OracleCloudConfig) -> np.ndarray:
-    """(N, 3) uint8 colours with their saturation and value scaled and hue shifted."""
+def _pale(colors: np.ndarray, hue_shift_deg: np.ndarray | float,
+          config: OracleCloudConfig) -> np.ndarray:
+    """(N, 3) uint8 colours with their saturation and value scaled and hue shifted (degrees,
+    one for all or (N,))."""
     from flowerpose.sim.plant_colours import hsv_to_rgb
 
     hsv = cv2.cvtColor(colors.reshape(-1, 1, 3).astype(np.float32) / 255.0,
                        cv2.COLOR_RGB2HSV).reshape(-1, 3).astype(np.float64)
-    hsv[:, 0] += config.foliage_hue_shift_deg
+    hsv[:, 0] += hue_shift_deg
     hsv[:, 1] = np.clip(hsv[:, 1] * config.foliage_saturation, 0.0, 1.0)
     hsv[:, 2] = np.clip(hsv[:, 2] * config.foliage_value, 0.0, 1.0)
     return np.clip(np.rint(hsv_to_rgb(hsv) * 255.0), 0, 255).astype(np.uint8)
@@ -91,9 +95,13 @@ def sample_oracle_cloud(plant: Plant, config: OracleCloudConfig, viewpoints: np.
     rgb = rgb + rng.normal(0.0, config.color_jitter, rgb.shape)
     colors = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
     foliage = np.isin(plant.face_part[faces], FOLIAGE)
+    stalk_shift = (config.foliage_hue_shift_deg if config.stalk_hue_shift_deg is None
+                   else config.stalk_hue_shift_deg)
     if foliage.any() and (config.foliage_saturation, config.foliage_value,
-                          config.foliage_hue_shift_deg) != (1.0, 1.0, 0.0):
-        colors[foliage] = _pale(colors[foliage], config)
+                          config.foliage_hue_shift_deg, stalk_shift) != (1.0, 1.0, 0.0, 0.0):
+        stalk = np.isin(plant.face_part[faces[foliage]], STALKS)
+        colors[foliage] = _pale(colors[foliage], np.where(
+            stalk, stalk_shift, config.foliage_hue_shift_deg), config)
     if config.foliage_sheen > 0:
         sheened = foliage & (rng.random(len(colors)) < config.foliage_sheen)
         weight = rng.random(int(sheened.sum()))[:, None]

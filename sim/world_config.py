@@ -129,6 +129,13 @@ class OracleCloudConfig:
     """... their value multiplied by this."""
     foliage_hue_shift_deg: float = 0.0
     """... and their hue moved by this many degrees (negative: toward yellow)."""
+    stalk_hue_shift_deg: float | None = None
+    """The hue shift of stems and sepals (petioles, peduncles, sepals), degrees; None: the
+    foliage's. A texture yellows leaves and stalks differently: on the authors' plant 3
+    the points behind a flower (its sepals and peduncle) are as green as its leaves and
+    none of 237 has a pistil's colour (`flowerpose fidelity`, "stalk points of pistil
+    colour"), while the generator's yellower peduncle, moved with the leaves, turned a quarter of
+    its points pistil-coloured."""
     foliage_sheen: float = 0.0
     """This share of the foliage points is blended toward the sky's pale grey by a uniform
     random weight: sheen on leaves, which a photogrammetry texture keeps (the authors' plant

@@ -17,7 +17,7 @@ from flowerpose.eval.fidelity import (
 )
 from flowerpose.eval.harness import eval_config
 from flowerpose.eval.real_source import read_real_plant
-from flowerpose.pipeline.colour import petal_mask, rgb_to_hsv
+from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.flowers import PipelineConfig
 from flowerpose.sim.bundle import make_plant
 from flowerpose.sim.pieces import Part
@@ -34,8 +34,12 @@ def test_statistics_of_flowers_of_known_size_cupping_and_colour(tmp_path):
     assert stats["thickness"]["p50"] < 0.001
     assert stats["petal_colour_fail"]["p50"] < 0.02
     assert stats["leaf_petal_colour"] == 0.0
+    # These crops hold nothing behind the petal base, so the stalk cannot be judged.
+    assert stats["stalk_pistil_colour"] is None
     rows = compare(stats, stats)
-    assert all(row["holds"] for row in rows) and len(rows) == 16
+    assert len(rows) == 17
+    assert [row["statistic"] for row in rows if not row["holds"]] == [
+        "stalk points of pistil colour"]
 
 
 def test_roughness_tells_a_smooth_surface_from_a_jittered_one():
@@ -55,7 +59,7 @@ def test_the_command_compares_a_real_folder_with_a_seeded_plant(tmp_path, plant0
     real = write_real_plant(tmp_path / "real", "candidates")
     assert main(["fidelity", str(real), str(plant0[1]), "--out", str(tmp_path / "f")]) == 0
     report = json.loads((tmp_path / "f" / "fidelity.json").read_text())
-    assert report["of"] == 16 and report["synthetic"]["plants"] == [plant0[1].name]
+    assert report["of"] == 17 and report["synthetic"]["plants"] == [plant0[1].name]
     # Generated flowers are 2-3.5 cm across; these test flowers 4 cm.
     sizes = {r["statistic"]: r for r in report["comparison"]}
     assert not sizes["diameter (median)"]["holds"]
@@ -89,6 +93,10 @@ def test_the_field_preset_makes_large_flowers_and_a_paled_sheened_cloud():
     # Sheen gives some leaf points a petal's colour, as on a real photogrammetry cloud.
     assert 0.05 < petal_mask(leaves(field), PipelineConfig().colour).mean() < 0.3
     assert petal_mask(leaves(realistic), PipelineConfig().colour).mean() < 0.01
+    # The leaves yellow but the peduncles do not turn a pistil's colour (the real plant's
+    # stalks have none).
+    stalks = rgb_to_hsv(field.cloud.colors[field.point_part == Part.PEDUNCLE])
+    assert pistil_mask(stalks, PipelineConfig().colour).mean() < 0.05
 
 
 def test_the_field_preset_films_with_the_field_camera_and_keeps_polycams_density():

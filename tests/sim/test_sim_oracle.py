@@ -84,3 +84,27 @@ def test_position_noise_moves_points_by_its_std():
     noisy = sample_oracle_cloud(plant, dataclasses.replace(config, position_noise_m=0.001), views,
                                 np.random.default_rng(1))[0]
     assert np.std(noisy.points - clean.points) == pytest.approx(0.001, rel=0.05)
+
+
+def _hue_shift(delta: np.ndarray) -> np.ndarray:
+    return (delta + 180.0) % 360.0 - 180.0
+
+
+def test_the_stalks_hue_moves_apart_from_the_leaves():
+    plant = cached_plant(0, "easy")
+    views = _viewpoints(plant)
+    config = OracleCloudConfig(points=5000, color_jitter=0.0)
+    clean = sample_oracle_cloud(plant, config, views, np.random.default_rng(1))
+    moved = sample_oracle_cloud(plant, dataclasses.replace(
+        config, foliage_hue_shift_deg=-17.0, stalk_hue_shift_deg=0.0), views,
+        np.random.default_rng(1))
+    shift = _hue_shift(rgb_to_hsv(moved[0].colors)[:, 0] - rgb_to_hsv(clean[0].colors)[:, 0])
+    leaf, stalk = clean[1] == Part.LEAF, np.isin(clean[1], (Part.PEDUNCLE, Part.PETIOLE))
+    assert leaf.sum() > 100 and stalk.sum() > 20
+    assert np.median(shift[leaf]) == pytest.approx(-17.0, abs=2.0)
+    assert np.abs(np.median(shift[stalk])) < 2.0
+    # Unset, the stalks move with the leaves.
+    together = sample_oracle_cloud(plant, dataclasses.replace(
+        config, foliage_hue_shift_deg=-17.0), views, np.random.default_rng(1))
+    shift = _hue_shift(rgb_to_hsv(together[0].colors)[:, 0] - rgb_to_hsv(clean[0].colors)[:, 0])
+    assert np.median(shift[stalk]) == pytest.approx(-17.0, abs=2.0)
