@@ -6,12 +6,13 @@ height along it, R the corolla radius (`segment.corolla`). The corolla is the ri
 0.3 R <= r <= R within 0.3 R of the petal surface (h = a + b r^2 fitted to the ring); the
 centre is r < 0.3 R, from just behind the petal base to 0.3 R in front of it; the stalk is
 r < 0.6 R from 0.3 R to 1.5 R behind the petal base (sepals and peduncle, and petals that
-curl back); leaves are the points farther than 1.5 typical radii from every flower. Statistics per flower:
-points, diameter 2R, petal thickness (RMS distance of the corolla to its plane), roughness
-(the median distance of a corolla point from its 8 neighbours' plane), cupping
-b R (rim rise over radius, positive cupped up), the share of corolla points that fail the
-petal colour test and the share of the crop that is neither corolla nor centre (leaves
-and stems inside the crop); per point class, the HSV distribution. Geometry, not colour,
+curl back); leaves are the points farther than 1.5 typical radii from every flower.
+Statistics per flower: points, diameter 2R, petal thickness (RMS distance of the corolla
+to its plane), roughness (the median distance of a corolla point from its 8 neighbours'
+plane), cupping b R (rim rise over radius, positive cupped up), the share of corolla points
+that fail the petal colour test and the share of the crop that is neither corolla nor
+centre (leaves and stems inside the crop); per point class, the HSV distribution, and the
+share of stalk points of pistil colour. Geometry, not colour,
 decides the classes, so the colour tests can be judged by them.
 """
 
