@@ -11,7 +11,8 @@ from flowerpose.cloudio import Cloud
 PETAL, PISTIL, SEPAL = (235, 235, 228), (225, 190, 40), (70, 130, 45)
 
 
-def _frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane normal to `normal`."""
     helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
     u = np.cross(normal, helper)
     u /= np.linalg.norm(u)
@@ -29,7 +30,7 @@ def candidate_flowers(points_per_flower: int, seed: int = 0, flowers: int = 6,
     for k in range(flowers):
         normal = rng.normal(size=3)
         normal /= np.linalg.norm(normal)
-        u, v = _frame(normal)
+        u, v = plane_axes(normal)
         centre = np.array([0.08 * k, 0.0, 0.3])
         # Areas: the petal disc, the receptacle (a sixteenth) and the calyx behind.
         counts = np.array([0.8, 0.1, 0.1]) * points_per_flower

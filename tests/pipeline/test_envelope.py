@@ -137,3 +137,16 @@ def test_a_cloud_outside_the_envelope_is_said_so(caplog):
     with caplog.at_level(logging.WARNING, logger="flowerpose"):
         find_flowers_in_candidates(Cloud(cloud.points * 5, cloud.colors))
     assert "outside the operating envelope" in caplog.text and "cm across" in caplog.text
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_a_flower_sampled_sparser_than_its_neighbours_is_found(seed):
+    # One flower keeps 30 % of its points (seen by fewer views than the rest): its own
+    # spacing, not the other flowers', decides its coverage, within sparse_flower_ratio.
+    cloud, centres, normals = candidate_flowers(200, seed)
+    near = np.linalg.norm(cloud.points - centres[2], axis=1) < 0.03
+    dropped = near & (np.random.default_rng(seed).random(len(cloud)) > 0.3)
+    sparse = cloud.subset(np.flatnonzero(~dropped))
+    assert sorted(_matched(sparse, centres, normals)) == list(range(len(centres)))
+    capped = apply_overrides(PipelineConfig(), {"cluster": {"sparse_flower_ratio": 1}})
+    assert 2 not in _matched(sparse, centres, normals, capped)

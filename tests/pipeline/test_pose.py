@@ -1,7 +1,9 @@
+import dataclasses
 import json
 
 import numpy as np
 import pytest
+from candidate_flowers import PISTIL, candidate_flowers, plane_axes
 from scipy.spatial.transform import Rotation
 
 from flowerpose.cloudio import Cloud
@@ -245,3 +247,21 @@ def test_one_offset_pulled_far_off_is_one_vote_not_a_veto(seed):
     # Either the clip or the crop's reach alone keeps the leaves from deciding.
     for config in (PoseConfig(crop_reach=None), PoseConfig(offset_clip=None)):
         assert angle_deg(estimate_pose(crowded, config).normals["plane"], normal) < 5.0
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_stalk_joined_to_the_pistil_does_not_flip_the_normal(seed):
+    # A yellowish stalk running from the receptacle out and back behind the petals, in one
+    # pistil cluster with it and outnumbering it: the pistil's core orients the flower.
+    cloud, centres, normals = candidate_flowers(400, seed, flowers=1)
+    normal, radius = normals[0], 0.022
+    across = plane_axes(normal)[0]
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(0, 1, 60)
+    stalk = (centres[0] - 0.002 * normal + np.outer(radius * (0.2 + 0.8 * t), across)
+             - np.outer(0.5 * radius * t, normal) + rng.normal(0, 3e-4, (60, 3)))
+    crop = Cloud(np.vstack([cloud.points, stalk]),
+                 np.vstack([cloud.colors, np.tile(PISTIL, (60, 1))]).astype(np.uint8))
+    for core, facing in ((0.3, 1.0), (None, -1.0)):
+        pose = estimate_pose(crop, dataclasses.replace(PoseConfig(), pistil_core=core))
+        assert pose.normals["plane"] @ normal == pytest.approx(facing, abs=0.01)
