@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from flowerpose.atomic import write_text
 from flowerpose.cloudio import read_cloud
-from flowerpose.config import apply_overrides, load_preset, require, to_dict
+from flowerpose.config import apply_overrides, load_preset, require, settings_toml, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.kinds import SOURCES, TASKS
@@ -320,6 +321,7 @@ def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: in
         report["summary"]["pollination_ceiling"] = summarise_pollination(
             [e["pollination_ceiling"] for e in entries])
     write_report(out_dir, report, title)
+    write_text(out_dir / RUN_CONFIG, settings_toml(run_config, RUN_CONFIG_HEADER))
     write_html_report(out_dir / "report.html", title, report,
                       _plant_views(jobs, config, out_dir, source))
     return report
@@ -523,13 +525,19 @@ def _unique(names: list[str]) -> list[str]:
     return unique
 
 
+#: The run's settings as a --config file, beside its report.
+RUN_CONFIG = "config.toml"
+RUN_CONFIG_HEADER = ("flowerpose eval: the settings of the run beside this file (report.json's "
+                     "config).\nflowerpose eval --config config.toml --out DIR runs it again.")
+
+
 def eval_outputs(source: str, folders: Iterable[Path] = (), compared: Iterable[str] = ()
                  ) -> tuple[str, ...]:
     """The top-level entries `run_eval` writes (`outputs.OutputFolder`): the reports, the
     plants (a real plant under its folder's name) and a folder per compared profile or
     method."""
     plants = real_names(folders) if source == "real" else ["plants"]
-    return (*REPORT_FILES, "report.html", "pollination.png", *plants, *compared)
+    return (*REPORT_FILES, RUN_CONFIG, "report.html", "pollination.png", *plants, *compared)
 
 
 def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,

@@ -301,27 +301,10 @@ CHOICE_RULE = ("the chosen trial: among the training front, the highest validati
 
 def best_toml(settings: dict) -> str:
     """A trial's settings as a --config file: one table per section."""
-    sections: dict[str, dict] = {}
-    for key, value in settings.items():
-        section, _, name = key.rpartition(".")
-        sections.setdefault(section, {})[name] = value
-    lines = ["# flowerpose tune: the chosen trial's settings (flowerpose eval --config FILE)"]
-    for section, values in sections.items():
-        lines.append(f"\n[{section}]" if section else "")
-        lines += [f"{name} = {_toml_value(v)}" for name, v in values.items()]
-    return "\n".join(lines) + "\n"
+    from flowerpose.config import settings_toml
 
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if value is None:
-        return '"none"'
-    return json.dumps(str(value))
+    return settings_toml(settings, "flowerpose tune: the chosen trial's settings "
+                         "(flowerpose eval --config FILE)")
 
 
 def _cell(scores: dict | None, key: str) -> str:

@@ -36,7 +36,10 @@ SCAN_PLANTS = 2
 
 
 #: eval's source, preset and first seed when neither the command line nor a suite says.
-EVAL_DEFAULTS = {"source": "scan", "preset": "realistic", "seed": 0}
+EVAL_DEFAULTS = {"source": "scan", "preset": "realistic", "seed": 0, "task": "pose"}
+#: What a report's config (and so its config.toml) records of the run beside the settings,
+#: which `eval --config` takes as the run's own where the command line does not say.
+EVAL_RUN_KEYS = ("source", "folders", "plants", "seed", "task")
 
 
 def _default_out() -> Path:
@@ -47,6 +50,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_config, run_eval
 
     suite = _apply_suite(args) if args.suite else None
+    _run_from_config(args)
     for key, default in EVAL_DEFAULTS.items():
         if getattr(args, key) is None:
             setattr(args, key, default)
@@ -63,7 +67,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for path, flag in ((args.junit, "--junit"), (args.summary, "--summary")):
         if path is not None:
             check_writable(path, flag)
-    config = eval_config(args.preset, lambda base: configure(base, args))
+    config = eval_config(args.preset,
+                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
     from flowerpose.pipeline.detect import make_detector
 
     make_detector(config.detect, config.colour)  # one that cannot load says so before any work
@@ -115,6 +120,38 @@ def cmd_eval(args: argparse.Namespace) -> int:
             print(line)
     print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'report.html'}")
     return _gates(report, requirements, args) if requirements else 0
+
+
+def _run_from_config(args: argparse.Namespace) -> None:
+    """A --config file's run keys (`EVAL_RUN_KEYS`, as a report's config.toml holds them)
+    taken as this run's where the command line leaves them out; each checked as its flag
+    is, the error naming the file."""
+    if args.config is None:
+        return
+    from flowerpose.config import load_toml
+
+    where = args.config
+    for key, value in load_toml(where).items():
+        if key not in EVAL_RUN_KEYS or getattr(args, key) not in (None, []):
+            continue
+        if key in ("source", "task"):
+            choices = SOURCES if key == "source" else TASKS
+            if value not in choices:
+                raise InputError(where, f"{key}: must be one of {', '.join(choices)}, got "
+                                 f"{value!r}")
+        elif key in ("plants", "seed"):
+            if not isinstance(value, int) or isinstance(value, bool) or value < (
+                    1 if key == "plants" else 0):
+                raise InputError(where, f"{key}: must be a whole number, at least "
+                                 f"{1 if key == 'plants' else 0}, got {value!r}")
+        else:
+            paths = [entry.get("folder") if isinstance(entry, dict) else entry
+                     for entry in (value if isinstance(value, list) else [value])]
+            if not all(isinstance(path, str) for path in paths):
+                raise InputError(where, "folders: must be a list of folder paths (or of "
+                                 "tables with a folder, as a report records them)")
+            value = [Path(path) for path in paths]
+        setattr(args, key, value)
 
 
 def _apply_suite(args: argparse.Namespace) -> dict:
@@ -210,11 +247,11 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
                    "{out} (a folder to write flowers.json into), e.g. "
                    "mine='python detect.py {cloud} {out}', or NAME alone for a method an "
                    "installed package registers (repeatable; default: none)")
-    p.add_argument("--task", choices=TASKS, default="pose",
+    p.add_argument("--task", choices=TASKS, default=None,
                    help="pose: score the flower poses (Table I); pollinate: also plan, fly "
                    "and score a pollinator visit to each synthetic flower, from the "
                    "estimated poses and from the true ones (summary.pollination; "
-                   "pollination.png) (default: %(default)s)")
+                   f"pollination.png) (default: {EVAL_DEFAULTS['task']})")
     p.add_argument("--method-timeout", type=positive_number, default=600.0, metavar="S",
                    help="seconds an external method may take on one plant (default: "
                    "%(default)g)")
@@ -244,7 +281,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
-    config = eval_config(args.preset, lambda base: configure(base, args))
+    config = eval_config(args.preset,
+                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
     grid = parse_grid(args.grid, config)
     cache = stage_cache(args)
     writes = sweep_outputs(grid, args.source, args.folders)
@@ -441,7 +479,8 @@ def cmd_stress(args: argparse.Namespace) -> int:
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
-    config = eval_config(args.preset, lambda base: configure(base, args))
+    config = eval_config(args.preset,
+                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
     levels = {kind: getattr(args, kind) if getattr(args, kind) is not None
               else list(DEFAULT_LEVELS[kind]) for kind in DEFAULT_LEVELS}
     if args.source == "real":

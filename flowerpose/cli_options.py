@@ -220,12 +220,16 @@ def starting_config(where: str) -> Callable[[], Any]:
 
 
 def configure(base: Any, args: argparse.Namespace, flags: bool = True,
-              reads: tuple[str, ...] | None = None, command: str = "") -> Any:
+              reads: tuple[str, ...] | None = None, command: str = "",
+              run_keys: tuple[str, ...] = ()) -> Any:
     """`base` with the --profile, then the --config file, then the settings' flags
     (`flags`), then each --set, applied; renamed keys (`config.RENAMED_SETTINGS`, and the
     command's own, `RENAMED_ATTRIBUTE`) are taken under their new names, with a warning.
     `reads`: the sections ("pose") and keys ("scan.width") `command` reads; a --config or
-    --set key outside them is refused in one line, since it would be silently ignored."""
+    --set key outside them is refused in one line, since it would be silently ignored.
+    `run_keys`: a --config file's top-level keys that are the command's own arguments
+    (eval's source, plants, seed, as a report's config records them), taken by the command
+    itself, not as settings."""
     from flowerpose.cli_flags import given_settings
     from flowerpose.config import (
         RENAMED_SETTINGS,
@@ -242,8 +246,10 @@ def configure(base: Any, args: argparse.Namespace, flags: bool = True,
     if getattr(args, "profile", None) is not None:
         config = apply_overrides(config, load_profile(args.profile))
     if args.config is not None:
-        config = apply_overrides(config, _read_only(renamed(load_toml(args.config), renames),
-                                                    reads, command, str(args.config), base))
+        settings = {key: value for key, value in load_toml(args.config).items()
+                    if key not in run_keys}
+        config = apply_overrides(config, _read_only(renamed(settings, renames), reads,
+                                                    command, str(args.config), base))
     detector = getattr(args, "detector", None)
     sets = _read_only(renamed(parse_set_options(args.set), renames), reads, command, "--set",
                       base)

@@ -211,6 +211,38 @@ def _dotted(overrides: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def settings_toml(settings: dict[str, Any], header: str) -> str:
+    """Settings (nested sections or dotted keys) as a --config file: `header` as a comment,
+    top-level keys first, then one table per section; None is written "none", which every
+    setting that takes None reads back as None."""
+    sections: dict[str, dict[str, Any]] = {}
+    for key, value in _dotted(settings).items():
+        section, _, name = key.rpartition(".")
+        sections.setdefault(section, {})[name] = value
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+    for section in sorted(sections, key=lambda name: name != ""):
+        lines.append(f"\n[{section}]" if section else "")
+        lines += [f"{name} = {_toml_value(value)}" for name, value in sections[section].items()]
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(value: Any) -> str:
+    import json
+
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(str(k))} = {_toml_value(v)}"
+                               for k, v in value.items()) + "}"
+    if value is None:
+        return '"none"'
+    return json.dumps(str(value))
+
+
 def parse_set_options(items: list[str]) -> dict[str, str]:
     """`["cluster.eps=0.008", ...]` to `{"cluster.eps": "0.008"}`."""
     out: dict[str, str] = {}
