@@ -72,7 +72,13 @@ from flowerpose.hardware.geometry import (
     farmbot_mm_to_bed,
 )
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
-from flowerpose.hardware.motion import MotionProfile, move_duration, move_trajectory
+from flowerpose.hardware.motion import (
+    FIRMWARE_PARAMETERS,
+    MotionProfile,
+    move_duration,
+    move_trajectory,
+)
+from flowerpose.hardware.protocol import PARAMETERS
 from flowerpose.log import LOG
 
 DEFAULT_SERVER = "https://my.farm.bot"
@@ -80,17 +86,10 @@ ENV_TOKEN, ENV_EMAIL, ENV_PASSWORD, ENV_SERVER = ("FARMBOT_TOKEN", "FARMBOT_EMAI
                                                   "FARMBOT_PASSWORD", "FARMBOT_SERVER")
 _REPOSITORY = Path(__file__).resolve().parents[1]
 
-# Firmware parameter ids (motion.py) and their names in FarmBot OS's status tree, mcu_params.
-_MCU_PARAMETERS = {
-    11: "movement_timeout_x", 12: "movement_timeout_y", 13: "movement_timeout_z",
-    41: "movement_steps_acc_dec_x", 42: "movement_steps_acc_dec_y",
-    43: "movement_steps_acc_dec_z", 44: "movement_steps_acc_dec_z2",
-    55: "movement_step_per_mm_x", 56: "movement_step_per_mm_y", 57: "movement_step_per_mm_z",
-    61: "movement_min_spd_x", 62: "movement_min_spd_y", 63: "movement_min_spd_z",
-    64: "movement_min_spd_z2",
-    71: "movement_max_spd_x", 72: "movement_max_spd_y", 73: "movement_max_spd_z",
-    74: "movement_max_spd_z2",
-}
+# The firmware parameters the motion model reads (motion.py), by their names in FarmBot OS's
+# status tree, mcu_params.
+_MCU_PARAMETERS = {pid: PARAMETERS[pid]
+                   for ids in FIRMWARE_PARAMETERS.values() for pid in ids}
 
 
 class CloudCommandError(BotError):

@@ -52,6 +52,7 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot_errors import OutOfRangeError
+from flowerpose.hardware.protocol import FIRMWARE_DEFAULTS
 
 # Firmware parameter ids per settings set: (steps/mm, max speed, min speed, ramp, timeout).
 # "z_home" is Z moving toward home (up): its own speeds and ramp, Z's steps/mm and timeout.
@@ -61,8 +62,10 @@ FIRMWARE_PARAMETERS = {
     "z": (57, 73, 63, 43, 13),
     "z_home": (57, 74, 64, 44, 13),
 }
-# The firmware's defaults (Config.h); X and Y belts at 5 steps/mm, the Z lead screw at 25.
-DEFAULT_STEPS_PER_MM = {"x": 5.0, "y": 5.0, "z": 25.0, "z_home": 25.0}
+# The firmware's defaults (`protocol.FIRMWARE_DEFAULTS`); X and Y belts at 5 steps/mm, the
+# Z lead screw at 25.
+DEFAULT_STEPS_PER_MM = {name: float(FIRMWARE_DEFAULTS[ids[0]])
+                        for name, ids in FIRMWARE_PARAMETERS.items()}
 _FIELDS = ("steps_per_mm", "max_speed", "min_speed", "ramp_steps", "timeout_s")
 
 
@@ -87,10 +90,10 @@ class AxisMotion:
     """
 
     steps_per_mm: float
-    max_speed: float = 400.0
-    min_speed: float = 50.0
-    ramp_steps: float = 300.0
-    timeout_s: float = 120.0
+    max_speed: float = float(FIRMWARE_DEFAULTS[71])
+    min_speed: float = float(FIRMWARE_DEFAULTS[61])
+    ramp_steps: float = float(FIRMWARE_DEFAULTS[41])
+    timeout_s: float = float(FIRMWARE_DEFAULTS[11])
 
     def __post_init__(self):
         for name in _FIELDS:

@@ -1,6 +1,7 @@
 """The Farmduino firmware's protocol facts, one owner for them: the startup banner, the
 replies that end a command, the servo pins, and the parameters (ids, the names FarmBot OS
-and the web app give them, and the bot's own settings as the web app exports them).
+and the web app give them, the firmware's defaults, and the bot's own settings as the web
+app exports them).
 
 The table is farmbot-arduino-firmware 6.x's (its README, "Arduino parameter numbers"), with
 FarmBot OS's names (`FarmbotFirmware.Param`), which are the keys of the web app's firmware
@@ -85,6 +86,20 @@ PARAMETERS: dict[int, str] = {
 }
 """Firmware parameter id -> FarmBot OS / web app name."""
 IDS: dict[str, int] = {name: pid for pid, name in PARAMETERS.items()}
+
+FIRMWARE_DEFAULTS: dict[int, float] = {
+    2: 0, 3: 0, 5: 3,                # configuration approved, use EEPROM, movement retries
+    11: 120, 12: 120, 13: 120,       # move timeouts, seconds
+    41: 300, 42: 300, 43: 300, 44: 300,  # ramp length, steps (44: Z toward home)
+    55: 5, 56: 5, 57: 25,            # steps per millimetre: X and Y belts, the Z lead screw
+    61: 50, 62: 50, 63: 50, 64: 50,  # minimum speed, steps/s
+    71: 400, 72: 400, 73: 400, 74: 400,  # maximum speed, steps/s
+    141: 0, 142: 0, 143: 0,          # axis lengths, steps (0: not measured)
+    25: 0, 26: 0, 27: 0,             # endstops off
+    101: 0, 102: 0, 103: 0,          # encoders off: such a board cannot find home
+}
+"""The firmware's defaults (its Config.h) of the parameters flowerpose reads or models: what
+a board runs on after a reset unless its EEPROM holds others."""
 
 ENDSTOPS = {"x": 25, "y": 26, "z": 27}
 """Per axis, the parameter that enables its endstops (1: on)."""

@@ -95,7 +95,14 @@ from flowerpose.hardware.motion import (
     axis_motions,
     move_trajectory,
 )
-from flowerpose.hardware.protocol import BANNER, ENCODERS, ENDSTOPS, PARAMETERS, SERVO_PINS
+from flowerpose.hardware.protocol import (
+    BANNER,
+    ENCODERS,
+    ENDSTOPS,
+    FIRMWARE_DEFAULTS,
+    PARAMETERS,
+    SERVO_PINS,
+)
 
 FIRMWARE_VERSION = "6.6.23.V.virtual"
 REPORT_PERIOD_S = 0.5
@@ -121,15 +128,7 @@ INPUT_LIMIT = 100
 
 DEFAULT_PARAMETERS: dict[int, float] = {
     **dict.fromkeys(PARAMETERS, 0.0),  # every parameter the firmware knows; unmodelled: 0
-    2: 0, 3: 0, 5: 3,                # configuration approved, use EEPROM, movement retries
-    11: 120, 12: 120, 13: 120,       # move timeouts, seconds
-    41: 300, 42: 300, 43: 300, 44: 300,  # ramp length, steps (44: Z toward home)
-    55: 5, 56: 5, 57: 25,            # steps per millimetre
-    61: 50, 62: 50, 63: 50, 64: 50,  # minimum speed, steps/s
-    71: 400, 72: 400, 73: 400, 74: 400,  # maximum speed, steps/s
-    141: 0, 142: 0, 143: 0,          # axis lengths, steps (0: not measured)
-    25: 0, 26: 0, 27: 0,             # endstops off
-    101: 0, 102: 0, 103: 0,          # encoders off: such a board cannot find home
+    **FIRMWARE_DEFAULTS,
 }
 """The firmware's defaults (Config.h) of the parameters modelled here; the others are known
 (F21 reads them, F22 writes them) at 0."""
