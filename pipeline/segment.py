@@ -18,6 +18,7 @@ from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.log import open3d
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
+from flowerpose.pipeline.envelope import POINTS_PER_FLOWER
 from flowerpose.pipeline.fit import principal_axes
 from flowerpose.pipeline.limits import (
     Density,
@@ -128,21 +129,23 @@ class ClusterConfig:
     sparse_flower_ratio: float = 2.0
     """A corolla's coverage counts each of its points for the area it stands for by its own
     spacing, but at most this many times the area a point of the cloud's flowers stands
-    for where it has a pistil (once, where it has none): a few flower-coloured points far
-    apart are a speck, not a sparsely sampled flower. Flowers of one cloud are sampled
-    unevenly: a flower seen by one view keeps a tenth of its points when each view's
-    candidates are thinned to a tenth, one seen by three about a quarter, and the k-nearest
-    estimate of a flower of 40-60 points is inflated by its rim. On the authors' plant 3
-    the labelled flowers' own spacing is 0.74-1.26 times the cloud's at full density and
-    0.61-3.05 times at 10 %, where three of them (coverage 0.25-0.31 at 1) were lost.
-    Measured (`flowerpose stress`, 3 seeded repeats; 1 -> 2, with `pose.pistil_core`):
-    thinned to 20 % 30 -> 32 of 33 found, 0 -> 1 false positive (a flower found twice),
-    plane 7.53 -> 7.84 degrees; 10 % 28 -> 33, 1 -> 1 false positive, 0 -> 1 flipped normal
-    (a flower of 38 points whose pistil-coloured stalk outnumbers its pistil), 7.13 ->
-    13.02; 5 % and full density unchanged; oracle, hard and field presets (10 plants;
-    field also fixed at 111 and 882 points a flower) unchanged. Capped for corollas
-    without a pistil too, the field preset at 111 points gained 2 false positives (sheen).
-    1: the cloud's spacing caps every corolla."""
+    for where it has a pistil and at least the operating envelope's fewest points a flower
+    (`envelope.POINTS_PER_FLOWER`, 50), and at most as much otherwise: a few
+    flower-coloured points far apart are a speck, not a sparsely sampled flower, and below
+    the envelope the two cannot be told apart. Flowers of one cloud are sampled unevenly: a
+    flower seen by one view keeps a tenth of its points when each view's candidates are
+    thinned to a tenth, one seen by three about a quarter, and the k-nearest estimate of a
+    flower of 40-60 points is inflated by its rim. On the authors' plant 3 the labelled
+    flowers' own spacing is 0.74-1.26 times the cloud's at full density and 0.61-3.05 times
+    at 10 %, where three of them (coverage 0.25-0.31 at 1) were lost. Measured (`flowerpose
+    stress`, 3 seeded repeats; 1 -> 2, with `pose.pistil_core`): thinned to 20 % 30 -> 32
+    of 33 found, no false positive, plane 7.53 -> 7.77 degrees; 10 % 28 -> 31, 1 false
+    positive either way, 7.13 -> 7.87, no flipped normal; 5 % and full density unchanged;
+    the oracle, hard and field presets (10 plants; field also fixed at 111 and 882 points a
+    flower) unchanged. Without the envelope's bound, 10 % found 33 but turned a flower of
+    38 points over (its stalk's 3 pistil-coloured points outnumber its receptacle's 2) and
+    20 % found a flower twice; without the pistil's condition, the field preset at 111
+    points gained 2 false positives (sheen). 1: the cloud's spacing caps every corolla."""
     reach_ratio: float = 1.5
     """A flower's part that spans more than the typical flower (a flower among sheened
     leaves of petal colour, or touching a pale leaf) keeps only what lies within this many
@@ -452,8 +455,8 @@ def corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,
     spanned = float(np.percentile(distance, 90))
     area = area_per_point(points)
     if cloud_area is not None:
-        area = min(area, (config.sparse_flower_ratio if chosen is not None else 1.0)
-                   * cloud_area)
+        sampled = chosen is not None and len(points) >= POINTS_PER_FLOWER[0]
+        area = min(area, (config.sparse_flower_ratio if sampled else 1.0) * cloud_area)
     coverage = len(petal_points) * area / (np.pi * spanned ** 2) if spanned > 0 else 0.0
     return Corolla(anchor, chosen is not None, disc_radius(distance), coverage)
 

@@ -139,14 +139,22 @@ def test_a_cloud_outside_the_envelope_is_said_so(caplog):
     assert "outside the operating envelope" in caplog.text and "cm across" in caplog.text
 
 
-@pytest.mark.parametrize("seed", [2, 3])
-def test_a_flower_sampled_sparser_than_its_neighbours_is_found(seed):
-    # One flower keeps 30 % of its points (seen by fewer views than the rest): its own
-    # spacing, not the other flowers', decides its coverage, within sparse_flower_ratio.
-    cloud, centres, normals = candidate_flowers(200, seed)
+def _one_thinned(points: int, seed: int, keep: float):
+    """Candidate flowers with flower 2 keeping `keep` of its points (seen by fewer views)."""
+    cloud, centres, normals = candidate_flowers(points, seed)
     near = np.linalg.norm(cloud.points - centres[2], axis=1) < 0.03
-    dropped = near & (np.random.default_rng(seed).random(len(cloud)) > 0.3)
-    sparse = cloud.subset(np.flatnonzero(~dropped))
+    dropped = near & (np.random.default_rng(seed).random(len(cloud)) > keep)
+    return cloud.subset(np.flatnonzero(~dropped)), centres, normals
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_flower_sampled_sparser_than_its_neighbours_is_found(seed):
+    # Its own spacing, not the other flowers', decides its coverage, within
+    # sparse_flower_ratio, while it has the envelope's 50 points.
+    sparse, centres, normals = _one_thinned(400, seed, 0.4)
     assert sorted(_matched(sparse, centres, normals)) == list(range(len(centres)))
     capped = apply_overrides(PipelineConfig(), {"cluster": {"sparse_flower_ratio": 1}})
     assert 2 not in _matched(sparse, centres, normals, capped)
+    # Below the envelope, a few scattered points are held to the cloud's spacing.
+    below, centres, normals = _one_thinned(200, 2, 0.3)
+    assert 2 not in _matched(below, centres, normals)
