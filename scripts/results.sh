@@ -15,7 +15,7 @@ $flowerpose eval --suite field-10 --out runs/field-10 -q
 $flowerpose eval --source real "$real" --compare upstream --out runs/real3 -q
 $flowerpose stress --source real "$real" --thin 0.5,0.2,0.1,0.05 --repeats 3 --drop-views 3 \
     --out runs/stress-real3 -q
-$flowerpose bench --points 125000 1000000 --out runs/bench -q
+$flowerpose bench --points 125000 1000000 --repeat 7 --out runs/bench -q
 $flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
     --set 'pollination.curve_angles_deg=[0, 15, 30, 45, 55, 65, 75]' --out runs/pollinate-10 -q
 $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --seed 0 \
