@@ -306,7 +306,8 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
 def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndarray,
               config: PoseConfig, colours: CropColours, up: np.ndarray | None) -> np.ndarray:
     """The plane axis signed by the sum of three offsets along it (the cloud's unit): the
-    pistil above the petal surface extended to it, the pistil above the crop's centroid,
+    pistil (its core, `pistil_core`) above the petal surface extended to it, the pistil
+    above the crop's centroid,
     and the petals above the sepals and stems near the flower (support colours within
     `support_reach` corolla radii of the pistil across the axis and along it; left out
     when fewer than `support_min_points`), each clipped to `offset_clip` corolla radii;
