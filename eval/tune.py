@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from flowerpose.atomic import write_text
-from flowerpose.config import apply_overrides, load_profile, load_toml
+from flowerpose.config import apply_overrides, load_profile, load_toml, settings_toml
 from flowerpose.errors import InputError
 from flowerpose.eval.plant_sets import PlantSet, SetScorer
 from flowerpose.eval.report import markdown_table, run_record, summarise
@@ -301,8 +301,6 @@ CHOICE_RULE = ("the chosen trial: among the training front, the highest validati
 
 def best_toml(settings: dict) -> str:
     """A trial's settings as a --config file: one table per section."""
-    from flowerpose.config import settings_toml
-
     return settings_toml(settings, "flowerpose tune: the chosen trial's settings "
                          "(flowerpose eval --config FILE)")
 

@@ -10,6 +10,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import json
 import textwrap
 import tomllib
 import typing
@@ -227,8 +228,6 @@ def settings_toml(settings: dict[str, Any], header: str) -> str:
 
 
 def _toml_value(value: Any) -> str:
-    import json
-
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int | float):
