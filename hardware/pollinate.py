@@ -589,7 +589,9 @@ def _moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry) -> lis
         moves.extend(Move("descend", visit.flower, p) for p in visit.path or [visit.pre])
         moves.extend(Move("approach", visit.flower, step) for step in visit.approach_moves)
         moves.append(Move("dwell", visit.flower, visit.touch))
-        moves.append(Move("retreat", visit.flower, visit.pre))
+        # Out the way it went in, move for move: one long diagonal move would bend.
+        moves.extend(Move("retreat", visit.flower, step)
+                     for step in [*visit.approach_moves[-2::-1], visit.pre])
         if visit.path:  # back up the way it came
             moves.extend(Move("climb", visit.flower, p) for p in [*visit.path[-2::-1], top])
     if visits:

@@ -75,6 +75,10 @@ def test_an_open_flower_facing_up_is_touched_along_its_axis_on_a_straight_path()
         assert bend <= PollinateConfig().straight_within_m + 1e-9
     assert [m.kind for m in plan.moves][:3] == ["lift", "travel", "descend"]
     assert plan.moves[-2].kind == "retreat" and plan.duration_s > 0
+    # It goes back out the same way, move for move, so it bends no more than going in.
+    retreat = [m.pose.gantry for m in plan.moves if m.kind == "retreat"]
+    assert len(visit.approach_moves) > 1
+    assert np.allclose(retreat, ends[-2::-1])
 
 
 def test_a_flower_facing_the_bed_is_unreachable_naming_the_servo():
