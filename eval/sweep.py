@@ -15,7 +15,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from flowerpose.atomic import write_figure, write_text
-from flowerpose.config import apply_overrides, value_at
+from flowerpose.config import apply_overrides, current_name, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.harness import (
     EvalConfig,
@@ -45,12 +45,12 @@ def parse_grid(items: list[str], config: EvalConfig) -> list[tuple[str, list[str
         choices = [v.strip() for v in values.split(",") if v.strip()]
         if not sep or not key.strip() or not choices:
             raise InputError("grid", f"expected key=v1,v2,..., got {item!r}")
-        if key.strip() in (k for k, _ in grid):
-            raise InputError("grid", f"{key.strip()} is given twice; put all its values in "
-                             "one --grid")
+        key = current_name(key.strip())
+        if key in (k for k, _ in grid):
+            raise InputError("grid", f"{key} is given twice; put all its values in one --grid")
         for value in choices:
-            apply_overrides(config, {key.strip(): value})
-        grid.append((key.strip(), choices))
+            apply_overrides(config, {key: value})
+        grid.append((key, choices))
     return grid
 
 

@@ -27,7 +27,13 @@ from pathlib import Path
 from typing import Any
 
 from flowerpose.atomic import write_text
-from flowerpose.config import apply_overrides, load_profile, load_toml, settings_toml
+from flowerpose.config import (
+    apply_overrides,
+    load_profile,
+    load_toml,
+    renamed,
+    settings_toml,
+)
 from flowerpose.errors import InputError
 from flowerpose.eval.plant_sets import PlantSet, SetScorer
 from flowerpose.eval.report import markdown_table, run_record, summarise
@@ -72,7 +78,8 @@ class TuneSpec:
 
 
 def user_overrides(profile: str | None, config_file: Path | None, sets: dict) -> tuple[dict, ...]:
-    """The user's settings in the order they apply: the profile, the file, each --set."""
+    """The user's settings in the order they apply: the profile, the file, each --set,
+    each as dotted keys under their current names (`config.renamed`)."""
     layers = []
     if profile is not None:
         layers.append(load_profile(profile))
@@ -80,7 +87,7 @@ def user_overrides(profile: str | None, config_file: Path | None, sets: dict) ->
         layers.append(load_toml(config_file))
     if sets:
         layers.append(sets)
-    return tuple(layers)
+    return tuple(renamed(layer) for layer in layers)
 
 
 def study_name(spec_space: tuple[Param, ...], train: tuple[PlantSet, ...],

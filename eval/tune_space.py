@@ -20,12 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from flowerpose.config import apply_overrides, load_toml, value_at
+from flowerpose.config import apply_overrides, current_name, load_toml, value_at
 from flowerpose.errors import InputError
-
-#: Setting keys renamed since studies were first made: old key -> new key. A space, a
-#: study or a best.toml naming an old key is read under the new one, with a note.
-RENAMED: dict[str, str] = {}
 
 #: Keys a space entry may have.
 _ENTRY_KEYS = {"low", "high", "log", "int", "choices"}
@@ -56,16 +52,6 @@ class Param:
         return {"low": self.low, "high": self.high, "log": self.log, "int": self.integer}
 
 
-def current_key(key: str, where: str | Path) -> str:
-    """A setting key under its current name (`RENAMED`)."""
-    if key in RENAMED:
-        from flowerpose.log import LOG
-
-        LOG.warning(f"note: {where}: {key} is now {RENAMED[key]}; read as that")
-        return RENAMED[key]
-    return key
-
-
 def read_space(path: Path, config: Any) -> list[Param]:
     """The space in SPACE.toml, checked against `config` (an EvalConfig); InputError naming
     the file and the key for anything a trial could not run with."""
@@ -74,7 +60,7 @@ def read_space(path: Path, config: Any) -> list[Param]:
         raise InputError(path, "the space is empty: give at least one setting to search")
     params = []
     for raw_key, entry in _flat(data).items():
-        key = current_key(raw_key, path)
+        key = current_name(raw_key)
         where = f"{path}: {key}"
         if not isinstance(entry, dict) or not entry or set(entry) - _ENTRY_KEYS:
             raise InputError(path, f"{key}: expected {{ low = ..., high = ... }} or "

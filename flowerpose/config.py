@@ -183,23 +183,28 @@ RENAMED_SETTINGS = {
 }
 
 
-def renamed(overrides: dict[str, Any], renames: dict[str, str]) -> dict[str, Any]:
-    """`overrides` (dotted keys, or nested tables from TOML) as dotted keys, each key that
-    was renamed (`renames`, {old: new}; "KEY.*" for every key under KEY) under its new
-    name, with a warning that names the new one: an old key keeps working for a version."""
+def renamed(overrides: dict[str, Any],
+            renames: dict[str, str] = RENAMED_SETTINGS) -> dict[str, Any]:
+    """`overrides` (dotted keys, or nested tables from TOML) as dotted keys, each under its
+    current name (`current_name`)."""
+    return {current_name(key, renames): value for key, value in _dotted(overrides).items()}
+
+
+def current_name(key: str, renames: dict[str, str] = RENAMED_SETTINGS) -> str:
+    """A dotted setting key under its current name: a renamed one (`renames`, {old: new};
+    "KEY.*" for every key under KEY) under its new name, with a warning that names it, so
+    an old key keeps working for a version."""
     from flowerpose.log import LOG
 
-    out: dict[str, Any] = {}
-    for key, value in _dotted(overrides).items():
-        new = renames.get(key)
-        for old, replacement in renames.items():
-            if new is None and old.endswith(".*") and key.startswith(old[:-1]):
-                new = replacement[:-1] + key[len(old) - 1:]
-        if new is not None:
-            LOG.warning(f"warning: the setting {key} is now {new}; the old name works until "
-                        "the next version")
-        out[new or key] = value
-    return out
+    new = renames.get(key)
+    for old, replacement in renames.items():
+        if new is None and old.endswith(".*") and key.startswith(old[:-1]):
+            new = replacement[:-1] + key[len(old) - 1:]
+    if new is None:
+        return key
+    LOG.warning(f"warning: the setting {key} is now {new}; the old name works until the "
+                "next version")
+    return new
 
 
 def _dotted(overrides: dict[str, Any], prefix: str = "") -> dict[str, Any]:

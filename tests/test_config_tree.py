@@ -55,3 +55,18 @@ def test_a_key_a_command_does_not_read_or_a_bad_value_is_one_line_naming_the_ful
     err = capsys.readouterr().err
     assert words in err and len(err.strip().splitlines()) == 1
     assert not any(tmp_path.iterdir())
+
+
+def test_sweep_grids_tune_sets_and_tune_spaces_take_renamed_keys_too(tmp_path, capsys):
+    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.eval.sweep import parse_grid
+    from flowerpose.eval.tune import user_overrides
+    from flowerpose.eval.tune_space import read_space
+
+    assert parse_grid(["scan.frames=40,50"], EvalConfig()) == [("scan.frames.count",
+                                                                 ["40", "50"])]
+    assert user_overrides(None, None, {"scan.frames": 50}) == ({"scan.frames.count": 50},)
+    space = tmp_path / "space.toml"
+    space.write_text("[scan.frames]\nlow = 40\nhigh = 60\nint = true\n")
+    assert [p.key for p in read_space(space, EvalConfig())] == ["scan.frames.count"]
+    assert capsys.readouterr().err.count("the setting scan.frames is now scan.frames.count") == 3
