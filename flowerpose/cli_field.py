@@ -450,7 +450,7 @@ def add_farmduino(sub: argparse._SubParsersAction) -> None:
     """The `farmduino` subcommand's parser."""
     p = sub.add_parser(
         "farmduino", help="serve a virtual Farmduino and print its device path (--virtual)",
-        description="Serve a virtual Farmduino (FarmBot's firmware protocol over the MuJoCo "
+        description="Serve a virtual Farmduino (FarmBot's firmware protocol over a simulated "
         "gantry) on a pseudo-terminal and print its device path, for any serial client, "
         "until Ctrl-C.",
         epilog="example:\n  flowerpose farmduino --virtual --time-scale 10")

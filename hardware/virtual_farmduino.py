@@ -1,4 +1,4 @@
-"""A virtual Farmduino: FarmBot's firmware protocol on a pseudo-terminal, over the MuJoCo gantry.
+"""A virtual Farmduino: FarmBot's firmware protocol on a pseudo-terminal, over a simulated gantry.
 
 `VirtualFarmduino` answers on a real device path that pyserial opens (`os.openpty`), and
 keeps a stable symlink to it (`path`, like /dev/serial/by-id) that survives a simulated
@@ -46,10 +46,11 @@ reconnect. It behaves as farmbot-arduino-firmware 6.6 does (docs/guides/physical
   real calibration loop does), F31 / F32 (a status value: `R31 P.. V0`).
 - Moves follow FarmBot's motion profile (`motion.py`) with the device's own parameters,
   in whole motor steps; an axis still moving after its timeout (parameters 11-13) stops
-  the move with `R03 V2`. The gantry joints of the MuJoCo model (assets/farmbot/scene.xml)
-  are set along the profile as simulated time passes, and `R82` reports them (in the
-  firmware's counts: millimetres from where the board last started or homed); pins 6 and
-  5 drive the yaw and pitch joints.
+  the move with `R03 V2`. The board keeps the gantry's joints (`joints`, as the MuJoCo
+  model's: assets/farmbot/farmbot.xml, over `geometry.PAPER_BOT`'s travel) along the
+  profile as simulated time passes, and `R82` reports them (in the firmware's counts:
+  millimetres from where the board last started or homed); pins 6 and 5 drive the yaw and
+  pitch joints. It needs only numpy: a simulated bot sets its MuJoCo model from `joints`.
 
 Simulated time runs `time_scale` times faster than the wall clock (1 for a bench test with
 a person, large for tests and simulated scans); periodic reports and the boot time are
@@ -63,14 +64,13 @@ behind the same symlink after a while, and opening it resets the board),
 `inject_garbage` (bytes on the line), `reset_next_move` / `reset` (the board restarts:
 the banner again, the position lost).
 
-Units: the protocol is in FarmBot millimetres (Z <= 0 downward from the top); MuJoCo's
-slide joints are metres from the physical home; servo joints are radians.
+Units: the protocol is in FarmBot millimetres (Z <= 0 downward from the top); the slide
+joints are metres from the physical home; servo joints are radians.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 import os
 import re
@@ -87,7 +87,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT
+from flowerpose.hardware.geometry import PAPER_BOT
 from flowerpose.hardware.motion import (
     END_OF_MOVE_S,
     MotionProfile,
@@ -138,6 +138,9 @@ HOMING_MARKER = -1
 """`_Running.error` of a homing stage without endstops or encoders: the axis timeout ends
 it, and the firmware tries again, for good."""
 
+SERVO_JOINTS = {6: 3, 5: 4}
+"""The servo pins that turn the head, and their joints' places in `joints` (yaw, pitch)."""
+
 _MOVEMENTS = {"G00", "F11", "F12", "F13", "F14", "F15", "F16"}
 _WHILE_LOCKED = {"F09", "F20", "F21", "F22", "F81", "F82", "F83"}
 _ALIASES = {"G0": "G00", "G01": "G00", "G1": "G00", "F9": "F09"}
@@ -151,13 +154,6 @@ def _atof(text: str) -> float:
     """The leading number of `text`, 0 when there is none (C's atof)."""
     match = _NUMBER.match(text)
     return float(match.group()) if match else 0.0
-
-
-@functools.lru_cache(maxsize=2)
-def _model(scene: str):
-    import mujoco
-
-    return mujoco.MjModel.from_xml_path(scene)
 
 
 @dataclass
@@ -227,8 +223,6 @@ class VirtualFarmduino:
                  wall_clock: Callable[[], float] = time.monotonic,
                  report_period_s: float = REPORT_PERIOD_S,
                  on_idle: Callable[[bool, float | None], None] | None = None):
-        import mujoco
-
         if not (math.isfinite(time_scale) and time_scale > 0):
             raise InputError("time_scale", f"must be a positive number, got {time_scale!r}")
         self.time_scale = float(time_scale)
@@ -243,12 +237,7 @@ class VirtualFarmduino:
                          else link_dir)
         self.path = str(self._dir / "ttyFarmduino")
         """The stable device path: a symlink to the current pty, like /dev/serial/by-id."""
-        self._mujoco = mujoco
-        self._model_ = _model(str(FARMBOT_ASSETS / "scene.xml"))
-        self._data = mujoco.MjData(self._model_)
-        self._slides = [self._model_.joint(n).qposadr[0] for n in ("x", "y", "z")]
-        self._servo_joints = {6: self._model_.joint("yaw").qposadr[0],
-                              5: self._model_.joint("pitch").qposadr[0]}
+        self._joints = np.zeros(5)  # x, y, z, yaw, pitch as `joints` gives them
         self._set_joints(np.asarray(start_mm, np.float64) / 1000.0)
         self._offset = self._physical()
         self._lock = threading.RLock()
@@ -328,11 +317,10 @@ class VirtualFarmduino:
         return (self._wall_clock() - self._wall0) * self.time_scale
 
     def joints(self) -> np.ndarray:
-        """(5,) MuJoCo joints: x, y, z metres from the physical home (z <= 0), yaw, pitch
-        radians."""
+        """(5,) the joints as the MuJoCo model names them: x, y, z metres from the physical
+        home (z <= 0), yaw, pitch radians."""
         with self._lock:
-            return np.r_[self._physical(), [self._data.qpos[a] for a in
-                                            self._servo_joints.values()]]
+            return self._joints.copy()
 
     def firmware_position_mm(self) -> np.ndarray:
         """(3,) the position the firmware reports (R82), millimetres."""
@@ -446,12 +434,10 @@ class VirtualFarmduino:
     # --- the board --------------------------------------------------------------------
 
     def _physical(self) -> np.ndarray:
-        return np.array([self._data.qpos[a] for a in self._slides])
+        return self._joints[:3].copy()
 
     def _set_joints(self, xyz_m: np.ndarray) -> None:
-        for adr, value in zip(self._slides, xyz_m, strict=True):
-            self._data.qpos[adr] = value
-        self._mujoco.mj_kinematics(self._model_, self._data)
+        self._joints[:3] = xyz_m
 
     def _profile(self) -> MotionProfile:
         return MotionProfile.from_firmware(self._params)
@@ -732,8 +718,8 @@ class VirtualFarmduino:
         stages = [_Stage(home, profile, home_axis=axis, blind=blind, calibrating=True)]
         if not blind:
             far = home.copy()
-            low, high = self._model_.jnt_range[self._model_.joint(name).id]
-            far[axis] = high if abs(high) > abs(low) else low
+            # The far end: the travel from home, downward for Z (its joint runs <= 0).
+            far[axis] = -PAPER_BOT.travel_m[2] if axis == 2 else PAPER_BOT.travel_m[axis]
             stages.append(_Stage(far, profile, calibrating=True, measure_axis=axis))
         self._begin(q, stages)
 
@@ -816,12 +802,11 @@ class VirtualFarmduino:
             degrees = ((value - 544) / (2400 - 544) * 180.0 if value >= 544
                        else min(max(value, 0), 180))
             self._servos[pin] = float(min(max(degrees, 0.0), 180.0))
-            if pin in self._servo_joints:
+            if pin in SERVO_JOINTS:
                 offset = (PAPER_BOT.yaw_command_offset_deg if pin == 6
                           else PAPER_BOT.pitch_command_offset_deg)
-                self._data.qpos[self._servo_joints[pin]] = float(
+                self._joints[SERVO_JOINTS[pin]] = float(
                     PAPER_BOT.command_to_angle(self._servos[pin], offset))
-                self._mujoco.mj_kinematics(self._model_, self._data)
         self._done(q)
 
     def _cmd_F82(self, q: int, values: dict[str, float]) -> None:

@@ -511,3 +511,35 @@ def test_via_farmduino_needs_the_simulator(capsys):
 
     assert main(["scan", "--via-farmduino", "--out", "x"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_the_virtual_board_and_the_serial_bot_need_only_the_core_install():
+    """`farmduino --virtual` and a bot on its port run without the simulator's packages."""
+    import json
+    import subprocess
+    import sys
+
+    code = """
+import functools, json, sys
+for name in ("mujoco", "trimesh", "pyrender"):
+    sys.modules[name] = None  # importing one now fails
+import numpy as np
+from flowerpose.hardware.bot import SolidCamera
+from flowerpose.hardware.farmduino import FarmduinoBot
+from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
+camera = functools.partial(SolidCamera, width=32, height=24, fps=2)
+with VirtualFarmduino(time_scale=1000.0, params=FEEDBACK_PARAMETERS) as device:
+    with FarmduinoBot(device.path, camera=camera, clock_scale=1000.0) as bot:
+        bot.home()
+        bot.move_to([1.0, 0.5, 0.4])
+        bot.set_head(np.pi / 2, np.pi)
+        print(json.dumps(device.joints().tolist()))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    joints = np.array(json.loads(done.stdout))
+    np.testing.assert_allclose(joints[:3], np.array([1.0, 0.5, 0.4]) - PAPER_BOT.home,
+                               atol=2e-4)  # whole steps
+    # The servos take whole command degrees, 1.5 of the head's degrees each.
+    np.testing.assert_allclose(joints[3:], [np.pi / 2, np.pi], atol=np.radians(1.5))
