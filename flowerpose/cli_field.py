@@ -247,7 +247,8 @@ def _field_bot(args: argparse.Namespace, camera=None, observer=None):
     scan.json / flight.json record of it (no secret)."""
     _check_field_bot_flags(args)
     if args.cloud:
-        from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
+        from flowerpose.hardware.cloud_bot import FarmbotCloudBot
+        from flowerpose.hardware.cloud_credentials import CloudCredentials
 
         credentials = CloudCredentials.from_environment(token_file=args.token_file)
         source = {"backend": "farmbot-cloud", "server": credentials.server}

@@ -23,22 +23,20 @@ client's 0.25 s polling) after the bot finished, so a move's Activity is put to 
 on the motion profile of the bot's own firmware parameters (read from the status tree;
 FarmBot's defaults where missing), and no earlier than it was sent.
 
-Credentials come from the environment or a token file outside the repository (see
-`CloudCredentials`). They are kept in memory only: never in a repr, a message, a log, a
-file or scan.json; error messages are scrubbed of them, and the client prints nothing.
+Credentials come from the environment or a token file outside the repository
+(`cloud_credentials`), the client from `cloud_client`. They are kept in memory only: never
+in a repr, a message, a log, a file or scan.json; error messages are scrubbed of them, and
+the client prints nothing.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-import stat
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -63,6 +61,13 @@ from flowerpose.hardware.bot_errors import (
     MoveTimeoutError,
     StallError,
 )
+from flowerpose.hardware.cloud_client import broker_lost, disconnect, farmbot_client, secure_broker
+from flowerpose.hardware.cloud_credentials import (
+    ENV_EMAIL,
+    ENV_PASSWORD,
+    CloudCredentials,
+    parse_token,
+)
 from flowerpose.hardware.geometry import (
     PAPER_BOT,
     PITCH_PIN,
@@ -79,12 +84,6 @@ from flowerpose.hardware.motion import (
     move_trajectory,
 )
 from flowerpose.hardware.protocol import PARAMETERS
-from flowerpose.log import LOG
-
-DEFAULT_SERVER = "https://my.farm.bot"
-ENV_TOKEN, ENV_EMAIL, ENV_PASSWORD, ENV_SERVER = ("FARMBOT_TOKEN", "FARMBOT_EMAIL",
-                                                  "FARMBOT_PASSWORD", "FARMBOT_SERVER")
-_REPOSITORY = Path(__file__).resolve().parents[1]
 
 # The firmware parameters the motion model reads (motion.py), by their names in FarmBot OS's
 # status tree, mcu_params.
@@ -110,133 +109,6 @@ class CloudLinkError(ConnectionLostError):
                           "shows the bot online")
 
 
-class CloudCredentials:
-    """How to log in to FarmBot's web app: a token, or an email and a password.
-
-    The secrets stay in this object's private attributes: its repr names only the server and
-    the kind of credential.
-    """
-
-    def __init__(self, *, token: dict | None = None, email: str | None = None,
-                 password: str | None = None, server: str = DEFAULT_SERVER):
-        if token is None and not (email and password):
-            raise InputError(f"{ENV_EMAIL} and {ENV_PASSWORD}", "FarmBot login needs a token "
-                             "or both an email and a password")
-        self._token, self._email, self._password = token, email, password
-        self.server = server.rstrip("/")
-
-    @property
-    def kind(self) -> str:
-        return "token" if self._token is not None else "email and password"
-
-    def __repr__(self) -> str:
-        return f"CloudCredentials(server={self.server!r}, {self.kind})"
-
-    @classmethod
-    def from_environment(cls, environ: Mapping[str, str] | None = None,
-                         token_file: str | Path | None = None) -> CloudCredentials:
-        """Credentials from `token_file` (which must lie outside any git work tree), else
-        FARMBOT_TOKEN, else FARMBOT_EMAIL and FARMBOT_PASSWORD (FARMBOT_SERVER, default
-        https://my.farm.bot). A token is the JSON that FarmBot's /api/tokens returns or its
-        encoded part (a JWT). InputError, one line and no secret, when none is usable."""
-        environ = os.environ if environ is None else environ
-        server = _checked_server(environ.get(ENV_SERVER) or DEFAULT_SERVER)
-        if token_file is not None:
-            return cls(token=_read_token_file(Path(token_file)), server=server)
-        if environ.get(ENV_TOKEN):
-            return cls(token=parse_token(environ[ENV_TOKEN], ENV_TOKEN), server=server)
-        email, password = environ.get(ENV_EMAIL), environ.get(ENV_PASSWORD)
-        if email and password:
-            return cls(email=email, password=password, server=server)
-        missing = ENV_PASSWORD if email else ENV_EMAIL if password else ENV_TOKEN
-        raise InputError(missing, f"not set: the FarmBot cloud needs {ENV_TOKEN}, or "
-                         f"{ENV_EMAIL} and {ENV_PASSWORD} (with {ENV_SERVER} for another "
-                         "server), in the environment, or a token file outside the repository")
-
-    def _secrets(self) -> list[str]:
-        token = (self._token or {}).get("token", {})
-        values = [self._password, self._email, token.get("encoded"),
-                  (token.get("unencoded") or {}).get("sub")]
-        return [v for v in values if isinstance(v, str) and len(v) >= 4]
-
-
-def parse_token(text: str, source: str) -> dict:
-    """A FarmBot token, {"token": {"unencoded": {...}, "encoded": "<jwt>"}}, from the JSON
-    that /api/tokens returns (with or without its outer "token"), or from the JWT alone (its
-    payload is the unencoded part). InputError naming `source`, never the token, otherwise."""
-    text = text.strip()
-    problem = ("not a FarmBot token: expected the JSON that FarmBot's /api/tokens returns, "
-               "or its encoded part")
-    try:
-        if text.startswith("{"):
-            data = json.loads(text)
-            token = data.get("token", data)
-            unencoded, encoded = token["unencoded"], token["encoded"]
-        else:
-            import jwt
-
-            # Only read: the claims name the bot and its broker; FarmBot's server checks
-            # the signature when the token is used.
-            try:
-                unencoded = jwt.decode(text, options={"verify_signature": False})
-            except jwt.PyJWTError:
-                raise InputError(source, problem) from None
-            encoded = text
-    except (ValueError, KeyError, IndexError, TypeError, AttributeError):
-        raise InputError(source, problem) from None
-    if not (isinstance(unencoded, dict) and isinstance(encoded, str)
-            and all(isinstance(unencoded.get(k), str) for k in ("bot", "mqtt", "iss"))):
-        raise InputError(source, problem + " (it names no bot, mqtt and iss)")
-    return {"token": {"unencoded": unencoded, "encoded": encoded}}
-
-
-def git_work_tree(path: Path) -> Path | None:
-    """The git work tree (or this repository) that holds `path`, None when none does."""
-    path = path.resolve()
-    for folder in path.parents:
-        if (folder / ".git").exists():
-            return folder
-    return _REPOSITORY if path.is_relative_to(_REPOSITORY) else None
-
-
-def _read_token_file(path: Path) -> dict:
-    """The token in `path`, which must lie outside any git work tree, so it can never be
-    committed, and be readable by its owner alone: a file others may read is refused
-    before it is read."""
-    tree = git_work_tree(path)
-    if tree is not None:
-        raise InputError(path, f"a token file must lie outside the git work tree {tree}, so "
-                         "it can never be committed; move it (e.g. to ~/.config/farmbot/)")
-    try:
-        mode = path.stat().st_mode
-        if mode & (stat.S_IRWXG | stat.S_IRWXO):
-            raise InputError(path, "other users may read this token file; chmod 600 it, then "
-                             "run again")
-        text = path.read_text()
-    except FileNotFoundError:
-        raise InputError(path, "token file not found") from None
-    except OSError as err:
-        raise InputError(path, f"cannot read the token file ({err.strerror})") from None
-    return parse_token(text, str(path))
-
-
-#: Hosts an http:// server may be on: this machine (a self-hosted server for development).
-_LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
-
-
-def _checked_server(server: str) -> str:
-    """FARMBOT_SERVER, refused when it would send a password or token unencrypted."""
-    from urllib.parse import urlparse
-
-    address = urlparse(server)
-    if address.scheme not in ("https", "http") or not address.hostname:
-        raise InputError(ENV_SERVER, f"expected https://host, got {server!r}")
-    if address.scheme == "http" and address.hostname not in _LOCAL_HOSTS:
-        raise InputError(ENV_SERVER, f"{server} is http://: the login would cross the network "
-                         "unencrypted; use https:// (http:// only for a server on this machine)")
-    return server
-
-
 def motion_from_status(mcu_params: Mapping[str, Any] | None) -> MotionProfile:
     """The motion profile of the firmware parameters in a status tree's mcu_params
     (FarmBot's defaults for those missing or unset)."""
@@ -244,105 +116,6 @@ def motion_from_status(mcu_params: Mapping[str, Any] | None) -> MotionProfile:
     values = {pid: float(mcu[name]) for pid, name in _MCU_PARAMETERS.items()
               if isinstance(mcu.get(name), int | float) and not isinstance(mcu.get(name), bool)}
     return MotionProfile.from_firmware(values)
-
-
-def _farmbot_client() -> Any:
-    """A new farmbot.Farmbot client (the package is imported on first use)."""
-    try:
-        from farmbot import Farmbot
-    except ImportError:
-        raise InputError("farmbot", "the FarmBot cloud client is not installed: "
-                         "pip install 'farmbot>=2,<3'") from None
-    return Farmbot()
-
-
-#: MQTT over TLS (the broker's standard port for it); plain MQTT is 1883.
-MQTT_TLS_PORT = 8883
-MQTT_PLAIN_PORT = 1883
-#: Brokers this process already warned about (one warning for all the client's connections).
-_PLAIN_BROKERS: set[str] = set()
-
-
-def _connect_broker(self) -> None:
-    """farmbot 2.x's BrokerConnect.connect with TLS: its own connects on port 1883 in the
-    clear, with the bot's token as the MQTT password. TLS on 8883 first, with the system's
-    certificate authorities; a broker that offers none (its TLS port refuses or times out)
-    gets plain MQTT and one warning a process; a certificate that does not verify is an
-    error, never a reason to drop to plain."""
-    import ssl
-
-    import paho.mqtt.client as mqtt
-
-    self.state.check_token()
-    token = self.state.token["token"]
-    host = token["unencoded"]["mqtt"]
-
-    def on_connect(_client, _obj, _flags, reason_code, _properties=None):
-        status = str(reason_code)
-        self.state.print_status(description=status)
-        self.state.error = status if reason_code.is_failure else None
-
-    def client() -> Any:
-        made = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-        made.username_pw_set(username=token["unencoded"]["bot"], password=token["encoded"])
-        made.on_connect = on_connect
-        return made
-
-    self.client = client()
-    try:
-        self.client.tls_set(cert_reqs=ssl.CERT_REQUIRED)
-        self.client.connect(host, port=MQTT_TLS_PORT, keepalive=60)
-    except ssl.SSLCertVerificationError as err:
-        raise ConnectionError(f"MQTT broker {host}:{MQTT_TLS_PORT}: its TLS certificate did "
-                              f"not verify ({err.verify_message})") from None
-    except (OSError, ssl.SSLError, ValueError) as err:
-        if host not in _PLAIN_BROKERS:
-            LOG.warning(f"warning: MQTT broker {host}: no TLS on port {MQTT_TLS_PORT} "
-                        f"({type(err).__name__}); connecting in the clear on "
-                        f"{MQTT_PLAIN_PORT}, so the token crosses the network unencrypted")
-        _PLAIN_BROKERS.add(host)
-        self.client = client()
-        self.client.connect(host, port=MQTT_PLAIN_PORT, keepalive=60)
-    self.client.loop_start()
-    self.state.print_status(description="Connected to message broker.")
-
-
-def _secure_broker() -> None:
-    """Make every farmbot 2.x broker connection in this process try TLS first
-    (`_connect_broker`): the client opens one per command group, all through this class."""
-    try:
-        from farmbot.functions.broker import BrokerConnect
-    except ImportError:
-        return
-    BrokerConnect.connect = _connect_broker
-
-
-def _brokers(client: Any) -> list[Any]:
-    """The broker connections a client opened: farmbot 2.x opens one per command group
-    (basic, movements, peripherals, information, ...) on its first use."""
-    seen: dict[int, Any] = {}
-    for part in [client, *getattr(client, "__dict__", {}).values()]:
-        for holder in (part, getattr(part, "info", None)):
-            broker = getattr(holder, "broker", None)
-            if broker is not None and getattr(broker, "client", None) is not None:
-                seen.setdefault(id(broker), broker)
-    return list(seen.values())
-
-
-def _broker_lost(client: Any) -> bool:
-    """Whether a broker connection the client opened is down now (paho reconnects by
-    itself, so a reply that never came over a dropped link reads as a plain timeout)."""
-    return any(not broker.client.is_connected() for broker in _brokers(client)
-               if callable(getattr(broker.client, "is_connected", None)))
-
-
-def _disconnect(client: Any) -> None:
-    """Close the MQTT connections a client opened (`_brokers`)."""
-    for broker in _brokers(client):
-        try:
-            broker.disconnect()
-        except Exception:  # noqa: BLE001 - closing must go on with the others
-            pass
 
 
 class FarmbotCloudBot(Bot):
@@ -385,7 +158,7 @@ class FarmbotCloudBot(Bot):
         self._timeouts = {"movements": float(move_timeout_s),
                           "listen": float(command_timeout_s), "api": float(command_timeout_s)}
         self._estop_timeout = float(estop_timeout_s)
-        self._secrets = self._credentials._secrets()
+        self._secrets = self._credentials.secrets()
         self._lock = threading.Lock()
         self._estop_lock = threading.Lock()
         self._stop = threading.Event()
@@ -395,8 +168,8 @@ class FarmbotCloudBot(Bot):
         self._head_known = False
         self._camera: Camera | None = None
         self._link = f"FarmBot cloud ({self._credentials.server})"
-        factory = client_factory or _farmbot_client
-        _secure_broker()
+        factory = client_factory or farmbot_client
+        secure_broker()
         self._client = self._estop_client = None
         try:
             self._client, self._estop_client = factory(), factory()
@@ -496,7 +269,7 @@ class FarmbotCloudBot(Bot):
         if self._stop.is_set():
             return EmergencyStopError(command, 1)
         if "timed out waiting" in error.lower():
-            if _broker_lost(self._client):
+            if broker_lost(self._client):
                 return CloudLinkError(self._link, f"{command}: the MQTT broker connection "
                                       "dropped and no reply came")
             key = "movements" if command.startswith(("move", "find home")) else "listen"
@@ -740,4 +513,4 @@ class FarmbotCloudBot(Bot):
         finally:
             for client in (self._client, self._estop_client):
                 if client is not None:
-                    _disconnect(client)
+                    disconnect(client)

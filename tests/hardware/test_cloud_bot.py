@@ -31,12 +31,8 @@ from flowerpose.hardware.bot_errors import (
     MoveTimeoutError,
     StallError,
 )
-from flowerpose.hardware.cloud_bot import (
-    CloudCommandError,
-    CloudCredentials,
-    FarmbotCloudBot,
-    parse_token,
-)
+from flowerpose.hardware.cloud_bot import CloudCommandError, FarmbotCloudBot
+from flowerpose.hardware.cloud_credentials import CloudCredentials, parse_token
 from flowerpose.hardware.geometry import bed_to_farmbot_mm, farmbot_mm_to_bed
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import move_duration
@@ -423,7 +419,7 @@ def test_a_server_that_would_take_the_login_unencrypted_is_refused():
 def test_a_broker_without_tls_gets_plain_mqtt_and_a_warning(monkeypatch, capsys):
     import paho.mqtt.client as mqtt
 
-    from flowerpose.hardware import cloud_bot
+    from flowerpose.hardware import cloud_client
 
     ports = []
 
@@ -449,7 +445,7 @@ def test_a_broker_without_tls_gets_plain_mqtt_and_a_warning(monkeypatch, capsys)
     state = SimpleNamespace(token=make_token(), check_token=lambda: None,
                             print_status=lambda **kw: None, error=None)
     holder = SimpleNamespace(state=state, client=None)
-    cloud_bot._connect_broker(holder)
+    cloud_client.connect_broker(holder)
     assert ports == [(8883, True), (1883, False)]
     err = capsys.readouterr().err
     assert "no TLS on port 8883" in err and "unencrypted" in err

@@ -12,10 +12,11 @@ import pytest
 from cloud_fakes import make_token
 from farmbot_os import Broker, FarmbotOS, free_port, make_certificate, mosquitto_binary
 
-from flowerpose.hardware import cloud_bot
+from flowerpose.hardware import cloud_client
 from flowerpose.hardware.bot import SolidCamera
 from flowerpose.hardware.bot_errors import ConnectionLostError
-from flowerpose.hardware.cloud_bot import CloudCredentials, CloudLinkError, FarmbotCloudBot
+from flowerpose.hardware.cloud_bot import CloudLinkError, FarmbotCloudBot
+from flowerpose.hardware.cloud_credentials import CloudCredentials
 from flowerpose.hardware.geometry import bed_to_farmbot_mm
 from flowerpose.hardware.scan_flight import run_scan
 from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
@@ -45,15 +46,15 @@ def _bot(**kwargs) -> FarmbotCloudBot:
 
 @pytest.fixture(autouse=True)
 def _warnings_anew(monkeypatch):
-    monkeypatch.setattr(cloud_bot, "_PLAIN_BROKERS", set())
+    monkeypatch.setattr(cloud_client, "_PLAIN_BROKERS", set())
 
 
 @pytest.fixture
 def plain(tmp_path, monkeypatch):
     """A plain broker; the backend's TLS port leads nowhere, so it falls back to plain."""
     broker = Broker(tmp_path, free_port()).start()
-    monkeypatch.setattr(cloud_bot, "MQTT_PLAIN_PORT", broker.port)
-    monkeypatch.setattr(cloud_bot, "MQTT_TLS_PORT", free_port())
+    monkeypatch.setattr(cloud_client, "MQTT_PLAIN_PORT", broker.port)
+    monkeypatch.setattr(cloud_client, "MQTT_TLS_PORT", free_port())
     device = FarmbotOS(broker.port)
     yield broker, device
     device.close()
@@ -65,8 +66,8 @@ def tls(tmp_path, monkeypatch):
     """A TLS-only broker with a test certificate; no plain listener at all."""
     cert, key = make_certificate(tmp_path)
     broker = Broker(tmp_path, free_port(), tls=(cert, key)).start()
-    monkeypatch.setattr(cloud_bot, "MQTT_TLS_PORT", broker.port)
-    monkeypatch.setattr(cloud_bot, "MQTT_PLAIN_PORT", free_port())
+    monkeypatch.setattr(cloud_client, "MQTT_TLS_PORT", broker.port)
+    monkeypatch.setattr(cloud_client, "MQTT_PLAIN_PORT", free_port())
     device = FarmbotOS(broker.port, ca_file=cert)
     yield broker, device, cert
     device.close()

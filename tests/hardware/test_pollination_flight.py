@@ -193,12 +193,12 @@ def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, 
 
     argv = ["pollinate", path, "--plant-at", "1.5,0.75", "--plant-cloud",
             tmp_path / "cloud" / "plant.ply", "--out", tmp_path / "visits", "--cloud"]
-    monkeypatch.setattr(cloud_bot, "_farmbot_client", factory)
+    monkeypatch.setattr(cloud_bot, "farmbot_client", factory)
     code, _, err = _run(capsys, *argv)
     assert code == 130 and "interrupted" in err
     cut = read_json(tmp_path / "visits" / FLIGHT_NAME)
     assert cut["status"] == "interrupted" and len(cut["done"]) == 1
-    monkeypatch.setattr(cloud_bot, "_farmbot_client", lambda: fake_factory(device)())
+    monkeypatch.setattr(cloud_bot, "farmbot_client", lambda: fake_factory(device)())
     code, out, err = _run(capsys, *argv)
     assert code == 0, err
     assert "resuming at visit 2 of 3" in err and "flight complete: 3/3" in out

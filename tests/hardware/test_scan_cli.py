@@ -128,7 +128,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
         client.move = interrupt_on_sixth_move(client)
         return client
 
-    monkeypatch.setattr(cloud_bot, "_farmbot_client", factory)
+    monkeypatch.setattr(cloud_bot, "farmbot_client", factory)
     code, _, err = _run(capsys, *argv)
     assert code == 130 and "interrupted" in err
     first = read_json(scan / "scan.json")
@@ -138,7 +138,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
     recorded = frame_files(scan)
     assert len(read_trajectory(scan / "trajectory.csv")) > 0 and len(recorded) > 0
 
-    monkeypatch.setattr(cloud_bot, "_farmbot_client", lambda: fake_factory(device)())
+    monkeypatch.setattr(cloud_bot, "farmbot_client", lambda: fake_factory(device)())
     code, out, err = _run(capsys, *argv)
     assert code == 0, err
     manifest = read_json(scan / "scan.json")

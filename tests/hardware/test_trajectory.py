@@ -9,7 +9,8 @@ import pytest
 from cloud_fakes import FakeCapture, FakeDevice, fake_factory, make_token
 
 from flowerpose.hardware.bot import Activity, Frame, KinematicBot, Recording
-from flowerpose.hardware.cloud_bot import CloudCredentials, FarmbotCloudBot
+from flowerpose.hardware.cloud_bot import FarmbotCloudBot
+from flowerpose.hardware.cloud_credentials import CloudCredentials
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
 from flowerpose.hardware.scan_flight import run_scan
