@@ -10,9 +10,9 @@ protocol") defensively:
   read and set aside. The firmware discards input that arrives while a command runs, so
   nothing else is sent meanwhile but the emergency stop.
 - Numbers in fixed point ("%.2f"): the firmware takes any `e` or `E` byte as an emergency
-  stop, so no line but the emergency stop itself may hold one (`checked_line`). Every G00
-  names all three axes (a missing axis means 0). Servo angles are whole degrees, as the
-  firmware reads them, on pins 6 (yaw) and 5 (pitch) only.
+  stop, so no line but the emergency stop itself may hold one (`protocol.checked_line`).
+  Every G00 names all three axes (a missing axis means 0). Servo angles are whole degrees,
+  as the firmware reads them, on pins 6 (yaw) and 5 (pitch) only.
 - At connect: wait for `R99 ARDUINO STARTUP COMPLETE` (opening the port resets the board)
   or an idle report, read the version (F83) and the parameters the motion model needs
   (F21: 11-13 timeouts, 41-44 ramps, 55-57 steps/mm, 61-64 and 71-74 speeds, 5 retries,
@@ -67,7 +67,6 @@ import functools
 import math
 import os
 import queue
-import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -98,7 +97,6 @@ from flowerpose.hardware.bot_errors import (
     HomingError,
     LockedError,
     NotConfiguredError,
-    OutOfRangeError,
     UnknownCommandError,
     error_for_code,
 )
@@ -115,9 +113,13 @@ from flowerpose.hardware.protocol import (
     ENCODERS,
     ENDSTOPS,
     FINAL_REPLIES,
-    SERVO_PINS,
     STARTUP_TEXT,
+    Reply,
+    checked_line,
     describe,
+    move_line,
+    parse_reply,
+    servo_line,
 )
 from flowerpose.hardware.serial_link import Dropped, LinkDropped, SerialLink
 
@@ -150,7 +152,6 @@ HEAD_SETTLE_S = 0.5
 """Bot seconds `set_head` waits after the servo commands: servos give no feedback."""
 _MAX_RECOVERIES = 3
 """Link drops one command recovers from before it gives up."""
-_FORBIDDEN = re.compile(r"[eE@\r\n]")
 
 
 class PositionLostError(BotError):
@@ -167,80 +168,10 @@ class _BoardStarted(PositionLostError):
     """The startup banner came while the port stayed open."""
 
 
-@dataclass(frozen=True)
-class Reply:
-    """One line from the firmware: `code` ("R02", ...), its letter fields as numbers, its Q
-    (None when it has none) and its text after the code."""
-
-    code: str
-    values: dict[str, float]
-    q: int | None
-    text: str
-
-
-_CODE = re.compile(r"R\d\d")
-_FIELD = re.compile(r"(?<![A-Za-z])([A-Z])(-?\d+(?:\.\d+)?)(?![\w.])")
-
-
 def _ends_stop(reply: Reply) -> bool:
     """Whether a reply says an emergency stop is over: the stopped command's `R03`, or an
     idle report (`R00` or `R87` with Q0) from a board with nothing left to stop."""
     return reply.code == "R03" or (reply.code in ("R00", "R87") and reply.q == 0)
-
-
-def parse_reply(line: str) -> Reply | None:
-    """The reply in one received line, None for a line without one (noise). Noise before
-    the code is dropped; an echo's (R08) Q is the echoed command's, not its own."""
-    match = _CODE.search(line)
-    if match is None:
-        return None
-    code, text = match.group(), line[match.end():].strip()
-    if code == "R08":
-        return Reply(code, {}, None, text)
-    values = {letter: float(number) for letter, number in _FIELD.findall(text)}
-    q = values.pop("Q", None)
-    return Reply(code, values, None if q is None else int(q),
-                 re.sub(r"\s*Q\d+$", "", text))
-
-
-def checked_line(line: str) -> str:
-    """`line` if the firmware reads it as one command; BotError for an `e` or `E` (an
-    emergency stop to the firmware), an `@` (abort) or a line end inside it."""
-    bad = _FORBIDDEN.search(line)
-    if bad is not None:
-        raise BotError(f"{line!r}: refusing to send {bad.group()!r}, which the Farmduino reads "
-                       "as an emergency stop, an abort or a line end; this is a bug")
-    return line
-
-
-def fixed(value: float) -> str:
-    """`value` in fixed point with two decimals, never "-0.00": scientific notation's `e`
-    would be an emergency stop."""
-    return f"{round(float(value), 2) + 0.0:.2f}"
-
-
-def move_line(xyz_mm, speeds=(0, 0, 0)) -> str:
-    """The G00 line to FarmBot coordinates `xyz_mm` ((3,) millimetres, Z <= 0), all three
-    axes always; `speeds`: G00's A, B, C in whole steps/s, all 0 for none."""
-    xyz = np.asarray(xyz_mm, np.float64)
-    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
-        raise OutOfRangeError("G00", f"needs 3 finite coordinates (mm), got {xyz_mm!r}")
-    line = "G00 " + " ".join(f"{axis}{fixed(v)}" for axis, v in zip("XYZ", xyz, strict=True))
-    if any(speeds):
-        line += " " + " ".join(f"{c}{int(s)}" for c, s in zip("ABC", speeds, strict=True))
-    return checked_line(line)
-
-
-def servo_line(pin: int, degrees: float) -> str:
-    """The F61 line turning servo `pin` to `degrees` (0-180), rounded to whole degrees as
-    the firmware reads them; OutOfRangeError for a pin that drives no servo or an angle
-    outside 0-180 (the firmware would answer R02 and do something else)."""
-    if pin not in SERVO_PINS:
-        raise OutOfRangeError(f"servo pin {pin}", "only pins 4, 5, 6 and 11 drive servos; "
-                              "the firmware answers R02 for any other and does nothing")
-    if not (math.isfinite(degrees) and -0.5 < degrees < 180.5):
-        raise OutOfRangeError(f"servo pin {pin}", f"{degrees!r} degrees is outside 0-180")
-    return checked_line(f"F61 P{pin} V{round(degrees)}")
 
 
 @dataclass(frozen=True)

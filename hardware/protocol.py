@@ -1,7 +1,8 @@
 """The Farmduino firmware's protocol facts, one owner for them: the startup banner, the
-replies that end a command, the servo pins, and the parameters (ids, the names FarmBot OS
-and the web app give them, the firmware's defaults, and the bot's own settings as the web
-app exports them).
+replies that end a command, the servo pins, the grammar of the lines a client sends and
+reads (`parse_reply`, `move_line`, `servo_line`, `checked_line`), and the parameters (ids,
+the names FarmBot OS and the web app give them, the firmware's defaults, and the bot's own
+settings as the web app exports them).
 
 The table is farmbot-arduino-firmware 6.x's (its README, "Arduino parameter numbers"), with
 FarmBot OS's names (`FarmbotFirmware.Param`), which are the keys of the web app's firmware
@@ -14,9 +15,14 @@ user exports, for `FarmduinoBot(settings=...)` to write and check.
 from __future__ import annotations
 
 import math
+import re
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from flowerpose.errors import InputError
+from flowerpose.hardware.bot_errors import BotError, OutOfRangeError
 from flowerpose.jsonio import read_json
 
 STARTUP_TEXT = "ARDUINO STARTUP COMPLETE"
@@ -143,3 +149,77 @@ def read_settings(path: str | Path) -> dict[int, float]:
     if not settings:
         raise InputError(path, "holds no firmware parameter to write")
     return dict(sorted(settings.items()))
+
+
+#: What the firmware reads as an emergency stop, an abort or a line end, wherever it is.
+_FORBIDDEN = re.compile(r"[eE@\r\n]")
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One line from the firmware: `code` ("R02", ...), its letter fields as numbers, its Q
+    (None when it has none) and its text after the code."""
+
+    code: str
+    values: dict[str, float]
+    q: int | None
+    text: str
+
+
+_CODE = re.compile(r"R\d\d")
+_FIELD = re.compile(r"(?<![A-Za-z])([A-Z])(-?\d+(?:\.\d+)?)(?![\w.])")
+
+
+def parse_reply(line: str) -> Reply | None:
+    """The reply in one received line, None for a line without one (noise). Noise before
+    the code is dropped; an echo's (R08) Q is the echoed command's, not its own."""
+    match = _CODE.search(line)
+    if match is None:
+        return None
+    code, text = match.group(), line[match.end():].strip()
+    if code == "R08":
+        return Reply(code, {}, None, text)
+    values = {letter: float(number) for letter, number in _FIELD.findall(text)}
+    q = values.pop("Q", None)
+    return Reply(code, values, None if q is None else int(q),
+                 re.sub(r"\s*Q\d+$", "", text))
+
+
+def checked_line(line: str) -> str:
+    """`line` if the firmware reads it as one command; BotError for an `e` or `E` (an
+    emergency stop to the firmware), an `@` (abort) or a line end inside it."""
+    bad = _FORBIDDEN.search(line)
+    if bad is not None:
+        raise BotError(f"{line!r}: refusing to send {bad.group()!r}, which the Farmduino reads "
+                       "as an emergency stop, an abort or a line end; this is a bug")
+    return line
+
+
+def fixed(value: float) -> str:
+    """`value` in fixed point with two decimals, never "-0.00": scientific notation's `e`
+    would be an emergency stop."""
+    return f"{round(float(value), 2) + 0.0:.2f}"
+
+
+def move_line(xyz_mm, speeds=(0, 0, 0)) -> str:
+    """The G00 line to FarmBot coordinates `xyz_mm` ((3,) millimetres, Z <= 0), all three
+    axes always; `speeds`: G00's A, B, C in whole steps/s, all 0 for none."""
+    xyz = np.asarray(xyz_mm, np.float64)
+    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
+        raise OutOfRangeError("G00", f"needs 3 finite coordinates (mm), got {xyz_mm!r}")
+    line = "G00 " + " ".join(f"{axis}{fixed(v)}" for axis, v in zip("XYZ", xyz, strict=True))
+    if any(speeds):
+        line += " " + " ".join(f"{c}{int(s)}" for c, s in zip("ABC", speeds, strict=True))
+    return checked_line(line)
+
+
+def servo_line(pin: int, degrees: float) -> str:
+    """The F61 line turning servo `pin` to `degrees` (0-180), rounded to whole degrees as
+    the firmware reads them; OutOfRangeError for a pin that drives no servo or an angle
+    outside 0-180 (the firmware would answer R02 and do something else)."""
+    if pin not in SERVO_PINS:
+        raise OutOfRangeError(f"servo pin {pin}", "only pins 4, 5, 6 and 11 drive servos; "
+                              "the firmware answers R02 for any other and does nothing")
+    if not (math.isfinite(degrees) and -0.5 < degrees < 180.5):
+        raise OutOfRangeError(f"servo pin {pin}", f"{degrees!r} degrees is outside 0-180")
+    return checked_line(f"F61 P{pin} V{round(degrees)}")

@@ -1,18 +1,25 @@
-"""The firmware parameter table and the web app's settings export."""
+"""The firmware's line grammar, its parameter table and the web app's settings export."""
 
 import json
 
+import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.bot_errors import BotError, OutOfRangeError
 from flowerpose.hardware.motion import FIRMWARE_PARAMETERS
 from flowerpose.hardware.protocol import (
     ENCODERS,
     ENDSTOPS,
     IDS,
     PARAMETERS,
+    checked_line,
     describe,
+    fixed,
+    move_line,
+    parse_reply,
     read_settings,
+    servo_line,
 )
 
 
@@ -48,3 +55,35 @@ def test_a_bad_export_names_the_file_and_the_key(tmp_path, data, words):
     with pytest.raises(InputError, match=words) as error:
         read_settings(path)
     assert "bad.json" in str(error.value)
+
+
+def test_numbers_are_fixed_point_and_lines_never_hold_an_e():
+    assert move_line((1e-7, 123456.789, -0.004)) == "G00 X0.00 Y123456.79 Z0.00"
+    assert move_line((1e21, -2.5e-3, 12.345), (200, 200, 40)) == \
+        "G00 X1000000000000000000000.00 Y0.00 Z12.35 A200 B200 C40"  # 12.345 is 12.3449..
+    assert fixed(-0.001) == "0.00" and fixed(2.675) == "2.67"
+    with pytest.raises(OutOfRangeError, match="finite"):
+        move_line((np.nan, 0, 0))
+    with pytest.raises(BotError, match="emergency stop"):
+        checked_line("F22 P71 V1e3")
+    with pytest.raises(BotError):
+        checked_line("F82 @")
+    assert servo_line(6, 90.4) == "F61 P6 V90"
+    with pytest.raises(OutOfRangeError, match="only pins 4, 5, 6 and 11"):
+        servo_line(7, 90)
+    with pytest.raises(OutOfRangeError, match="0-180"):
+        servo_line(5, 181)
+
+
+def test_replies_are_parsed_through_line_noise():
+    reply = parse_reply("\ufffd\ufffd#R82 X1.20 Y-3.00 Z0.00 Q17")
+    assert (reply.code, reply.q, reply.values) == ("R82", 17, {"X": 1.2, "Y": -3.0, "Z": 0.0})
+    echo = parse_reply("R08 *G00 X1.00 Y2.00 Z3.00 Q5*")
+    assert echo.code == "R08" and echo.q is None  # the echoed Q is the command's
+    version = parse_reply("R83 6.6.23.G.genesisK14 Q3")
+    assert version.text == "6.6.23.G.genesisK14" and version.values == {}
+    assert parse_reply("R03 V31 Q9").values == {"V": 31.0}
+    assert parse_reply("%$#") is None
+
+
+# --- connecting ---------------------------------------------------------------------
