@@ -36,7 +36,8 @@ from flowerpose.eval.truth import TruthFlower, read_plant_truth
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers, find_flowers_in_candidates
-from flowerpose.pipeline.segment import corolla, remove_ground
+from flowerpose.pipeline.ground import remove_ground
+from flowerpose.pipeline.segment import corolla
 
 #: Percentiles every distribution is summarised by.
 PERCENTILES = (5, 25, 50, 75, 95)

@@ -29,6 +29,7 @@ from flowerpose.pipeline.colour import (
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
 from flowerpose.pipeline.envelope import CloudMeasure
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
+from flowerpose.pipeline.ground import GroundConfig, remove_ground
 from flowerpose.pipeline.limits import (
     Density,
     Sizing,
@@ -39,14 +40,12 @@ from flowerpose.pipeline.limits import (
 from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
 from flowerpose.pipeline.segment import (
     ClusterConfig,
-    GroundConfig,
     OrientedBox,
     OutlierConfig,
     cloud_spacing,
     cluster_flowers,
     corolla,
     crop_flowers,
-    remove_ground,
     typical_radius,
 )
 from flowerpose.srgb import relight
