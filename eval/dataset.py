@@ -118,7 +118,7 @@ def frame_samples(bundle: PlantBundle, config: EvalConfig, count: int) -> list[S
     """`count` frames of the plant's planned scan, evenly spaced along it, as the scan
     camera records them at rest (`config.scan`: size, sensor, light), with each pixel's
     flower from the renderer's instance masks."""
-    from flowerpose.hardware.sim_bot import MujocoPoser, plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import MujocoPoser, plan_plant_scan
     from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
     from flowerpose.sim.render import Output, PlantRenderer
     from flowerpose.sim.sensor import apply_sensor

@@ -38,7 +38,7 @@ from flowerpose.eval.rgbd_source import RgbdConfig
 from flowerpose.eval.runner import run_jobs
 from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached, plant_inputs
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
-from flowerpose.hardware.pollinate import PollinateConfig
+from flowerpose.hardware.flights.pollinate import PollinateConfig
 from flowerpose.pipeline.detect import ONNX_PREFIX
 from flowerpose.pipeline.flowers import (
     PipelineConfig,
@@ -81,7 +81,7 @@ class EvalConfig(PipelineConfig):
     fusion: FusionConfig = field(default_factory=FusionConfig)
     scan: ScanSourceConfig = field(default_factory=ScanSourceConfig)
     pollinate: PollinateConfig = field(default_factory=PollinateConfig)
-    """`eval --task pollinate`: how each flower is visited (`hardware/pollinate.py`)."""
+    """`eval --task pollinate`: how each flower is visited (`hardware/flights/pollinate.py`)."""
     pollination: PollinationScoreConfig = field(default_factory=PollinationScoreConfig)
     """`eval --task pollinate`: what counts as a pollinated flower (`eval/pollination.py`)."""
 

@@ -28,15 +28,15 @@ from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.pollination_contact import ContactWorld, Touches
 from flowerpose.hardware.bot import KinematicBot
-from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
-from flowerpose.hardware.kinematics import HeadPose, tool_forward
-from flowerpose.hardware.pollinate import (
+from flowerpose.hardware.flights.pollinate import (
     Flower,
     PollinateConfig,
     plan_pollination,
     read_visit_flowers,
 )
-from flowerpose.hardware.pollination_flight import fly_pollination
+from flowerpose.hardware.flights.pollination_flight import fly_pollination
+from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
+from flowerpose.hardware.kinematics import HeadPose, tool_forward
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.colour import flower_coloured

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from flowerpose.hardware.flights.scan_plan import head_points
 from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_TOOL, PollinatorTool
 from flowerpose.hardware.kinematics import JOINT_NAMES, HeadPose, joint_positions, tool_points
-from flowerpose.hardware.scan_plan import head_points
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.sim.contact import ContactConfig, PlantPatches, add_plant, plant_patches
 

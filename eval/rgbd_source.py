@@ -50,7 +50,7 @@ def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig,
     synthetic world's path, or the default); write an RGB-D scan folder to out_dir (frames/,
     depth/, trajectory.csv, camera.json, plant.json with the views' visibility). Returns a
     small report."""
-    from flowerpose.hardware.sim_bot import MujocoPoser, plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import MujocoPoser, plan_plant_scan
     from flowerpose.pipeline.rgbd import DEPTH_PATTERN
     from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
     from flowerpose.sim.depth import apply_depth_sensor

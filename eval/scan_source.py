@@ -13,7 +13,7 @@ from pathlib import Path
 
 from flowerpose.cache import StageCache
 from flowerpose.config import require, to_dict
-from flowerpose.hardware.sim_camera import SimCameraConfig
+from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 from flowerpose.pipeline.frames import FrameSelectConfig
 from flowerpose.pipeline.reconstruct import ReconstructConfig
 from flowerpose.scan_geometry import ScanPathConfig
@@ -58,16 +58,16 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
     `via_farmduino`) flies `plan` (`sim_bot.plan_plant_scan`) round the plant in plant_dir
     with the camera `config` gives, recording the scan folder out_dir; then out_dir/plant.json
     holds the truth with this scan's own visibility. Returns scan.json's content."""
-    from flowerpose.hardware.scan_flight import run_scan
-    from flowerpose.hardware.sim_bot import (
+    from flowerpose.hardware.backends.sim_bot import (
         SimBot,
         SimBotConfig,
         write_scan_truth,
     )
+    from flowerpose.hardware.flights.scan_flight import run_scan
 
     bot_config = SimBotConfig(camera=config.camera, width=config.width, height=config.height)
     if via_farmduino:
-        from flowerpose.hardware.serial_sim_bot import SimulatedSerialBot
+        from flowerpose.hardware.backends.serial_sim_bot import SimulatedSerialBot
 
         bot = SimulatedSerialBot([plant_dir], bot_config)
     else:
@@ -94,7 +94,7 @@ def scan_and_choose(plant_dir: Path, config: ScanSourceConfig,
                     path: ScanPathConfig | None = None) -> dict:
     """The capture's first steps: film the plant in plant_dir (plant_dir/scan) and choose
     its frames (plant_dir/frames). Returns the frames recorded and chosen, and seconds."""
-    from flowerpose.hardware.sim_bot import plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import plan_plant_scan
     from flowerpose.pipeline.frames import select_frames
     from flowerpose.sim.export import read_plant
 

@@ -37,7 +37,7 @@ def _scan_base():
     import dataclasses
 
     from flowerpose.eval.harness import EvalConfig
-    from flowerpose.hardware.sim_camera import SimCameraConfig
+    from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 
     config = EvalConfig()
     return dataclasses.replace(config, scan=dataclasses.replace(config.scan,
@@ -81,8 +81,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
     from flowerpose.eval.scan_source import scan_plant
-    from flowerpose.hardware.scan_plan import plan_table
-    from flowerpose.hardware.sim_bot import plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import plan_plant_scan
+    from flowerpose.hardware.flights.scan_plan import plan_table
     from flowerpose.sim.export import read_plant
 
     config = configure(_scan_base(), args, reads=SCAN_SETTINGS, command="scan --sim")
@@ -95,7 +95,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.dry_run:
         print("\n".join(plan_table(plan)))
         return 0
-    from flowerpose.hardware.sim_bot import write_preview
+    from flowerpose.hardware.backends.sim_bot import write_preview
 
     manifest = scan_plant(args.plant, args.out, camera, plan, args.via_farmduino,
                           progress=True)
@@ -111,8 +111,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 def _scan_field(args: argparse.Namespace) -> int:
     """scan --port / --cloud: the physical bot films a real plant with its USB camera."""
-    from flowerpose.hardware.scan_flight import approach_start, run_scan
-    from flowerpose.hardware.scan_plan import plan_field_scan, plan_table
+    from flowerpose.hardware.flights.scan_flight import approach_start, run_scan
+    from flowerpose.hardware.flights.scan_plan import plan_field_scan, plan_table
     from flowerpose.scanio import frame_files
 
     if args.plant_at is None:
@@ -136,13 +136,13 @@ def _scan_field(args: argparse.Namespace) -> int:
     if not Path(args.camera).exists():
         raise InputError(args.camera, "no such camera device; list them with "
                          "ls -l /dev/v4l/by-id/")
-    from flowerpose.hardware.trajectory import TrajectoryRecorder
-    from flowerpose.hardware.usb_camera import (
+    from flowerpose.hardware.backends.usb_camera import (
         FrameChoice,
         UsbCamera,
         UsbCameraConfig,
         check_disk_space,
     )
+    from flowerpose.hardware.trajectory import TrajectoryRecorder
     from flowerpose.scanio import read_intrinsics
 
     if args.calibration is not None:
@@ -247,8 +247,8 @@ def _field_bot(args: argparse.Namespace, camera=None, observer=None):
     scan.json / flight.json record of it (no secret)."""
     _check_field_bot_flags(args)
     if args.cloud:
-        from flowerpose.hardware.cloud_bot import FarmbotCloudBot
-        from flowerpose.hardware.cloud_credentials import CloudCredentials
+        from flowerpose.hardware.backends.cloud_bot import FarmbotCloudBot
+        from flowerpose.hardware.backends.cloud_credentials import CloudCredentials
 
         credentials = CloudCredentials.from_environment(token_file=args.token_file)
         source = {"backend": "farmbot-cloud", "server": credentials.server}
@@ -256,7 +256,7 @@ def _field_bot(args: argparse.Namespace, camera=None, observer=None):
         def connect():
             return FarmbotCloudBot(credentials, camera=camera, observer=observer)
     else:
-        from flowerpose.hardware.farmduino import FarmduinoBot
+        from flowerpose.hardware.backends.farmduino import FarmduinoBot
         from flowerpose.hardware.protocol import read_settings
 
         settings = None
@@ -287,16 +287,20 @@ def _home_field_bot(args: argparse.Namespace, bot) -> None:
         bot.home()
 
 
-_pollinate_base = starting_config("flowerpose.hardware.pollinate:PollinateSettings")
+_pollinate_base = starting_config("flowerpose.hardware.flights.pollinate:PollinateSettings")
 
 
 
 
 def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
-    from flowerpose.hardware.pollinate import check_plant, plan_pollination, read_visit_flowers
-    from flowerpose.hardware.pollination_flight import FLIGHT_NAME, read_flight
-    from flowerpose.hardware.scan_plan import pose_header, pose_row
+    from flowerpose.hardware.flights.pollinate import (
+        check_plant,
+        plan_pollination,
+        read_visit_flowers,
+    )
+    from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, read_flight
+    from flowerpose.hardware.flights.scan_plan import pose_header, pose_row
     from flowerpose.jsonio import read_json, write_json
     from flowerpose.pipeline.flowers import read_flowers
 
@@ -370,7 +374,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
 def _fly_pollination(args: argparse.Namespace, plan, connect, source: dict) -> int:
     """pollinate --port / --cloud: fly the plan on the physical bot (flight.json; a flight
     cut short resumes when rerun)."""
-    from flowerpose.hardware.pollination_flight import fly_pollination
+    from flowerpose.hardware.flights.pollination_flight import fly_pollination
 
     # flight.json is declared, never recorded: no later run of this stage deletes it.
     with connect() as bot:
@@ -426,14 +430,14 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
                         "pollinate.*, pollination.json's config, and colour.*, which tells a "
                         "target's own corolla)")
     p.set_defaults(func=cmd_pollinate, **{RENAMED_ATTRIBUTE: moved_under(
-        "flowerpose.hardware.pollinate:PollinateConfig", "pollinate")})
+        "flowerpose.hardware.flights.pollinate:PollinateConfig", "pollinate")})
 
 
 def cmd_farmduino(args: argparse.Namespace) -> int:
     if not args.virtual:
         raise InputError("farmduino", "only --virtual is available: it serves a virtual "
                          "Farmduino on a pseudo-terminal")
-    from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
+    from flowerpose.hardware.backends.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 
     params = {} if args.bare else FEEDBACK_PARAMETERS
     with VirtualFarmduino(time_scale=args.time_scale, params=params) as device:

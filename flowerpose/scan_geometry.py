@@ -1,5 +1,5 @@
 """The paper's cylinder + dome scan path as geometry: where the camera stops and what it
-looks at. One definition shared by the bot's planner (`flowerpose.hardware.scan_plan`) and
+looks at. One definition shared by the bot's planner (`flowerpose.hardware.flights.scan_plan`) and
 the simulator's visibility truth, so both use the path the bot flies."""
 
 from __future__ import annotations

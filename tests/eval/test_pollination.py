@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, plan_and_score
-from flowerpose.hardware.pollinate import PollinateConfig
+from flowerpose.hardware.flights.pollinate import PollinateConfig
 
 
 @pytest.fixture(scope="module")
@@ -143,9 +143,9 @@ def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in
     from flowerpose.cloudio import Cloud
     from flowerpose.eval.pollination import flown_visits, judge
     from flowerpose.eval.pollination_contact import ContactWorld
+    from flowerpose.hardware.flights.pollinate import Flower, plan_pollination
     from flowerpose.hardware.geometry import PAPER_TOOL
     from flowerpose.hardware.kinematics import head_boxes
-    from flowerpose.hardware.pollinate import Flower, plan_pollination
     from flowerpose.sim.pieces import Part
 
     center, up = np.array([1.5, 0.75, 0.15]), np.array([0.0, 0.0, 1.0])

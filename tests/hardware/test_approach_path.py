@@ -10,17 +10,17 @@ from scipy.spatial import cKDTree
 pytest.importorskip("ompl")
 
 from flowerpose.cloudio import Cloud, write_cloud  # noqa: E402
-from flowerpose.hardware.approach_path import joint_state  # noqa: E402
-from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL  # noqa: E402
-from flowerpose.hardware.kinematics import head_boxes  # noqa: E402
-from flowerpose.hardware.motion import MotionProfile  # noqa: E402
-from flowerpose.hardware.pollinate import (  # noqa: E402
+from flowerpose.hardware.flights.approach_path import joint_state  # noqa: E402
+from flowerpose.hardware.flights.pollinate import (  # noqa: E402
     Flower,
     PollinateConfig,
     _flown,
     _gap,
     plan_pollination,
 )
+from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL  # noqa: E402
+from flowerpose.hardware.kinematics import head_boxes  # noqa: E402
+from flowerpose.hardware.motion import MotionProfile  # noqa: E402
 from flowerpose.jsonio import read_json, write_json  # noqa: E402
 
 CENTER = np.array([1.5, 0.75, 0.15])
@@ -105,7 +105,7 @@ def test_a_flower_walled_in_is_refused_saying_no_path_was_found():
 
 @pytest.mark.slow
 def test_the_executor_flies_the_paths_waypoints_on_a_virtual_farmduino(tmp_path, capsys):
-    virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
+    virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
     from flowerpose.cli import main
 
     leaf = leaf_over_flower()

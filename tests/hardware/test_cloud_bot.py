@@ -21,6 +21,8 @@ from cloud_fakes import (
 )
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.cloud_bot import CloudCommandError, FarmbotCloudBot
+from flowerpose.hardware.backends.cloud_credentials import CloudCredentials, parse_token
 from flowerpose.hardware.bot import SolidCamera
 from flowerpose.hardware.bot_errors import (
     BotError,
@@ -31,13 +33,11 @@ from flowerpose.hardware.bot_errors import (
     MoveTimeoutError,
     StallError,
 )
-from flowerpose.hardware.cloud_bot import CloudCommandError, FarmbotCloudBot
-from flowerpose.hardware.cloud_credentials import CloudCredentials, parse_token
+from flowerpose.hardware.flights.scan_flight import run_scan
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.geometry import bed_to_farmbot_mm, farmbot_mm_to_bed
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import move_duration
-from flowerpose.hardware.scan_flight import run_scan
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.scan_geometry import ScanPathConfig
 
 TOKEN_ENV = {"FARMBOT_TOKEN": json.dumps(make_token())}
@@ -419,7 +419,7 @@ def test_a_server_that_would_take_the_login_unencrypted_is_refused():
 def test_a_broker_without_tls_gets_plain_mqtt_and_a_warning(monkeypatch, capsys):
     import paho.mqtt.client as mqtt
 
-    from flowerpose.hardware import cloud_client
+    from flowerpose.hardware.backends import cloud_client
 
     ports = []
 

@@ -12,14 +12,14 @@ import pytest
 from cloud_fakes import make_token
 from farmbot_os import Broker, FarmbotOS, free_port, make_certificate, mosquitto_binary
 
-from flowerpose.hardware import cloud_client
+from flowerpose.hardware.backends import cloud_client
+from flowerpose.hardware.backends.cloud_bot import CloudLinkError, FarmbotCloudBot
+from flowerpose.hardware.backends.cloud_credentials import CloudCredentials
 from flowerpose.hardware.bot import SolidCamera
 from flowerpose.hardware.bot_errors import ConnectionLostError
-from flowerpose.hardware.cloud_bot import CloudLinkError, FarmbotCloudBot
-from flowerpose.hardware.cloud_credentials import CloudCredentials
+from flowerpose.hardware.flights.scan_flight import run_scan
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.geometry import bed_to_farmbot_mm
-from flowerpose.hardware.scan_flight import run_scan
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json
 from flowerpose.scan_geometry import ScanPathConfig
 

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.farmduino import FarmduinoBot, PositionLostError
+from flowerpose.hardware.backends.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 from flowerpose.hardware.bot import KinematicBot, SolidCamera
 from flowerpose.hardware.bot_errors import (
     BotError,
@@ -24,14 +26,12 @@ from flowerpose.hardware.bot_errors import (
     StallError,
     UnknownCommandError,
 )
-from flowerpose.hardware.farmduino import FarmduinoBot, PositionLostError
+from flowerpose.hardware.flights.scan_flight import run_scan
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.geometry import PAPER_BOT, bed_to_farmbot_mm
 from flowerpose.hardware.kinematics import HeadPose, servo_commands
 from flowerpose.hardware.motion import move_duration
 from flowerpose.hardware.protocol import move_line
-from flowerpose.hardware.scan_flight import run_scan
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
-from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 from flowerpose.jsonio import read_json
 from flowerpose.scan_geometry import ScanPathConfig
 
@@ -204,7 +204,7 @@ def test_unlock_right_after_a_stop_waits_for_the_firmware_to_end_it(monkeypatch,
     """The real firmware answers R87 at once but discards input until its R03 V1 a quarter
     of a second later: an F09 sent on the R87 was lost and unlock() timed out. Also on the
     board that reports only every 5 s."""
-    monkeypatch.setattr("flowerpose.hardware.farmduino.REPLY_TIMEOUT_S", 3.0)
+    monkeypatch.setattr("flowerpose.hardware.backends.farmduino.REPLY_TIMEOUT_S", 3.0)
     with (VirtualFarmduino(time_scale=2.0, params=FEEDBACK_PARAMETERS,
                            report_period_s=report_period_s) as device,
           _bot(device, scale=2.0) as bot):
@@ -425,9 +425,9 @@ def test_a_board_reset_mid_move_stops_with_position_lost_until_homed(device):
 def test_the_simulated_scan_through_the_serial_path(tmp_path):
     """What `flowerpose scan --sim --via-farmduino` runs, on a small plan at 64 x 48."""
     signal.setitimer(signal.ITIMER_REAL, 60.0)  # renders in a process pool: allow more
-    from flowerpose.hardware.serial_sim_bot import SimulatedSerialBot
-    from flowerpose.hardware.sim_bot import SimBotConfig
-    from flowerpose.hardware.sim_camera import SimCameraConfig
+    from flowerpose.hardware.backends.serial_sim_bot import SimulatedSerialBot
+    from flowerpose.hardware.backends.sim_bot import SimBotConfig
+    from flowerpose.hardware.backends.sim_camera import SimCameraConfig
     from flowerpose.scanio import frame_files, read_trajectory
     from flowerpose.sim.bundle import make_plant
 
@@ -457,7 +457,7 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     # and the machine's load (which the time scale multiplies), both backends ending every
     # move with the firmware's END_OF_MOVE_S. Measured: 68 and 68 frames, 242.2 and 242.2 s;
     # before the host's turn stood still, 69 against 68 and 246.6 against 236.2 s.
-    from flowerpose.hardware.sim_bot import SimBot
+    from flowerpose.hardware.backends.sim_bot import SimBot
 
     with SimBot([plant], config) as direct:
         run_scan(direct, plan, tmp_path / "direct", source={}, progress=False)
@@ -487,8 +487,8 @@ for name in ("mujoco", "trimesh", "pyrender"):
     sys.modules[name] = None  # importing one now fails
 import numpy as np
 from flowerpose.hardware.bot import SolidCamera
-from flowerpose.hardware.farmduino import FarmduinoBot
-from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
+from flowerpose.hardware.backends.farmduino import FarmduinoBot
+from flowerpose.hardware.backends.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 camera = functools.partial(SolidCamera, width=32, height=24, fps=2)
 with VirtualFarmduino(time_scale=1000.0, params=FEEDBACK_PARAMETERS) as device:
     with FarmduinoBot(device.path, camera=camera, clock_scale=1000.0) as bot:

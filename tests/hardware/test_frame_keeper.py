@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.frame_keeper import FrameKeeper
+from flowerpose.hardware.backends.frame_keeper import FrameKeeper
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.frames import FrameSelectConfig, frame_score, select_frames
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, Intrinsics, trajectory_row

@@ -7,10 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from flowerpose.hardware.geometry import PAPER_BOT
-from flowerpose.hardware.kinematics import HeadPose, joint_positions, tool_at, tool_forward
-from flowerpose.hardware.motion import MotionProfile, move_trajectory
-from flowerpose.hardware.pollinate import (
+from flowerpose.hardware.flights.pollinate import (
     Flower,
     PollinateConfig,
     _short_order,
@@ -18,6 +15,9 @@ from flowerpose.hardware.pollinate import (
     head_gap,
     plan_pollination,
 )
+from flowerpose.hardware.geometry import PAPER_BOT
+from flowerpose.hardware.kinematics import HeadPose, joint_positions, tool_at, tool_forward
+from flowerpose.hardware.motion import MotionProfile, move_trajectory
 
 CENTER = np.array([1.5, 0.75, 0.2])
 
@@ -205,8 +205,8 @@ def test_the_head_boxes_are_the_models_collision_geoms():
 
 
 def test_a_leaf_inside_the_heads_housing_blocks_the_axis_though_far_from_its_centres():
+    from flowerpose.hardware.flights.scan_plan import head_points
     from flowerpose.hardware.kinematics import head_boxes
-    from flowerpose.hardware.scan_plan import head_points
 
     flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]))
     (clear,) = _plan([flower]).visits
@@ -264,7 +264,7 @@ def test_a_neighbours_petals_inside_the_touch_radius_stay_obstacles_once_the_rad
 
 
 def test_a_flowers_radius_is_read_from_its_box_in_its_files_unit(tmp_path):
-    from flowerpose.hardware.pollinate import read_visit_flowers
+    from flowerpose.hardware.flights.pollinate import read_visit_flowers
     from flowerpose.pipeline.flowers import read_flowers
 
     path = tmp_path / "flowers.json"

@@ -12,9 +12,9 @@ from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import BotInfo, KinematicBot
 from flowerpose.hardware.bot_errors import StallError
+from flowerpose.hardware.flights.pollinate import Flower, plan_pollination
+from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, fly_pollination
 from flowerpose.hardware.kinematics import HeadPose, tool_forward
-from flowerpose.hardware.pollinate import Flower, plan_pollination
-from flowerpose.hardware.pollination_flight import FLIGHT_NAME, fly_pollination
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import read_json
 
@@ -125,7 +125,7 @@ def _run(capsys, *argv):
 
 @pytest.mark.slow
 def test_pollinate_flies_on_a_virtual_farmduino_after_homing(tmp_path, capsys):
-    virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
+    virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
     flowers = _flowers_file(tmp_path)
     argv = ["pollinate", flowers, "--plant-at", "1.5,0.75", "--plant-cloud",
             tmp_path / "plant.ply", "--out", tmp_path / "visits"]
@@ -166,7 +166,7 @@ def test_flying_without_the_plants_cloud_is_refused_before_connecting(tmp_path, 
 def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, monkeypatch):
     from cloud_fakes import FakeDevice, fake_factory, make_token
 
-    from flowerpose.hardware import cloud_bot
+    from flowerpose.hardware.backends import cloud_bot
 
     for name in ("FARMBOT_EMAIL", "FARMBOT_PASSWORD", "FARMBOT_SERVER"):
         monkeypatch.delenv(name, raising=False)
@@ -221,8 +221,8 @@ def test_flying_without_credentials_is_refused_before_the_plan_is_written(tmp_pa
 
 def test_a_flight_into_a_folder_another_is_flying_from_is_refused_and_a_dead_one_is_marked(
         tmp_path):
-    from flowerpose.hardware.flight_journal import folder_lock
-    from flowerpose.hardware.pollination_flight import LOCK_NAME
+    from flowerpose.hardware.flights.flight_journal import folder_lock
+    from flowerpose.hardware.flights.pollination_flight import LOCK_NAME
 
     plan = plan_pollination(_flowers(), None)
     with folder_lock(tmp_path, LOCK_NAME, "pollination flight"):  # another process's

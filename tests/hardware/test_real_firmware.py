@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from flowerpose.hardware.backends.farmduino import FarmduinoBot
 from flowerpose.hardware.bot import SolidCamera
 from flowerpose.hardware.bot_errors import EmergencyStopError, HomingError, LockedError
-from flowerpose.hardware.farmduino import FarmduinoBot
 
 #: The firmware and its runner: ../shared/firmware beside the repository (CI has it).
 FIRMWARE = Path(__file__).resolve().parents[2].parent / "shared" / "firmware"

@@ -11,7 +11,8 @@ import pytest
 from cloud_fakes import FakeCapture, FakeDevice, fake_factory, make_token
 
 from flowerpose.cli import main
-from flowerpose.hardware import cloud_bot, scan_plan, usb_camera
+from flowerpose.hardware.backends import cloud_bot, usb_camera
+from flowerpose.hardware.flights import scan_plan
 from flowerpose.jsonio import read_json
 from flowerpose.scanio import frame_files, read_trajectory
 
@@ -157,7 +158,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
 @pytest.mark.slow
 def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, capsys,
                                                                        monkeypatch):
-    virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
+    virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
     scan, _ = _small_field_scan(monkeypatch, tmp_path, fps=100.0)
     with virtual.VirtualFarmduino(time_scale=100.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
@@ -176,7 +177,7 @@ def test_a_board_on_its_defaults_scans_with_the_bots_settings_or_homed_by_hand(t
                                                                                monkeypatch):
     """No endstops or encoders (the firmware's defaults): homing is refused in one line
     before anything moves; the web app's settings, or --home-here, make the scan work."""
-    virtual = pytest.importorskip("flowerpose.hardware.virtual_farmduino")
+    virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
     scan, _ = _small_field_scan(monkeypatch, tmp_path, fps=100.0)
     exported = {"id": 7, "created_at": "2026-11-30T10:00:00Z", "encoder_enabled_x": 1,
                 "encoder_enabled_y": 1, "encoder_enabled_z": 1, "movement_max_spd_x": 400,

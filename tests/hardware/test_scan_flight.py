@@ -6,8 +6,8 @@ import pytest
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import KinematicBot, SolidCamera
 from flowerpose.hardware.bot_errors import StallError
-from flowerpose.hardware.scan_flight import run_scan
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
+from flowerpose.hardware.flights.scan_flight import run_scan
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.scan_geometry import ScanPathConfig
 
@@ -66,8 +66,8 @@ def test_an_interrupted_scan_resumes_at_the_next_waypoint(tmp_path):
 
 
 def test_a_second_scan_into_a_folder_being_recorded_is_refused(tmp_path):
-    from flowerpose.hardware.flight_journal import folder_lock
-    from flowerpose.hardware.scan_flight import LOCK_NAME
+    from flowerpose.hardware.flights.flight_journal import folder_lock
+    from flowerpose.hardware.flights.scan_flight import LOCK_NAME
 
     plan = plan_scan(np.array([1.5, 0.75]), 0.25, SMALL)
     with folder_lock(tmp_path, LOCK_NAME, "scan"):  # as a scan in another process holds it

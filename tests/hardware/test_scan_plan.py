@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.kinematics import UnreachableError, forward
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.scan_geometry import ScanPathConfig, path_cameras
 
 MID_BED = np.array([1.5, 0.75])

@@ -5,7 +5,7 @@ import tty
 
 import pytest
 
-from flowerpose.hardware.serial_link import Dropped, LinkDropped, SerialLink
+from flowerpose.hardware.backends.serial_link import Dropped, LinkDropped, SerialLink
 
 
 @pytest.fixture

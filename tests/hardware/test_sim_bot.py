@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig, write_scan_truth
+from flowerpose.hardware.backends.sim_camera import SimCameraConfig
+from flowerpose.hardware.flights.scan_flight import run_scan
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.kinematics import HeadPose, forward
-from flowerpose.hardware.scan_flight import run_scan
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
-from flowerpose.hardware.sim_bot import SimBot, SimBotConfig, write_scan_truth
-from flowerpose.hardware.sim_camera import SimCameraConfig
 from flowerpose.jsonio import read_json
 from flowerpose.pipeline.frames import FrameSelectConfig, bin_edges, select_frames
 from flowerpose.scan_geometry import ScanPathConfig
@@ -131,7 +131,7 @@ def test_the_configured_camera_processing_and_light_reach_the_recorded_frames(pl
 def test_the_simulated_bot_flies_the_synthetic_worlds_path(plant_dir):
     """`--set sim.viewpoints.*` moves the cameras that decide visibility and the path the
     bot flies alike."""
-    from flowerpose.hardware.sim_bot import plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import plan_plant_scan
     from flowerpose.sim.export import read_plant
 
     plant = read_plant(plant_dir)

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 from cloud_fakes import FakeCapture, FakeDevice, fake_factory, make_token
 
+from flowerpose.hardware.backends.cloud_bot import FarmbotCloudBot
+from flowerpose.hardware.backends.cloud_credentials import CloudCredentials
+from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
 from flowerpose.hardware.bot import Activity, Frame, KinematicBot, Recording
-from flowerpose.hardware.cloud_bot import FarmbotCloudBot
-from flowerpose.hardware.cloud_credentials import CloudCredentials
+from flowerpose.hardware.flights.scan_flight import run_scan
+from flowerpose.hardware.flights.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.kinematics import HeadPose, forward
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
-from flowerpose.hardware.scan_flight import run_scan
-from flowerpose.hardware.scan_plan import ScanConfig, plan_scan
 from flowerpose.hardware.trajectory import (
     RecordingCamera,
     Timeline,
@@ -24,7 +25,6 @@ from flowerpose.hardware.trajectory import (
     last_recorded,
     pose_at,
 )
-from flowerpose.hardware.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.pipeline.frames import FrameSelectConfig, select_frames
 from flowerpose.scan_geometry import ScanPathConfig
@@ -61,7 +61,7 @@ def test_pose_at_follows_the_motion_profile_and_turns_the_head_at_servo_speed():
 
 
 def test_camera_poses_agree_with_mujocos_camera_also_when_the_servos_flip():
-    from flowerpose.hardware.sim_bot import MujocoPoser
+    from flowerpose.hardware.backends.sim_bot import MujocoPoser
 
     rng = np.random.default_rng(3)
     gantry = rng.uniform([0.3, 0.3, 0.3], [2.5, 1.2, 0.6], (12, 3))
@@ -239,7 +239,7 @@ def test_scan_json_counts_a_waypoint_done_only_once_its_kept_frames_are_on_disk(
     resume from: the frames the recording keeps from before the waypoints it calls done are
     already on disk with their trajectory rows, none in the writer's queue or the frame
     keeper's open bin."""
-    import flowerpose.hardware.flight_journal as journal
+    import flowerpose.hardware.flights.flight_journal as journal
 
     plan = plan_scan(np.array([1.5, 0.75]), 0.25, ScanConfig(SMALL.path, pause_s=0.05))
     config = UsbCameraConfig(width=64, height=48, settle_s=0.0,

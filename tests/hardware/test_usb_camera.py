@@ -13,14 +13,14 @@ import pytest
 from cloud_fakes import FakeCapture
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.bot_errors import CameraError
-from flowerpose.hardware.usb_camera import (
+from flowerpose.hardware.backends.usb_camera import (
     FrameChoice,
     UsbCamera,
     UsbCameraConfig,
     check_disk_space,
     estimated_intrinsics,
 )
+from flowerpose.hardware.bot_errors import CameraError
 from flowerpose.jsonio import write_json
 from flowerpose.scanio import frame_files
 

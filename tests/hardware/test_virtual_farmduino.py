@@ -14,15 +14,15 @@ import pytest
 import serial
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.motion import END_OF_MOVE_S, MotionProfile, move_duration
-from flowerpose.hardware.protocol import BANNER
-from flowerpose.hardware.serial_sim_bot import PausableClock
-from flowerpose.hardware.virtual_farmduino import (
+from flowerpose.hardware.backends.serial_sim_bot import PausableClock
+from flowerpose.hardware.backends.virtual_farmduino import (
     DEFAULT_PARAMETERS,
     FEEDBACK_PARAMETERS,
     FIRMWARE_VERSION,
     VirtualFarmduino,
 )
+from flowerpose.hardware.motion import END_OF_MOVE_S, MotionProfile, move_duration
+from flowerpose.hardware.protocol import BANNER
 
 SCALE = 100.0  # simulated seconds per wall second: a 1 m X move takes 0.15 s
 SLOW = 20.0  # for tests that act during a move: 0.7 s of wall time for 1 m, so a busy

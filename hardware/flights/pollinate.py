@@ -28,7 +28,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.approach_path import joint_state, plan_path
+from flowerpose.hardware.flights.approach_path import joint_state, plan_path
+from flowerpose.hardware.flights.scan_plan import poses_along
 from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL, BotGeometry, PollinatorTool
 from flowerpose.hardware.kinematics import (
     HeadPose,
@@ -44,7 +45,6 @@ from flowerpose.hardware.motion import (
     move_duration,
     move_trajectory,
 )
-from flowerpose.hardware.scan_plan import poses_along
 from flowerpose.pipeline.colour import ColourConfig
 
 
@@ -648,7 +648,7 @@ def check_plant(flowers: list[Flower], plant_at, height: float, radius: float,
     """Refuse flowers that are not the plant's at `plant_at` (x, y), `height` x `radius`
     metres, with 5 cm to spare: a flowers.json of another plant, or not in the bed frame.
     InputError names `source` (the file), or the argument out of range."""
-    from flowerpose.hardware.scan_plan import check_plant_position
+    from flowerpose.hardware.flights.scan_plan import check_plant_position
 
     x, y = check_plant_position(plant_at, height, radius)
     for flower in flowers:

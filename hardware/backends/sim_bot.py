@@ -37,13 +37,13 @@ import numpy as np
 
 from flowerpose.atomic import write_bytes, write_file
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicBot, Recording
 from flowerpose.hardware.bot_errors import CameraError
+from flowerpose.hardware.flights.scan_plan import ScanConfig, ScanPlan, plan_scan
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
 from flowerpose.hardware.motion import move_duration
-from flowerpose.hardware.scan_plan import ScanConfig, ScanPlan, plan_scan
-from flowerpose.hardware.sim_camera import SimCameraConfig
 from flowerpose.hardware.trajectory import (
     head_turn_time,
     last_recorded,

@@ -1,6 +1,6 @@
 """Flying a pollination plan on any bot, and resuming one that was interrupted.
 
-The executor flies the visits of a `PollinationPlan` (`hardware/pollinate.py`) in order on
+The executor flies the visits of a `PollinationPlan` (`hardware/flights/pollinate.py`) in order on
 any `Bot`: the physical one on serial or through FarmBot's web app, or a simulated one in
 the harness (`eval/pollination.py`), so what the harness scores is what a bot is told to
 do. Before anything moves, every pose of the plan is checked against the connected bot's
@@ -24,9 +24,9 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot, check_head, check_target
-from flowerpose.hardware.flight_journal import Journal, folder_lock
+from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
+from flowerpose.hardware.flights.pollinate import Move, PollinationPlan
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
-from flowerpose.hardware.pollinate import Move, PollinationPlan
 from flowerpose.log import LOG, Tally
 
 FLIGHT_NAME = "flight.json"

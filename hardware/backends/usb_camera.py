@@ -43,9 +43,9 @@ import numpy as np
 
 from flowerpose.atomic import write_bytes
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.frame_keeper import FrameKeeper
 from flowerpose.hardware.bot import Frame, Recording
 from flowerpose.hardware.bot_errors import CameraError
-from flowerpose.hardware.frame_keeper import FrameKeeper
 from flowerpose.hardware.trajectory import RecordingCamera, last_recorded
 from flowerpose.log import LOG
 from flowerpose.scanio import FRAME_PATTERN, Intrinsics, open_rows, read_intrinsics

@@ -18,8 +18,8 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot
-from flowerpose.hardware.flight_journal import Journal, folder_lock
-from flowerpose.hardware.scan_plan import ScanPlan
+from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
+from flowerpose.hardware.flights.scan_plan import ScanPlan
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG, Tally
 

@@ -77,6 +77,7 @@ import numpy as np
 import serial
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.serial_link import Dropped, LinkDropped, SerialLink
 from flowerpose.hardware.bot import (
     Activity,
     Bot,
@@ -121,7 +122,6 @@ from flowerpose.hardware.protocol import (
     parse_reply,
     servo_line,
 )
-from flowerpose.hardware.serial_link import Dropped, LinkDropped, SerialLink
 
 BAUD = 115200
 AXIS_LENGTH_PARAMETERS = (141, 142, 143)

@@ -42,6 +42,18 @@ from typing import Any
 import numpy as np
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.cloud_client import (
+    broker_lost,
+    disconnect,
+    farmbot_client,
+    secure_broker,
+)
+from flowerpose.hardware.backends.cloud_credentials import (
+    ENV_EMAIL,
+    ENV_PASSWORD,
+    CloudCredentials,
+    parse_token,
+)
 from flowerpose.hardware.bot import (
     Activity,
     Bot,
@@ -60,13 +72,6 @@ from flowerpose.hardware.bot_errors import (
     LockedError,
     MoveTimeoutError,
     StallError,
-)
-from flowerpose.hardware.cloud_client import broker_lost, disconnect, farmbot_client, secure_broker
-from flowerpose.hardware.cloud_credentials import (
-    ENV_EMAIL,
-    ENV_PASSWORD,
-    CloudCredentials,
-    parse_token,
 )
 from flowerpose.hardware.geometry import (
     PAPER_BOT,

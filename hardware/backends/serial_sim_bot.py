@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flowerpose.hardware.farmduino import FarmduinoBot
-from flowerpose.hardware.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
+from flowerpose.hardware.backends.farmduino import FarmduinoBot
+from flowerpose.hardware.backends.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 
 
 class PausableClock:
@@ -84,7 +84,7 @@ class SimulatedSerialBot(FarmduinoBot):
     """
 
     def __init__(self, plant_dirs: list[Path], config=None, time_scale: float = 100.0):
-        from flowerpose.hardware.sim_bot import SimBotConfig, sim_camera
+        from flowerpose.hardware.backends.sim_bot import SimBotConfig, sim_camera
 
         self.sim_config = config or SimBotConfig()
         # The device, the bot's clock and the camera share one time that stops while frames
