@@ -14,6 +14,7 @@ from pathlib import Path
 from flowerpose.cache import StageCache
 from flowerpose.config import require, to_dict
 from flowerpose.hardware.backends.sim_camera import SimCameraConfig
+from flowerpose.jsonio import read_json, write_json
 from flowerpose.pipeline.frames import FrameSelectConfig
 from flowerpose.pipeline.reconstruct import ReconstructConfig
 from flowerpose.scan_geometry import ScanPathConfig
@@ -58,11 +59,7 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
     `via_farmduino`) flies `plan` (`sim_bot.plan_plant_scan`) round the plant in plant_dir
     with the camera `config` gives, recording the scan folder out_dir; then out_dir/plant.json
     holds the truth with this scan's own visibility. Returns scan.json's content."""
-    from flowerpose.hardware.backends.sim_bot import (
-        SimBot,
-        SimBotConfig,
-        write_scan_truth,
-    )
+    from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
     from flowerpose.hardware.flights.scan_flight import run_scan
 
     bot_config = SimBotConfig(camera=config.camera, width=config.width, height=config.height)
@@ -77,6 +74,20 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
                             source={**bot.describe(), "plants": [str(Path(plant_dir).resolve())]})
     write_scan_truth(out_dir, plant_dir)
     return manifest
+
+
+def write_scan_truth(scan_dir: Path, plant_dir: Path) -> Path:
+    """scan_dir/plant.json: the plant's truth with `visible` and `visible_fraction` from this
+    scan's own views (visibility.json: rendered instance masks at every settled waypoint)
+    instead of the path's geometry alone. Scores of this scan's clouds use it."""
+    truth = read_json(Path(plant_dir) / "plant.json")
+    seen = read_json(Path(scan_dir) / "visibility.json")
+    for flower in truth["flowers"]:
+        key = str(flower["id"])
+        flower["visible"] = bool(seen["visible"].get(key, False))
+        flower["visible_fraction"] = float(seen["fraction"].get(key, 0.0))
+    truth["visibility"] = "scan"
+    return write_json(Path(scan_dir) / "plant.json", truth)
 
 
 def capture_scan(plant_dir: Path, config: ScanSourceConfig,

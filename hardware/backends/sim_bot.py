@@ -470,18 +470,3 @@ def plan_plant_scan(plant, path: ScanPathConfig | None = None) -> ScanPlan:
 
     return plan_scan(plant.center[:2], plant.height, ScanConfig(path=path or ScanPathConfig()),
                      obstacles=plant_obstacles(plant))
-
-
-def write_scan_truth(scan_dir: Path, plant_dir: Path) -> Path:
-    """scan_dir/plant.json: the plant's truth with `visible` and `visible_fraction` from this
-    scan's own views (visibility.json: rendered instance masks at every settled waypoint)
-    instead of the path's geometry alone. Scores of this scan's clouds use it."""
-
-    truth = read_json(Path(plant_dir) / "plant.json")
-    seen = read_json(Path(scan_dir) / "visibility.json")
-    for flower in truth["flowers"]:
-        key = str(flower["id"])
-        flower["visible"] = bool(seen["visible"].get(key, False))
-        flower["visible_fraction"] = float(seen["fraction"].get(key, 0.0))
-    truth["visibility"] = "scan"
-    return write_json(Path(scan_dir) / "plant.json", truth)
