@@ -18,9 +18,9 @@ from flowerpose.hardware.backends.serial_sim_bot import PausableClock
 from flowerpose.hardware.backends.virtual_farmduino import (
     DEFAULT_PARAMETERS,
     FEEDBACK_PARAMETERS,
-    FIRMWARE_VERSION,
     VirtualFarmduino,
 )
+from flowerpose.hardware.backends.virtual_firmware import FIRMWARE_VERSION
 from flowerpose.hardware.motion import END_OF_MOVE_S, MotionProfile, move_duration
 from flowerpose.hardware.protocol import BANNER
 
