@@ -171,3 +171,13 @@ class CameraError(BotError):
 class OutOfRangeError(InputError):
     """A request the bot cannot carry out as asked: a target outside the travel limits, a
     head angle out of range, a speed fraction outside (0, 1]. The user's to fix."""
+
+
+class PositionLostError(BotError):
+    """The Farmduino's counters do not locate the gantry: the board started (the port was
+    opened, or it restarted on its own) and no home() has run since."""
+
+    def __init__(self, command: str, why: str):
+        self.command = command
+        super().__init__(f"{command}: {why}; the position is unknown: home the bot "
+                         "(home(), Z first) before moving")

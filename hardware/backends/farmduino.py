@@ -65,26 +65,27 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-import os
 import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
-import serial
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends.farmduino_connection import (
+    MAX_RECOVERIES,
+    REPLY_TIMEOUT_S,
+    BoardStarted,
+    Connection,
+)
 from flowerpose.hardware.backends.serial_link import Dropped, LinkDropped, SerialLink
 from flowerpose.hardware.bot import (
     Activity,
     Bot,
     BotInfo,
     Camera,
-    Frame,
-    Recording,
     check_axes,
     check_head,
     check_target,
@@ -98,6 +99,7 @@ from flowerpose.hardware.bot_errors import (
     HomingError,
     LockedError,
     NotConfiguredError,
+    PositionLostError,
     UnknownCommandError,
     error_for_code,
 )
@@ -110,7 +112,6 @@ from flowerpose.hardware.geometry import (
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
 from flowerpose.hardware.protocol import (
-    BANNER,
     ENCODERS,
     ENDSTOPS,
     FINAL_REPLIES,
@@ -123,21 +124,8 @@ from flowerpose.hardware.protocol import (
     servo_line,
 )
 
-BAUD = 115200
-AXIS_LENGTH_PARAMETERS = (141, 142, 143)
-READ_PARAMETERS = (2, 5, 11, 12, 13, 41, 42, 43, 44, 55, 56, 57, 61, 62, 63, 64, 71, 72, 73, 74,
-                   *AXIS_LENGTH_PARAMETERS, *ENDSTOPS.values(), *ENCODERS.values())
-"""Parameters read at connect: 2 configuration approved, 5 movement retries, the motion
-model's (motion.FIRMWARE_PARAMETERS), the axis lengths, and what homing needs (endstops
-25-27, encoders 101-103)."""
-_OPTIONAL_PARAMETERS = {*ENDSTOPS.values(), *ENCODERS.values()}
-"""Read when the firmware has them; without them homing is not checked beforehand."""
 _HOMING_FAILURES = {"R71": "X", "R72": "Y", "R73": "Z"}
 """The firmware's axis timeout reports while homing."""
-_Z_HOME_FALLBACK = {44: 43, 64: 63, 74: 73}
-"""A firmware without Z's own "toward home" settings moves Z up with its other settings."""
-REPLY_TIMEOUT_S = 15.0
-"""Wall seconds a command that does not move may take to its final reply."""
 MOVE_SLACK_S = 15.0
 """Wall seconds a move may take beyond the firmware's own timeouts (the link, the retries'
 start-up, the board's reports)."""
@@ -150,22 +138,6 @@ firmware to end it (`R03`, or an idle report: every 5 s on the slowest boards), 
 firmware discards what arrives before."""
 HEAD_SETTLE_S = 0.5
 """Bot seconds `set_head` waits after the servo commands: servos give no feedback."""
-_MAX_RECOVERIES = 3
-"""Link drops one command recovers from before it gives up."""
-
-
-class PositionLostError(BotError):
-    """The Farmduino's counters do not locate the gantry: the board started (the port was
-    opened, or it restarted on its own) and no home() has run since."""
-
-    def __init__(self, command: str, why: str):
-        self.command = command
-        super().__init__(f"{command}: {why}; the position is unknown: home the bot "
-                         "(home(), Z first) before moving")
-
-
-class _BoardStarted(PositionLostError):
-    """The startup banner came while the port stayed open."""
 
 
 def _ends_stop(reply: Reply) -> bool:
@@ -193,30 +165,7 @@ class _Exchange:
         return None
 
 
-class _NoCamera(Camera):
-    """The camera of a bot given none: every call says so."""
-
-    def __init__(self, port: str):
-        self._port = port
-
-    def _missing(self) -> CameraError:
-        return CameraError(f"serial {self._port}: the bot was given no camera; pass camera= "
-                           "(a factory that takes the bot's clock)")
-
-    def intrinsics(self) -> dict[str, float]:
-        raise self._missing()
-
-    def frame(self) -> Frame:
-        raise self._missing()
-
-    def start_recording(self, path: str | Path) -> None:
-        raise self._missing()
-
-    def stop_recording(self) -> Recording:
-        raise self._missing()
-
-
-class FarmduinoBot(Bot):
+class FarmduinoBot(Connection, Bot):
     """A FarmBot on its Farmduino over USB serial: see the module docstring.
 
     port: the serial device (prefer the stable /dev/serial/by-id/... path: it survives a
@@ -285,7 +234,7 @@ class FarmduinoBot(Bot):
         self._recovering = False
         try:
             self._connect(first=True, deadline=time.monotonic() + self._connect_timeout_s)
-            self._camera = (camera or (lambda clock: _NoCamera(self._port)))(self.now)
+            self._camera = camera(self.now) if camera is not None else None
         except BaseException:
             self._disconnect()
             raise
@@ -298,6 +247,9 @@ class FarmduinoBot(Bot):
 
     @property
     def camera(self) -> Camera:
+        if self._camera is None:
+            raise CameraError(f"serial {self._port}: the bot was given no camera; pass "
+                              "camera= (a factory that takes the bot's clock)")
         return self._camera
 
     def now(self) -> float:
@@ -483,7 +435,7 @@ class FarmduinoBot(Bot):
               command: str, homing: str | None) -> None:
         """One movement command to its end, told to the observer; after a dropped link, the
         link is recovered and the command sent again from where the gantry is."""
-        for attempt in range(_MAX_RECOVERIES + 1):
+        for attempt in range(MAX_RECOVERIES + 1):
             if self._locked.is_set():
                 raise LockedError(command)
             if homing is None and self._homed != {"x", "y", "z"}:
@@ -500,7 +452,7 @@ class FarmduinoBot(Bot):
                 self._recover(command, drop, attempt, interrupted=functools.partial(
                     self._moved, t0, start, target, profile, None))
                 continue
-            except _BoardStarted:
+            except BoardStarted:
                 self._moved(t0, start, target, profile, None)
                 self._restarted(command)
             except BaseException:
@@ -541,13 +493,13 @@ class FarmduinoBot(Bot):
 
     def _command(self, body: str, timeout_s: float = REPLY_TIMEOUT_S) -> _Exchange:
         """A command that does not move, sent again after a recovered link drop."""
-        for attempt in range(_MAX_RECOVERIES + 1):
+        for attempt in range(MAX_RECOVERIES + 1):
             try:
                 exchange = self._transact(body, timeout_s)
             except LinkDropped as drop:
                 self._recover(body, drop, attempt)
                 continue
-            except _BoardStarted:
+            except BoardStarted:
                 self._restarted(body)
             self._raise_for(exchange)
             return exchange
@@ -576,7 +528,7 @@ class FarmduinoBot(Bot):
     def _transact(self, body: str, timeout_s: float,
                   watch: Callable[[Reply], str | None] | None = None) -> _Exchange:
         """Send `body` with the next Q and collect the replies with that Q up to the final
-        one. Raises LinkDropped, _BoardStarted or CommandTimeoutError; an emergency stop
+        one. Raises LinkDropped, BoardStarted or CommandTimeoutError; an emergency stop
         sent meanwhile gives `stopped` (waiting ESTOP_GRACE_S at most for the reply). When
         `watch` names a failure in any reply, the command is aborted (`@`, then `E` if no
         final reply comes within ESTOP_GRACE_S) and the exchange carries the failure."""
@@ -648,7 +600,7 @@ class FarmduinoBot(Bot):
             raise LinkDropped(self._port, item.detail)
         reply = parse_reply(item)
         if reply is not None and reply.code == "R99" and STARTUP_TEXT in reply.text:
-            raise _BoardStarted("Farmduino", "the board restarted (R99 ARDUINO STARTUP "
+            raise BoardStarted("Farmduino", "the board restarted (R99 ARDUINO STARTUP "
                                 "COMPLETE)")
         return reply
 
@@ -666,188 +618,3 @@ class FarmduinoBot(Bot):
         if link is None:
             raise LinkDropped(self._port, "the port is not open")
         link.write(data)
-
-    # --- the link ---------------------------------------------------------------------
-
-    def _connect(self, first: bool, deadline: float) -> bool:
-        """Open the port and bring the firmware up; returns whether the board (re)started."""
-        try:
-            self._link = SerialLink(self._port, BAUD)
-        except (serial.SerialException, OSError, ValueError) as error:
-            number = getattr(error, "errno", None)
-            reason = os.strerror(number) if number else str(error)
-            if first:
-                raise InputError(self._port, f"cannot open the serial port ({reason}); check "
-                                 "the device path (ls /dev/serial/by-id), that FarmBot OS does "
-                                 "not hold it, and that you may open it (the dialout "
-                                 "group)") from None
-            raise LinkDropped(self._port, reason) from None
-        self._lines = self._link.lines
-        restarted, approve = self._await_ready(deadline, first)
-        if restarted:
-            self._stop_sent = None  # a board that starts has no stop under way
-        self._initialise(restarted, approve, first)
-        return restarted
-
-    def _await_ready(self, deadline: float, first: bool) -> tuple[bool, bool]:
-        """Wait for the startup banner or an idle report: (whether the board started, whether
-        the firmware asked for its configuration to be approved)."""
-        approve = False
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                what = (f"serial {self._port}: no startup banner ({BANNER}) or idle report "
-                        f"(R00) within {self._connect_timeout_s:g} s; check that it is a "
-                        "Farmduino with FarmBot's firmware at 115200 baud and that FarmBot OS "
-                        "does not hold the port")
-                if first:
-                    raise BotError(what)
-                raise LinkDropped(self._port, "no banner after reopening")
-            try:
-                item = self._lines.get(timeout=min(remaining, 0.05))
-            except queue.Empty:
-                continue
-            try:
-                reply = self._reply(item)
-            except _BoardStarted:
-                return True, approve
-            if reply is None:
-                continue
-            approve = approve or reply.code == "R88"
-            if reply.code == "R87":
-                self._locked.set()
-            if reply.code in ("R00", "R87", "R88"):
-                return False, approve
-
-    def _initialise(self, restarted: bool, approve: bool, first: bool) -> None:
-        """Version, parameters, approval, lock and servos, position: after every start."""
-        version = self._transact("F83", REPLY_TIMEOUT_S)
-        self._raise_for(version)
-        self._firmware = next((r.text for r in version.replies if r.code == "R83"), None)
-        self._write_settings()
-        self._params = self._read_parameters()
-        if approve or self._params.get(2) != 1:
-            self._raise_for(self._transact("F22 P2 V1", REPLY_TIMEOUT_S))
-        self._info = self._limits(MotionProfile.from_firmware(self._params))
-        if restarted:
-            self._homed.clear()
-        if self._locked.is_set():
-            # An emergency stop asked for while the link was down, or before a restart.
-            self._write(b"E")
-            self._stop_sent = time.monotonic()
-        elif self._servo is not None:
-            for pin, value in zip((YAW_PIN, PITCH_PIN), self._servo, strict=True):
-                self._raise_for(self._transact(servo_line(pin, value), REPLY_TIMEOUT_S))
-        where = self._transact("F82", REPLY_TIMEOUT_S)
-        self._raise_for(where)
-        # After a restart the counters say 0 wherever the gantry is: keep our estimate.
-        if (first or not restarted) and where.position_mm() is not None:
-            self._xyz = farmbot_mm_to_bed(where.position_mm())
-
-    def _write_settings(self) -> None:
-        """Write the bot's settings (F22) and read each back (F21); BotError naming the
-        first that did not take."""
-        for pid, value in self._settings.items():
-            self._raise_for(self._transact(f"F22 P{pid} V{round(value)}", REPLY_TIMEOUT_S))
-        for pid, value in self._settings.items():
-            exchange = self._transact(f"F21 P{pid}", REPLY_TIMEOUT_S)
-            self._raise_for(exchange)
-            held = next((r.values.get("V") for r in exchange.replies
-                         if r.code == "R21" and r.values.get("P") == pid), None)
-            if held is None or round(held) != round(value):
-                raise BotError(f"serial {self._port}: firmware parameter {describe(pid)} did "
-                               f"not take: wrote {round(value)}, the board holds "
-                               f"{'nothing' if held is None else f'{held:g}'}; the bot will "
-                               "not move on settings it does not hold (check the value, and "
-                               "the firmware version against the web app's)")
-
-    def _read_parameters(self) -> dict[int, float]:
-        params: dict[int, float] = {}
-        for pid in READ_PARAMETERS:
-            exchange = self._transact(f"F21 P{pid}", REPLY_TIMEOUT_S)
-            self._raise_for(exchange)
-            value = next((r.values.get("V") for r in exchange.replies
-                          if r.code == "R21" and r.values.get("P") == pid), None)
-            if value is not None:
-                params[pid] = value
-            elif pid in AXIS_LENGTH_PARAMETERS:
-                params[pid] = 0.0  # not calibrated
-            elif pid not in _Z_HOME_FALLBACK and pid not in _OPTIONAL_PARAMETERS:
-                raise BotError(f"serial {self._port}: the firmware does not report parameter "
-                               f"{pid} (F21); is it FarmBot's Farmduino firmware 6.x?")
-        for pid, fallback in _Z_HOME_FALLBACK.items():
-            params.setdefault(pid, params[fallback])
-        return params
-
-    def _limits(self, profile: MotionProfile) -> BotInfo:
-        """The bot's info with the firmware's version and motion, its travel cut to the
-        calibrated axis lengths (parameters 141-143, in steps; 0 is not calibrated)."""
-        base = self._base_info
-        low, high, home = np.array(base.travel_min), np.array(base.travel_max), base.home
-        for i, axis in enumerate((profile.x, profile.y, profile.z)):
-            steps = self._params.get(AXIS_LENGTH_PARAMETERS[i], 0.0)
-            if steps > 0:
-                length = steps / axis.steps_per_m
-                if i < 2:
-                    high[i] = min(high[i], home[i] + length)
-                else:
-                    low[i] = max(low[i], home[i] - length)
-        return replace(base, firmware=self._firmware, motion=profile,
-                       travel_min=tuple(map(float, low)), travel_max=tuple(map(float, high)))
-
-    def _recover(self, command: str, drop: LinkDropped, attempt: int,
-                 interrupted: Callable[[], None] | None = None) -> None:
-        """Get the link back after it dropped during `command`, and home when reopening
-        restarted the board; ConnectionLostError when that cannot be done. `interrupted`
-        is called once the port is back (or given up on): the end of a cut-off move."""
-        if self._recovering or attempt >= _MAX_RECOVERIES or self._closed:
-            if interrupted is not None:
-                interrupted()
-            raise ConnectionLostError(self._port, f"during {command}: {drop.detail}")
-        self._recovering = True
-        try:
-            try:
-                restarted = self._reconnect(command, drop)
-            finally:
-                if interrupted is not None:
-                    interrupted()
-            if restarted and not self._locked.is_set():
-                for name in "zyx":
-                    self._home_axis(name)
-        finally:
-            self._recovering = False
-
-    def _reconnect(self, command: str, drop: LinkDropped) -> bool:
-        """Reopen the port with backoff for up to connect_timeout_s; returns whether the
-        board restarted."""
-        self._disconnect()
-        deadline = time.monotonic() + self._connect_timeout_s
-        delay, last = 0.05, drop.detail
-        while True:
-            if self._closed:
-                raise BotError(f"{command}: {self._info.name} was closed")
-            try:
-                return self._connect(first=False, deadline=deadline)
-            except LinkDropped as error:
-                last = error.detail
-            except CommandTimeoutError as error:
-                last = str(error)
-            self._disconnect()
-            if time.monotonic() + delay > deadline:
-                raise ConnectionLostError(self._port, f"{command}: could not reconnect within "
-                                          f"{self._connect_timeout_s:g} s: {last}")
-            time.sleep(delay)
-            delay = min(2 * delay, 1.0)
-
-    def _restarted(self, command: str) -> None:
-        """The board restarted with the port open: bring the firmware up again, then stop
-        the caller with PositionLostError (a restart of its own wants a person's look)."""
-        self._initialise(restarted=True, approve=True, first=False)
-        raise PositionLostError(command, f"the Farmduino on {self._port} restarted on its "
-                                "own (R99 ARDUINO STARTUP COMPLETE): check its power supply "
-                                "and the gantry")
-
-    def _disconnect(self) -> None:
-        link, self._link = self._link, None
-        if link is not None:
-            link.close()

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
-from flowerpose.hardware.backends.farmduino import FarmduinoBot, PositionLostError
+from flowerpose.hardware.backends.farmduino import FarmduinoBot
 from flowerpose.hardware.backends.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 from flowerpose.hardware.bot import KinematicBot, SolidCamera
 from flowerpose.hardware.bot_errors import (
@@ -23,6 +23,7 @@ from flowerpose.hardware.bot_errors import (
     LockedError,
     NotConfiguredError,
     OutOfRangeError,
+    PositionLostError,
     StallError,
     UnknownCommandError,
 )
