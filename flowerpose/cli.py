@@ -1,6 +1,7 @@
 """The `flowerpose` command line: one console script, one subcommand per stage or job. This
-module builds the parser from the subcommands' modules (`cli_eval`, `cli_stages`,
-`cli_field`; what they share in `cli_options`) and turns what goes wrong into one line."""
+module builds the parser from the subcommands' modules (`cli_eval`, `cli_study`,
+`cli_stages`, `cli_field`, `cli_data`; what they share in `cli_options`) and turns what
+goes wrong into one line."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import sys
 import time
 from typing import Any
 
-from flowerpose import cli_data, cli_eval, cli_field, cli_stages
+from flowerpose import cli_data, cli_eval, cli_field, cli_stages, cli_study
 from flowerpose.cli_flags import SettingHelp, flag_for, say_flags
 from flowerpose.errors import InputError, JobsFailed, missing_extra
 from flowerpose.hardware.bot_errors import BotError
@@ -29,9 +30,9 @@ COMMANDS = (
     cli_stages.add_detect,
     cli_stages.add_pose,
     cli_stages.add_score,
-    cli_eval.add_sweep,
-    cli_eval.add_stress,
-    cli_eval.add_tune,
+    cli_study.add_sweep,
+    cli_study.add_stress,
+    cli_study.add_tune,
     cli_eval.add_results,
     cli_eval.add_fidelity,
     cli_eval.add_cache,

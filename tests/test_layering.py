@@ -9,7 +9,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"pipeline", "sim", "hardware", "eval"}
 #: The command line's modules: the one place in flowerpose/ that may use every package.
-COMMAND_LINE = {"cli.py", "cli_eval.py", "cli_field.py", "cli_options.py", "cli_stages.py"}
+COMMAND_LINE = {"cli.py", "cli_eval.py", "cli_field.py", "cli_options.py", "cli_stages.py",
+                "cli_study.py"}
 
 
 def _imports(path: Path) -> set[str]:

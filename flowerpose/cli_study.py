@@ -1,0 +1,345 @@
+"""The studies over settings and perturbations: `sweep` (a grid of settings), `stress`
+(plants under seeded perturbations) and `tune` (an Optuna search scored on plants it
+never sees)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from flowerpose.cli_eval import EVAL_RUN_KEYS
+from flowerpose.cli_options import (
+    PLANTS,
+    POSITIVE,
+    SEED,
+    add_cache_options,
+    add_config_options,
+    add_output,
+    add_preset,
+    add_ray_option,
+    add_workers,
+    configure,
+    jobs_on,
+    owned,
+    positive_number,
+    stage_cache,
+)
+from flowerpose.errors import InputError
+from flowerpose.eval.kinds import SOURCES, SYNTHETIC_SOURCES
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config
+    from flowerpose.eval.sweep import parse_grid, run_sweep, sweep_outputs
+
+    if args.folders and args.source != "real":
+        raise InputError(args.folders[0], "plant folders are for --source real")
+    config = eval_config(args.preset,
+                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
+    grid = parse_grid(args.grid, config)
+    cache = stage_cache(args)
+    writes = sweep_outputs(grid, args.source, args.folders)
+    with owned(args.out, "sweep", args.overwrite, writes), \
+            jobs_on(args):
+        best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
+                         workers=args.workers, source=args.source, cache=cache,
+                         folders=args.folders)
+    if cache is not None:
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
+    metrics = best["metrics"]
+    print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
+          + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
+          f"plane {metrics['plane_mean_deg']}°; its settings in {args.out / 'best.json'})")
+    return 0
+
+
+def add_sweep(sub: argparse._SubParsersAction) -> None:
+    """The `sweep` subcommand's parser."""
+    p = sub.add_parser(
+        "sweep", help="evaluate a grid of settings over seeded plants",
+        description="Evaluate every combination of the --grid settings on the same seeded "
+        "plants' clouds (oracle, or filmed and reconstructed once for all settings). "
+        "Writes sweep.csv (a row per setting), sweep.png (each metric "
+        "per setting, spread over the plants) and best.json (the best setting: most visible "
+        "flowers found, then fewest false positives, then the smallest plane error).",
+        epilog="examples:\n"
+        "  flowerpose sweep --grid cluster.eps=0.006,0.008 --grid grid.views=6,14 --plants 3 "
+        "--out sweep\n"
+        "  flowerpose sweep --source scan --plants 3 --grid cluster.eps=0.006,0.008,0.01,0.012 "
+        "--out sweep-scan\n"
+        "  flowerpose sweep --source real ../shared/real/paper-plant-3 --grid "
+        "cluster.eps=0.008,0.01 --out sweep-real")
+    p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
+                   help="a setting's dotted key and its values; repeat for a grid over several")
+    p.add_argument("--source", choices=SOURCES, default="oracle",
+                   help="where the clouds come from, as for eval; scan and rgbd film each "
+                   "plant once for every setting that does not change the plants or the "
+                   "capture; real: labelled plant folders (DIR ...) (default: %(default)s)")
+    p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
+                   help="--source real: labelled plant folders")
+    p.add_argument("--plants", type=PLANTS, default=5, metavar="N",
+                   help="seeded plants per setting (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (default: %(default)s)")
+    add_preset(p)
+    add_workers(p)
+    add_output(p, "folder for sweep.csv, sweep.png and best.json")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p)
+    p.set_defaults(func=cmd_sweep)
+
+
+def _numbers(what: str):
+    """An argparse type: a comma-separated list of numbers."""
+    def parse(text: str) -> list[float]:
+        try:
+            values = [float(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: {what} as numbers separated by "
+                                             "commas") from None
+        if not values:
+            raise argparse.ArgumentTypeError(f"{text!r}: no {what}")
+        return values
+    return parse
+
+
+def _texts(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def cmd_stress(args: argparse.Namespace) -> int:
+    from flowerpose.eval.harness import eval_config, real_plants
+    from flowerpose.eval.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
+
+    if args.folders and args.source != "real":
+        raise InputError(args.folders[0], "plant folders are for --source real")
+    config = eval_config(args.preset,
+                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
+    levels = {kind: getattr(args, kind) if getattr(args, kind) is not None
+              else list(DEFAULT_LEVELS[kind]) for kind in DEFAULT_LEVELS}
+    if args.source == "real":
+        views = min(len(p.clouds) if p.stage == "candidates" else config.grid.views
+                    for p in real_plants(args.folders, args.truth_scale)
+                    if p.stage != "crops") if any(
+            True for _ in args.folders) else 0
+    else:
+        views = config.grid.views
+    drop = views if args.drop_views == "all" else int(args.drop_views)
+    if drop > views:
+        raise InputError("--drop-views", f"{drop}: there are {views} views to drop")
+    capture = {k: v for k, v in (("frames", args.frames), ("resolution", args.resolution)) if v}
+    for value in capture.get("resolution", []):
+        width, _, height = value.partition("x")
+        if not (width.isdigit() and height.isdigit()):
+            raise InputError("--resolution", f"{value!r}: WIDTHxHEIGHT in pixels, e.g. 640x360")
+    for value in capture.get("frames", []):
+        if not value.isdigit():
+            raise InputError("--frames", f"{value!r}: a whole number of frames")
+    plan = plan_from(levels, args.channels, drop, capture, args.repeats, args.stress_seed)
+    cache = stage_cache(args)
+    with owned(args.out, "stress", args.overwrite, STRESS_FILES), jobs_on(args):
+        report = run_stress(config, plan, args.out, args.source, args.folders, args.plants,
+                            args.seed, args.workers, cache, args.truth_scale)
+    if cache is not None and args.source != "real":
+        from flowerpose.cache import prune_to_limit
+
+        prune_to_limit(cache)
+    from flowerpose.eval.stress import stress_markdown
+
+    print(stress_markdown(report).split("\n\n", 2)[2].split("\n\n")[0])
+    print(f"stress: {args.out / 'stress.json'}, {args.out / 'stress.md'}, "
+          f"{args.out / 'stress.png'}, {args.out / 'report.html'}")
+    return 0
+
+
+def add_stress(sub: argparse._SubParsersAction) -> None:
+    """The `stress` subcommand's parser."""
+    from flowerpose.eval.stress import DEFAULT_LEVELS
+
+    def levels(kind: str) -> str:
+        return ",".join(f"{v:g}" for v in DEFAULT_LEVELS[kind])
+
+    p = sub.add_parser(
+        "stress", help="the robustness report: the pipeline over perturbed clouds",
+        description="Run the pipeline on each plant as it is and under seeded perturbations "
+        "of its cloud (thinned, darker or brighter, a colour cast, position noise, a view "
+        "left out; for --source scan also fewer frames and a lower resolution), scored "
+        "against the same truth. Writes stress.json, stress.md, stress.png (a panel per "
+        "perturbation: recall and plane error against its strength) and report.html.",
+        epilog="examples:\n"
+        "  flowerpose stress --source oracle --plants 3 --out stress-oracle\n"
+        "  flowerpose stress --source real ../shared/real/paper-plant-3 --repeats 3 "
+        "--out stress-real")
+    p.add_argument("--source", choices=SOURCES, default="oracle",
+                   help="where the clouds come from, as for eval (default: %(default)s)")
+    p.add_argument("folders", nargs="*", type=Path, metavar="DIR",
+                   help="--source real: labelled plant folders")
+    p.add_argument("--truth-scale", type=positive_number, default=None, metavar="K",
+                   help="--source real: the labels' scale, no unit (default: each folder's "
+                   "source.json, else 25 for SageMaker labels)")
+    p.add_argument("--plants", type=PLANTS, default=3, metavar="N",
+                   help="seeded synthetic plants (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="first plant seed (default: %(default)s)")
+    add_preset(p)
+    p.add_argument("--thin", type=_numbers("fractions"), metavar="F,...",
+                   help="fractions of the points kept, 0-1 (default: "
+                   f"{levels('thin')})")
+    p.add_argument("--exposure", type=_numbers("factors"), metavar="K,...",
+                   help="factors on linear light (default: "
+                   f"{levels('exposure')})")
+    p.add_argument("--cast", type=_numbers("changes"), metavar="C,...",
+                   help="relative changes of one channel's linear light, each on every "
+                   f"--channels (default: {levels('cast')})")
+    p.add_argument("--channels", default="rgb", choices=("r", "g", "b", "rg", "rb", "gb", "rgb"),
+                   help="the channels a cast acts on, one at a time (default: %(default)s)")
+    p.add_argument("--noise", type=_numbers("standard deviations"), metavar="M,...",
+                   help="Gaussian position noise, standard deviation in the cloud's unit "
+                   f"(metres) (default: {levels('noise')})")
+    p.add_argument("--drop-views", default="all", metavar="N|all",
+                   choices=["all", *(str(k) for k in range(27))],
+                   help="leave out each of the first N views in turn (a real plant's "
+                   "candidates files, else grid views); 0: none (default: %(default)s)")
+    p.add_argument("--frames", type=_texts, metavar="N,...",
+                   help="--source scan: frames chosen for photogrammetry (default: none)")
+    p.add_argument("--resolution", type=_texts, metavar="WxH,...",
+                   help="--source scan: camera resolutions, pixels (default: none)")
+    p.add_argument("--repeats", type=POSITIVE, default=1, metavar="N",
+                   help="seeded repeats of each random perturbation (thinning, noise) "
+                   "(default: %(default)s)")
+    p.add_argument("--stress-seed", type=SEED, default=0, metavar="S",
+                   help="seed of the perturbations (default: %(default)s)")
+    add_workers(p)
+    add_output(p, "folder for stress.json, stress.md, stress.png and report.html")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p)
+    p.set_defaults(func=cmd_stress)
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    from flowerpose.config import parse_set_options
+    from flowerpose.eval.harness import eval_config
+    from flowerpose.eval.plant_sets import parse_sets, synthetic_set
+    from flowerpose.eval.tune import (
+        TUNE_FILES,
+        TuneSpec,
+        local_storage,
+        open_study,
+        report_study,
+        run_trials,
+        score_defaults,
+        study_name,
+        user_overrides,
+        validation_default,
+    )
+    from flowerpose.eval.tune_space import parse_objectives, read_space
+    from flowerpose.stopwatch import Stopwatch
+
+    overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
+    base = eval_config(args.preset or "realistic", lambda c: configure(c, args))
+    space = tuple(read_space(args.space, base))
+    objectives = tuple(parse_objectives(args.objective))
+    train = parse_sets(args.train) if args.train else [
+        synthetic_set(args.source, args.preset or "realistic", args.plants, args.seed)]
+    validate = parse_sets(args.validate) if args.validate else validation_default(train)
+    storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
+    if args.ray not in (None, "local", "auto") and local_storage(storage) and not any(
+            host in args.ray for host in ("127.0.0.1", "localhost")):
+        raise InputError("--study", f"{storage} is on this machine's disk, which a remote "
+                         "Ray cluster does not reach: give a storage it reaches (an RDB URL, "
+                         "e.g. postgresql://..., or journal:///PATH on a shared file system)")
+    default_name, identity = study_name(space, tuple(train), objectives)
+    cache = stage_cache(args)
+    spec = TuneSpec(space, tuple(train), tuple(validate), objectives, overrides, storage,
+                    args.study_name or default_name, args.sampler_seed, args.out, cache)
+    watch = Stopwatch()
+    with owned(args.out, "tune", args.overwrite, TUNE_FILES), jobs_on(args):
+        args.out.mkdir(parents=True, exist_ok=True)
+        open_study(spec, identity, create=True)
+        from flowerpose.log import LOG
+
+        LOG.info(f"tune: study {spec.study_name}: scoring the settings without a trial's on "
+                 f"{len(train)} training and {len(validate)} validation sets")
+        timer = Stopwatch()
+        defaults = score_defaults(spec)
+        each = timer.elapsed()
+        workers = 1 if args.ray is not None else (args.workers or 1)
+        LOG.info(f"tune: one trial takes about {each:.0f} s here: {args.trials} trials, about "
+                 f"{each * args.trials / workers / 60:.1f} min on {workers} worker(s)")
+        try:
+            if args.ray is None and workers == 1:
+                run_trials(spec, args.trials)
+            else:
+                from flowerpose.eval.runner import run_jobs
+
+                tasks = args.trials if args.ray is not None else min(workers, args.trials)
+                shares = [args.trials // tasks + (k < args.trials % tasks) for k in range(tasks)]
+                run_jobs(run_trials, [(spec, n) for n in shares], workers, stage="tune",
+                         labels=[f"worker {k}" for k in range(tasks)])
+        finally:
+            report = report_study(spec, defaults, watch.elapsed())
+    from flowerpose.eval.tune import tune_markdown
+
+    print(tune_markdown(report))
+    print(f"tune: {args.out / 'tune.json'}, {args.out / 'tune.md'}, {args.out / 'tune.html'}"
+          + (f", {args.out / 'best.toml'}" if report["chosen"] else ""))
+    return 0
+
+
+def add_tune(sub: argparse._SubParsersAction) -> None:
+    """The `tune` subcommand's parser."""
+    p = sub.add_parser(
+        "tune", help="search the settings with Optuna on training plants, validate elsewhere",
+        description="Search the settings of --space with Optuna: each trial scores its "
+        "settings on the training plants (the objectives the sampler sees) and on "
+        "validation plants it never sees. The chosen trial is the training front's best on "
+        "validation. The study lives in --study, so running the command again adds trials. "
+        "Writes tune.json, tune.md, tune.html (Optuna's figures) and best.toml (the chosen "
+        "settings, for --config).",
+        epilog="examples:\n"
+        "  flowerpose tune --space space.toml --trials 40 --out tune --plants 3\n"
+        "  flowerpose tune --space space.toml --trials 100 --train oracle-10 --train "
+        "field-10 --validate ../shared/real/paper-plant-3 --workers 2 --out tune-field")
+    p.add_argument("--space", type=Path, required=True, metavar="SPACE.toml",
+                   help="the settings to search: \"KEY\" = { low = L, high = H [, log = true]"
+                   " [, int = true] } or { choices = [...] }, one line per dotted key")
+    p.add_argument("--trials", type=POSITIVE, required=True, metavar="N",
+                   help="trials this run adds to the study")
+    add_output(p, "folder for tune.json, tune.md, tune.html, best.toml (and study.db, the "
+               "default storage)")
+    p.add_argument("--train", action="append", default=[], metavar="SUITE|DIR",
+                   help="training plants: a suite's name or file, or real plant folders "
+                   "(repeatable; default: --source/--plants/--seed/--preset)")
+    p.add_argument("--validate", action="append", default=[], metavar="SUITE|DIR",
+                   help="validation plants, never shown to the search (repeatable; default: "
+                   "the seeds after each synthetic training set, none for real ones)")
+    p.add_argument("--source", choices=SYNTHETIC_SOURCES, default="oracle",
+                   help="without --train: where the training plants' clouds come from "
+                   "(default: %(default)s)")
+    p.add_argument("--plants", type=PLANTS, default=3, metavar="N",
+                   help="without --train: seeded training plants (default: %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, metavar="S",
+                   help="without --train: the first training seed (default: %(default)s)")
+    add_preset(p, None, "realistic")
+    p.add_argument("--study", metavar="STORAGE",
+                   help="the Optuna storage: an RDB URL (sqlite:///FILE, postgresql://...) or "
+                   "journal:///FILE (default: sqlite:///DIR/study.db)")
+    p.add_argument("--study-name", metavar="NAME",
+                   help="the study's name (default: made from the space, the training "
+                   "plants, the objectives and the code version)")
+    p.add_argument("--objective", action="append", default=[], metavar="max:KEY|min:KEY",
+                   help="an objective over the report summary's keys (repeatable; default: "
+                   "max:f1 and min:error_deg.plane.mean)")
+    p.add_argument("--sampler-seed", type=SEED, default=None, metavar="N",
+                   help="seed of the sampler: the same trials again, with one worker "
+                   "(default: none)")
+    p.add_argument("--workers", type=POSITIVE, default=None, metavar="N",
+                   help="trials at once, each in a process of its own (default: 1)")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p)
+    p.set_defaults(func=cmd_tune)
