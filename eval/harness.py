@@ -34,9 +34,9 @@ from flowerpose.eval.report import (
     summarise,
     write_report,
 )
-from flowerpose.eval.rgbd_source import RgbdConfig
+from flowerpose.eval.rgbd_source import RgbdConfig, capture_rgbd_cached
 from flowerpose.eval.runner import run_jobs
-from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached, plant_inputs
+from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
 from flowerpose.hardware.flights.pollinate import PollinateConfig
 from flowerpose.pipeline.detect import ONNX_PREFIX
@@ -569,7 +569,8 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
     if source == "oracle":
         return clouds, timing, extra
     if source == "rgbd":
-        captured = run_jobs(capture_rgbd_cached, [(folders[s], config, cache) for s in seeds],
+        captured = run_jobs(capture_rgbd_cached, [(folders[s], config.rgbd, config.fusion,
+                                                   config.sim.viewpoints, cache) for s in seeds],
                             workers,
                             lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
                             f"fused into {v['points']} points "
@@ -614,41 +615,6 @@ def _said_steps(seconds: dict[str, float], cached: list[str]) -> str:
         return "(from the cache)"
     return "(" + ", ".join(f"{step} from the cache" if step in cached else f"{step} {t:.0f} s"
                            for step, t in seconds.items()) + ")"
-
-
-def capture_rgbd_cached(plant_dir: Path, config: EvalConfig, cache_root: Path | None) -> dict:
-    """`capture_rgbd`, or its earlier result for the same plant files, settings and code from
-    the stage cache at cache_root (None: no cache), its cloud and truth copied back."""
-    if cache_root is None:
-        return capture_rgbd(plant_dir, config)
-    from flowerpose.cache import StageCache
-
-    settings = {"rgbd": to_dict(config.rgbd), "fusion": to_dict(config.fusion),
-                "viewpoints": to_dict(config.sim.viewpoints)}
-    result, cached, _ = StageCache(cache_root).run(
-        "rgbd", settings, plant_inputs(plant_dir), plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
-        lambda: capture_rgbd(plant_dir, config))
-    return {**result, "cached": ["rgbd"], "seconds": 0.0} if cached else result
-
-
-def capture_rgbd(plant_dir: Path, config: EvalConfig) -> dict:
-    """The RGB-D source for one plant: record plant_dir/rgbd/, fuse it into
-    plant_dir/rgbd/cloud.ply, and measure the cloud against the truth mesh."""
-    from flowerpose.cloudio import write_cloud
-    from flowerpose.eval.quality import reconstruction_quality
-    from flowerpose.eval.rgbd_source import record_rgbd_scan
-    from flowerpose.pipeline.rgbd import fuse_rgbd_scan
-    from flowerpose.sim.export import read_plant
-
-    watch = Stopwatch()
-    scan_dir = plant_dir / "rgbd"
-    recorded = record_rgbd_scan(plant_dir, scan_dir, config.rgbd, config.sim.viewpoints)
-    cloud, fusion = fuse_rgbd_scan(scan_dir, config.fusion)
-    write_cloud(scan_dir / "cloud.ply", cloud)
-    plant = read_plant(plant_dir)
-    quality = reconstruction_quality(cloud.points, plant.mesh, plant.face_part, samples=100_000)
-    return {"frames": recorded["frames"], "points": fusion["points"], "quality": quality,
-            "seconds": watch.elapsed()}
 
 
 def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant",

@@ -21,9 +21,11 @@ import numpy as np
 from flowerpose.atomic import write_image, write_text
 from flowerpose.config import require
 from flowerpose.jsonio import read_json, write_json
+from flowerpose.pipeline.rgbd import FusionConfig
 from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
 from flowerpose.sim.depth import DepthSensorConfig
+from flowerpose.stopwatch import Stopwatch
 
 
 @dataclass(frozen=True)
@@ -102,3 +104,41 @@ def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig,
         "backend": "sim rgbd", **dataclasses.asdict(config)}, "plan": plan.to_json(),
         "waypoints": len(rows), "completed": len(rows), "status": "complete"})
     return {"frames": len(rows)}
+
+
+def capture_rgbd_cached(plant_dir: Path, config: RgbdConfig, fusion: FusionConfig,
+                        viewpoints: ScanPathConfig, cache_root: Path | None) -> dict:
+    """`capture_rgbd`, or its earlier result for the same plant files, settings and code from
+    the stage cache at cache_root (None: no cache), its cloud and truth copied back."""
+    if cache_root is None:
+        return capture_rgbd(plant_dir, config, fusion, viewpoints)
+    from flowerpose.cache import StageCache
+    from flowerpose.config import to_dict
+    from flowerpose.eval.scan_source import plant_inputs
+
+    settings = {"rgbd": to_dict(config), "fusion": to_dict(fusion),
+                "viewpoints": to_dict(viewpoints)}
+    result, cached, _ = StageCache(cache_root).run(
+        "rgbd", settings, plant_inputs(plant_dir), plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
+        lambda: capture_rgbd(plant_dir, config, fusion, viewpoints))
+    return {**result, "cached": ["rgbd"], "seconds": 0.0} if cached else result
+
+
+def capture_rgbd(plant_dir: Path, config: RgbdConfig, fusion: FusionConfig,
+                 viewpoints: ScanPathConfig) -> dict:
+    """The RGB-D source for one plant: record plant_dir/rgbd/ (`record_rgbd_scan`), fuse it
+    into plant_dir/rgbd/cloud.ply, and measure the cloud against the truth mesh."""
+    from flowerpose.cloudio import write_cloud
+    from flowerpose.eval.quality import reconstruction_quality
+    from flowerpose.pipeline.rgbd import fuse_rgbd_scan
+    from flowerpose.sim.export import read_plant
+
+    watch = Stopwatch()
+    scan_dir = plant_dir / "rgbd"
+    recorded = record_rgbd_scan(plant_dir, scan_dir, config, viewpoints)
+    cloud, fused = fuse_rgbd_scan(scan_dir, fusion)
+    write_cloud(scan_dir / "cloud.ply", cloud)
+    plant = read_plant(plant_dir)
+    quality = reconstruction_quality(cloud.points, plant.mesh, plant.face_part, samples=100_000)
+    return {"frames": recorded["frames"], "points": fused["points"], "quality": quality,
+            "seconds": watch.elapsed()}
