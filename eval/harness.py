@@ -230,159 +230,218 @@ def settings_run(config: EvalConfig, source: str, starts: Iterable[Start] = ("cl
             **{name: to_dict(getattr(config, name)) for name in SOURCE_SECTIONS[source]}}
 
 
-def run_eval(config: EvalConfig, source: str = "scan", plants: int = 2, seed: int = 0,
-             out_dir: Path = Path("runs/eval"), workers: int | None = None,
-             folders: Iterable[Path] = (), truth_scale: float | None = None,
-             compare: dict[str, EvalConfig] | None = None,
-             suite: dict | None = None, methods: Iterable[ExternalMethod] = (),
-             cache: Path | None = None, task: str = "pose",
-             assets: dict[str, dict[str, str]] | None = None) -> dict:
-    """The benchmark: returns report.json's content and writes report.json, report.md and,
-    per plant, its flowers (and for synthetic plants its truth and cloud) under out_dir.
+@dataclass(frozen=True)
+class SyntheticJob:
+    """A generated plant to score: its cloud (from the run's source) and its truth."""
 
-    source "real" evaluates the labelled plant `folders` (truth scale from each folder's
-    source.json unless `truth_scale` is given); the others generate `plants` seeded plants
-    from `seed`. `compare` runs other configurations (by name) on the same clouds; their
-    summaries and plants go under report["compare"] and their files under out_dir/NAME/.
-    `suite` (name, version, description) is recorded as report["suite"]. Each external
-    method (`methods.py`) runs on the same clouds and is scored and compared the same way.
-    `cache`: the stage cache's folder (`flowerpose.cache`), which the scan and RGB-D sources'
-    captures are taken from and put into; None runs every stage. `task` "pollinate" also
-    plans, flies and scores pollination visits on each synthetic plant (`pollination.py`),
-    from the pipeline's poses and from the true ones. `assets`: the preset and profile the
-    settings came from, each {"name", "sha256"} (`report.assets_record`), recorded as
-    report["run"]["assets"].
-    """
-    if source not in SOURCES:
-        raise InputError("source", f"'{source}': one of {', '.join(SOURCES)}")
-    if task not in TASKS:
-        raise InputError("task", f"'{task}': one of {', '.join(TASKS)}")
-    if task == "pollinate" and source == "real":
-        raise InputError("task", "pollinate needs synthetic plants, whose geometry judges "
-                         "the visits: not --source real")
+    name: str
+    cloud: Path
+    truth: Path
+
+    def folder(self, out_dir: Path) -> Path:
+        """Where the plant's files and its flowers go in a run's folder."""
+        return out_dir / "plants" / self.name
+
+    def scored_truth(self, config: EvalConfig) -> list:
+        """The truth as it is scored (tilted by the hand labels' error where the preset says
+        so)."""
+        truth = read_plant_truth(self.truth)
+        if config.score.label_error_deg > 0:
+            truth = as_labelled(truth, config.score.label_error_deg, self.name)
+        return truth
+
+    def score(self, config: EvalConfig, out_dir: Path,
+              cache: Path | None = None) -> tuple[dict, dict[str, float]]:
+        """The pipeline on the cloud, scored: the report's plant entry and stage timings."""
+        return evaluate_cloud(self.cloud, self.truth, config, self.folder(out_dir), self.name,
+                              cache)
+
+    def method_input(self, folder: Path) -> Path:
+        """The cloud an external method gets."""
+        return self.cloud
+
+    def view_cloud(self):
+        """The cloud report.html shows."""
+        return read_cloud(self.cloud)
+
+
+@dataclass(frozen=True)
+class RealJob:
+    """A labelled real plant folder to score (`real_source.RealPlant`)."""
+
+    name: str
+    plant: Any
+
+    def folder(self, out_dir: Path) -> Path:
+        return out_dir / self.name
+
+    def scored_truth(self, config: EvalConfig) -> list:
+        from flowerpose.eval.real_source import real_truth
+
+        return real_truth(self.plant)
+
+    def score(self, config: EvalConfig, out_dir: Path,
+              cache: Path | None = None) -> tuple[dict, dict[str, float]]:
+        from flowerpose.eval.real_source import evaluate_real_plant
+
+        return evaluate_real_plant(self.plant, pipeline_part(config), self.folder(out_dir),
+                                   config.score.max_distance_m)
+
+    def method_input(self, folder: Path) -> Path:
+        """The plant's cloud, or its candidates or crops merged into one in `folder`."""
+        from flowerpose.cloudio import write_cloud
+        from flowerpose.eval.real_source import plant_cloud
+
+        if self.plant.stage == "cloud":
+            return Path(self.plant.clouds[0])
+        return write_cloud(folder / "input.ply", plant_cloud(self.plant))
+
+    def view_cloud(self):
+        from flowerpose.eval.real_source import plant_cloud
+
+        return plant_cloud(self.plant)
+
+
+PlantJob = SyntheticJob | RealJob
+
+
+@dataclass(frozen=True)
+class EvalRun:
+    """What `run_eval` runs, besides the settings: the plants (`plants` generated from
+    `seed` for a synthetic `source`, or the labelled real `folders`, their truth scale from
+    each folder's source.json unless `truth_scale`), the task ("pose", or "pollinate": plan,
+    fly and score pollination visits too), the other settings (by name) and external methods
+    compared on the same clouds, and the suite and the preset and profile files
+    (`report.assets_record`) to record."""
+
+    source: str = "scan"
+    plants: int = 2
+    seed: int = 0
+    folders: tuple[Path, ...] = ()
+    truth_scale: float | None = None
+    task: str = "pose"
+    compare: dict[str, EvalConfig] = field(default_factory=dict)
+    methods: tuple[ExternalMethod, ...] = ()
+    suite: dict | None = None
+    assets: dict[str, dict[str, str]] | None = None
+
+    def __post_init__(self):
+        if self.source not in SOURCES:
+            raise InputError("source", f"'{self.source}': one of {', '.join(SOURCES)}")
+        if self.task not in TASKS:
+            raise InputError("task", f"'{self.task}': one of {', '.join(TASKS)}")
+        if self.task == "pollinate" and self.source == "real":
+            raise InputError("task", "pollinate needs synthetic plants, whose geometry "
+                             "judges the visits: not --source real")
+        if self.source != "real" and self.plants < 1:
+            raise InputError("plants", f"must be at least 1, got {self.plants}")
+
+
+def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval"),
+             workers: int | None = None, cache: Path | None = None) -> dict:
+    """The benchmark: generate (or read) the plants, capture their clouds, detect and score,
+    and report. Returns report.json's content and writes report.json, report.md,
+    report.html, config.toml and, per plant, its flowers (and for synthetic plants its truth
+    and cloud) under out_dir; compared settings and methods under out_dir/NAME/.
+    `cache`: the stage cache's folder (`flowerpose.cache`) the captures, detections and
+    scores are taken from and put into; None runs every stage."""
     watch = Stopwatch()
+    jobs, timing, extra, run_config, title = _plant_jobs(config, run, out_dir, workers, cache)
+    entries, stage_timing = _score_jobs(jobs, config, out_dir, workers, cache)
+    timing.update(stage_timing)
+    _compare(jobs, run, config, out_dir, workers, cache, run_config, extra)
+    if run.task == "pollinate":
+        from flowerpose.eval.pollination_task import pollinate_plants
+
+        with watch.step("pollinate"):
+            extra.update(pollinate_plants(jobs, entries, config, out_dir, workers))
+        timing["pollinate"] = round(watch.seconds["pollinate"], 4)
+    timing["total"] = round(watch.elapsed(), 4)
+    report = build_report(run_config, entries, timing,
+                          {**extra, **({"suite": run.suite} if run.suite is not None else {})})
+    if run.assets:
+        report["run"]["assets"] = run.assets
+    if run.task == "pollinate":
+        from flowerpose.eval.pollination_task import pollination_summary
+
+        report["summary"].update(pollination_summary(entries))
+    write_report(out_dir, report, title)
+    write_text(out_dir / RUN_CONFIG, settings_toml(run_config, RUN_CONFIG_HEADER))
+    write_html_report(out_dir / "report.html", title, report,
+                      _plant_views(jobs, config, out_dir, run.source))
+    return report
+
+
+def _plant_jobs(config: EvalConfig, run: EvalRun, out_dir: Path, workers: int | None,
+                cache: Path | None) -> tuple[list[PlantJob], dict, dict, dict, str]:
+    """The run's plants as scoring jobs, generated and their clouds captured (synthetic) or
+    read and checked (real): the jobs, stage timings, the capture's report sections, the
+    run's config (report.json's `config`) and the report's title."""
     from flowerpose.log import LOG
 
     # The start line comes after the inputs are checked: bad input is one line, the error.
-    if source == "real":
-        jobs, described = _real_jobs(list(folders), truth_scale)
-        LOG.info(f"eval: {len(jobs)} real plants -> {out_dir}")
+    if run.source == "real":
+        plants = real_plants(list(run.folders), run.truth_scale)
+        LOG.info(f"eval: {len(plants)} real plants -> {out_dir}")
+        jobs: list[PlantJob] = [RealJob(plant.name, plant) for plant in plants]
+        run_config = {"source": run.source, "folders": [p.describe() for p in plants],
+                      **settings_run(config, run.source, [p.stage for p in plants])}
         timing, extra = {}, {}
-        starts = [plant["stage"] for plant in described]
-        run_config = {"source": source, "folders": described,
-                      **settings_run(config, source, starts)}
         title = f"flowerpose eval: {len(jobs)} real plants"
     else:
-        if plants < 1:
-            raise InputError("plants", f"must be at least 1, got {plants}")
-        LOG.info(f"eval: {plants} {config.sim.plant.name} plants from seed {seed}, "
-                 f"{source} clouds -> {out_dir}")
-        jobs, timing, extra = _synthetic_jobs(config, source, plants, seed, out_dir, workers,
-                                              cache)
-        starts = ["cloud"]
-        run_config = {"source": source, "plants": plants, "seed": seed,
-                      **settings_run(config, source, starts)}
-        title = f"flowerpose eval: {plants} {config.sim.plant.name} plants, {source} clouds"
-    if task == "pollinate":
-        run_config.update(task=task, pollinate=to_dict(config.pollinate),
+        LOG.info(f"eval: {run.plants} {config.sim.plant.name} plants from seed {run.seed}, "
+                 f"{run.source} clouds -> {out_dir}")
+        jobs, timing, extra = _synthetic_jobs(config, run.source, run.plants, run.seed,
+                                              out_dir, workers, cache)
+        run_config = {"source": run.source, "plants": run.plants, "seed": run.seed,
+                      **settings_run(config, run.source)}
+        title = (f"flowerpose eval: {run.plants} {config.sim.plant.name} plants, "
+                 f"{run.source} clouds")
+    if run.task == "pollinate":
+        run_config.update(task=run.task, pollinate=to_dict(config.pollinate),
                           pollination=to_dict(config.pollination))
-    entries, stage_timing = _score_jobs(jobs, config, out_dir, workers, cache)
-    timing.update(stage_timing)
-    if compare:
-        extra["compare"] = {}
-        for name, other in compare.items():
-            others, _ = _score_jobs(jobs, other, out_dir / name, workers, cache)
-            extra["compare"][name] = {"summary": summarise(others), "plants": others,
-                                      "config": sections_run(other, starts)}
-    for method in methods:
+    return jobs, timing, extra, run_config, title
+
+
+def _compare(jobs: list[PlantJob], run: EvalRun, config: EvalConfig, out_dir: Path,
+             workers: int | None, cache: Path | None, run_config: dict, extra: dict) -> None:
+    """The compared settings and external methods on the same clouds, into
+    extra["compare"] by name."""
+    starts = [job.plant.stage if isinstance(job, RealJob) else "cloud" for job in jobs]
+    for name, other in run.compare.items():
+        others, _ = _score_jobs(jobs, other, out_dir / name, workers, cache)
+        extra.setdefault("compare", {})[name] = {
+            "summary": summarise(others), "plants": others,
+            "config": sections_run(other, starts)}
+    for method in run.methods:
         results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
                            workers, lambda k, v, name=method.name: f"{name}: "
                            + _describe_entry(k, v), stage=f"method {method.name}",
-                           labels=[job[1] for job in jobs])
+                           labels=[job.name for job in jobs])
         others = [entry for entry, _ in results]
         extra.setdefault("compare", {})[method.name] = {
             "summary": summarise(others), "plants": others,
             "config": {"method": method.command, "timeout_s": method.timeout_s}}
-    if task == "pollinate":
-        with watch.step("pollinate"):
-            _pollinate(jobs, entries, config, out_dir, workers, extra)
-        timing["pollinate"] = round(watch.seconds["pollinate"], 4)
-    timing["total"] = round(watch.elapsed(), 4)
-    if suite is not None:
-        extra["suite"] = suite
-    report = build_report(run_config, entries, timing, extra)
-    if assets:
-        report["run"]["assets"] = assets
-    if task == "pollinate":
-        from flowerpose.eval.pollination import summarise_pollination
-
-        report["summary"]["pollination"] = summarise_pollination(
-            [e["pollination"] for e in entries])
-        report["summary"]["pollination_ceiling"] = summarise_pollination(
-            [e["pollination_ceiling"] for e in entries])
-    write_report(out_dir, report, title)
-    write_text(out_dir / RUN_CONFIG, settings_toml(run_config, RUN_CONFIG_HEADER))
-    write_html_report(out_dir / "report.html", title, report,
-                      _plant_views(jobs, config, out_dir, source))
-    return report
 
 
-def _pollinate(jobs: list[tuple], entries: list[dict], config: EvalConfig, out_dir: Path,
-               workers: int | None, extra: dict) -> None:
-    """Each synthetic plant's visits from its estimates and from its truth, scored, into
-    its entry (`pollination`, `pollination_ceiling`); the success against pose error and
-    against the approach's angle off the axis (`approach_angle.py`) into `extra` and
-    out_dir/pollination.png."""
-    from flowerpose.eval.approach_angle import summarise_curve
-    from flowerpose.eval.pollination import success_by_error, write_success_plot
-
-    results = run_jobs(_pollinate_job, [(job, config, out_dir) for job in jobs], workers,
-                       lambda k, v: f"{jobs[k][1]}: pollinated {v[0]['successes']} of "
-                       f"{len(v[0]['flowers'])} flowers ({v[1]['successes']} from the true "
-                       "poses)", stage="pollinate", labels=[job[1] for job in jobs])
-    errors = {}
-    for entry, (estimated, ceiling, _) in zip(entries, results, strict=True):
-        entry["pollination"], entry["pollination_ceiling"] = estimated, ceiling
-        detected = {m["detection"]: m for m in entry["matches"]}
-        for outcome in estimated["flowers"]:
-            match = detected.get(outcome["detection"])
-            if match is not None and match["error_deg"]["plane"] is not None:
-                errors[(entry["plant"], outcome["flower"])] = match["error_deg"]["plane"]
-    rows = success_by_error([{"plant": e["plant"], **e["pollination"]} for e in entries],
-                            errors)
-    extra["pollination_by_error"] = rows
-    curve = summarise_curve([result[2] for result in results]) if results else []
-    if curve:
-        extra["pollination_by_angle"] = curve
-    if any(r["flowers"] for r in rows):
-        write_success_plot(out_dir / "pollination.png", rows, curve, config.pollinate.cone_deg,
-                           config.pollination.max_angle_deg)
+def _method_job(job: PlantJob, method: ExternalMethod, config: EvalConfig,
+                out_dir: Path) -> tuple[dict, dict[str, float]]:
+    """An external method on one job's cloud, scored against the job's truth."""
+    folder = out_dir / method.name / job.name
+    return run_method(method, job.method_input(folder), job.scored_truth(config), folder,
+                      job.name, config.score.max_distance_m)
 
 
-def _pollinate_job(job: tuple, config: EvalConfig, out_dir: Path
-                   ) -> tuple[dict, dict, list[dict]]:
-    """One synthetic plant's pollination from its estimates and from its true poses, and
-    its success against the approach's angle (`approach_angle.py`)."""
-    from flowerpose.eval.approach_angle import approach_curve
-    from flowerpose.eval.pollination import plan_and_score
-    from flowerpose.eval.pollination_contact import ContactWorld
-    from flowerpose.pipeline.colour import flower_coloured
-    from flowerpose.sim.export import read_plant
-
-    _, name, cloud_path, _ = job
-    plant_dir = out_dir / "plants" / name
-    cloud = read_cloud(cloud_path)
-    world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
-    corolla = flower_coloured(cloud.colors, config.colour)  # once: three plans use it
-    estimated, ceiling = (plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
-                                         config.pollinate, config.pollination,
-                                         flight_json=plant_dir / flight, world=world,
-                                         corolla=corolla)
-                          for flowers, flight in ((plant_dir / "flowers.json", "flight.json"),
-                                                  (None, "flight_ceiling.json")))
-    curve = approach_curve(world, cloud, config.pollinate, config.pollination,
-                           corolla=corolla)
-    return estimated, ceiling, curve
+def _plant_views(jobs: list[PlantJob], config: EvalConfig, out_dir: Path,
+                 source: str) -> list[PlantView]:
+    """Each scored plant's cloud, flowers, truth (as it was scored) and camera path for
+    report.html."""
+    return [PlantView(job.name, job.view_cloud(),
+                      read_flowers(job.folder(out_dir) / "flowers.json"),
+                      job.scored_truth(config),
+                      cameras=None if isinstance(job, RealJob)
+                      else camera_path(job.folder(out_dir), source))
+            for job in jobs]
 
 
 def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:
@@ -405,80 +464,21 @@ def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:
     return None
 
 
-def _plant_views(jobs: list[tuple], config: EvalConfig, out_dir: Path,
-                 source: str) -> list[PlantView]:
-    """Each scored plant's cloud, flowers, truth (as it was scored) and camera path for
-    report.html."""
-    views = []
-    for job in jobs:
-        kind, name, *inputs = job
-        cameras = None
-        if kind == "real":
-            from flowerpose.eval.real_source import plant_cloud
-
-            cloud, flowers = plant_cloud(inputs[0]), out_dir / name
-        else:
-            cloud, flowers = read_cloud(inputs[0]), out_dir / "plants" / name
-            cameras = camera_path(out_dir / "plants" / name, source)
-        views.append(PlantView(name, cloud, read_flowers(flowers / "flowers.json"),
-                               _job_truth(job, config), cameras=cameras))
-    return views
-
-
-def _job_truth(job: tuple, config: EvalConfig) -> list:
-    """A job's truth as it is scored (tilted by the hand labels' error where the preset
-    says so)."""
-    kind, name, *inputs = job
-    if kind == "real":
-        from flowerpose.eval.real_source import real_truth
-
-        return real_truth(inputs[0])
-    truth = read_plant_truth(inputs[1])
-    if config.score.label_error_deg > 0:
-        truth = as_labelled(truth, config.score.label_error_deg, name)
-    return truth
-
-
-def _method_job(job: tuple, method: ExternalMethod, config: EvalConfig,
-                out_dir: Path) -> tuple[dict, dict[str, float]]:
-    """An external method on one job's cloud (a real plant's candidates or crops merged
-    into one cloud first), scored against the job's truth."""
-    kind, name, *inputs = job
-    folder = out_dir / method.name / name
-    if kind == "real":
-        from flowerpose.cloudio import write_cloud
-        from flowerpose.eval.real_source import plant_cloud
-
-        plant = inputs[0]
-        cloud = (plant.clouds[0] if plant.stage == "cloud"
-                 else write_cloud(folder / "input.ply", plant_cloud(plant)))
-    else:
-        cloud = inputs[0]
-    return run_method(method, Path(cloud), _job_truth(job, config), folder, name,
-                      config.score.max_distance_m)
-
-
-def _score_jobs(jobs: list[tuple], config: EvalConfig, out_dir: Path,
+def _score_jobs(jobs: list[PlantJob], config: EvalConfig, out_dir: Path,
                 workers: int | None, cache: Path | None = None
                 ) -> tuple[list[dict], dict[str, float]]:
-    """Every job (function, its input, its output folder's name) run with `config`; the
-    plant entries and summed stage timings. `cache`: the stage cache's folder, which a
-    synthetic plant's detection and score are taken from and put into."""
+    """Every job scored with `config` (`PlantJob.score`); the plant entries and summed stage
+    timings. `cache`: the stage cache's folder, which a synthetic plant's detection and
+    score are taken from and put into."""
     results = run_jobs(_score_job, [(job, config, out_dir, cache) for job in jobs], workers,
-                       _describe_entry, stage="score", labels=[job[1] for job in jobs])
+                       _describe_entry, stage="score", labels=[job.name for job in jobs])
     return [entry for entry, _ in results], sum_timings(t for _, t in results)
 
 
-def _score_job(job: tuple, config: EvalConfig, out_dir: Path,
+def _score_job(job: PlantJob, config: EvalConfig, out_dir: Path,
                cache: Path | None = None) -> tuple[dict, dict[str, float]]:
-    kind, name, *inputs = job
-    if kind == "real":
-        from flowerpose.eval.real_source import evaluate_real_plant
-
-        return evaluate_real_plant(inputs[0], pipeline_part(config), out_dir / name,
-                                   config.score.max_distance_m)
-    cloud_path, truth_path = inputs
-    return evaluate_cloud(cloud_path, truth_path, config, out_dir / "plants" / name, name, cache)
+    """A worker's call: `job.score` (a module-level function, so a process pool takes it)."""
+    return job.score(config, out_dir, cache)
 
 
 def real_plants(folders: list[Path], truth_scale: float | None) -> list:
@@ -505,14 +505,6 @@ def real_names(folders: Iterable[Path]) -> list[str]:
     return _unique([f"{f.parent.name}-{f.name}" if names.count(f.name) > 1 else f.name
                     for f in resolved])
 
-
-
-def _real_jobs(folders: list[Path],
-               truth_scale: float | None) -> tuple[list[tuple], list[dict]]:
-    """A scoring job per real plant folder (checked first, named uniquely), and what each
-    folder holds for the report's config."""
-    plants = real_plants(folders, truth_scale)
-    return [("real", plant.name, plant) for plant in plants], [p.describe() for p in plants]
 
 
 def _unique(names: list[str]) -> list[str]:
@@ -542,7 +534,7 @@ def eval_outputs(source: str, folders: Iterable[Path] = (), compared: Iterable[s
 
 def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out_dir: Path,
                     workers: int | None, cache: Path | None = None
-                    ) -> tuple[list[tuple], dict, dict]:
+                    ) -> tuple[list[PlantJob], dict, dict]:
     """Generate the seeded plants (and, for the scan and RGB-D sources, film and
     reconstruct them, or take that from the stage cache at `cache`); the scoring jobs,
     timings and reconstruction reports."""
@@ -552,7 +544,7 @@ def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out
     folders = {s: plants_dir / f"seed-{s}" for s in seeds}
     clouds, timing, extra = capture_clouds(config, source, folders, workers, cache)
     timing = {"plant": round(sum(generation), 4), **timing}
-    return [("synthetic", f"seed-{s}", *clouds[s]) for s in seeds], timing, extra
+    return [SyntheticJob(f"seed-{s}", *clouds[s]) for s in seeds], timing, extra
 
 
 def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],

@@ -47,7 +47,7 @@ def _default_out() -> Path:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import eval_config, run_eval
+    from flowerpose.eval.harness import EvalRun, eval_config, run_eval
 
     suite = _apply_suite(args) if args.suite else None
     _run_from_config(args)
@@ -86,14 +86,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_outputs
     from flowerpose.eval.report import assets_record
 
+    run = EvalRun(source=args.source, plants=plants, seed=args.seed,
+                  folders=tuple(args.folders), truth_scale=args.truth_scale, task=args.task,
+                  compare=compare, methods=tuple(methods), suite=suite,
+                  assets=assets_record(None if args.source == "real" else args.preset,
+                                       args.profile))
     writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
     with owned(out, "eval", args.overwrite, writes), jobs_on(args):
-        report = run_eval(config, source=args.source, plants=plants, seed=args.seed,
-                          out_dir=out, workers=args.workers, folders=args.folders,
-                          truth_scale=args.truth_scale, compare=compare, suite=suite,
-                          methods=methods, cache=cache, task=args.task,
-                          assets=assets_record(None if args.source == "real" else args.preset,
-                                               args.profile))
+        report = run_eval(config, run, out, workers=args.workers, cache=cache)
     if cache is not None and args.source != "real":
         from flowerpose.cache import prune_to_limit
 

@@ -226,12 +226,12 @@ def test_the_cache_command_says_what_is_held_and_prunes_only_entries(tmp_path, c
 
 @pytest.mark.slow
 def test_an_eval_again_takes_its_plants_detections_and_scores_from_the_cache(tmp_path):
-    from flowerpose.eval.harness import EvalConfig, run_eval
+    from flowerpose.eval.harness import EvalConfig, EvalRun, run_eval
 
     root, config = tmp_path / "cache", EvalConfig()
 
     def run(out, cfg=config):
-        return run_eval(cfg, source="oracle", plants=1, seed=1, out_dir=tmp_path / out,
+        return run_eval(cfg, EvalRun(source="oracle", plants=1, seed=1), tmp_path / out,
                         workers=1, cache=root)
 
     first, again = run("a"), run("b")

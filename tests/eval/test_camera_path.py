@@ -3,7 +3,7 @@
 import numpy as np
 
 from flowerpose.cloudio import Cloud, write_cloud
-from flowerpose.eval.harness import EvalConfig, _plant_views, camera_path
+from flowerpose.eval.harness import EvalConfig, SyntheticJob, _plant_views, camera_path
 from flowerpose.eval.html_report import CAMERA_RAY_M, _view_3d, write_html_report
 from flowerpose.jsonio import write_json
 
@@ -53,8 +53,8 @@ def test_a_scanned_plants_view_draws_its_kept_frames_in_order(tmp_path):
     _scanned_plant(plant_dir, poses)
     np.testing.assert_allclose(camera_path(plant_dir, "scan"), poses, atol=1e-12)
     assert camera_path(plant_dir, "oracle") is None  # no camera made an oracle's cloud
-    job = ("synthetic", "seed-0", plant_dir / "reconstruction" / "cloud.ply",
-           plant_dir / "scan" / "plant.json")
+    job = SyntheticJob("seed-0", plant_dir / "reconstruction" / "cloud.ply",
+                       plant_dir / "scan" / "plant.json")
     view, = _plant_views([job], EvalConfig(), out, "scan")
     traces = {trace.name: trace for trace in _view_3d(view).data}
     path = traces["camera path (6 frames)"]

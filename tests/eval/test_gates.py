@@ -64,9 +64,10 @@ def test_every_shipped_suite_loads_and_what_it_fixes_cannot_be_given_too(tmp_pat
 
 
 def test_the_report_records_the_suite(tmp_path):
-    from flowerpose.eval.harness import EvalConfig, run_eval
+    from flowerpose.eval.harness import EvalConfig, EvalRun, run_eval
 
     suite = {"name": "mine", "version": 3, "description": "a test"}
-    report = run_eval(EvalConfig(), source="real", workers=1, out_dir=tmp_path / "out",
-                      folders=[write_real_plant(tmp_path / "plant", "crops")], suite=suite)
+    run = EvalRun(source="real", folders=(write_real_plant(tmp_path / "plant", "crops"),),
+                  suite=suite)
+    report = run_eval(EvalConfig(), run, tmp_path / "out", workers=1)
     assert report["suite"] == suite

@@ -69,7 +69,7 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
 
 @pytest.mark.slow
 def test_eval_reports_pollination_and_its_curve(tmp_path):
-    from flowerpose.eval.harness import eval_config, run_eval
+    from flowerpose.eval.harness import EvalRun, eval_config, run_eval
 
     config = eval_config("easy")
     angles = (30.0,)
@@ -77,8 +77,8 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
     config = dataclasses.replace(
         config, pollination=dataclasses.replace(config.pollination, curve_angles_deg=angles),
         pollinate=dataclasses.replace(config.pollinate, path_checks=0))
-    report = run_eval(config, source="oracle", plants=1, seed=2, workers=1,
-                      out_dir=tmp_path / "run", task="pollinate")
+    report = run_eval(config, EvalRun(source="oracle", plants=1, seed=2, task="pollinate"),
+                      tmp_path / "run", workers=1)
     summary = report["summary"]
     for key in ("pollination", "pollination_ceiling"):
         assert set(summary[key]) == {"visits", "successes", "success_rate", "failures"}

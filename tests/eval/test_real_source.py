@@ -11,7 +11,7 @@ from realplants import CENTRES, NORMALS, SCALE, cuboids, flower, write_real_plan
 from flowerpose.cli import main
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import EvalConfig, run_eval
+from flowerpose.eval.harness import EvalConfig, EvalRun, run_eval
 from flowerpose.eval.real_source import read_real_plant, real_truth
 from flowerpose.eval.truth import read_sagemaker_truth
 from flowerpose.pipeline.flowers import PipelineConfig, pose_crops
@@ -35,7 +35,7 @@ def test_labels_come_back_in_the_cloud_units_with_the_authors_euler_convention(t
 @pytest.mark.parametrize("stage", ["crops", "candidates", "cloud"])
 def test_each_stage_finds_every_labelled_flower_and_its_normal(tmp_path, stage):
     folder = write_real_plant(tmp_path / stage, stage)
-    report = run_eval(EvalConfig(), source="real", folders=[folder], out_dir=tmp_path / "out",
+    report = run_eval(EvalConfig(), EvalRun(source="real", folders=(folder,)), tmp_path / "out",
                       workers=1)
     plant = report["plants"][0]
     assert (plant["stage"], plant["gt"], plant["found"], plant["fp"]) == (stage, 4, 4, 0)
@@ -56,8 +56,8 @@ def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_p
     unlisted = write_real_plant(tmp_path / "unlisted", "candidates", labelled=3)
     listed = write_real_plant(tmp_path / "listed", "candidates", labelled=3,
                               source={"unlabelled": [list(CENTRES[3] * SCALE)]})
-    report = run_eval(EvalConfig(), source="real", folders=[unlisted, listed],
-                      out_dir=tmp_path / "out", workers=1)
+    report = run_eval(EvalConfig(), EvalRun(source="real", folders=(unlisted, listed)),
+                      tmp_path / "out", workers=1)
     first, second = report["plants"]
     assert (first["found"], first["extra"], first["fp"]) == (3, 0, 1)
     assert (second["found"], second["visible"], second["extra"], second["fp"]) == (4, 3, 1, 0)
@@ -65,8 +65,8 @@ def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_p
 
 def test_the_upstream_profile_runs_beside_the_default(tmp_path):
     folder = write_real_plant(tmp_path / "plant", "crops")
-    report = run_eval(EvalConfig(), source="real", folders=[folder], out_dir=tmp_path / "out",
-                      workers=1, compare={"upstream": EvalConfig()})
+    run = EvalRun(source="real", folders=(folder,), compare={"upstream": EvalConfig()})
+    report = run_eval(EvalConfig(), run, tmp_path / "out", workers=1)
     assert report["compare"]["upstream"]["summary"]["found"] == 4
     assert set(report["compare"]["upstream"]["config"]) == {"colour", "cluster", "pose"}
     assert (tmp_path / "out" / "upstream" / "plant" / "flowers.json").exists()
@@ -75,8 +75,8 @@ def test_the_upstream_profile_runs_beside_the_default(tmp_path):
 def test_a_scale_that_puts_no_label_near_any_point_is_refused(tmp_path):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     with pytest.raises(InputError, match="is the scale right"):
-        run_eval(EvalConfig(), source="real", folders=[folder], truth_scale=1.0,
-                 out_dir=tmp_path / "out", workers=1)
+        run_eval(EvalConfig(), EvalRun(source="real", folders=(folder,), truth_scale=1.0),
+                 tmp_path / "out", workers=1)
 
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import eval_config, run_eval
+from flowerpose.eval.harness import EvalRun, eval_config, run_eval
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.reconstruct import reconstruct
 
@@ -19,7 +19,7 @@ SMALL = {"scan.width": 640, "scan.height": 360, "scan.camera.frame_rate_hz": 0.0
 def small_eval(tmp_path_factory):
     out = tmp_path_factory.mktemp("scan_eval")
     config = apply_overrides(eval_config("realistic"), SMALL)
-    return run_eval(config, source="scan", plants=1, seed=0, out_dir=out), out
+    return run_eval(config, EvalRun(source="scan", plants=1, seed=0), out), out
 
 
 @pytest.mark.slow
