@@ -34,9 +34,9 @@ from flowerpose.eval.report import (
     summarise,
     write_report,
 )
-from flowerpose.eval.rgbd_source import RgbdConfig, capture_rgbd_cached
+from flowerpose.eval.rgbd_source import RgbdConfig, capture_rgbd_clouds
 from flowerpose.eval.runner import run_jobs
-from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_cached
+from flowerpose.eval.scan_source import ScanSourceConfig, capture_scan_clouds
 from flowerpose.eval.truth import as_labelled, read_plant_truth, read_sagemaker_truth
 from flowerpose.hardware.flights.pollinate import PollinateConfig
 from flowerpose.pipeline.detect import ONNX_PREFIX
@@ -176,14 +176,6 @@ def _detector_files(pipeline: PipelineConfig) -> list[Path]:
     """The files a detection reads besides the cloud: an ONNX model."""
     detector = pipeline.detect.detector
     return [Path(detector.removeprefix(ONNX_PREFIX))] if detector.startswith(ONNX_PREFIX) else []
-
-
-#: Cores a capture job (render, match, stereo: each multi-threaded) asks of a Ray node, at
-#: most the largest node's.
-CAPTURE_CPUS = 2
-#: Whether a scan capture's Ray task asks for a GPU, by `scan.reconstruct.dense_method`:
-#: PatchMatch runs only on CUDA; "auto" takes it where the cluster has a GPU.
-CAPTURE_GPU = {"patch_match": "needed", "auto": "if_any", "sgbm": "none"}
 
 
 def sum_timings(timings: Iterable[dict[str, float]]) -> dict[str, float]:
@@ -547,66 +539,32 @@ def _synthetic_jobs(config: EvalConfig, source: str, plants: int, seed: int, out
     return [SyntheticJob(f"seed-{s}", *clouds[s]) for s in seeds], timing, extra
 
 
+#: How each filmed source captures its plants' clouds (`scan_source`, `rgbd_source`): each
+#: takes (config, seed -> plant folder, workers, cache) and gives (seed -> (cloud, truth)),
+#: seconds per stage, and each plant's capture report (its "quality", and the steps it took
+#: from the stage cache, "cached").
+CAPTURES = {"scan": capture_scan_clouds, "rgbd": capture_rgbd_clouds}
+
+
 def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                    workers: int | None, cache: Path | None = None
                    ) -> tuple[dict[int, tuple[Path, Path]], dict, dict]:
     """The cloud and truth each generated plant (seed -> folder) has from `source`: its
-    oracle cloud as generated, or for the scan and RGB-D sources one filmed and
-    reconstructed now or taken from the stage cache at `cache`. Returns (seed -> (cloud,
-    truth)), seconds per stage, and the reconstruction report ("reconstruction", "cache")."""
+    oracle cloud as generated, or one filmed and reconstructed now or taken from the stage
+    cache at `cache` (`CAPTURES`). Returns (seed -> (cloud, truth)), seconds per stage, and
+    the reconstruction report ("reconstruction", "cache")."""
     seeds = list(folders)
-    clouds = {s: (folders[s] / "cloud.ply", folders[s] / "plant.json") for s in seeds}
-    timing: dict[str, float] = {}
-    extra: dict = {}
     if source == "oracle":
-        return clouds, timing, extra
-    if source == "rgbd":
-        captured = run_jobs(capture_rgbd_cached, [(folders[s], config.rgbd, config.fusion,
-                                                   config.sim.viewpoints, cache) for s in seeds],
-                            workers,
-                            lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
-                            f"fused into {v['points']} points "
-                            + _said_steps({"rgbd": v["seconds"]}, v.get("cached", [])),
-                            stage="RGB-D capture", labels=[f"seed-{s}" for s in seeds],
-                            cpus=CAPTURE_CPUS)
-        timing["rgbd"] = round(sum(c["seconds"] for c in captured), 4)
-        clouds = {s: (folders[s] / "rgbd" / "cloud.ply", folders[s] / "rgbd" / "plant.json")
-                  for s in seeds}
-    else:
-        # One plant at a time in the pool: rendering, matching and stereo each use every
-        # core. On Ray, one a node (CAPTURE_CPUS), so a cluster's nodes scan in parallel.
-        captured = run_jobs(capture_scan_cached, [(folders[s], config.scan,
-                                                   config.sim.viewpoints, cache)
-                                                  for s in seeds], 1,
-                            lambda k, v: f"seed-{seeds[k]}: scan of {v['recorded']} frames, "
-                            f"{v['registered']}/{v['frames']} chosen frames registered, "
-                            f"{v['points']} points, petal F-score at 5 mm "
-                            f"{v['quality']['petals']['fscore_5mm']:.2f} "
-                            + _said_steps(v["seconds"], v.get("cached", [])),
-                            stage="scan capture", labels=[f"seed-{s}" for s in seeds],
-                            cpus=CAPTURE_CPUS, gpu=CAPTURE_GPU[config.scan.reconstruct
-                                                               .dense_method])
-        for stage in ("scan", "frames", "reconstruct"):
-            timing[stage] = round(sum(c["seconds"][stage] for c in captured), 4)
-        clouds = {s: (folders[s] / "reconstruction" / "cloud.ply",
-                      folders[s] / "scan" / "plant.json") for s in seeds}
-    extra["reconstruction"] = {f"seed-{s}": c["quality"]
-                               for s, c in zip(seeds, captured, strict=True)}
+        return {s: (folders[s] / "cloud.ply", folders[s] / "plant.json") for s in seeds}, {}, {}
+    clouds, timing, captured = CAPTURES[source](config, folders, workers, cache)
+    extra: dict = {"reconstruction": {f"seed-{s}": c["quality"]
+                                      for s, c in zip(seeds, captured, strict=True)}}
     if cache is not None:
         steps = {f"seed-{s}": c.get("cached", []) for s, c in zip(seeds, captured, strict=True)}
-        whole = len(captured[0]["seconds"]) if source == "scan" else 1
+        whole = len(captured[0]["seconds"]) if isinstance(captured[0]["seconds"], dict) else 1
         extra["cache"] = {"dir": str(cache), "steps_reused": steps,
                           "reused": [plant for plant, c in steps.items() if len(c) == whole]}
     return clouds, timing, extra
-
-
-def _said_steps(seconds: dict[str, float], cached: list[str]) -> str:
-    """"(scan 95 s, frames 7 s, reconstruct 160 s)", naming the steps that came from the
-    cache."""
-    if cached and set(seconds) <= set(cached):
-        return "(from the cache)"
-    return "(" + ", ".join(f"{step} from the cache" if step in cached else f"{step} {t:.0f} s"
-                           for step, t in seconds.items()) + ")"
 
 
 def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant",

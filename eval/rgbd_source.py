@@ -14,18 +14,23 @@ import dataclasses
 import io
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from flowerpose.atomic import write_image, write_text
 from flowerpose.config import require
+from flowerpose.eval.runner import CAPTURE_CPUS, run_jobs, said_steps
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.pipeline.rgbd import FusionConfig
 from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
 from flowerpose.sim.depth import DepthSensorConfig
 from flowerpose.stopwatch import Stopwatch
+
+if TYPE_CHECKING:
+    from flowerpose.eval.harness import EvalConfig
 
 
 @dataclass(frozen=True)
@@ -142,3 +147,23 @@ def capture_rgbd(plant_dir: Path, config: RgbdConfig, fusion: FusionConfig,
     quality = reconstruction_quality(cloud.points, plant.mesh, plant.face_part, samples=100_000)
     return {"frames": recorded["frames"], "points": fused["points"], "quality": quality,
             "seconds": watch.elapsed()}
+
+
+def capture_rgbd_clouds(config: EvalConfig, folders: dict[int, Path], workers: int | None,
+                        cache: Path | None = None
+                        ) -> tuple[dict[int, tuple[Path, Path]], dict[str, float], list[dict]]:
+    """The RGB-D source for generated plants (seed -> folder): each filmed and fused
+    (`capture_rgbd_cached`). Returns (seed -> (cloud, truth)), seconds per stage, and each
+    plant's capture report."""
+    seeds = list(folders)
+    captured = run_jobs(capture_rgbd_cached, [(folders[s], config.rgbd, config.fusion,
+                                               config.sim.viewpoints, cache) for s in seeds],
+                        workers,
+                        lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
+                        f"fused into {v['points']} points "
+                        + said_steps({"rgbd": v["seconds"]}, v.get("cached", [])),
+                        stage="RGB-D capture", labels=[f"seed-{s}" for s in seeds],
+                        cpus=CAPTURE_CPUS)
+    clouds = {s: (folders[s] / "rgbd" / "cloud.ply", folders[s] / "rgbd" / "plant.json")
+              for s in seeds}
+    return clouds, {"rgbd": round(sum(c["seconds"] for c in captured), 4)}, captured

@@ -207,3 +207,16 @@ def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
         raise JobsFailed(stage, failures)
     return results
 
+
+#: Cores a capture job (render, match, stereo: each multi-threaded) asks of a Ray node, at
+#: most the largest node's.
+CAPTURE_CPUS = 2
+
+
+def said_steps(seconds: dict[str, float], cached: list[str]) -> str:
+    """"(scan 95 s, frames 7 s, reconstruct 160 s)", naming the steps that came from the
+    cache: a capture job's progress line."""
+    if cached and set(seconds) <= set(cached):
+        return "(from the cache)"
+    return "(" + ", ".join(f"{step} from the cache" if step in cached else f"{step} {t:.0f} s"
+                           for step, t in seconds.items()) + ")"

@@ -79,8 +79,8 @@ def test_a_ray_address_where_nothing_listens_is_one_line_at_once(capsys, tmp_pat
     ("patch_match", 1, 1), ("auto", 1, 1), ("auto", 0, 0), ("sgbm", 1, 0)])
 def test_a_capture_asks_for_a_gpu_where_patch_match_will_run(monkeypatch, method,
                                                              gpus_in_cluster, asked):
-    from flowerpose.eval.harness import CAPTURE_GPU
     from flowerpose.eval.runner import _task_gpus
+    from flowerpose.eval.scan_source import CAPTURE_GPU
 
     monkeypatch.setattr(ray, "cluster_resources",
                         lambda: {"CPU": 2.0, **({"GPU": 1.0} if gpus_in_cluster else {})})
