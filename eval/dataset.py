@@ -128,7 +128,8 @@ def frame_samples(bundle: PlantBundle, config: EvalConfig, count: int) -> list[S
         np.isin(plant.face_part, MASK_PARTS), plant.face_flower, -1).astype(np.int32))
     plan = plan_plant_scan(plant, config.sim.viewpoints)
     picked = np.unique(np.linspace(0, len(plan.waypoints) - 1, count).round().astype(int))
-    intrinsics = intrinsics_from_config(CameraConfig(width=scan.width, height=scan.height))
+    intrinsics = intrinsics_from_config(CameraConfig(width=scan.camera.width,
+                                                     height=scan.camera.height))
     poser = MujocoPoser()
     samples = []
     with PlantRenderer([masked], scan.camera.render) as renderer:
@@ -224,7 +225,8 @@ def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: Data
         "plants": plants,
         "config": {"dataset": to_dict(dataset), "sim": to_dict(config.sim),
                    "ground": to_dict(config.ground), "grid": to_dict(config.grid),
-                   **({"scan": {"width": config.scan.width, "height": config.scan.height,
+                   **({"scan": {"width": config.scan.camera.width,
+                                "height": config.scan.camera.height,
                                 "sensor": to_dict(config.scan.camera.sensor),
                                 "render": to_dict(config.scan.camera.render)}}
                       if dataset.views == "frames" else {})}}

@@ -33,26 +33,21 @@ EVAL_FRAME_RATE_HZ = 0.3
 
 @dataclass(frozen=True)
 class ScanSourceConfig:
-    """The simulated scan and photogrammetry behind `eval --source scan`: the video's size,
-    the simulated camera, the frames chosen and the reconstruction, each the config of the
-    stage that reads it (`flowerpose scan --sim`, `frames`, `reconstruct`)."""
+    """The simulated scan and photogrammetry behind `eval --source scan`: the simulated
+    camera, the frames chosen and the reconstruction, each the config of the stage that
+    reads it (`flowerpose scan --sim`, `frames`, `reconstruct`)."""
 
-    width: int = 1280
-    """Video width, pixels (the paper's 1280 x 720)."""
-    height: int = 720
-    """Video height, pixels."""
     camera: SimCameraConfig = field(
         default_factory=lambda: SimCameraConfig(frame_rate_hz=EVAL_FRAME_RATE_HZ))
-    """The simulated camera's recording: frame rate (`EVAL_FRAME_RATE_HZ` here), render
-    workers, imperfections (`sensor`) and light (`render`); the field preset's sensor gain."""
+    """The simulated camera's recording: the video's size, frame rate (`EVAL_FRAME_RATE_HZ`
+    here), render workers, imperfections (`sensor`) and light (`render`); the field preset's
+    sensor gain."""
     frames: FrameSelectConfig = field(default_factory=FrameSelectConfig)
     """How frames are chosen for photogrammetry (`flowerpose frames`)."""
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
     """Photogrammetry (`flowerpose reconstruct`)."""
 
     def __post_init__(self):
-        require(self.width >= 16 and self.height >= 16, "width",
-                "width and height must be at least 16 pixels")
         require(self.frames.count >= 3, "frames", "photogrammetry needs at least 3 frames "
                 "(scan.frames.count)")
 
@@ -67,7 +62,7 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
     from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
     from flowerpose.hardware.flights.scan_flight import run_scan
 
-    bot_config = SimBotConfig(camera=config.camera, width=config.width, height=config.height)
+    bot_config = SimBotConfig(camera=config.camera)
     if via_farmduino:
         from flowerpose.hardware.backends.serial_sim_bot import SimulatedSerialBot
 

@@ -8,8 +8,8 @@ on its own (a seeded uniform subsample of each, as a coarser scan would give eve
 a dropped view is one candidates file left out, and colour and noise act on the merged
 points; for a whole cloud a dropped view is one grid view's detections left out. For the
 scan source the capture's own knobs are perturbations too: fewer frames chosen
-(`scan.frames.count`) and a lower image resolution (`scan.width` x `scan.height`), each filmed
-and reconstructed once (stage cache).
+(`scan.frames.count`) and a lower image resolution (`scan.camera.width` x
+`scan.camera.height`), each filmed and reconstructed once (stage cache).
 
 Writes stress.json (every row: the perturbation, its repeats, the summary as report.json's,
 flipped normals and the median points per flower found), stress.md, stress.png (a panel
@@ -48,7 +48,8 @@ DEFAULT_LEVELS: dict[str, tuple[float, ...]] = {
 #: envelope"): stress.md marks the rows at it.
 ENVELOPE_BOUNDS: dict[str, tuple[float, ...]] = {
     "exposure": (0.6, 1.3), "cast": (-0.15, 0.15), "noise": (0.0015,)}
-#: Capture knobs of the scan source (`scan.frames.count`, `scan.width` x `scan.height`).
+#: Capture knobs of the scan source (`scan.frames.count`, `scan.camera.width` x
+#: `scan.camera.height`).
 CAPTURE_KINDS = ("frames", "resolution")
 #: The strength at which each perturbation leaves a cloud as it is: the unperturbed run's
 #: place on its kind's curve.
@@ -341,8 +342,8 @@ def _with_capture(config: Any, capture: tuple[str, str]) -> Any:
         return dataclasses.replace(config, scan=dataclasses.replace(
             config.scan, frames=dataclasses.replace(config.scan.frames, count=int(text))))
     width, height = (int(v) for v in text.split("x"))
-    return dataclasses.replace(config, scan=dataclasses.replace(config.scan, width=width,
-                                                                height=height))
+    camera = dataclasses.replace(config.scan.camera, width=width, height=height)
+    return dataclasses.replace(config, scan=dataclasses.replace(config.scan, camera=camera))
 
 
 def _rows(keyed: list[tuple[Variant, int]], names: list[str], results: list[dict]) -> list[dict]:

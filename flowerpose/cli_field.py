@@ -24,11 +24,11 @@ from flowerpose.pipeline.methods import METHODS
 
 #: What `flowerpose scan --sim` reads of a config: the path (the oracle's cameras) and the
 #: simulated camera (SCAN_FLAGS gives four of them flags).
-SCAN_SETTINGS = ("sim.viewpoints", "scan.camera", "scan.width", "scan.height")
+SCAN_SETTINGS = ("sim.viewpoints", "scan.camera")
 
 
-SCAN_FLAGS = {"--frame-rate": "scan.camera.frame_rate_hz", "--width": "scan.width",
-              "--height": "scan.height", "--workers": "scan.camera.workers"}
+SCAN_FLAGS = {"--frame-rate": "scan.camera.frame_rate_hz", "--width": "scan.camera.width",
+              "--height": "scan.camera.height", "--workers": "scan.camera.workers"}
 
 
 def _scan_base():
@@ -118,8 +118,8 @@ def _scan_field(args: argparse.Namespace) -> int:
     if args.plant_at is None:
         raise InputError("--plant-at", "needed with --port and --cloud: where the plant's stem "
                          "stands, X,Y in metres in the bed frame")
-    size = configure(_scan_base(), args, reads=("scan.width", "scan.height"),
-                     command="scan --port/--cloud").scan
+    size = configure(_scan_base(), args, reads=("scan.camera.width", "scan.camera.height"),
+                     command="scan --port/--cloud").scan.camera
     _check_field_bot_flags(args)
     plan = plan_field_scan(args.plant_at, args.plant_height, args.plant_radius)
     x, y = args.plant_at
@@ -226,8 +226,8 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
                    "backend and a virtual Farmduino (100 x real time)")
     add_config_options(p, profile=False, detector=False,
                         example="sim.viewpoints.azimuth_step_deg=30 (degrees; --sim reads "
-                        "sim.viewpoints.*, scan.camera.*, scan.width and scan.height; --port and "
-                        "--cloud scan.width and scan.height)")
+                        "sim.viewpoints.* and scan.camera.*; --port and --cloud "
+                        "scan.camera.width and scan.camera.height)")
     p.set_defaults(func=cmd_scan)
 
 

@@ -225,7 +225,7 @@ def configure(base: Any, args: argparse.Namespace, flags: bool = True,
     """`base` with the --profile, then the --config file, then the settings' flags
     (`flags`), then each --set, applied; renamed keys (`config.RENAMED_SETTINGS`, and the
     command's own, `RENAMED_ATTRIBUTE`) are taken under their new names, with a warning.
-    `reads`: the sections ("pose") and keys ("scan.width") `command` reads; a --config or
+    `reads`: the sections ("pose") and keys ("scan.camera.width") `command` reads; a --config or
     --set key outside them is refused in one line, since it would be silently ignored.
     `run_keys`: a --config file's top-level keys that are the command's own arguments
     (eval's source, plants, seed, as a report's config records them), taken by the command

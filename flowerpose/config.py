@@ -176,6 +176,8 @@ def require(condition: bool, key: str, problem: str) -> None:
 #: warning until the next: a key ending ".*" renames every key under it.
 RENAMED_SETTINGS = {
     "scan.frames": "scan.frames.count",
+    "scan.width": "scan.camera.width",
+    "scan.height": "scan.camera.height",
     "scan.frame_rate_hz": "scan.camera.frame_rate_hz",
     "scan.workers": "scan.camera.workers",
     "scan.sensor.*": "scan.camera.sensor.*",

@@ -349,7 +349,7 @@ def test_library_advice_names_settings_and_the_command_line_says_its_flags():
     parser = build_parser()
     scan = parser.parse_args(["scan", "--port", "p", "--out", "o"])
     advice = ("load `settings`, or take it as home (`home_here`); frames chosen while "
-              "recording (`choose`) need less; `scan.width` sets the size, `cluster.eps` no")
+              "recording (`choose`) need less; `scan.camera.width` sets the size, `cluster.eps` no")
     assert say_flags(parser, scan, advice) == (
         "load --firmware-params, or take it as home (--home-here); frames chosen while "
         "recording (leaving out --keep-all) need less; --width sets the size, `cluster.eps` no")

@@ -16,12 +16,16 @@ def test_an_evals_renamed_scan_keys_reach_the_embedded_sections_with_a_warning(c
     from flowerpose.eval.harness import EvalConfig
 
     old = _configured(EvalConfig(), "eval", "--set", "scan.frame_rate_hz=0.1",
-                      "--set", "scan.sensor.gain=1.2", "--set", "scan.frames=50")
+                      "--set", "scan.sensor.gain=1.2", "--set", "scan.frames=50",
+                      "--set", "scan.width=640")
     err = capsys.readouterr().err
     new = _configured(EvalConfig(), "eval", "--set", "scan.camera.frame_rate_hz=0.1",
-                      "--set", "scan.camera.sensor.gain=1.2", "--set", "scan.frames.count=50")
+                      "--set", "scan.camera.sensor.gain=1.2", "--set", "scan.frames.count=50",
+                      "--set", "scan.camera.width=640")
     assert old == new and new.scan.camera.sensor.gain == 1.2 and new.scan.frames.count == 50
+    assert new.scan.camera.width == 640
     assert "the setting scan.frames is now scan.frames.count" in err
+    assert "the setting scan.width is now scan.camera.width" in err
     assert "the setting scan.sensor.gain is now scan.camera.sensor.gain" in err
     assert capsys.readouterr().err == ""  # the new keys: no warning
 

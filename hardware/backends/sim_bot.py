@@ -358,15 +358,6 @@ class SimBotConfig:
     camera: SimCameraConfig = field(default_factory=SimCameraConfig)
     head_settle_s: float = 0.5
     """Seconds `set_head` takes (the servos turn, then settle)."""
-    width: int = 1280
-    """Frame width, pixels (the paper's 1280 x 720 video)."""
-    height: int = 720
-    """Frame height, pixels."""
-
-    def __post_init__(self):
-        if self.width < 16 or self.height < 16:
-            raise InputError("width", f"{self.width} x {self.height} pixels: both "
-                             "must be at least 16")
 
 
 def sim_camera(plant_dirs: list[Path], config: SimBotConfig,
@@ -383,7 +374,8 @@ def sim_camera(plant_dirs: list[Path], config: SimBotConfig,
         if not (Path(folder) / "plant.json").exists():
             raise InputError(folder, "not a plant folder (no plant.json): make one with "
                              "flowerpose plant")
-    intrinsics = intrinsics_from_config(CameraConfig(width=config.width, height=config.height))
+    intrinsics = intrinsics_from_config(CameraConfig(width=config.camera.width,
+                                                     height=config.camera.height))
     poser = MujocoPoser()
     return lambda clock: SimCamera(clock, plant_dirs, intrinsics, poser, config.camera, state,
                                    pause)

@@ -17,6 +17,10 @@ class SimCameraConfig:
     """The simulated camera's recording (its optics: `sim.camera.CameraConfig`; its
     imperfections: `sim.sensor.SensorConfig`)."""
 
+    width: int = 1280
+    """Frame width, pixels (the paper's 1280 x 720 video)."""
+    height: int = 720
+    """Frame height, pixels."""
     frame_rate_hz: float = 0.6
     """Frames rendered per second of the bot's clock. The real camera records 30 fps, about
     36,000 frames in a 20-minute scan; rendering them all would take hours, and the frame
@@ -45,6 +49,9 @@ class SimCameraConfig:
     """The light on the bed and its surroundings."""
 
     def __post_init__(self):
+        if self.width < 16 or self.height < 16:
+            raise InputError("width", "width and height must be at least 16 pixels, got "
+                             f"{self.width} x {self.height}")
         if not (self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz)):
             raise InputError("frame_rate_hz", f"must be positive, got {self.frame_rate_hz}")
         if self.workers is not None and self.workers < 1:

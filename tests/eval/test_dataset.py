@@ -172,7 +172,8 @@ def test_the_split_is_by_plant_seeded_and_deterministic():
 def test_frames_are_scan_camera_images_with_their_flowers_masks(tmp_path, capsys):
     out = tmp_path / "frames"
     assert main(["dataset", "--plants", "1", "--val-fraction", "0", "--views", "frames",
-                 "--frames", "3", "--set", "scan.width=320", "--set", "scan.height=180",
+                 "--frames", "3", "--set", "scan.camera.width=320",
+                 "--set", "scan.camera.height=180",
                  "--out", str(out)]) == 0
     assert "3 images" in capsys.readouterr().out
     coco = COCO(str(out / "annotations" / "instances_train.json"))

@@ -11,7 +11,7 @@ from flowerpose.eval.harness import EvalRun, eval_config, run_eval
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.reconstruct import reconstruct
 
-SMALL = {"scan.width": 640, "scan.height": 360, "scan.camera.frame_rate_hz": 0.05,
+SMALL = {"scan.camera.width": 640, "scan.camera.height": 360, "scan.camera.frame_rate_hz": 0.05,
          "scan.frames.count": 80}
 
 

@@ -436,8 +436,8 @@ def test_the_simulated_scan_through_the_serial_path(tmp_path):
     make_plant(0, "easy", points=2000, out_dir=plant)
     truth = read_json(plant / "plant.json")
     plan = plan_scan(np.array(truth["plant_center"][:2]), truth["height"], SMALL)
-    config = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=0.2, workers=1,
-                                                 visibility_width=32), width=64, height=48)
+    config = SimBotConfig(camera=SimCameraConfig(width=64, height=48, frame_rate_hz=0.2,
+                                                 workers=1, visibility_width=32))
     with SimulatedSerialBot([plant], config, time_scale=20.0) as bot:
         manifest = run_scan(bot, plan, tmp_path / "scan", source=bot.describe(),
                             progress=False)

@@ -216,7 +216,7 @@ def test_the_simulated_scan_flies_the_path_its_settings_give(plant0, tmp_path, c
     wide = sum(line.strip()[:1].isdigit() for line in out.splitlines())
     assert code == code_wide == 0 and 0 < wide < default
     for key, words in (("cluster.eps=0.1", "scan --sim reads sim.viewpoints.*"),
-                       ("scan.width=8", "--width: width and height must be at least 16")):
+                       ("scan.camera.width=8", "--width: width and height must be at least 16")):
         code, _, err = _run(capsys, *base, "--set", key)
         assert code == 2 and words in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "scan").exists()

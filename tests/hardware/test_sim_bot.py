@@ -24,9 +24,8 @@ from flowerpose.sim.sensor import SensorConfig
 
 SMALL = ScanConfig(ScanPathConfig(azimuth_step_deg=60.0, cylinder_bottom_m=0.22,
                                   cylinder_step_m=0.04, dome_polar_deg=(50.0,)))
-CONFIG = SimBotConfig(camera=SimCameraConfig(frame_rate_hz=1.0, workers=1,
-                                             visibility_width=96),
-                      width=160, height=90)
+CONFIG = SimBotConfig(camera=SimCameraConfig(width=160, height=90, frame_rate_hz=1.0,
+                                             workers=1, visibility_width=96))
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +62,8 @@ def test_scan_records_frames_poses_and_truth_then_resumes(plant_dir, tmp_path):
     first = read_trajectory(scan / "trajectory.csv")
     assert read_json(scan / "scan.json")["completed"] == 4
     assert len(first) == len(frame_files(scan)) > 0  # the frames recorded so far are kept
-    with SimBot([plant_dir], dataclasses.replace(CONFIG, width=96, height=54)) as bot:
+    with SimBot([plant_dir], dataclasses.replace(
+            CONFIG, camera=dataclasses.replace(CONFIG.camera, width=96, height=54))) as bot:
         with pytest.raises(InputError, match="other camera settings"):
             run_scan(bot, plan, scan, source={"backend": "sim"}, progress=False)
     with SimBot([plant_dir], CONFIG) as bot:
