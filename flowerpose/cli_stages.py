@@ -25,12 +25,12 @@ from flowerpose.cli_options import (
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import eval_config
     from flowerpose.sim.bundle import make_plant
     from flowerpose.sim.export import PLANT_FILES
+    from flowerpose.sim.world_config import WorldSettings, sim_preset
 
-    sim = eval_config(args.preset, lambda base: configure(base, args, reads=("sim",),
-                                                          command="plant")).sim
+    sim = configure(WorldSettings(sim_preset(args.preset)), args, reads=("sim",),
+                    command="plant").sim
     with owned(args.out, "plant", args.overwrite, PLANT_FILES):
         bundle = make_plant(args.seed, points=args.points, out_dir=args.out, config=sim)
     visible = int(sum(bundle.visible))

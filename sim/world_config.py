@@ -194,6 +194,14 @@ def preset(name: PresetName) -> PlantConfig:
     return sim_preset(name).plant
 
 
+@dataclass(frozen=True)
+class WorldSettings:
+    """The config tree of a command that reads only the synthetic world (`flowerpose
+    plant`): its keys are `sim.*`, as in eval's."""
+
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
 def sim_preset(name: PresetName) -> SimConfig:
     """The whole synthetic world of a named preset: its `sim.*` settings in
     assets/presets/NAME.toml over the defaults (the realistic plant and a clean oracle

@@ -2,10 +2,7 @@
 times out, homes and stops, as farmbot-arduino-firmware 6.6 does (`virtual_farmduino`'s
 docstring says it all). `FirmwareBehaviour` is mixed into `VirtualFarmduino`, whose state
 it reads and changes (the parameters, the joints, the command running, the stop) and whose
-line it answers on (`_say`, `_done`).
-
-Units: the protocol is in FarmBot millimetres (Z <= 0 downward from the top); the slide
-joints are metres from the physical home; servo joints are radians.
+line it answers on (`_say`, `_done`). Units as there.
 """
 
 from __future__ import annotations
