@@ -31,10 +31,7 @@ def test_detect_runs_on_the_core_install_and_the_extras_are_named(tmp_path):
     for args, extra in ((["plant", "--seed", "1", "--out", tmp_path / "p"], "sim"),
                         (["dataset", "--plants", "2", "--out", tmp_path / "d"], "sim"),
                         (["detect", cloud, "--out", tmp_path / "o", "--detector",
-                          "onnx:model.onnx"], "onnx"),
-                        # The virtual board serves a pseudo-terminal over the MuJoCo gantry:
-                        # the simulator, not the serial port's package.
-                        (["farmduino", "--virtual"], "sim")):
+                          "onnx:model.onnx"], "onnx")):
         done = _core(*args)
         assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
         assert done.stderr.strip().endswith(f"pip install 'flowerpose[{extra}]'")
@@ -44,3 +41,20 @@ def test_detect_runs_on_the_core_install_and_the_extras_are_named(tmp_path):
     (frames / "camera.json").write_text("{}")
     done = _core("reconstruct", frames, "--out", tmp_path / "rec")
     assert done.returncode == 2 and "[recon] extra (pycolmap" in done.stderr, done.stderr
+
+
+def test_the_virtual_farmduino_serves_on_the_core_install():
+    """It keeps the gantry's joints itself, on a pseudo-terminal: no simulator, no pyserial."""
+    import signal
+
+    board = subprocess.Popen([sys.executable, "-c", BLOCK, "farmduino", "--virtual"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = board.stdout.readline().strip()
+        assert path.endswith("ttyFarmduino"), board.stderr.read() if board.poll() else path
+        board.send_signal(signal.SIGINT)  # Ctrl-C stops it
+        assert board.wait(timeout=60) == 0
+        assert "Traceback" not in board.stderr.read()
+    finally:
+        board.kill()
+        board.wait()
