@@ -13,7 +13,7 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -52,6 +52,9 @@ from flowerpose.pipeline.flowers import (
 from flowerpose.pipeline.rgbd import FusionConfig
 from flowerpose.sim.world_config import PresetName, SimConfig
 from flowerpose.stopwatch import Stopwatch
+
+if TYPE_CHECKING:
+    from flowerpose.eval.real_source import RealPlant
 
 
 @dataclass(frozen=True)
@@ -141,9 +144,7 @@ def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_d
 
     def score() -> dict:
         watch = Stopwatch()
-        truth = read_plant_truth(truth_path)
-        if config.score.label_error_deg > 0:
-            truth = as_labelled(truth, config.score.label_error_deg, name)
+        truth = scored_truth(truth_path, config.score, name)
         entry = plant_entry(name, score_plant(read_flowers(out_dir / "flowers.json"), truth,
                                               config.score.max_distance_m))
         return {"entry": entry, "seconds": watch.elapsed()}
@@ -162,6 +163,15 @@ def evaluate_cloud(cloud_path: Path, truth_path: Path, config: EvalConfig, out_d
         score, parents=[detect_key])
     timing = {stage: 0.0 if detect_cached else t for stage, t in detected["timing_s"].items()}
     return scored["entry"], {**timing, "score": 0.0 if score_cached else scored["seconds"]}
+
+
+def scored_truth(truth_path: Path, score: ScoreConfig, name: str) -> list:
+    """A synthetic plant's truth as it is scored: tilted by the hand labels' error where
+    `score.label_error_deg` says so (seeded by the plant's name)."""
+    truth = read_plant_truth(truth_path)
+    if score.label_error_deg > 0:
+        truth = as_labelled(truth, score.label_error_deg, name)
+    return truth
 
 
 def _cacheable(pipeline: PipelineConfig) -> bool:
@@ -234,13 +244,12 @@ class SyntheticJob:
         """Where the plant's files and its flowers go in a run's folder."""
         return out_dir / "plants" / self.name
 
+    start: Start = "cloud"
+    """Where the pipeline starts on it: the whole cloud."""
+
     def scored_truth(self, config: EvalConfig) -> list:
-        """The truth as it is scored (tilted by the hand labels' error where the preset says
-        so)."""
-        truth = read_plant_truth(self.truth)
-        if config.score.label_error_deg > 0:
-            truth = as_labelled(truth, config.score.label_error_deg, self.name)
-        return truth
+        """The truth as it is scored (`scored_truth`)."""
+        return scored_truth(self.truth, config.score, self.name)
 
     def score(self, config: EvalConfig, out_dir: Path,
               cache: Path | None = None) -> tuple[dict, dict[str, float]]:
@@ -252,9 +261,13 @@ class SyntheticJob:
         """The cloud an external method gets."""
         return self.cloud
 
-    def view_cloud(self):
-        """The cloud report.html shows."""
-        return read_cloud(self.cloud)
+    def view(self, config: EvalConfig, out_dir: Path, source: str) -> PlantView:
+        """report.html's view: the cloud, the flowers, the truth as scored and the camera
+        path the cloud was made from."""
+        return PlantView(self.name, read_cloud(self.cloud),
+                         read_flowers(self.folder(out_dir) / "flowers.json"),
+                         self.scored_truth(config),
+                         cameras=camera_path(self.folder(out_dir), source))
 
 
 @dataclass(frozen=True)
@@ -262,7 +275,13 @@ class RealJob:
     """A labelled real plant folder to score (`real_source.RealPlant`)."""
 
     name: str
-    plant: Any
+    plant: RealPlant
+
+    @property
+    def start(self) -> Start:
+        """Where the pipeline starts on it: what the folder holds (cloud, candidates,
+        crops)."""
+        return self.plant.stage
 
     def folder(self, out_dir: Path) -> Path:
         return out_dir / self.name
@@ -288,10 +307,12 @@ class RealJob:
             return Path(self.plant.clouds[0])
         return write_cloud(folder / "input.ply", plant_cloud(self.plant))
 
-    def view_cloud(self):
+    def view(self, config: EvalConfig, out_dir: Path, source: str) -> PlantView:
         from flowerpose.eval.real_source import plant_cloud
 
-        return plant_cloud(self.plant)
+        return PlantView(self.name, plant_cloud(self.plant),
+                         read_flowers(self.folder(out_dir) / "flowers.json"),
+                         self.scored_truth(config))
 
 
 PlantJob = SyntheticJob | RealJob
@@ -360,7 +381,7 @@ def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval")
     write_report(out_dir, report, title)
     write_text(out_dir / RUN_CONFIG, settings_toml(run_config, RUN_CONFIG_HEADER))
     write_html_report(out_dir / "report.html", title, report,
-                      _plant_views(jobs, config, out_dir, run.source))
+                      [job.view(config, out_dir, run.source) for job in jobs])
     return report
 
 
@@ -377,7 +398,7 @@ def _plant_jobs(config: EvalConfig, run: EvalRun, out_dir: Path, workers: int | 
         LOG.info(f"eval: {len(plants)} real plants -> {out_dir}")
         jobs: list[PlantJob] = [RealJob(plant.name, plant) for plant in plants]
         run_config = {"source": run.source, "folders": [p.describe() for p in plants],
-                      **settings_run(config, run.source, [p.stage for p in plants])}
+                      **settings_run(config, run.source, [job.start for job in jobs])}
         timing, extra = {}, {}
         title = f"flowerpose eval: {len(jobs)} real plants"
     else:
@@ -399,7 +420,7 @@ def _compare(jobs: list[PlantJob], run: EvalRun, config: EvalConfig, out_dir: Pa
              workers: int | None, cache: Path | None, run_config: dict, extra: dict) -> None:
     """The compared settings and external methods on the same clouds, into
     extra["compare"] by name."""
-    starts = [job.plant.stage if isinstance(job, RealJob) else "cloud" for job in jobs]
+    starts = [job.start for job in jobs]
     for name, other in run.compare.items():
         others, _ = _score_jobs(jobs, other, out_dir / name, workers, cache)
         extra.setdefault("compare", {})[name] = {
@@ -422,18 +443,6 @@ def _method_job(job: PlantJob, method: ExternalMethod, config: EvalConfig,
     folder = out_dir / method.name / job.name
     return run_method(method, job.method_input(folder), job.scored_truth(config), folder,
                       job.name, config.score.max_distance_m)
-
-
-def _plant_views(jobs: list[PlantJob], config: EvalConfig, out_dir: Path,
-                 source: str) -> list[PlantView]:
-    """Each scored plant's cloud, flowers, truth (as it was scored) and camera path for
-    report.html."""
-    return [PlantView(job.name, job.view_cloud(),
-                      read_flowers(job.folder(out_dir) / "flowers.json"),
-                      job.scored_truth(config),
-                      cameras=None if isinstance(job, RealJob)
-                      else camera_path(job.folder(out_dir), source))
-            for job in jobs]
 
 
 def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:
