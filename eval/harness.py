@@ -22,7 +22,7 @@ from flowerpose.cloudio import read_cloud
 from flowerpose.config import apply_overrides, load_preset, require, settings_toml, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.html_report import PlantView, write_html_report
-from flowerpose.eval.kinds import SOURCES, TASKS
+from flowerpose.eval.kinds import EvalRun
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.methods import ExternalMethod, run_method
 from flowerpose.eval.pollination import PollinationScoreConfig
@@ -316,38 +316,6 @@ class RealJob:
 
 
 PlantJob = SyntheticJob | RealJob
-
-
-@dataclass(frozen=True)
-class EvalRun:
-    """What `run_eval` runs, besides the settings: the plants (`plants` generated from
-    `seed` for a synthetic `source`, or the labelled real `folders`, their truth scale from
-    each folder's source.json unless `truth_scale`), the task ("pose", or "pollinate": plan,
-    fly and score pollination visits too), the other settings (by name) and external methods
-    compared on the same clouds, and the suite and the preset and profile files
-    (`report.assets_record`) to record."""
-
-    source: str = "scan"
-    plants: int = 2
-    seed: int = 0
-    folders: tuple[Path, ...] = ()
-    truth_scale: float | None = None
-    task: str = "pose"
-    compare: dict[str, EvalConfig] = field(default_factory=dict)
-    methods: tuple[ExternalMethod, ...] = ()
-    suite: dict | None = None
-    assets: dict[str, dict[str, str]] | None = None
-
-    def __post_init__(self):
-        if self.source not in SOURCES:
-            raise InputError("source", f"'{self.source}': one of {', '.join(SOURCES)}")
-        if self.task not in TASKS:
-            raise InputError("task", f"'{self.task}': one of {', '.join(TASKS)}")
-        if self.task == "pollinate" and self.source == "real":
-            raise InputError("task", "pollinate needs synthetic plants, whose geometry "
-                             "judges the visits: not --source real")
-        if self.source != "real" and self.plants < 1:
-            raise InputError("plants", f"must be at least 1, got {self.plants}")
 
 
 def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval"),

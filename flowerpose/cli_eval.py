@@ -29,14 +29,12 @@ from flowerpose.cli_options import (
 )
 from flowerpose.config import profile_names, suite_names
 from flowerpose.errors import InputError
-from flowerpose.eval.kinds import SOURCES, TASKS
+from flowerpose.eval.kinds import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
 
-#: Plants of the default `flowerpose eval` (photogrammetry): about 5 minutes each here.
-SCAN_PLANTS = 2
-
-
-#: eval's source, preset and first seed when neither the command line nor a suite says.
-EVAL_DEFAULTS = {"source": "scan", "preset": "realistic", "seed": 0, "task": "pose"}
+#: eval's source, preset, first seed and task when neither the command line nor a suite
+#: says (the run's from `EvalRun`).
+EVAL_DEFAULTS = {"source": EvalRun.source, "preset": "realistic", "seed": EvalRun.seed,
+                 "task": EvalRun.task}
 #: What a report's config (and so its config.toml) records of the run beside the settings,
 #: which `eval --config` takes as the run's own where the command line does not say.
 EVAL_RUN_KEYS = ("source", "folders", "plants", "seed", "task")
@@ -47,7 +45,7 @@ def _default_out() -> Path:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import EvalRun, eval_config, run_eval
+    from flowerpose.eval.harness import eval_config, run_eval
 
     suite = _apply_suite(args) if args.suite else None
     _run_from_config(args)
@@ -82,11 +80,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if len(set(names)) < len(names):
         raise InputError("--compare", "each compared method needs a name of its own")
     out = args.out or _default_out()
-    plants = args.plants or (SCAN_PLANTS if args.source == "scan" else 10)
     from flowerpose.eval.harness import eval_outputs
     from flowerpose.eval.report import assets_record
 
-    run = EvalRun(source=args.source, plants=plants, seed=args.seed,
+    run = EvalRun(source=args.source, plants=args.plants, seed=args.seed,
                   folders=tuple(args.folders), truth_scale=args.truth_scale, task=args.task,
                   compare=compare, methods=tuple(methods), suite=suite,
                   assets=assets_record(None if args.source == "real" else args.preset,
@@ -233,8 +230,9 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
                    "(NAME='CMD {cloud} {out}', as --method) or a registered method's name "
                    "(repeatable; default: none)")
     p.add_argument("--plants", type=PLANTS, default=None, metavar="N",
-                   help=f"number of seeded plants (default: {SCAN_PLANTS} for scan, 10 for "
-                   "oracle and rgbd)")
+                   help="number of seeded plants (default: "
+                   + ", ".join(f"{n} for {source}" for source, n in DEFAULT_PLANTS.items())
+                   + ")")
     p.add_argument("--seed", type=SEED, default=None, metavar="S",
                    help=f"first plant seed; plants are S, S+1, ... (default: "
                    f"{EVAL_DEFAULTS['seed']})")

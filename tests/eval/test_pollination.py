@@ -69,7 +69,8 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
 
 @pytest.mark.slow
 def test_eval_reports_pollination_and_its_curve(tmp_path):
-    from flowerpose.eval.harness import EvalRun, eval_config, run_eval
+    from flowerpose.eval.harness import eval_config, run_eval
+    from flowerpose.eval.kinds import EvalRun
 
     config = eval_config("easy")
     angles = (30.0,)
