@@ -136,6 +136,12 @@ def fuse_rgbd_scan(scan_dir: Path, config: FusionConfig = FusionConfig()) -> tup
     fused, fused_colours = voxel_fuse(np.concatenate(points), np.concatenate(colours),
                                       np.concatenate(views), config.voxel_m, config.min_views)
     raw = sum(len(p) for p in points)
+    if raw and not len(fused):
+        # Each pixel's footprint wider than a voxel: no voxel gathers min_views frames.
+        raise InputError(scan_dir, f"no {config.voxel_m * 1000:g} mm voxel holds points of "
+                         f"{config.min_views} frames (fusion.min_views) among {raw} points of "
+                         f"{used} frames: each pixel covers more than a voxel; raise "
+                         "fusion.voxel_m or lower fusion.min_views, or record larger frames")
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(fused))
     pcd.colors = o3d.utility.Vector3dVector(fused_colours / 255.0)
     if config.outlier_neighbours and len(pcd.points) > config.outlier_neighbours:

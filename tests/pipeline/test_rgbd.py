@@ -73,3 +73,10 @@ def test_a_scan_without_depth_is_refused(tmp_path):
         path.unlink()
     with pytest.raises(InputError, match="not an RGB-D scan"):
         fuse_rgbd_scan(scan)
+
+
+def test_frames_too_coarse_for_the_voxel_are_refused_naming_the_settings(tmp_path):
+    # Three views: no voxel can gather the six that fusion.min_views asks for.
+    scan = _rgbd_scan(tmp_path / "scan", views=3)
+    with pytest.raises(InputError, match="fusion.voxel_m or lower fusion.min_views"):
+        fuse_rgbd_scan(scan, FusionConfig(voxel_m=0.002))
