@@ -538,7 +538,7 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
                                       for s, c in zip(seeds, captured, strict=True)}}
     if cache is not None:
         steps = {f"seed-{s}": c.get("cached", []) for s, c in zip(seeds, captured, strict=True)}
-        whole = len(captured[0]["seconds"]) if isinstance(captured[0]["seconds"], dict) else 1
+        whole = len(timing)  # the capture's steps: a plant reused whole skipped them all
         extra["cache"] = {"dir": str(cache), "steps_reused": steps,
                           "reused": [plant for plant, c in steps.items() if len(c) == whole]}
     return clouds, timing, extra

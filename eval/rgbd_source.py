@@ -20,10 +20,11 @@ import cv2
 import numpy as np
 
 from flowerpose.atomic import write_image, write_text
-from flowerpose.config import require
+from flowerpose.config import require, to_dict
 from flowerpose.eval.runner import CAPTURE_CPUS, run_jobs, said_steps
+from flowerpose.eval.scan_source import plant_inputs
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.pipeline.rgbd import FusionConfig
+from flowerpose.pipeline.rgbd import FusionConfig, fuse_rgbd_scan
 from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
 from flowerpose.sim.depth import DepthSensorConfig
@@ -118,8 +119,6 @@ def capture_rgbd_cached(plant_dir: Path, config: RgbdConfig, fusion: FusionConfi
     if cache_root is None:
         return capture_rgbd(plant_dir, config, fusion, viewpoints)
     from flowerpose.cache import StageCache
-    from flowerpose.config import to_dict
-    from flowerpose.eval.scan_source import plant_inputs
 
     settings = {"rgbd": to_dict(config), "fusion": to_dict(fusion),
                 "viewpoints": to_dict(viewpoints)}
@@ -135,7 +134,6 @@ def capture_rgbd(plant_dir: Path, config: RgbdConfig, fusion: FusionConfig,
     into plant_dir/rgbd/cloud.ply, and measure the cloud against the truth mesh."""
     from flowerpose.cloudio import write_cloud
     from flowerpose.eval.quality import reconstruction_quality
-    from flowerpose.pipeline.rgbd import fuse_rgbd_scan
     from flowerpose.sim.export import read_plant
 
     watch = Stopwatch()

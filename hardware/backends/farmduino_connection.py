@@ -105,9 +105,7 @@ class Connection:
 
     def _initialise(self, restarted: bool, approve: bool, first: bool) -> None:
         """Version, parameters, approval, lock and servos, position: after every start."""
-        version = self._transact("F83", REPLY_TIMEOUT_S)
-        self._raise_for(version)
-        self._firmware = next((r.text for r in version.replies if r.code == "R83"), None)
+        self._firmware = next((r.text for r in self._ask("F83") if r.code == "R83"), None)
         write_settings(self._ask, self._settings, self._port)
         self._params = read_parameters(self._ask, self._port)
         if approve or self._params.get(2) != 1:
@@ -122,7 +120,7 @@ class Connection:
             self._stop_sent = time.monotonic()
         elif self._servo is not None:
             for pin, value in zip((YAW_PIN, PITCH_PIN), self._servo, strict=True):
-                self._raise_for(self._transact(servo_line(pin, value), REPLY_TIMEOUT_S))
+                self._ask(servo_line(pin, value))
         where = self._transact("F82", REPLY_TIMEOUT_S)
         self._raise_for(where)
         # After a restart the counters say 0 wherever the gantry is: keep our estimate.

@@ -56,11 +56,9 @@ class PollinateConfig:
     """The pre-approach pose: the swab this far out along the flower's axis. Farther out,
     the head reaches it (and leaves it) clear of the foliage round the flower, which the
     cloud holds only where the scan saw it. Measured (`eval --task pollinate --source
-    oracle`, estimated poses; pollinated, and leaves pushed over 1 cm in visits), 0.05 ->
-    0.065: seeds 0-9 111 -> 114 of 134, 2 -> 0 of 113-114; seeds 100-109 (held out) 96 ->
-    99 of 123, 3 -> 0 of 102. Earlier measures (before the retreat retraced the approach):
-    at 0.035 seeds 0-9 lost 3 and pushed 6 leaves; at 0.08 they scored as at 0.065, in 3
-    more minutes of flight."""
+    oracle`, estimated poses; pollinated, and leaves pushed over 1 cm in visits), 0.05 and
+    0.065: seeds 0-9 111 and 114 of 134, 2 and 0 of 113-114; seeds 100-109 (held out) 96
+    and 99 of 123, 3 and 0 of 102."""
     press_m: float = 0.002
     """How far past the flower's centre the swab goes, to touch it with a little force."""
     dwell_s: float = 1.0
