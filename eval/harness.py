@@ -120,7 +120,8 @@ def generate_plant_files(seed: int, sim: SimConfig, plant_dir: Path,
     from flowerpose.cache import StageCache
 
     result, cached, _ = StageCache(cache).run("plant", {"seed": seed, "sim": to_dict(sim)}, [],
-                                              plant_dir, PLANT_FILES, generate)
+                                              plant_dir, PLANT_FILES, generate,
+                                              code=("flowerpose.sim.bundle",))
     return 0.0 if cached else result["seconds"]
 
 

@@ -124,7 +124,7 @@ def capture_rgbd_cached(plant_dir: Path, config: RgbdConfig, fusion: FusionConfi
                 "viewpoints": to_dict(viewpoints)}
     result, cached, _ = StageCache(cache_root).run(
         "rgbd", settings, plant_inputs(plant_dir), plant_dir, ("rgbd/cloud.ply", "rgbd/plant.json"),
-        lambda: capture_rgbd(plant_dir, config, fusion, viewpoints))
+        lambda: capture_rgbd(plant_dir, config, fusion, viewpoints), code=(__name__,))
     return {**result, "cached": ["rgbd"], "seconds": 0.0} if cached else result
 
 

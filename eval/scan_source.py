@@ -154,6 +154,11 @@ SCAN_FILES = ("scan/plant.json", "scan/scan.json", "scan/camera.json", "scan/tra
 RECONSTRUCTION_FILES = ("reconstruction/cloud.ply", "reconstruction/reconstruction.json")
 
 
+#: The code a capture runs (the stage cache's code version): this module and what it imports,
+#: the simulator, the bot, frame choice and photogrammetry, not the detection.
+CAPTURE_CODE = (__name__,)
+
+
 def plant_inputs(plant_dir: Path) -> list[Path]:
     """The files of a generated plant that a capture of it depends on (its truth, mesh and
     face labels; not its oracle cloud): the stage cache's inputs."""
@@ -178,11 +183,11 @@ def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
     scan_settings = {"scan": camera, "viewpoints": to_dict(path or ScanPathConfig())}
     scanned, scan_cached, scan_key = cache.run(
         "scan", scan_settings, plant_inputs(plant_dir), plant_dir, SCAN_FILES,
-        lambda: scan_and_choose(plant_dir, config, path))
+        lambda: scan_and_choose(plant_dir, config, path), code=CAPTURE_CODE)
     built, built_cached, _ = cache.run(
         "reconstruct", {"reconstruct": to_dict(config.reconstruct)}, [], plant_dir,
         RECONSTRUCTION_FILES, lambda: reconstruct_capture(plant_dir, config),
-        parents=[scan_key])
+        parents=[scan_key], code=CAPTURE_CODE)
     seconds = {**scanned["seconds"], **built["seconds"]}
     cached = [step for step, hit in (("scan", scan_cached), ("frames", scan_cached),
                                      ("reconstruct", built_cached)) if hit]

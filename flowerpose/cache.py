@@ -1,11 +1,15 @@
 """A content-addressed cache of stage outputs, so a stage never runs twice on the same inputs.
 
 An entry is a folder ROOT/STAGE/KEY/ holding the files the stage produced and entry.json
-(what it was made from). KEY is a SHA-256 of the stage's name, the code version (every
-flowerpose source file: a change to the code invalidates every entry, since a stage's
-output depends on more code than its own module), the settings the stage reads (canonical
-JSON) and the content of its input files, and of nothing else: the output folder, the
-number of workers and the time of day do not enter it.
+(what it was made from). KEY is a SHA-256 of the stage's name, the code version, the
+settings the stage reads (canonical JSON) and the content of its input files, and of
+nothing else: the output folder, the number of workers and the time of day do not enter it.
+
+The code version is every flowerpose source file, unless the stage names the modules it
+runs (`code`): then it is those modules' files and every flowerpose module they import,
+at the top or inside a function, transitively (`module_closure`), and the shipped data
+files that are not settings (the MuJoCo model). So a change to detection leaves a
+reconstruction's entry valid, and a change to anything a reconstruction imports does not.
 
 A stage that follows another in one chain (a reconstruction of a scan's chosen frames)
 takes the earlier stage's key among its inputs (`parents`) rather than the digest of its
@@ -25,8 +29,10 @@ folders of fills killed more than a day ago: whatever else is in the folder stay
 
 from __future__ import annotations
 
+import ast
 import functools
 import hashlib
+import importlib
 import json
 import os
 import shutil
@@ -84,26 +90,106 @@ def file_digest(path: Path) -> str:
 
 
 @functools.lru_cache(maxsize=1)
-def code_version() -> str:
-    """SHA-256 over the installed flowerpose's source files (.py, .toml, .xml), by path."""
-    import importlib
+def _package_folders() -> dict[str, Path]:
+    """Each of `_PACKAGES`' installed folder."""
+    return {name: Path(importlib.import_module(name).__file__).parent for name in _PACKAGES}
 
+
+def _source_files() -> list[tuple[str, Path]]:
+    """Every flowerpose source file (.py, .toml, .xml) as (package/relative path, path)."""
+    files = []
+    for name, folder in _package_folders().items():
+        files += [(f"{name}/{p.relative_to(folder).as_posix()}", p)
+                  for p in sorted(folder.rglob("*"))
+                  if p.suffix in (".py", ".toml", ".xml") and "__pycache__" not in p.parts]
+    return files
+
+
+def _module_file(module: str) -> Path | None:
+    """The source file of a flowerpose module (a package's __init__.py), None for a module
+    of another distribution or a name that is no module (an imported function's)."""
+    folders = _package_folders()
+    package = max((name for name in folders if module == name or module.startswith(name + ".")),
+                  key=len, default=None)
+    if package is None:
+        return None
+    path = folders[package].joinpath(*module[len(package):].split(".")[1:])
+    for candidate in (path.with_suffix(".py"), path / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imports(module: str, path: Path) -> set[str]:
+    """The flowerpose modules `module`'s source imports anywhere (inside functions too), but
+    under `if TYPE_CHECKING:`, which runs nothing."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    named: set[str] = set()
+
+    class Imports(ast.NodeVisitor):
+        def visit_If(self, node: ast.If) -> None:
+            test = node.test
+            if getattr(test, "id", getattr(test, "attr", None)) == "TYPE_CHECKING":
+                for statement in node.orelse:
+                    self.visit(statement)
+                return
+            self.generic_visit(node)
+
+        def visit_Import(self, node: ast.Import) -> None:
+            named.update(alias.name for alias in node.names)
+
+        def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[:len(package.split(".")) - node.level + 1]
+                base = ".".join([*parts, base] if base else parts)
+            named.add(base)
+            named.update(f"{base}.{alias.name}" for alias in node.names)
+
+    Imports().visit(ast.parse(path.read_text(encoding="utf-8")))
+    return {name for name in named if _module_file(name) is not None}
+
+
+@functools.lru_cache(maxsize=None)
+def module_closure(roots: tuple[str, ...]) -> tuple[str, ...]:
+    """The flowerpose modules `roots` import, directly or through each other, with the
+    roots, sorted."""
+    seen: set[str] = set()
+    waiting = list(roots)
+    while waiting:
+        module = waiting.pop()
+        path = _module_file(module)
+        if module in seen or path is None:
+            continue
+        seen.add(module)
+        waiting += _imports(module, path)
+    return tuple(sorted(seen))
+
+
+@functools.lru_cache(maxsize=None)
+def code_version(roots: tuple[str, ...] | None = None) -> str:
+    """SHA-256 over flowerpose's source, by path: every source file (.py, .toml, .xml), or,
+    given the modules a stage runs (`roots`), their `module_closure`'s files and the
+    shipped MuJoCo model (.xml)."""
+    if roots is None:
+        files = _source_files()
+    else:
+        modules = {_module_file(name) for name in module_closure(roots)}
+        files = [(name, path) for name, path in _source_files()
+                 if path in modules or path.suffix == ".xml"]
     digest = hashlib.sha256()
-    for name in _PACKAGES:
-        folder = Path(importlib.import_module(name).__file__).parent
-        files = sorted(p for p in folder.rglob("*") if p.suffix in (".py", ".toml", ".xml")
-                       and "__pycache__" not in p.parts)
-        for path in files:
-            digest.update(f"{name}/{path.relative_to(folder).as_posix()}\0".encode())
-            digest.update(file_digest(path).encode())
+    for name, path in files:
+        digest.update(f"{name}\0".encode())
+        digest.update(file_digest(path).encode())
     return digest.hexdigest()
 
 
 def stage_key(stage: str, settings: Mapping, inputs: Iterable[Path],
-              parents: Iterable[str] = ()) -> str:
+              parents: Iterable[str] = (), code: tuple[str, ...] | None = None) -> str:
     """The key of `stage` run on the files `inputs` and the outputs of the earlier stages
-    whose keys are `parents`, with `settings` (JSON-able), by this code."""
-    document = {"stage": stage, "code": code_version(),
+    whose keys are `parents`, with `settings` (JSON-able), by this code: all of it, or the
+    modules `code` names and what they import (`code_version`)."""
+    document = {"stage": stage, "code": code_version(code),
                 "settings": json.loads(json.dumps(settings, sort_keys=True, default=str)),
                 "inputs": [file_digest(Path(p)) for p in inputs], "parents": list(parents)}
     text = json.dumps(document, sort_keys=True, separators=(",", ":"))
@@ -166,13 +252,15 @@ class StageCache:
 
     def run(self, stage: str, settings: Mapping, inputs: Iterable[Path], folder: Path,
             outputs: Iterable[str], compute: Callable[[], dict],
-            parents: Iterable[str] = ()) -> tuple[dict, bool, str]:
+            parents: Iterable[str] = (), code: tuple[str, ...] | None = None
+            ) -> tuple[dict, bool, str]:
         """(result, whether it came from the cache, key) of a stage that writes `outputs`
         (files or folders, relative to `folder`; those it wrote are kept) and returns a
         JSON-able result: from the entry for its key, its files copied back into folder, or
         computed and stored. `parents`: the keys of the earlier stages it reads the output
-        of (`stage_key`)."""
-        key = stage_key(stage, settings, inputs, parents)
+        of; `code`: the modules the stage runs, when not the whole of flowerpose
+        (`stage_key`)."""
+        key = stage_key(stage, settings, inputs, parents, code)
         entry = self.entry(stage, key)
         if entry is not None:
             try:

@@ -37,7 +37,7 @@ def test_a_key_changes_with_the_inputs_settings_and_code_and_nothing_else(tmp_pa
     assert stage_key("scan", {"scan": {"frames": 199, "width": 1280}}, _inputs(tmp_path)) != key
     assert stage_key("scan", settings, _inputs(tmp_path, "other plant")) != key
     assert stage_key("rgbd", settings, _inputs(tmp_path)) != key
-    monkeypatch.setattr(cache_module, "code_version", lambda: "another version")
+    monkeypatch.setattr(cache_module, "code_version", lambda roots=None: "another version")
     assert stage_key("scan", settings, _inputs(tmp_path)) != key
 
 
