@@ -25,11 +25,11 @@ from flowerpose.eval.html_report import PlantView, write_html_report
 from flowerpose.eval.kinds import EvalRun
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.methods import ExternalMethod, run_method
+from flowerpose.eval.paired import compare_runs
 from flowerpose.eval.pollination import PollinationScoreConfig
 from flowerpose.eval.report import (
     REPORT_FILES,
     build_report,
-    error_stats,
     plant_entry,
     summarise,
     write_report,
@@ -210,8 +210,8 @@ def generate_plants(seeds: list[int], sim: SimConfig, plants_dir: Path,
 
 def _describe_entry(k: int, value: tuple[dict, dict]) -> str:
     entry, timing = value
-    plane = error_stats(entry["error_deg"]["plane"])["mean"]
-    plane_text = f", plane {plane:.1f}°" if plane is not None else ""
+    plane = entry["error_deg"]["plane"]
+    plane_text = f", plane {np.mean(plane):.1f}°" if plane else ""
     return (f"{entry['plant']} scored: {entry['gt']} flowers, {entry['visible']} visible, "
             f"{entry['found']} found, {entry['fp']} fp{plane_text} (detection "
             f"{timing['total']:.2f} s)")
@@ -290,7 +290,7 @@ class RealJob:
     def scored_truth(self, config: EvalConfig) -> list:
         from flowerpose.eval.real_source import real_truth
 
-        return real_truth(self.plant)
+        return real_truth(self.plant, config.score.max_distance_m)
 
     def score(self, config: EvalConfig, out_dir: Path,
               cache: Path | None = None) -> tuple[dict, dict[str, float]]:
@@ -331,7 +331,7 @@ def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval")
     jobs, timing, extra, run_config, title = _plant_jobs(config, run, out_dir, workers, cache)
     entries, stage_timing = _score_jobs(jobs, config, out_dir, workers, cache)
     timing.update(stage_timing)
-    _compare(jobs, run, config, out_dir, workers, cache, run_config, extra)
+    _compare(jobs, entries, run, config, out_dir, workers, cache, extra)
     if run.task == "pollinate":
         from flowerpose.eval.pollination_task import pollinate_plants
 
@@ -385,16 +385,16 @@ def _plant_jobs(config: EvalConfig, run: EvalRun, out_dir: Path, workers: int | 
     return jobs, timing, extra, run_config, title
 
 
-def _compare(jobs: list[PlantJob], run: EvalRun, config: EvalConfig, out_dir: Path,
-             workers: int | None, cache: Path | None, run_config: dict, extra: dict) -> None:
+def _compare(jobs: list[PlantJob], entries: list[dict], run: EvalRun, config: EvalConfig,
+             out_dir: Path, workers: int | None, cache: Path | None, extra: dict) -> None:
     """The compared settings and external methods on the same clouds, into
-    extra["compare"] by name."""
+    extra["compare"] by name, each paired flower by flower with this run's `entries`."""
     starts = [job.start for job in jobs]
     for name, other in run.compare.items():
         others, _ = _score_jobs(jobs, other, out_dir / name, workers, cache)
         extra.setdefault("compare", {})[name] = {
             "summary": summarise(others), "plants": others,
-            "config": sections_run(other, starts)}
+            "config": sections_run(other, starts), "paired": compare_runs(entries, others)}
     for method in run.methods:
         results = run_jobs(_method_job, [(job, method, config, out_dir) for job in jobs],
                            workers, lambda k, v, name=method.name: f"{name}: "
@@ -403,7 +403,8 @@ def _compare(jobs: list[PlantJob], run: EvalRun, config: EvalConfig, out_dir: Pa
         others = [entry for entry, _ in results]
         extra.setdefault("compare", {})[method.name] = {
             "summary": summarise(others), "plants": others,
-            "config": {"method": method.command, "timeout_s": method.timeout_s}}
+            "config": {"method": method.command, "timeout_s": method.timeout_s},
+            "paired": compare_runs(entries, others)}
 
 
 def _method_job(job: PlantJob, method: ExternalMethod, config: EvalConfig,

@@ -1,10 +1,12 @@
 """report.html: one self-contained page to look at a run (an eval, or a detection).
 
-Table I, the per-flower table, the error histograms and, per plant, an interactive 3D view
-of the cloud (subsampled) with each flower's estimated normal (red) and true normal
-(green) drawn from its centre and its id beside it, the camera path of a scanned plant
-(blue: the frames its cloud was made from), and the grid views with their numbered
-detections. The figures are plotly's (the standard for interactive figures from Python);
+Table I, the errors with their intervals, the comparisons, the accuracy curves, the
+per-flower table, the error histograms and, per plant, an interactive 3D view of the cloud
+(subsampled) with each flower's estimated normal (red) and true normal (green) drawn from
+its centre and its id beside it, the detections that are false positives (orange) or
+extra (purple) circled, labelled flowers that are not scored (grey), the camera path of a
+scanned plant (blue: the frames its cloud was made from), and the grid views with their
+numbered detections. The figures are plotly's (the standard for interactive figures from Python);
 its JavaScript is embedded once in the page, so it opens from disk with no server and no
 network.
 """
@@ -22,9 +24,12 @@ import numpy as np
 from flowerpose.atomic import write_text
 from flowerpose.cloudio import Cloud
 from flowerpose.eval.report import (
+    COMPARISON_LEGEND,
+    INTERVAL_LEGEND,
     METHODS,
     TABLE_LEGEND,
     comparison_rows,
+    interval_rows,
     summary_lines,
     table_rows,
 )
@@ -33,6 +38,7 @@ from flowerpose.eval.truth import TruthFlower
 #: Most cloud points a plant's 3D view draws (a seeded subsample above it).
 MAX_VIEW_POINTS = 12000
 ESTIMATE_COLOUR, TRUTH_COLOUR = "rgb(220,30,30)", "rgb(20,160,60)"
+FALSE_POSITIVE_COLOUR, EXTRA_COLOUR, LOST_COLOUR = "rgb(255,140,0)", "rgb(150,60,200)", "gray"
 CAMERA_COLOUR = "rgb(40,90,210)"
 
 
@@ -61,9 +67,10 @@ def write_html_report(path: Path, title: str, report: dict | None,
     if report is not None:
         parts += _scores(report)
     for plant in plants:
+        entry = _entry(report, plant.name)
         parts.append(f"<h2>{_e(plant.name)}</h2>")
-        parts.append(_flower_table(plant, report))
-        parts.append(_figure_html(_view_3d(plant), f"view-{plant.name}"))
+        parts.append(_flower_table(plant, report, entry))
+        parts.append(_figure_html(_view_3d(plant, entry), f"view-{plant.name}"))
         if plant.views_png is not None and plant.views_png.is_file():
             encoded = base64.b64encode(plant.views_png.read_bytes()).decode("ascii")
             parts.append(f'<p>Grid views with the numbered detections</p><img class="views" '
@@ -88,9 +95,19 @@ def _scores(report: dict) -> list[str]:
               f'<p class="legend">{_e(TABLE_LEGEND)}</p>',
               "<ul>" + "".join(f"<li>{_e(line)}</li>" for line in summary_lines(report))
               + "</ul>"]
+    parts += ["<h2>Errors with 95 % intervals</h2>",
+              _table(*interval_rows(report["summary"]), "intervals"),
+              f'<p class="legend">{_e(INTERVAL_LEGEND)}</p>']
     if report.get("compare"):
         parts += ["<h2>Compared on the same plants</h2>",
-                  _table(*comparison_rows(report), "compare")]
+                  _table(*comparison_rows(report), "compare"),
+                  f'<p class="legend">{_e(COMPARISON_LEGEND.format(name="default"))}</p>',
+                  "<ul>" + "".join(f"<li>{_e(other)}: {_e(v)}</li>"
+                                   for other, c in report["compare"].items()
+                                   for v in c.get("paired", {}).get("verdicts", [])) + "</ul>"]
+    curves = accuracy_series(report)
+    if curves:
+        parts.append(_figure_html(accuracy_figure(curves), "accuracy"))
     errors = {m: [e for p in report["plants"] for e in p["error_deg"][m]] for m in METHODS}
     if any(errors.values()):
         parts.append(_figure_html(_histograms(errors), "histograms"))
@@ -99,26 +116,47 @@ def _scores(report: dict) -> list[str]:
     return parts
 
 
-def _flower_table(plant: PlantView, report: dict | None) -> str:
-    """Per flower: detection id, and for a scored run its truth id, centre distance and
-    error per method; its points and petal points."""
+def _entry(report: dict | None, name: str) -> dict | None:
+    """A plant's report.json entry (None for a detection, which has no scores)."""
+    return next((p for p in (report or {}).get("plants", []) if p["plant"] == name), None)
+
+
+#: What a detection is in a scored run, by its match: scored against a visible flower,
+#: matched to a flower that is not scored (hidden, or on a real plant unlabelled or not in
+#: the cloud), or near no flower.
+SCORED, EXTRA, FALSE_POSITIVE = "scored", "extra", "false positive"
+
+
+def detection_status(entry: dict, detection: int) -> str:
+    """SCORED, EXTRA or FALSE_POSITIVE for a detection of a scored plant."""
+    match = next((m for m in entry.get("matches", []) if m["detection"] == detection), None)
+    if match is None:
+        return FALSE_POSITIVE
+    return SCORED if "error_deg" in match else EXTRA
+
+
+def _flower_table(plant: PlantView, report: dict | None, entry: dict | None) -> str:
+    """Per flower: detection id, and for a scored run what it is (scored, extra, false
+    positive), its truth id, centre distance and error per method; its points and petal
+    points."""
     if report is None:
         return _table(["Detection", "Plane normal", "Points", "Petal points"],
                       [[str(f.get("id", k)), _vector(f["normals"].get("plane")),
                         str(f.get("points", "")), str(f.get("petal_points", ""))]
                        for k, f in enumerate(plant.flowers)], f"flowers-{plant.name}")
-    entry = next((p for p in report.get("plants", []) if p["plant"] == plant.name), None)
     matches = {m["detection"]: m for m in (entry or {}).get("matches", [])}
     rows = []
     for k, flower in enumerate(plant.flowers):
-        match = matches.get(flower.get("id", k))
+        detection = flower.get("id", k)
+        match = matches.get(detection)
         rows.append([
-            str(flower.get("id", k)), "-" if match is None else str(match["truth"]),
+            str(detection), detection_status(entry or {}, detection),
+            "-" if match is None else str(match["truth"]),
             "-" if match is None else f"{1000 * match['distance_m']:.1f}",
             *_errors(match),
             str(flower.get("points", "")), str(flower.get("petal_points", ""))])
-    header = ["Detection", "Truth", "Distance (mm)", *(m.capitalize() for m in METHODS),
-              "Points", "Petal points"]
+    header = ["Detection", "Status", "Truth", "Distance (mm)",
+              *(m.capitalize() for m in METHODS), "Points", "Petal points"]
     return _table(header, rows, f"flowers-{plant.name}")
 
 
@@ -133,7 +171,7 @@ def _vector(value) -> str:
     return "-" if value is None else "(" + ", ".join(f"{v:.3f}" for v in value) + ")"
 
 
-def _view_3d(plant: PlantView):
+def _view_3d(plant: PlantView, entry: dict | None = None):
     import plotly.graph_objects as go
 
     points, colours = plant.cloud.points, plant.cloud.colors
@@ -162,6 +200,17 @@ def _view_3d(plant: PlantView):
         traces += _arrows([t.center for t in visible],
                           [t.center + length * t.normal for t in visible], TRUTH_COLOUR,
                           "true normal", [str(t.id) for t in visible])
+        lost = [t for t in plant.truth if not t.visible and not str(t.id).startswith("unlabelled")]
+        traces += _markers([t.center for t in lost], LOST_COLOUR,
+                           "labelled, not scored (hidden or not in the cloud)",
+                           [f"{t.id}: not scored" for t in lost])
+    if entry is not None:
+        for status, colour in ((FALSE_POSITIVE, FALSE_POSITIVE_COLOUR), (EXTRA, EXTRA_COLOUR)):
+            marked = [(k, f) for k, f in enumerate(plant.flowers)
+                      if detection_status(entry, f.get("id", k)) == status]
+            traces += _markers([f["center"] for _, f in marked], colour,
+                               f"{status} ({len(marked)})",
+                               [f"detection {f.get('id', k)}: {status}" for k, f in marked])
     cameras = plant.cameras is not None and len(plant.cameras) > 0
     if cameras:
         traces += _camera_path(plant.cameras)
@@ -214,6 +263,47 @@ def _arrows(starts, ends, colour: str, name: str, labels: list[str]) -> list:
                          line={"color": colour, "width": 6}, hoverinfo="skip"),
             go.Scatter3d(x=tips[:, 0], y=tips[:, 1], z=tips[:, 2], mode="text", text=labels,
                          textfont={"color": colour}, showlegend=False, hoverinfo="text")]
+
+
+def _markers(centres, colour: str, name: str, labels: list[str]) -> list:
+    """Open circles round flower centres, named in the legend, each labelled on hover."""
+    import plotly.graph_objects as go
+
+    if not len(centres):
+        return []
+    at = np.asarray(centres, float).reshape(-1, 3)
+    return [go.Scatter3d(x=at[:, 0], y=at[:, 1], z=at[:, 2], mode="markers", name=name,
+                         text=labels, hoverinfo="text",
+                         marker={"size": 9, "color": colour, "symbol": "circle-open",
+                                 "line": {"width": 3, "color": colour}})]
+
+
+def accuracy_series(report: dict) -> dict[str, dict]:
+    """The accuracy curves a report holds, by label: each fit of this run and, for each
+    compared setting or method, its plane fit's."""
+    series = {f"{fit}": report["summary"]["accuracy"][fit] for fit in METHODS
+              if report["summary"].get("accuracy", {}).get(fit, {}).get("share") is not None}
+    for name, compared in report.get("compare", {}).items():
+        curve = compared["summary"].get("accuracy", {}).get("plane", {})
+        if curve.get("share") is not None:
+            series[f"{name}: plane"] = curve
+    return series
+
+
+def accuracy_figure(series: dict[str, dict]):
+    """The accuracy curves on one plot: the share of flowers within each angle."""
+    import plotly.graph_objects as go
+
+    figure = go.Figure([go.Scatter(x=curve["thresholds_deg"], y=curve["share"],
+                                   mode="lines+markers",
+                                   name=f"{label} (AUC {curve['auc']:.3f}, {curve['n']} flowers)")
+                        for label, curve in series.items()])
+    figure.update_layout(height=360, title="Accuracy: share of visible flowers within each "
+                         "angle (a missed flower fails at every angle)",
+                         xaxis_title="angle error threshold (degrees)",
+                         yaxis_title="share of flowers", yaxis_range=[0, 1.02],
+                         margin={"l": 40, "r": 10, "t": 40, "b": 40})
+    return figure
 
 
 def _histograms(errors: dict[str, list[float]]):

@@ -15,6 +15,13 @@ import numpy as np
 from tabulate import SEPARATING_LINE, tabulate
 
 from flowerpose.atomic import write_text
+from flowerpose.eval.stats import (
+    NO_INTERVAL,
+    accuracy_curve,
+    error_summary,
+    interval_text,
+    wilson,
+)
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.methods import METHODS
 
@@ -23,15 +30,6 @@ TABLE_METHODS = ("superellipsoid", "paraboloid", "plane")
 PAPER = {"found_pct": 80.3, "mean": {"superellipsoid": 19.3, "paraboloid": 57.9, "plane": 7.7},
          "median": {"superellipsoid": 8.9, "paraboloid": 11.8, "plane": 5.9},
          "std": {"superellipsoid": 33.6, "paraboloid": 73.3, "plane": 5.8}}
-
-
-def error_stats(errors: list[float]) -> dict[str, float | int | None]:
-    """Mean, median, population std (degrees) and count; None where there is no error."""
-    if not errors:
-        return {"mean": None, "median": None, "std": None, "n": 0}
-    values = np.asarray(errors, float)
-    return {"mean": round(float(values.mean()), 4), "median": round(float(np.median(values)), 4),
-            "std": round(float(values.std()), 4), "n": int(len(values))}
 
 
 def plant_entry(name: str, score: Any) -> dict:
@@ -47,8 +45,11 @@ def plant_entry(name: str, score: Any) -> dict:
             "failed": {m: score.failed[m] for m in METHODS}, "matches": matches}
 
 
-def summarise(plants: list[dict]) -> dict:
-    """The report's summary over plant entries: totals, recalls and error statistics."""
+def summarise(plants: list[dict], intervals: bool = True) -> dict:
+    """The report's summary over plant entries: totals, recalls with their Wilson
+    intervals, each fit's error statistics with bootstrap intervals over plants then
+    flowers, and each fit's accuracy curve (`eval/stats.py`). `intervals=False` leaves the
+    intervals out (None), for a caller that only ranks point values many times over."""
     total = {key: sum(p[key] for p in plants)
              for key in ("gt", "visible", "detections", "found", "found_visible", "extra", "fp")}
     recall = total["found_visible"] / total["visible"] if total["visible"] else None
@@ -56,14 +57,22 @@ def summarise(plants: list[dict]) -> dict:
     f1 = (2 * recall * precision / (recall + precision)
           if recall is not None and precision is not None and recall + precision > 0 else
           0.0 if recall is not None else None)
+
+    def share(successes: int, trials: int) -> dict:
+        return wilson(successes, trials) if intervals else dict(NO_INTERVAL)
+
+    groups = {m: [p["error_deg"][m] for p in plants] for m in METHODS}
     return {**total,
             "recall": round(total["found"] / total["gt"], 4) if total["gt"] else None,
             "recall_visible": None if recall is None else round(recall, 4),
+            "recall_visible_ci95": share(total["found_visible"], total["visible"]),
             "fp_rate": round(total["fp"] / total["detections"], 4) if total["detections"] else None,
             "precision": None if precision is None else round(precision, 4),
+            "precision_ci95": share(total["detections"] - total["fp"], total["detections"]),
             "f1": None if f1 is None else round(f1, 4),
-            "error_deg": {m: error_stats([e for p in plants for e in p["error_deg"][m]])
-                          for m in METHODS},
+            "error_deg": {m: error_summary(groups[m], intervals) for m in METHODS},
+            "accuracy": {m: accuracy_curve(groups[m], [p["visible"] for p in plants], intervals)
+                         for m in METHODS},
             "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}
 
 
@@ -140,6 +149,10 @@ def build_report(config: dict, plants: list[dict], timing_s: dict[str, float],
     return report
 
 
+def _mean(values: list[float]) -> float | None:
+    return float(np.mean(values)) if values else None
+
+
 def _deg(value: float | None) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) \
         else f"{value:.1f}°"
@@ -176,7 +189,7 @@ def table_rows(report: dict) -> tuple[list[str], list[list[str]], int]:
         pct = 100.0 * p["found"] / p["gt"] if p["gt"] else 0.0
         rows.append([p["plant"], str(p["gt"]), str(p["visible"]), f"{p['found']} ({pct:.1f})",
                      str(p["extra"]), str(p["fp"])]
-                    + [_deg(error_stats(p["error_deg"][m])["mean"]) for m in TABLE_METHODS])
+                    + [_deg(_mean(p["error_deg"][m])) for m in TABLE_METHODS])
     s = report["summary"]
     pct = 100.0 * s["found"] / s["gt"] if s["gt"] else 0.0
     rows.append(["Total", str(s["gt"]), str(s["visible"]), f"{s['found']} ({pct:.1f})",
@@ -188,56 +201,71 @@ def table_rows(report: dict) -> tuple[list[str], list[list[str]], int]:
     return header, rows, len(rows) - 4
 
 
-def _plane_errors(plants: list[dict]) -> dict[tuple[str, Any], float]:
-    """Plane errors keyed by (plant, truth flower id)."""
-    return {(p["plant"], str(m["truth"])): m["error_deg"]["plane"]
-            for p in plants for m in p.get("matches", [])
-            if m.get("error_deg", {}).get("plane") is not None}
-
-
 def comparison_table(report: dict, name: str = "default") -> str:
     """This run's configuration beside each compared one (report["compare"]) on the same
-    plants: found, false positives, the error means, and the plane error over the flowers
-    every row found (paired, so a profile that finds fewer, easier flowers gains nothing)."""
-    return markdown_table(*comparison_rows(report, name))
+    plants: found, false positives, the error means, and per fit the paired difference on
+    the flowers both found (this run minus the compared one, its interval, wins/ties/losses
+    and Wilcoxon's p), then each comparison's verdicts in words."""
+    header, rows = comparison_rows(report, name)
+    lines = [markdown_table(header, rows), COMPARISON_LEGEND.format(name=name)]
+    for other, compared in report.get("compare", {}).items():
+        if "paired" in compared:
+            lines.append(f"{name} against {other}: "
+                         + "; ".join(compared["paired"]["verdicts"]))
+    return "\n".join(lines)
+
+
+#: The comparison table's fits, the one pollination uses first.
+PAIRED_ORDER = ("plane", "superellipsoid", "paraboloid")
+#: What the comparison table's paired columns mean.
+COMPARISON_LEGEND = (
+    "Δ: {name}'s error minus the compared one's on the flowers both found (negative: "
+    "{name} is better), with its 95 % interval and the flowers it is over; wins/ties/losses "
+    "count flowers where {name} is better, within 0.5°, or worse.")
 
 
 def comparison_rows(report: dict, name: str = "default") -> tuple[list[str], list[list[str]]]:
-    """`comparison_table`'s header and rows."""
-    rows = [(name, report["summary"], report["plants"])]
-    rows += [(other, c["summary"], c["plants"]) for other, c in report.get("compare", {}).items()]
-    errors_by_row = [_plane_errors(plants) for _, _, plants in rows]
-    # Over the rows that scored any flower: a method that found none has nothing to pair.
-    scored = [set(e) for e in errors_by_row if e]
-    common = sorted(set.intersection(*scored)) if scored else []
+    """`comparison_table`'s header and rows (the verdicts left out)."""
+    from flowerpose.eval.paired import difference_cell, record_cell
+
     header = ["Profile", "Found", "FP", "Plane mean", "Plane median", "Superellipsoid",
-              "Paraboloid", "Plane, flowers all found"]
+              "Paraboloid", *(f"Δ {m}" for m in PAIRED_ORDER),
+              "Plane wins/ties/losses, Wilcoxon"]
+    rows = [(name, report["summary"], None)]
+    rows += [(other, c["summary"], c.get("paired")) for other, c in report.get("compare", {}).items()]
     lines = []
-    for (label, summary, _), theirs in zip(rows, errors_by_row, strict=True):
-        paired = (f"{np.mean([theirs[k] for k in common]):.1f}° over {len(common)}"
-                  if common and theirs else "-")
+    for label, summary, paired in rows:
         errors = summary["error_deg"]
+        fits = (paired or {}).get("fits", {})
         lines.append([label, f"{summary['found']}/{summary['gt']}", str(summary["fp"]),
                       _deg(errors["plane"]["mean"]), _deg(errors["plane"]["median"]),
                       _deg(errors["superellipsoid"]["mean"]), _deg(errors["paraboloid"]["mean"]),
-                      paired])
+                      *(difference_cell(fits[m]) if m in fits else "-"
+                        for m in PAIRED_ORDER),
+                      record_cell(fits["plane"]) if "plane" in fits else "-"])
     return header, lines
 
 
 def summary_lines(report: dict) -> list[str]:
-    """Short human summary under the table, with the paper's numbers beside ours."""
+    """Short human summary under the table, with the paper's numbers beside ours: each
+    number with its count and 95 % interval."""
     s = report["summary"]
     lines = []
     if s["recall"] is not None:
         lines.append(f"recall {s['recall']:.3f} (paper {PAPER['found_pct'] / 100:.3f}), "
-                     f"recall of visible flowers {s['recall_visible'] or 0:.3f}, "
-                     f"false positives {s['fp']} of {s['detections']} detections")
+                     f"recall of visible flowers {s['recall_visible'] or 0:.3f} "
+                     f"{interval_text(s.get('recall_visible_ci95', {}), 2)} "
+                     f"({s['found_visible']} of {s['visible']}), false positives {s['fp']} of "
+                     f"{s['detections']} detections")
     for m in METHODS:
         st = s["error_deg"][m]
         if st["n"]:
-            lines.append(f"{m}: mean {st['mean']:.2f}°, median {st['median']:.2f}°, "
-                         f"std {st['std']:.2f}° over {st['n']} flowers, {s['failed'][m]} failed "
-                         f"(paper mean {PAPER['mean'][m]}°)")
+            lines.append(f"{m}: mean {st['mean']:.2f}° {interval_text(st['mean_ci95'])}, "
+                         f"median {st['median']:.2f}° {interval_text(st['median_ci95'])}, "
+                         f"p90 {st['p90']:.1f}°, over 20° {_share(st, 'over_20')}, "
+                         f"flipped {_share(st, 'over_90')}, accuracy AUC "
+                         f"{_auc(s['accuracy'][m])} over {st['n']} flowers, "
+                         f"{s['failed'][m]} failed (paper mean {PAPER['mean'][m]}°)")
     timing = report["timing_s"]
     if "wall" in timing:
         lines.append(f"wall time {timing['wall']:.1f} s since the command was launched (its stages "
@@ -245,6 +273,40 @@ def summary_lines(report: dict) -> list[str]:
     elif "total" in timing:
         lines.append(f"wall time {timing['total']:.1f} s")
     return lines
+
+
+def _share(stats: dict, key: str) -> str:
+    """A share of a fit's errors as a count of its flowers."""
+    return f"{round(stats[key] * stats['n'])} of {stats['n']}"
+
+
+def _auc(curve: dict) -> str:
+    if curve.get("auc") is None:
+        return "-"
+    return f"{curve['auc']:.3f} {interval_text(curve['auc_ci95'], 3)}".strip()
+
+
+def interval_table(report: dict) -> str:
+    """Each fit's errors with their 95 % intervals (Markdown): count, mean, median, 90th
+    percentile, gross errors (over 20°), flips (over 90°), the accuracy curve's area."""
+    return markdown_table(*interval_rows(report["summary"]))
+
+
+def interval_rows(summary: dict) -> tuple[list[str], list[list[str]]]:
+    """`interval_table`'s header and rows."""
+    header = ["Fit", "Flowers", "Mean [95 % CI]", "Median [95 % CI]", "p90", "Over 20°",
+              "Flipped (over 90°)", "Accuracy AUC, 0-45°"]
+    rows = []
+    for m in TABLE_METHODS:
+        st = summary["error_deg"][m]
+        if not st["n"]:
+            rows.append([m, "0", "-", "-", "-", "-", "-", "-"])
+            continue
+        rows.append([m, str(st["n"]), f"{st['mean']:.1f}° {interval_text(st['mean_ci95'])}",
+                     f"{st['median']:.1f}° {interval_text(st['median_ci95'])}",
+                     f"{st['p90']:.1f}°", _share(st, "over_20"), _share(st, "over_90"),
+                     _auc(summary["accuracy"][m])])
+    return header, rows
 
 
 #: What Table I's columns mean, under the table in report.md.
@@ -257,6 +319,15 @@ TABLE_LEGEND = (
     "take all plants' flowers together.")
 
 
+#: What the interval table's columns mean, under it in report.md.
+INTERVAL_LEGEND = (
+    "Intervals are 95 %, from a seeded bootstrap over the flowers (over plants, then their "
+    "flowers, for several plants); shares count flowers. Accuracy AUC: the area under the "
+    "share of visible flowers within each angle from 0 to 45°, normalised to 0-1, a missed "
+    "flower counting as a failure at every angle. docs/guides/reading-the-numbers.md says "
+    "how to read them.")
+
+
 #: What `write_report` writes into its folder.
 REPORT_FILES = ("report.json", "report.md")
 
@@ -265,7 +336,8 @@ def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
     """Write report.json and report.md into out_dir."""
     json_path = write_json(out_dir / "report.json", report)
     md = [f"# {title}", "", table(report), "", TABLE_LEGEND, "",
-          *[f"- {line}" for line in summary_lines(report)]]
+          *[f"- {line}" for line in summary_lines(report)],
+          "", "## Errors with 95 % intervals", "", interval_table(report), "", INTERVAL_LEGEND]
     if report.get("compare"):
         md += ["", "## Compared on the same plants", "", comparison_table(report)]
     md += ["", "## Timing (seconds)", "", markdown_table(
