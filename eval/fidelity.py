@@ -103,7 +103,7 @@ def _matched(name: str, cloud: Cloud, truth: list[TruthFlower], flowers: list,
 
 def real_sample(plant: RealPlant, config: PipelineConfig, max_distance: float) -> Sample:
     """A real plant folder's sample (cloud or candidates; crops are one flower each)."""
-    truth = real_truth(plant)
+    truth = real_truth(plant, max_distance)
     if plant.stage == "crops":
         raise InputError(plant.folder, "fidelity needs cloud.ply or candidates/: crops hold "
                          "no leaves to compare")

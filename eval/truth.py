@@ -170,6 +170,15 @@ def sagemaker_normal(roll: float, pitch: float, yaw: float,
 _CUBOID_KEYS = ("centerX", "centerY", "centerZ", "roll", "pitch", "yaw")
 
 
+def _cuboid_radius(cuboid: dict, scale: float) -> float | None:
+    """Half the larger of a cuboid's extents across its x axis (the normal), metres."""
+    across = [cuboid.get(key) for key in ("width", "height")]
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+               and v > 0 for v in across):
+        return None
+    return 0.5 * max(across) / scale
+
+
 def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
                          convention: EulerConvention = "upstream") -> list[TruthFlower]:
     """Flower poses from AWS SageMaker Ground Truth 3D point cloud cuboid labels.
@@ -178,7 +187,9 @@ def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
     response) with centerX/Y/Z and roll/pitch/yaw in radians; any "boundingCuboids" list in
     the file is read, from one JSON document or JSON lines. The cloud was scaled by `scale`
     for labelling, so centres are divided by it (metres); the normal is the cuboid's x
-    axis (`sagemaker_normal`). Radii are None and every flower is visible.
+    axis (`sagemaker_normal`); the radius is half the cuboid's larger extent across it
+    (width, height: the corolla's span), None where the cuboid has no size. Every flower is
+    visible (`real_source.real_truth` decides what the cloud holds).
     Raises InputError naming the file for a missing file, invalid JSON, no cuboids or a
     cuboid with a missing or non-finite value.
     """
@@ -200,7 +211,8 @@ def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
             raise InputError(path, f"cuboid {name!r}: missing or non-finite {', '.join(bad)}")
         center = np.array(values[:3], dtype=np.float64) / scale
         truth.append(TruthFlower(id=name, center=center,
-                                 normal=sagemaker_normal(*values[3:], convention=convention)))
+                                 normal=sagemaker_normal(*values[3:], convention=convention),
+                                 radius=_cuboid_radius(cuboid, scale)))
     seen: dict[tuple, str] = {}
     for cuboid, flower in zip(cuboids, truth, strict=True):
         whole = tuple(cuboid.get(key) for key in _CUBOID_KEYS)
