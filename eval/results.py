@@ -90,7 +90,7 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
         _check_comparable(path, report, suites)
         if kind == "stress":
             # Its own page's title becomes a section of this one.
-            body = stress_markdown(report).split("\n", 1)[1]
+            body = stress_markdown(report).split("\n", 1)[1].replace("\n## ", "\n### ")
             sections.append(f"## Robustness [{k}]\n{body}\n{_provenance(k, report['run'])}\n")
             continue
         if kind == "bench":

@@ -32,10 +32,13 @@ from flowerpose.atomic import write_figure, write_text
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
+from flowerpose.eval.paired import compare_runs, difference_cell, record_cell
 from flowerpose.eval.report import markdown_table, run_record, summarise
+from flowerpose.eval.stats import interval_text
 from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.perturb import KINDS, UNITS, Perturbation, perturb
+from flowerpose.eval.match import MAX_MATCH_DISTANCE
+from flowerpose.perturb import KINDS, UNITS, Perturbation, draw_cuts, perturb
 from flowerpose.stopwatch import Stopwatch
 
 #: The default strengths of each perturbation: thinning through the envelope's lower
@@ -43,7 +46,7 @@ from flowerpose.stopwatch import Stopwatch
 #: envelope's bounds and inside, position noise up to its bound (metres).
 DEFAULT_LEVELS: dict[str, tuple[float, ...]] = {
     "thin": (0.5, 0.2, 0.1, 0.05), "exposure": (0.6, 0.8, 1.3), "cast": (-0.15, 0.15),
-    "noise": (0.0005, 0.001, 0.0015)}
+    "noise": (0.0005, 0.001, 0.0015), "cut": (0.25, 0.5)}
 #: The operating envelope's bound of each perturbation (DESIGN.md, "The operating
 #: envelope"): stress.md marks the rows at it.
 ENVELOPE_BOUNDS: dict[str, tuple[float, ...]] = {
@@ -53,7 +56,7 @@ ENVELOPE_BOUNDS: dict[str, tuple[float, ...]] = {
 CAPTURE_KINDS = ("frames", "resolution")
 #: The strength at which each perturbation leaves a cloud as it is: the unperturbed run's
 #: place on its kind's curve.
-IDENTITY = {"thin": 1.0, "exposure": 1.0, "cast": 0.0, "noise": 0.0}
+IDENTITY = {"thin": 1.0, "exposure": 1.0, "cast": 0.0, "noise": 0.0, "cut": 0.0}
 #: A plane error beyond this is a flipped normal, degrees.
 FLIPPED_DEG = 90.0
 #: What stress writes into its --out folder.
@@ -108,7 +111,7 @@ class StressPlan:
     variants: tuple[Variant, ...]
     """Every perturbation or capture knob, the baseline left out (it always runs)."""
     repeats: int = 1
-    """Seeded repeats of each random perturbation (thinning, noise)."""
+    """Seeded repeats of each random perturbation (thinning, noise, cut)."""
     seed: int = 0
     """Seed of the perturbations (each plant, perturbation and repeat draws its own)."""
 
@@ -142,7 +145,7 @@ def plan_from(levels: dict[str, list[float]], channels: str = "rgb", drop_views:
 
 
 def _random(variant: Variant) -> bool:
-    return variant.kind in ("thin", "noise")
+    return variant.kind in ("thin", "noise", "cut")
 
 
 def _rng(seed: int, plant: str, variant: Variant, repeat: int) -> np.random.Generator:
@@ -151,15 +154,29 @@ def _rng(seed: int, plant: str, variant: Variant, repeat: int) -> np.random.Gene
                                   zlib.crc32(variant.label.encode())])
 
 
+def cut_flowers(truth: list) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """(centre, normal, radius) of the truth flowers a cut acts on: those with a pose (a
+    real plant's unlabelled flowers have none); a flower without a radius takes the median
+    of the others' (the match distance when none has one)."""
+    posed = [t for t in truth if not str(t.id).startswith("unlabelled")]
+    radii = [t.radius for t in posed if t.radius]
+    fallback = float(np.median(radii)) if radii else MAX_MATCH_DISTANCE
+    return [(t.center, t.normal, t.radius or fallback) for t in posed]
+
+
 def perturbed_real(clouds: list[Cloud], stage: str, variant: Variant,
-                   rng: np.random.Generator) -> tuple[list[Cloud], tuple[int, ...]]:
+                   rng: np.random.Generator, truth: list | None = None
+                   ) -> tuple[list[Cloud], tuple[int, ...]]:
     """A real plant's clouds (as `read_plant_clouds` gives them) under a variant, and the
     grid views to leave out: candidates thinned file by file, a dropped view one file left
     out (a whole cloud: that grid view's detections), colour and noise on the merged
-    points; crops each on its own."""
+    points; crops each on its own; a cut of the `truth` flowers the same in every file."""
     p = variant.perturbation
     if p is None:
         return clouds, ()
+    if p.kind == "cut":
+        cuts = draw_cuts(cut_flowers(truth or []), p.value, rng)
+        return [perturb(c, p, rng, cuts) for c in clouds], ()
     if p.kind == "drop_view":
         if stage == "cloud":
             return clouds, (int(p.value),)
@@ -177,10 +194,11 @@ def perturbed_real(clouds: list[Cloud], stage: str, variant: Variant,
 
 def _real_job(plant: Any, variant: Variant, repeat: int, config: Any, out_dir: Path,
               seed: int) -> dict:
-    from flowerpose.eval.real_source import evaluate_real_plant, read_plant_clouds
+    from flowerpose.eval.real_source import evaluate_real_plant, read_plant_clouds, real_truth
 
     clouds, drop = perturbed_real(read_plant_clouds(plant), plant.stage, variant,
-                                  _rng(seed, plant.name, variant, repeat))
+                                  _rng(seed, plant.name, variant, repeat),
+                                  real_truth(plant, config.max_distance))
     entry, timing = evaluate_real_plant(plant, config.pipeline, out_dir, config.max_distance,
                                         clouds, drop)
     return {"entry": entry, "points": _points_per_flower(out_dir / "flowers.json")}
@@ -200,15 +218,17 @@ def _synthetic_job(name: str, cloud_path: Path, truth_path: Path, variant: Varia
         from flowerpose.pipeline.flowers import find_flowers, write_flowers
 
         cloud = read_cloud(cloud_path)
+        truth = read_plant_truth(truth_path)
         drop: tuple[int, ...] = ()
         p = variant.perturbation
         if p is not None and p.kind == "drop_view":
             drop = (int(p.value),)
         elif p is not None:
-            cloud = perturb(cloud, p, _rng(seed, name, variant, repeat))
+            rng = _rng(seed, name, variant, repeat)
+            cuts = draw_cuts(cut_flowers(truth), p.value, rng) if p.kind == "cut" else None
+            cloud = perturb(cloud, p, rng, cuts)
         result = find_flowers(cloud, config.pipeline, drop_views=drop)
         write_flowers(out_dir / "flowers.json", result, cloud_path)
-        truth = read_plant_truth(truth_path)
         if config.label_error_deg > 0:
             truth = as_labelled(truth, config.label_error_deg, name)
         entry = plant_entry(name, score_plant([f.pose for f in result.flowers], truth,
@@ -246,44 +266,54 @@ class JobConfig:
 def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
                folders: list[Path] = (), plants: int = 3, seed: int = 0,
                workers: int | None = None, cache: Path | None = None,
-               truth_scale: float | None = None) -> dict:
+               truth_scale: float | None = None, compare: dict[str, Any] | None = None) -> dict:
     """The robustness report of real plant `folders` (source "real") or `plants` seeded
     synthetic plants from `source`: writes stress.json, stress.md, stress.png and
-    report.html to out_dir and returns stress.json's content. `config`: an EvalConfig."""
+    report.html to out_dir and returns stress.json's content. `config`: an EvalConfig;
+    `compare`: other settings by name (EvalConfigs, e.g. the published method's profile)
+    run on the very same perturbed clouds and compared flower by flower at every level."""
     from flowerpose.eval.harness import pipeline_part
 
     watch = Stopwatch()
-    jobs_config = JobConfig(pipeline_part(config), config.score.max_distance_m,
-                            config.score.label_error_deg if source != "real" else 0.0)
     variants = (Variant(),) + plan.variants
     capture = [v for v in variants if v.capture is not None]
     if capture and source != "scan":
         raise InputError(capture[0].kind, "a capture knob needs --source scan")
+    keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
     runs = out_dir / "runs"
     if source == "real":
         subjects, run_config = _real_subjects(folders, truth_scale)
-        keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
-        job_args = [(plant, v, r, jobs_config, runs / _folder(v, r) / plant.name, plan.seed)
-                    for v, r in keyed for plant in subjects]
-        results = run_jobs(_real_job, job_args, workers, _describe(job_args),
-                           stage="stress", labels=[a[0].name for a in job_args])
         names = [plant.name for plant in subjects]
     else:
         clouds = _synthetic_clouds(config, source, plants, seed, out_dir, workers, cache,
-                                   [v for v in variants if v.capture is not None])
+                                   capture)
         run_config = {"source": source, "plants": plants, "seed": seed,
                       "preset": config.sim.plant.name}
         names = [f"seed-{s}" for s in range(seed, seed + plants)]
-        keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
+
+    def scored(settings: Any, folder: Path) -> list[dict]:
+        """Every (variant, repeat, plant) job of `settings`, its runs under `folder`."""
+        jobs_config = JobConfig(pipeline_part(settings), settings.score.max_distance_m,
+                                settings.score.label_error_deg if source != "real" else 0.0)
+        if source == "real":
+            job_args = [(plant, v, r, jobs_config, folder / _folder(v, r) / plant.name,
+                         plan.seed) for v, r in keyed for plant in subjects]
+            return run_jobs(_real_job, job_args, workers, _describe(job_args),
+                            stage="stress", labels=[a[0].name for a in job_args])
         job_args = [(name, *clouds[(v.capture, name)], v, r, jobs_config,
-                     runs / _folder(v, r) / name, plan.seed, cache)
+                     folder / _folder(v, r) / name, plan.seed, cache)
                     for v, r in keyed for name in names]
-        results = run_jobs(_synthetic_job, job_args, workers, _describe(job_args),
-                           stage="stress", labels=[a[0] for a in job_args])
-    rows = _rows(keyed, names, results)
+        return run_jobs(_synthetic_job, job_args, workers, _describe(job_args),
+                        stage="stress", labels=[a[0] for a in job_args])
+
+    rows = _rows(keyed, names, scored(config, runs),
+                 {name: scored(other, runs / name) for name, other in (compare or {}).items()})
     report = {"run": run_record(), "config": {**run_config, "repeats": plan.repeats,
                                               "stress_seed": plan.seed,
-                                              "pipeline": to_dict(jobs_config.pipeline)},
+                                              "pipeline": to_dict(pipeline_part(config)),
+                                              "compare": {name: to_dict(pipeline_part(other))
+                                                          for name, other in
+                                                          (compare or {}).items()}},
               "baseline": rows[0], "rows": rows[1:], "seconds": round(watch.elapsed(), 2)}
     write_json(out_dir / "stress.json", report)
     write_text(out_dir / "stress.md", stress_markdown(report))
@@ -346,29 +376,55 @@ def _with_capture(config: Any, capture: tuple[str, str]) -> Any:
     return dataclasses.replace(config, scan=dataclasses.replace(config.scan, camera=camera))
 
 
-def _rows(keyed: list[tuple[Variant, int]], names: list[str], results: list[dict]) -> list[dict]:
-    """A row per variant (the baseline first): its repeats' plants summarised together."""
-    rows, k = [], 0
-    by_variant: dict[str, dict] = {}
-    for variant, _ in keyed:
-        chunk = results[k:k + len(names)]
-        k += len(names)
-        row = by_variant.setdefault(variant.label, {"variant": variant, "entries": [],
-                                                    "points": []})
-        row["entries"] += [c["entry"] for c in chunk]
-        row["points"] += [c["points"] for c in chunk if c["points"] is not None]
-    for label, row in by_variant.items():
-        entries = row["entries"]
-        plane = [e for p in entries for e in p["error_deg"]["plane"]]
-        rows.append({"label": label, "perturbation": row["variant"].to_json(),
-                     "repeats": len(entries) // len(names), "summary": summarise(entries),
-                     "flipped": sum(e > FLIPPED_DEG for e in plane),
-                     "points_per_flower": (round(float(np.median(row["points"])), 1)
-                                           if row["points"] else None),
-                     "plants": [{"plant": e["plant"], "found_visible": e["found_visible"],
-                                 "visible": e["visible"], "fp": e["fp"],
-                                 "plane": e["error_deg"]["plane"]} for e in entries]})
+def _rows(keyed: list[tuple[Variant, int]], names: list[str], results: list[dict],
+          compared: dict[str, list[dict]]) -> list[dict]:
+    """A row per variant (the baseline first): its repeats' plants summarised together, and
+    each compared setting's on the same clouds, paired flower by flower (a flower is its
+    plant's in one repeat)."""
+    rows: list[dict] = []
+    groups: dict[str, dict] = {}
+    for k, (variant, repeat) in enumerate(keyed):
+        at = slice(k * len(names), (k + 1) * len(names))
+        group = groups.setdefault(variant.label, {"variant": variant, "ours": [],
+                                                  "theirs": {n: [] for n in compared}})
+        group["ours"] += [_in_repeat(c, repeat) for c in results[at]]
+        for name, theirs in compared.items():
+            group["theirs"][name] += [_in_repeat(c, repeat) for c in theirs[at]]
+    for label, group in groups.items():
+        ours = group["ours"]
+        entries = [c["entry"] for c in ours]
+        points = [c["points"] for c in ours if c["points"] is not None]
+        rows.append({"label": label, "perturbation": group["variant"].to_json(),
+                     "repeats": len(entries) // len(names), **_scores(entries),
+                     "points_per_flower": (round(float(np.median(points)), 1)
+                                           if points else None),
+                     "plants": [{**e, "plane": e["error_deg"]["plane"]} for e in entries],
+                     "compare": {name: {**_scores([c["entry"] for c in theirs]),
+                                        "paired": compare_runs(
+                                            entries, [c["entry"] for c in theirs])}
+                                 for name, theirs in group["theirs"].items()}})
     return rows
+
+
+def _in_repeat(result: dict, repeat: int) -> dict:
+    """A job's result with its plant named by its repeat too ("seed-3 r2"), so the same
+    flower in two repeats is two flowers to a paired comparison."""
+    entry = result["entry"]
+    name = entry["plant"] if repeat == 0 else f"{entry['plant']} r{repeat}"
+    return {**result, "entry": {**entry, "plant": name}}
+
+
+#: A plane error beyond this is a gross error (`stress` counts them per repeat).
+GROSS_DEG = 30.0
+
+
+def _scores(entries: list[dict]) -> dict:
+    """A row's summary (report.json's), its flipped normals, and the most plane errors
+    over GROSS_DEG in one plant's repeat."""
+    plane = [e for p in entries for e in p["error_deg"]["plane"]]
+    return {"summary": summarise(entries), "flipped": sum(e > FLIPPED_DEG for e in plane),
+            "worst_gross": max((sum(e > GROSS_DEG for e in p["error_deg"]["plane"])
+                                for p in entries), default=0)}
 
 
 def _cells(row: dict, baseline: dict) -> list[str]:
@@ -378,19 +434,57 @@ def _cells(row: dict, baseline: dict) -> list[str]:
     base = baseline["summary"]["recall_visible"]
     relative = "-" if not base or recall is None else f"{recall / base:.2f}"
     return [row["label"], str(row["repeats"]), f"{summary['found_visible']}/{summary['visible']}",
-            "-" if recall is None else f"{recall:.3f}", relative, str(summary["fp"]),
-            "-" if plane["mean"] is None else f"{plane['mean']:.2f}°",
+            "-" if recall is None else
+            f"{recall:.3f} {interval_text(summary.get('recall_visible_ci95', {}), 2)}",
+            relative, str(summary["fp"]),
+            "-" if plane["mean"] is None else
+            f"{plane['mean']:.2f}° {interval_text(plane.get('mean_ci95', {}))}",
             "-" if plane["median"] is None else f"{plane['median']:.2f}°",
-            str(row["flipped"]),
+            "-" if plane.get("p90") is None else f"{plane['p90']:.1f}°",
+            str(row["flipped"]), str(row.get("worst_gross", "-")),
             "-" if row["points_per_flower"] is None else f"{row['points_per_flower']:g}"]
 
 
-def stress_markdown(report: dict) -> str:
-    """stress.md: the table of every perturbation against the baseline."""
-    header = ["perturbation", "repeats", "found (visible)", "recall", "of baseline", "FP",
-              "plane mean", "plane median", "flipped", "points a flower"]
+def stress_table(report: dict) -> str:
+    """The table of every perturbation against the baseline (Markdown)."""
+    header = ["perturbation", "repeats", "found (visible)", "recall [95 % CI]", "of baseline",
+              "FP", "plane mean [95 % CI]", "plane median", "plane p90", "flipped",
+              f"most over {GROSS_DEG:g}° in a repeat", "points a flower"]
     rows = [_cells(report["baseline"], report["baseline"])]
     rows += [_cells(row, report["baseline"]) for row in report["rows"]]
+    return markdown_table(header, rows, [1])
+
+
+def compare_tables(report: dict) -> list[tuple[str, str]]:
+    """Per compared setting, (its name, a Markdown table of it against this run at every
+    perturbation on the same clouds): found and false positives of each, the plane
+    error's paired difference on the flowers both found, wins/ties/losses, flips."""
+    tables = []
+    rows_all = [report["baseline"], *report["rows"]]
+    for name in report["baseline"].get("compare", {}):
+        header = ["perturbation", "found: this / it", "FP: this / it",
+                  "Δ plane, this minus it [95 % CI]", "wins/ties/losses, Wilcoxon",
+                  "flipped: this / it", "verdict"]
+        rows = []
+        for row in rows_all:
+            other = row["compare"][name]
+            ours, theirs = row["summary"], other["summary"]
+            paired = other["paired"]
+            rows.append([row["label"],
+                         f"{ours['found_visible']} / {theirs['found_visible']} of "
+                         f"{ours['visible']}", f"{ours['fp']} / {theirs['fp']}",
+                         difference_cell(paired["fits"]["plane"]),
+                         record_cell(paired["fits"]["plane"]),
+                         f"{row['flipped']} / {other['flipped']}",
+                         "; ".join(v for v in paired["verdicts"]
+                                   if v.startswith(("plane", "found", "false")))])
+        tables.append((name, markdown_table(header, rows, [1])))
+    return tables
+
+
+def stress_markdown(report: dict) -> str:
+    """stress.md: the table of every perturbation against the baseline, then each
+    compared setting against this run."""
     config = report["config"]
     what = (", ".join(f["folder"] for f in config["folders"]) if config["source"] == "real"
             else f"{config['plants']} {config['preset']} plants from seed {config['seed']}, "
@@ -398,12 +492,19 @@ def stress_markdown(report: dict) -> str:
     units = "; ".join(f"{k}: {v}" for k, v in UNITS.items())
     bounds = ", ".join(f"{k} {'/'.join(f'{v:g}' for v in vs)}"
                        for k, vs in ENVELOPE_BOUNDS.items())
-    return (f"# flowerpose stress\n\n{what}; `{report['run']['command']}` "
+    page = (f"# flowerpose stress\n\n{what}; `{report['run']['command']}` "
             f"({report['run']['date']}, {report['seconds']} s).\n\n"
-            f"{markdown_table(header, rows, [1])}\n\nValues: {units}. The operating "
+            f"{stress_table(report)}\n\nValues: {units}. The operating "
             f"envelope's bounds: {bounds}; its density bound is 50 points a flower. A plane "
             f"error over {FLIPPED_DEG:g}° is a flipped normal. \"of baseline\" is the "
-            "recall over the unperturbed recall.\n")
+            "recall over the unperturbed recall. Intervals are 95 %, over the plants and "
+            "repeats, then their flowers.\n")
+    for name, table in compare_tables(report):
+        page += (f"\n## Against {name}, on the same perturbed clouds\n\n{table}\n\n"
+                 "Δ: this run's plane error minus the compared one's on the flowers both "
+                 "found (a flower in each repeat counts once), negative where this run is "
+                 "better; a difference is shown where its interval leaves out 0.\n")
+    return page
 
 
 def _series(report: dict) -> dict[str, list[dict]]:
@@ -498,10 +599,11 @@ def _write_html(path: Path, report: dict) -> Path:
     figure.update_layout(height=420, showlegend=False,
                          title="recall (blue, left) and plane error in degrees (red, right); "
                          "dotted: unperturbed")
-    table = stress_markdown(report).split("\n\n", 2)[2].split("\n\n")[0]
     body = (f"<h1>flowerpose stress</h1><h2>Robustness</h2>"
             f"{figure.to_html(full_html=False, include_plotlyjs=False)}"
-            f"<pre>{html.escape(table)}</pre>")
+            f"<pre>{html.escape(stress_table(report))}</pre>"
+            + "".join(f"<h2>Against {html.escape(name)}</h2><pre>{html.escape(table)}</pre>"
+                      for name, table in compare_tables(report)))
     page = ("<!doctype html><html><head><meta charset='utf-8'><title>flowerpose stress</title>"
             f"<script>{get_plotlyjs()}</script></head><body>{body}</body></html>")
     return write_text(path, page)

@@ -1,6 +1,6 @@
 """The studies over settings and perturbations: `sweep` (a grid of settings), `stress`
-(plants under seeded perturbations) and `tune` (an Optuna search scored on plants it
-never sees)."""
+(plants under seeded perturbations), `tune` (an Optuna search scored on plants it
+never sees) and `guard` (the battery every pipeline change is checked on)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from flowerpose.cli_options import (
     add_preset,
     add_ray_option,
     add_workers,
+    check_writable,
     configure,
     jobs_on,
     owned,
@@ -112,6 +113,7 @@ def _texts(text: str) -> list[str]:
 
 def cmd_stress(args: argparse.Namespace) -> int:
     from flowerpose.eval.harness import eval_config, real_plants
+    from flowerpose.eval.methods import ExternalMethod, parse_compare
     from flowerpose.eval.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
 
     if args.folders and args.source != "real":
@@ -139,17 +141,25 @@ def cmd_stress(args: argparse.Namespace) -> int:
         if not value.isdigit():
             raise InputError("--frames", f"{value!r}: a whole number of frames")
     plan = plan_from(levels, args.channels, drop, capture, args.repeats, args.stress_seed)
+    compare = {name: what for name, what in (parse_compare(text, config)
+                                             for text in args.compare)}
+    for name, what in compare.items():
+        if isinstance(what, ExternalMethod):
+            raise InputError("--compare", f"{name}: stress compares settings (a profile or a "
+                             "detector), not an external command")
     cache = stage_cache(args)
-    with owned(args.out, "stress", args.overwrite, STRESS_FILES), jobs_on(args):
+    with owned(args.out, "stress", args.overwrite, (*STRESS_FILES, *compare)), jobs_on(args):
         report = run_stress(config, plan, args.out, args.source, args.folders, args.plants,
-                            args.seed, args.workers, cache, args.truth_scale)
+                            args.seed, args.workers, cache, args.truth_scale, compare)
     if cache is not None and args.source != "real":
         from flowerpose.cache import prune_to_limit
 
         prune_to_limit(cache)
-    from flowerpose.eval.stress import stress_markdown
+    from flowerpose.eval.stress import compare_tables, stress_table
 
-    print(stress_markdown(report).split("\n\n", 2)[2].split("\n\n")[0])
+    print(stress_table(report))
+    for name, table in compare_tables(report):
+        print(f"\nagainst {name}, on the same perturbed clouds:\n{table}")
     print(f"stress: {args.out / 'stress.json'}, {args.out / 'stress.md'}, "
           f"{args.out / 'stress.png'}, {args.out / 'report.html'}")
     return 0
@@ -166,7 +176,8 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
         "stress", help="the robustness report: the pipeline over perturbed clouds",
         description="Run the pipeline on each plant as it is and under seeded perturbations "
         "of its cloud (thinned, darker or brighter, a colour cast, position noise, a view "
-        "left out; for --source scan also fewer frames and a lower resolution), scored "
+        "left out, each flower partly cut away; for --source scan also fewer frames and a "
+        "lower resolution), scored "
         "against the same truth. Writes stress.json, stress.md, stress.png (a panel per "
         "perturbation: recall and plane error against its strength) and report.html.",
         epilog="examples:\n"
@@ -199,6 +210,10 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise", type=_numbers("standard deviations"), metavar="M,...",
                    help="Gaussian position noise, standard deviation in the cloud's unit "
                    f"(metres) (default: {levels('noise')})")
+    p.add_argument("--cut", type=_numbers("shares"), metavar="S,...",
+                   help="each flower partly seen: the share of its disc removed beyond a "
+                   "seeded plane across it, 0-1, needing the flowers' truth (default: "
+                   f"{levels('cut')})")
     p.add_argument("--drop-views", default="all", metavar="N|all",
                    choices=["all", *(str(k) for k in range(27))],
                    help="leave out each of the first N views in turn (a real plant's "
@@ -207,8 +222,12 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
                    help="--source scan: frames chosen for photogrammetry (default: none)")
     p.add_argument("--resolution", type=_texts, metavar="WxH,...",
                    help="--source scan: camera resolutions, pixels (default: none)")
+    p.add_argument("--compare", action="append", default=[], metavar="PROFILE",
+                   help="other settings run on the very same perturbed clouds and compared "
+                   "flower by flower at every level: a profile (upstream: the published "
+                   "method) or a detector, as for eval; repeatable (default: none)")
     p.add_argument("--repeats", type=POSITIVE, default=1, metavar="N",
-                   help="seeded repeats of each random perturbation (thinning, noise) "
+                   help="seeded repeats of each random perturbation (thinning, noise, cut) "
                    "(default: %(default)s)")
     p.add_argument("--stress-seed", type=SEED, default=0, metavar="S",
                    help="seed of the perturbations (default: %(default)s)")
@@ -343,3 +362,78 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
     add_ray_option(p)
     add_config_options(p)
     p.set_defaults(func=cmd_tune)
+
+
+def cmd_guard(args: argparse.Namespace) -> int:
+    from flowerpose.eval.guard import (
+        ACCEPTED,
+        GUARD_FILES,
+        guard_rows,
+        load_battery,
+        read_accepted,
+        run_guard,
+    )
+    from flowerpose.eval.report import markdown_table
+
+    from flowerpose.config import parse_set_options
+    from flowerpose.eval.tune import user_overrides
+
+    battery = load_battery(args.battery)
+    entries = battery.select(args.only)
+    overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
+    accepted = args.accepted or Path(str(ACCEPTED))
+    if args.accept:
+        check_writable(accepted, "--accepted")
+    previous = read_accepted(accepted, battery)
+    cache = stage_cache(args)
+    with owned(args.out, "guard", args.overwrite,
+               (*GUARD_FILES, *(e.name for e in entries))), jobs_on(args):
+        report = run_guard(battery, entries, args.out, args.real, accepted, args.workers,
+                           cache, args.accept, overrides)
+    print(markdown_table(*guard_rows(report, previous)))
+    worse = [name for name, row in report["entries"].items() if row["verdict"] == "worse"]
+    print(f"guard: {'worse on ' + ', '.join(worse) if worse else 'no entry is worse'}; "
+          f"{args.out / 'guard.json'}, {args.out / 'guard.md'}"
+          + (f"; accepted values written to {accepted}" if args.accept else ""))
+    return 1 if worse else 0
+
+
+def add_guard(sub: argparse._SubParsersAction) -> None:
+    """The `guard` subcommand's parser."""
+    p = sub.add_parser(
+        "guard", help="the guard battery: a pipeline change checked on plants nobody tuned on",
+        description="Run the guard battery (the full simulated loop, the oracle, the field "
+        "and hard presets on seeds outside the ones settings were chosen on, and a real "
+        "plant as it is, thinned and cut) and compare each entry with its last accepted "
+        "values flower by flower: an entry is worse where its recall, plane error or false "
+        "positives are worse beyond their 95 %% intervals. Settings given (--set, --config, "
+        "--profile) apply over each entry's preset: a change of settings is guarded as a "
+        "change of code is. Prints one table, writes "
+        "guard.json and guard.md and each entry's run; exit status 1 where an entry is "
+        "worse. The full loop's reconstructions come from the stage cache after the first "
+        "run.",
+        epilog="examples:\n"
+        "  flowerpose guard --real ../shared/real/paper-plant-3 --out guard\n"
+        "  flowerpose guard --only oracle-20 --only real3 --real paper-plant-3 --out guard\n"
+        "  flowerpose guard --set cluster.eps=0.009 --real paper-plant-3 --out guard-eps\n"
+        "  flowerpose guard --real paper-plant-3 --accept --out guard")
+    p.add_argument("--real", type=Path, nargs="+", default=[], metavar="DIR",
+                   help="the real plant folders the battery's real entries name, found by "
+                   "their folder's name (default: none)")
+    p.add_argument("--only", action="append", default=[], metavar="ENTRY",
+                   help="run this entry only; repeatable (default: every entry)")
+    p.add_argument("--battery", type=Path, metavar="FILE",
+                   help="another battery file (default: the shipped "
+                   "assets/guard/battery.toml)")
+    p.add_argument("--accepted", type=Path, metavar="FILE",
+                   help="the accepted values compared with (default: the shipped "
+                   "assets/guard/accepted.json)")
+    p.add_argument("--accept", action="store_true",
+                   help="write this run's values as the accepted ones (a change meant to "
+                   "move them commits the file with it) (default: compare only)")
+    add_workers(p)
+    add_output(p, "folder for guard.json, guard.md and each entry's run")
+    add_cache_options(p)
+    add_ray_option(p)
+    add_config_options(p, detector=False)
+    p.set_defaults(func=cmd_guard)

@@ -12,7 +12,12 @@ measured on, at a strength that has a unit:
 - ``noise``: Gaussian noise of this standard deviation added to every coordinate, in the
   cloud's unit (metres for a metric cloud);
 - ``drop_view``: one grid view's detections left out (a whole cloud) or one candidates file
-  left out (a real plant's candidates); the value is the view's position in the list.
+  left out (a real plant's candidates); the value is the view's position in the list;
+- ``cut``: each flower partly seen, as a leaf in front or a one-sided view leaves it: the
+  points of its disc beyond a plane across it removed, this share of the disc's area
+  (0.5: the plane through its centre; the pistil may go too). The plane's direction in
+  the disc is drawn per flower; it needs the flowers' centres, normals and radii (the
+  truth: `draw_cuts`).
 
 Colours are 8-bit sRGB: exposure and cast act on linear light, as a camera's do. The
 stress report (`eval/stress.py`) and the `field` preset's per-plant degradation both use
@@ -30,17 +35,18 @@ from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.srgb import relight
 
-Kind = Literal["thin", "exposure", "cast", "noise", "drop_view"]
+Kind = Literal["thin", "exposure", "cast", "noise", "drop_view", "cut"]
 
 #: Every perturbation kind, in the order reports list them.
-KINDS: tuple[Kind, ...] = ("thin", "exposure", "cast", "noise", "drop_view")
+KINDS: tuple[Kind, ...] = ("thin", "exposure", "cast", "noise", "drop_view", "cut")
 #: The colour channels a cast may act on.
 CHANNELS = "rgb"
 #: What each kind's value means, for reports and errors.
 UNITS: dict[str, str] = {
     "thin": "fraction of points kept", "exposure": "factor on linear light",
     "cast": "relative change of one channel's linear light",
-    "noise": "standard deviation, the cloud's unit (metres)", "drop_view": "view index"}
+    "noise": "standard deviation, the cloud's unit (metres)", "drop_view": "view index",
+    "cut": "share of each flower's disc removed on one side"}
 
 
 @dataclass(frozen=True)
@@ -64,6 +70,7 @@ class Perturbation:
             "noise": None if value >= 0 else "0 or more",
             "drop_view": None if value >= 0 and float(value).is_integer() else
             "a view's index, 0 or more",
+            "cut": None if 0 <= value < 1 else "a share of the disc, 0 or more, below 1",
         }[self.kind]
         if problem is not None or not np.isfinite(value):
             raise InputError(f"{self.kind}", f"{value!r}: must be {problem or 'finite'}")
@@ -82,7 +89,7 @@ class Perturbation:
     def is_identity(self) -> bool:
         """Whether this perturbation leaves a cloud as it is."""
         return {"thin": self.value == 1, "exposure": self.value == 1, "cast": self.value == 0,
-                "noise": self.value == 0, "drop_view": False}[self.kind]
+                "noise": self.value == 0, "drop_view": False, "cut": self.value == 0}[self.kind]
 
     def to_json(self) -> dict:
         entry = {"kind": self.kind, "value": self.value, "unit": UNITS[self.kind]}
@@ -141,9 +148,66 @@ def smooth_noise(points: np.ndarray, sigma: float, wavelength: float,
     return (np.cos(waves).sum(axis=2) * (sigma * np.sqrt(2.0 / WAVES))).T
 
 
-def perturb(cloud: Cloud, perturbation: Perturbation, rng: np.random.Generator) -> Cloud:
+@dataclass(frozen=True)
+class Cut:
+    """One flower's cut: its points within `reach` of `centre` whose offset along
+    `direction` (a unit vector in the flower's disc) exceeds `offset` are removed. Lengths
+    in the cloud's unit."""
+
+    centre: np.ndarray
+    direction: np.ndarray
+    offset: float
+    reach: float
+
+
+def segment_offset(share: float) -> float:
+    """The distance from a unit disc's centre of the chord that cuts off `share` of its
+    area (0.5: 0, through the centre)."""
+    from scipy.optimize import brentq
+
+    if share <= 0:
+        return 1.0
+    segment = lambda h: (np.arccos(h) - h * np.sqrt(1 - h * h)) / np.pi - share  # noqa: E731
+    return float(brentq(segment, -1.0, 1.0))
+
+
+def draw_cuts(flowers: list[tuple[np.ndarray, np.ndarray, float]], share: float,
+              rng: np.random.Generator) -> list[Cut]:
+    """A cut of `share` of each flower's disc, each (centre, unit normal, radius) in the
+    cloud's unit, along a direction in its disc drawn from `rng`: what `cut` removes, the
+    same for every cloud of one plant (each candidates file)."""
+    cuts = []
+    offset = segment_offset(share)
+    for centre, normal, radius in flowers:
+        normal = np.asarray(normal, float) / np.linalg.norm(normal)
+        direction = rng.normal(size=3)
+        direction -= (direction @ normal) * normal
+        direction /= np.linalg.norm(direction)
+        cuts.append(Cut(np.asarray(centre, float), direction, offset * radius, radius))
+    return cuts
+
+
+def cut(cloud: Cloud, cuts: list[Cut]) -> Cloud:
+    """The cloud without each cut's side of its flower (`Cut`)."""
+    if not cuts or len(cloud) == 0:
+        return cloud
+    removed = np.zeros(len(cloud), bool)
+    for one in cuts:
+        offset = cloud.points - one.centre
+        near = np.einsum("ij,ij->i", offset, offset) <= one.reach ** 2
+        removed |= near & (offset @ one.direction > one.offset)
+    return cloud.subset(np.flatnonzero(~removed))
+
+
+def perturb(cloud: Cloud, perturbation: Perturbation, rng: np.random.Generator,
+            cuts: list[Cut] | None = None) -> Cloud:
     """The cloud under one perturbation (a view dropped acts on detections or files, not
-    on a cloud: the cloud comes back as it is)."""
+    on a cloud: the cloud comes back as it is; a cut takes its flowers' `cuts`, drawn once
+    for all of a plant's clouds by `draw_cuts`)."""
+    if perturbation.kind == "cut":
+        if cuts is None:
+            raise InputError("cut", "a cut needs the flowers it cuts (their truth)")
+        return cut(cloud, cuts)
     kind, value = perturbation.kind, perturbation.value
     if kind == "thin":
         return thin(cloud, value, rng)
