@@ -33,6 +33,7 @@ COMMANDS = (
     cli_study.add_sweep,
     cli_study.add_stress,
     cli_study.add_tune,
+    cli_study.add_guard,
     cli_eval.add_results,
     cli_eval.add_fidelity,
     cli_eval.add_cache,
