@@ -64,6 +64,24 @@ def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_p
     assert (second["found"], second["visible"], second["extra"], second["fp"]) == (4, 3, 1, 0)
 
 
+def test_a_labelled_flower_the_cloud_does_not_hold_is_not_visible(tmp_path):
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    labels = json.loads((folder / "labels.json").read_text())
+    # A fifth label 40 cm from every point: the reconstruction lost that flower.
+    lost = cuboids(CENTRES[:1] + [0.4, 0.0, 0.0], NORMALS[:1])["answers"][0]["answerContent"]
+    cuboid = {**lost["boundingCuboids"]["boundingCuboids"][0], "objectName": "Flower:lost"}
+    labels["answers"][0]["answerContent"]["boundingCuboids"]["boundingCuboids"].append(cuboid)
+    (folder / "labels.json").write_text(json.dumps(labels))
+    truth = real_truth(read_real_plant(folder))
+    assert [t.visible for t in truth] == [True, True, True, True, False]
+    report = run_eval(EvalConfig(), EvalRun(source="real", folders=(folder,)), tmp_path / "out",
+                      workers=1)
+    plant = report["plants"][0]
+    assert (plant["gt"], plant["visible"], plant["found_visible"]) == (5, 4, 4)
+    assert report["summary"]["recall_visible"] == 1.0
+    assert report["summary"]["accuracy"]["plane"]["n"] == 4
+
+
 def test_the_upstream_profile_runs_beside_the_default(tmp_path):
     folder = write_real_plant(tmp_path / "plant", "crops")
     run = EvalRun(source="real", folders=(folder,), compare={"upstream": EvalConfig()})
