@@ -67,13 +67,16 @@ class PoseConfig:
     flips the normal. "petal_base": against the petal points round the pistil, which the
     receptacle protrudes from whether the petals cup up or curl down. "petal_surface":
     against the petal surface extended to the pistil axis by a paraboloid fit. "combined"
-    (default): the sum of the petal-surface offset, the crop-centroid offset and the offset
-    of the petals above the sepals and stems behind them. Each fails somewhere: on real
-    photogrammetry the receptacle often does not protrude from the petals, so the petal
-    surface alone flips normals of the authors' plant 3; the crop centroid flips cupped
-    flowers; sepals are often missing. Plane error, petal surface / crop / combined
+    (default): the sum of four offsets along the axis, each a vote (`_combined`): the
+    pistil above the petal surface extended to it, above the crop's centroid near it,
+    above its own petals' centroid (`petal_vote`), and the petals above the sepals and
+    stems behind them.
+    Each fails somewhere: on real photogrammetry the receptacle often does not protrude
+    from the petals, so the petal surface alone flips normals of the authors' plant 3;
+    the crop centroid and the petals' flip cupped flowers; sepals are often missing, and
+    leaves near a flower are of their colour. Plane error, petal surface / crop / combined
     (`flowerpose eval --source real ../shared/real/paper-plant-3 --set
-    pose.direction_reference=...`): 36.3 / 21.3 / 7.47 degrees (two and one flipped
+    pose.direction_reference=...`): 36.3 / 21.3 / 7.35 degrees (two and one flipped
     normals); hard oracle preset, 10 plants: 2.58 / 5.99 / 2.58; realistic: 1.93 all."""
     offset_clip: float | None = 0.15
     """"combined": each of the three offsets counts at most this many corolla radii either
@@ -175,6 +178,22 @@ class PoseConfig:
     1.6 degrees on average and up to 4 (0.15 through a point on the axis)."""
     max_evaluations: int = MAX_EVALUATIONS
     """Most residual evaluations one nonlinear fit may spend."""
+    petal_vote: float = 0.5
+    """"combined": the weight of the fourth vote, the pistil above its own petals'
+    centroid (the other three count 1). It holds on thinned and partly seen real flowers,
+    where the surface's extrapolation and the sepals (a leaf of their colour beside the
+    flower) each turn; like the crop's centroid it is wrong for a strongly cupped corolla,
+    whose rim rises past the receptacle, so it counts half. Axes turned, on the authors'
+    plant 3 thinned to 50-3 % and cut by a quarter and a half (5 seeded repeats, 389
+    flowers with a pistil) / the oracle, field, hard and reconstructed synthetic flowers
+    (743) / 48 drawn test flowers, cupped, curled and facing down: 6 / 0 / 8 at weight 0,
+    3 / 0 / 8 at 0.5, 2 / 0 / 9 at 1 (and more near ties on the test flowers)."""
+    uncertain_margin: float = 0.05
+    """A flower whose "combined" votes sum to less than this many corolla radii either way
+    is `uncertain`: its sign is a near tie."""
+    uncertain_pistil_points: int = 3
+    """A flower whose pistil (its core) has fewer points than this, or none (its sepals
+    sign it), is `uncertain`: a speck of yellow or a few green points decided it."""
 
     def __post_init__(self):
         require(self.petal_max_radius is None or self.petal_max_radius > 0,
@@ -199,6 +218,11 @@ class PoseConfig:
         require(3 <= self.min_fit_points <= self.max_fit_points, "pose.max_fit_points",
                 "needs 3 <= pose.min_fit_points <= pose.max_fit_points")
         require(self.max_evaluations >= 1, "pose.max_evaluations", "must be at least 1")
+        require(self.petal_vote >= 0, "pose.petal_vote", "must be 0 or more")
+        require(self.uncertain_margin >= 0, "pose.uncertain_margin",
+                "must be 0 or more (corolla radii)")
+        require(self.uncertain_pistil_points >= 0, "pose.uncertain_pistil_points",
+                "must be 0 or more")
 
 
 @dataclass
@@ -217,6 +241,12 @@ class FlowerPose:
     pistil_found: bool
     n_points: int
     n_petal_points: int
+    orientation_margin: float | None = None
+    """How clearly the votes that sign the normals decided ("combined": their sum's size in
+    corolla radii); None where another rule signed them."""
+    uncertain: bool = False
+    """The normals' sign cannot be trusted (`PoseConfig.uncertain_margin`): the
+    pollination planner leaves such a flower alone unless told otherwise."""
 
     def to_json(self) -> dict[str, Any]:
         """The DESIGN.md flowers.json entry fields, as plain lists, numbers and None."""
@@ -227,6 +257,9 @@ class FlowerPose:
             "points": self.n_points,
             "petal_points": self.n_petal_points,
             "pistil_found": self.pistil_found,
+            "orientation_margin": (None if self.orientation_margin is None
+                                   else round(float(self.orientation_margin), 4)),
+            "uncertain": self.uncertain,
         }
 
 
@@ -266,10 +299,28 @@ def split_petals_pistil(crop: Cloud, colour: ColourConfig,
     return _split(crop.points, CropColours.of(crop, colour), cluster)
 
 
+@dataclass(frozen=True)
+class Orientation:
+    """What signs a flower's normals, and how surely."""
+
+    reference: np.ndarray
+    """A vector (the crop's frame and unit) the normals must agree with."""
+    margin: float | None
+    """"combined": the votes' sum, corolla radii (`_combined`); None for another reference
+    or without a pistil."""
+    pistil_points: int
+    """The pistil points (its core, for "combined") behind it; 0 without a pistil."""
+
+    def uncertain(self, config: PoseConfig) -> bool:
+        """Whether the sign cannot be trusted (`PoseConfig.uncertain_margin`)."""
+        return (self.pistil_points < config.uncertain_pistil_points
+                or (self.margin is not None and self.margin < config.uncertain_margin))
+
+
 def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
                  plane: np.ndarray | None, config: PoseConfig,
-                 colours: CropColours, up: np.ndarray | None) -> np.ndarray | None:
-    """A vector (metres, crop frame) the normals must agree with, or None if none is known.
+                 colours: CropColours, up: np.ndarray | None) -> Orientation | None:
+    """What the normals must agree with (`Orientation`), or None if nothing is known.
 
     With a pistil it points from a reference to the pistil centroid: the pistil sits on the
     side the corolla opens to. "crop" uses the crop centroid (upstream). "petal_base" uses
@@ -284,35 +335,43 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
     if pistil.any():
         pistil_points = points[pistil]
         pistil_centroid = pistil_points.mean(axis=0)
+        found = int(pistil.sum())
         if config.direction_reference == "crop" or not petal.any():
-            return pistil_centroid - points.mean(axis=0)
+            return Orientation(pistil_centroid - points.mean(axis=0), None, found)
         if config.direction_reference == "petal_surface" and plane is not None:
-            return _above_petal_surface(points[petal], pistil_centroid, plane)
+            return Orientation(_above_petal_surface(points[petal], pistil_centroid, plane),
+                               None, found)
         if config.direction_reference == "combined" and plane is not None:
-            return _combined(crop, petal, pistil, plane, config, colours, up)
+            return Orientation(*_combined(crop, petal, pistil, plane, config, colours, up))
         radius = np.percentile(np.linalg.norm(pistil_points - pistil_centroid, axis=1), 90)
         petal_points = points[petal]
         distance = np.linalg.norm(petal_points - pistil_centroid, axis=1)
         base = distance <= config.base_radius_factor * radius
         if base.sum() < config.base_min_points:
             base = np.argsort(distance)[:config.base_min_points]
-        return pistil_centroid - petal_points[base].mean(axis=0)
+        return Orientation(pistil_centroid - petal_points[base].mean(axis=0), None, found)
     support = ~petal & colours.support
     if support.sum() < config.support_min_points or not petal.any():
         return None
-    return points[petal].mean(axis=0) - points[support].mean(axis=0)
+    return Orientation(points[petal].mean(axis=0) - points[support].mean(axis=0), None, 0)
 
 
 def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndarray,
-              config: PoseConfig, colours: CropColours, up: np.ndarray | None) -> np.ndarray:
-    """The plane axis signed by the sum of three offsets along it (the cloud's unit): the
-    pistil (its core, `pistil_core`) above the petal surface extended to it, the pistil
-    above the crop's centroid,
-    and the petals above the sepals and stems near the flower (support colours within
-    `support_reach` corolla radii of the pistil across the axis and along it; left out
-    when fewer than `support_min_points`), each clipped to `offset_clip` corolla radii;
-    plus, with a known `up`, the prior `up_prior` corolla radii times the axis's cosine
-    with up to `up_prior_power`."""
+              config: PoseConfig, colours: CropColours, up: np.ndarray | None
+              ) -> tuple[np.ndarray, float, int]:
+    """The plane axis signed by the sum of four offsets along it (the cloud's unit): the
+    pistil (its core, `pistil_core`) above the petal surface extended to it, above the
+    crop's centroid near it (`crop_reach`), above its own petals' centroid, and the petals
+    above the sepals and stems near the flower (support colours within `support_reach`
+    corolla radii of the pistil across the axis and along it; left out when fewer than
+    `support_min_points`), each clipped to `offset_clip` corolla radii; plus, with a known
+    `up`, the prior `up_prior` corolla radii times the axis's cosine with up to
+    `up_prior_power`. Also returns the sum's size in corolla radii (how clearly the votes
+    decided) and the pistil core's points.
+
+    The petals' own centroid (weighed by `petal_vote`) is the vote that holds on thinned
+    and partly seen real flowers, where the surface's extrapolation and the sepals (a leaf
+    of their colour beside the flower) each turn."""
     points = crop.points
     petal_points = points[petal]
     if config.pistil_core is not None:
@@ -328,18 +387,21 @@ def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndar
             else np.linalg.norm(offset, axis=1) <= config.crop_reach * radius)
     offsets = [float(_above_petal_surface(petal_points, pistil_centroid, plane) @ plane),
                float((pistil_centroid - points[near].mean(axis=0)) @ plane)]
+    petals_below = float((pistil_centroid - petal_points.mean(axis=0)) @ plane)
     if support.sum() >= config.support_min_points:
         offsets.append(float((petal_points.mean(axis=0) - points[support].mean(axis=0))
                              @ plane))
     if config.offset_clip is not None:
         limit = config.offset_clip * radius
         offsets = [min(max(o, -limit), limit) for o in offsets]
-    evidence = sum(offsets)
+        petals_below = min(max(petals_below, -limit), limit)
+    evidence = sum(offsets) + config.petal_vote * petals_below
     if up is not None:
         cosine = float(plane @ up)
         weight = np.sign(cosine) * abs(cosine) ** config.up_prior_power
         evidence += config.up_prior * radius * weight
-    return plane if evidence >= 0 else -plane
+    margin = abs(evidence) / radius if radius > 0 else 0.0
+    return (plane if evidence >= 0 else -plane), margin, int(pistil.sum())
 
 
 def _pistil_core(points: np.ndarray, pistil: np.ndarray, petal_points: np.ndarray,
@@ -409,13 +471,16 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
     petal_points = crop.points[petal]
     normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
     plane = fit_plane(petal_points, config.min_fit_points, config.plane_robust_iterations)
-    reference = _orientation(crop, petal, pistil, plane, config, colours, up)
-    if reference is not None:
+    orientation = _orientation(crop, petal, pistil, plane, config, colours, up)
+    if orientation is not None:
         axes = _fit_axes(petal_points, plane, center if found else None, config)
+        reference = orientation.reference
         normals = {m: None if axis is None else (axis if axis @ reference >= 0.0 else -axis)
                    for m, axis in axes.items()}
     return FlowerPose(center=center, normals=normals, pistil_found=found,
-                      n_points=len(crop), n_petal_points=len(petal_points))
+                      n_points=len(crop), n_petal_points=len(petal_points),
+                      orientation_margin=None if orientation is None else orientation.margin,
+                      uncertain=bool(orientation is None or orientation.uncertain(config)))
 
 
 def _corolla(points: np.ndarray, petal: np.ndarray, pistil: np.ndarray,

@@ -62,7 +62,8 @@ def test_sagemaker_cuboid_gives_scaled_centre_and_x_axis_normal(tmp_path):
     np.testing.assert_allclose(second.center, [0.1, 0.2, 0.4])
     # Upstream: intrinsic x-y'-z'' rotations by roll, pitch, yaw, applied to the x axis.
     np.testing.assert_allclose(second.normal, rx(roll) @ ry(pitch) @ rz(yaw) @ [1, 0, 0])
-    assert first.radius is None and first.visible
+    # The radius: half the larger extent across the normal (width, height), scaled.
+    assert first.radius == pytest.approx(0.5 * 1.5 / 25) and first.visible
     scaled = read_sagemaker_truth(path, scale=10.0)
     np.testing.assert_allclose(scaled[0].center, [2.5, -5.0, 7.5])
 

@@ -152,10 +152,27 @@ def test_to_json_gives_plain_values():
     assert entry["normals"] == {"plane": None, "superellipsoid": None, "paraboloid": None}
     crop, _ = flower(13)
     entry = estimate_pose(crop).to_json()
-    assert set(entry) == {"center", "normals", "points", "petal_points", "pistil_found"}
+    assert set(entry) == {"center", "normals", "points", "petal_points", "pistil_found",
+                          "orientation_margin", "uncertain"}
     assert json.loads(json.dumps(entry)) == entry
     assert all(len(entry["normals"][m]) == 3 for m in METHODS)
     assert entry["points"] == 375 and entry["petal_points"] == 300 and entry["pistil_found"]
+    assert entry["orientation_margin"] > 0.1 and entry["uncertain"] is False
+
+
+def test_a_flower_signed_by_a_near_tie_or_a_speck_of_yellow_is_uncertain():
+    crop, normal = flower(14)
+    sure = estimate_pose(crop)
+    assert not sure.uncertain and angle_deg(sure.normals["plane"], normal) < 5
+    # The same flower, its votes judged against a margin no sign can reach...
+    strict = estimate_pose(crop, PoseConfig(uncertain_margin=10.0))
+    assert strict.uncertain and strict.orientation_margin == sure.orientation_margin
+    # ... or its pistil held to more points than it has: its normals stay, flagged.
+    speck = estimate_pose(crop, PoseConfig(uncertain_pistil_points=10_000))
+    assert speck.uncertain and angle_deg(speck.normals["plane"], normal) < 5
+    # Signed by its sepals alone (no pistil), a flower is always uncertain.
+    bare, _ = flower(14, dome=0)
+    assert estimate_pose(bare).uncertain
 
 
 def test_an_empty_crop_is_refused():
@@ -176,7 +193,7 @@ def test_a_pale_stem_under_the_flower_does_not_tilt_the_fits():
                  np.vstack([crop.colors, np.full((100, 3), 150, np.uint8)]))
     unlimited = estimate_pose(crop, PoseConfig(petal_max_radius=None, petal_trim_factor=None))
     limited = estimate_pose(crop)
-    assert angle_deg(unlimited.normals["plane"], normal) > 20.0
+    assert max(angle_deg(unlimited.normals[m], normal) for m in METHODS) > 20.0
     assert max(angle_deg(limited.normals[m], normal) for m in METHODS) < 3.0
 
 
