@@ -11,7 +11,8 @@ true flower's centre and touches its receptacle or stamens, its approach lies wi
 no other flower's petals, anthers or receptacle and push no leaflet or petiole more than
 `max_push_m` from where it grew. Every true flower gets one outcome: success, or the cause
 of failure: "missed" (no detection), "no pose" (a detection without a normal),
-"unreachable" (the planner found no approach), "pose off" (the swab misses the centre,
+"uncertain" (a detection whose normal's sign the pose stage could not settle, left alone:
+`pollinate.visit_uncertain`), "unreachable" (the planner found no approach), "pose off" (the swab misses the centre,
 stops short of it or comes in too far off the axis), "collision" (another flower, or a leaf
 pushed too far). Metres and degrees, bed frame.
 """
@@ -29,6 +30,7 @@ from flowerpose.errors import InputError
 from flowerpose.eval.pollination_contact import ContactWorld, Touches
 from flowerpose.hardware.bot import KinematicBot
 from flowerpose.hardware.flights.pollinate import (
+    UNCERTAIN,
     Flower,
     PollinateConfig,
     plan_pollination,
@@ -44,7 +46,7 @@ from flowerpose.sim.contact import ContactConfig
 from flowerpose.sim.pieces import FLOWER_PARTS, Part
 
 #: The causes a visit fails for, in the order they are looked at.
-CAUSES = ("missed", "no pose", "unreachable", "pose off", "collision")
+CAUSES = ("missed", "no pose", "uncertain", "unreachable", "pose off", "collision")
 
 
 @dataclass(frozen=True)
@@ -111,10 +113,10 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
         estimates = [Flower(f.id, np.asarray(f.center, float), np.asarray(f.normal, float),
                             float(f.radius))
                      for f in truth]
-        nearest = {f.id: f.id for f in truth}
+        nearest, skipped = {f.id: f.id for f in truth}, {}
     else:
         entries = read_flowers(flowers_json)
-        estimates, _ = read_visit_flowers(entries)
+        estimates, skipped = read_visit_flowers(entries, visit_uncertain=plan_config.visit_uncertain)
         nearest = _match(truth, entries, match_distance_m)
     plan = plan_pollination(estimates, None if cloud is None else cloud.points, plan_config,
                             tool=tool, corolla=None if cloud is None
@@ -125,8 +127,8 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
     if flight_json is not None:
         write_json(flight_json, flight)
     world = world or ContactWorld(plant, config.contact, tool)
-    outcomes = [judge(f, nearest.get(f.id), plan, flown, timeline, world, config, tool)
-                for f in truth]
+    outcomes = [judge(f, nearest.get(f.id), plan, flown, timeline, world, config, tool,
+                      skipped) for f in truth]
     return {"visits": len(plan.planned), "planned_s": round(plan.duration_s, 1),
             "flown_s": round(flight["sessions"][-1]["bot_time_end"], 1)
             if flight["sessions"] else 0.0,
@@ -167,14 +169,16 @@ def _rest_time(timeline: Timeline, t0: float, t1: float) -> float:
 
 def judge(flower, detection: int | None, plan, flown: dict[int, tuple[float, float]],
            timeline: Timeline, world: ContactWorld, config: PollinationScoreConfig,
-           tool: PollinatorTool) -> dict:
-    """One true flower's outcome: success or the first cause of failure."""
+           tool: PollinatorTool, skipped: dict[int, str] | None = None) -> dict:
+    """One true flower's outcome: success or the first cause of failure. `skipped`: the
+    detections left alone before planning and why (`read_visit_flowers`)."""
     entry = {"flower": int(flower.id), "detection": detection}
     if detection is None:
         return {**entry, "outcome": "missed"}
     visit = next((v for v in plan.visits if v.flower == detection), None)
     if visit is None:
-        return {**entry, "outcome": "no pose"}
+        uncertain = (skipped or {}).get(detection) == UNCERTAIN
+        return {**entry, "outcome": "uncertain" if uncertain else "no pose"}
     if visit.status != "planned":
         return {**entry, "outcome": "unreachable", "reason": visit.reason}
     t0, t1 = flown[detection]

@@ -295,6 +295,8 @@ _pollinate_base = starting_config("flowerpose.hardware.flights.pollinate:Pollina
 def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
     from flowerpose.hardware.flights.pollinate import (
+        NO_NORMAL,
+        UNCERTAIN,
         check_plant,
         plan_pollination,
         read_visit_flowers,
@@ -315,10 +317,12 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         raise InputError(args.flowers, f"is in its cloud's own frame ({document['frame']}, a "
                          "phone scan's): pollination needs flowers in the bed frame, from a "
                          "FarmBot scan's reconstruction")
-    flowers, missing = read_visit_flowers(read_flowers(args.flowers), args.method)
+    flowers, skipped = read_visit_flowers(read_flowers(args.flowers), args.method,
+                                          config.visit_uncertain)
     if not flowers:
         raise InputError(args.flowers, f"no flower has a {args.method} normal to approach "
-                         "along")
+                         "along" + (" that is certain (pollinate.visit_uncertain visits the "
+                                    "others too)" if UNCERTAIN in skipped.values() else ""))
     check_plant(flowers, args.plant_at, args.plant_height, args.plant_radius, args.flowers)
     cloud_path = args.plant_cloud or (Path(document["source"]) if document.get("source")
                                       else None)
@@ -349,18 +353,22 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
             as output:
         output.record(write_json(args.out / "pollination.json", {
             **plan.to_json(), "flowers": str(args.flowers), "method": args.method,
-            "no_normal": missing, "cloud": None if obstacles is None else str(cloud_path),
+            "no_normal": [f for f, why in skipped.items() if why == NO_NORMAL],
+            "uncertain": [f for f, why in skipped.items() if why == UNCERTAIN],
+            "cloud": None if obstacles is None else str(cloud_path),
             "plant": {"at": list(args.plant_at), "height": args.plant_height,
                       "radius": args.plant_radius}}))
-    print(f"plan: {len(plan.planned)} of {len(flowers) + len(missing)} flowers visited, "
+    print(f"plan: {len(plan.planned)} of {len(flowers) + len(skipped)} flowers visited, "
           f"{plan.duration_s / 60:.1f} min of bot time; reach, the soil and "
           + ("clearance from the plant's cloud" if obstacles is not None else "no collisions")
           + f" checked -> {args.out / 'pollination.json'}")
     for visit in plan.visits:
         if visit.status != "planned":
             print(f"flower {visit.flower}: unreachable {visit.reason}")
-    for flower in missing:
-        print(f"flower {flower}: no {args.method} normal")
+    for flower, why in skipped.items():
+        print(f"flower {flower}: no {args.method} normal" if why == NO_NORMAL else
+              f"flower {flower}: its normal's sign is uncertain, left alone (--set "
+              "pollinate.visit_uncertain=true visits it)")
     if args.dry_run:
         print(pose_header("move") + "  flower")
         for k, move in enumerate(plan.moves):

@@ -86,6 +86,10 @@ class PollinateConfig:
     rim_margin_m: float = 0.003
     """How far beyond a flower's known radius its own corolla may reach (a petal's curl and
     the radius's error)."""
+    visit_uncertain: bool = False
+    """Visit a flower whose normal's sign the pose stage could not settle (flowers.json
+    `uncertain`: a near tie of its votes, a pistil of a few points, or none). Left alone by
+    default: a turned normal sends the swab at the back of the flower."""
     calyx_radius_m: float = 0.012
     """The target's points within this distance of its centre, whatever their colour, are
     its own too: the green sepals and stalk right behind the receptacle, where the swab
@@ -616,19 +620,29 @@ def _check_transfers(moves: list[Move], tree: cKDTree | None, config: PollinateC
                              "the gantry can clear")
 
 
-def read_visit_flowers(entries: list[dict],
-                       method: str = "plane") -> tuple[list[Flower], list[int]]:
-    """The flowers of flowers.json entries (`pipeline.flowers.read_flowers`) that have a
-    `method` normal, and the ids of those that have none."""
-    flowers, missing = [], []
+#: Why a detected flower is not visited, before planning: it has no normal of the method, or
+#: its normal's sign is uncertain (flowers.json `uncertain`) and uncertain flowers are left
+#: alone (`PollinateConfig.visit_uncertain`).
+NO_NORMAL, UNCERTAIN = "no normal", "uncertain"
+
+
+def read_visit_flowers(entries: list[dict], method: str = "plane",
+                       visit_uncertain: bool = False) -> tuple[list[Flower], dict[int, str]]:
+    """The flowers of flowers.json entries (`pipeline.flowers.read_flowers`) to visit: those
+    with a `method` normal (and, unless `visit_uncertain`, whose sign is not uncertain);
+    and the others' ids with why each is left alone (NO_NORMAL, UNCERTAIN)."""
+    flowers, skipped = [], {}
     for k, entry in enumerate(entries):
         normal = entry["normals"].get(method)
+        flower = int(entry.get("id", k))
         if normal is None:
-            missing.append(int(entry.get("id", k)))
+            skipped[flower] = NO_NORMAL
+        elif entry.get("uncertain", False) and not visit_uncertain:
+            skipped[flower] = UNCERTAIN
         else:
-            flowers.append(Flower(int(entry.get("id", k)), np.asarray(entry["center"], float),
+            flowers.append(Flower(flower, np.asarray(entry["center"], float),
                                   np.asarray(normal, float), _radius(entry)))
-    return flowers, missing
+    return flowers, skipped
 
 
 def _radius(entry: dict) -> float | None:

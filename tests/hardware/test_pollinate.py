@@ -276,6 +276,22 @@ def test_a_flowers_radius_is_read_from_its_box_in_its_files_unit(tmp_path):
     assert flowers[0].radius == pytest.approx(0.012) and flowers[1].radius is None
 
 
+def test_an_uncertain_flower_is_left_alone_unless_asked(tmp_path):
+    from flowerpose.hardware.flights.pollinate import NO_NORMAL, UNCERTAIN, read_visit_flowers
+    from flowerpose.pipeline.flowers import read_flowers
+
+    path = tmp_path / "flowers.json"
+    path.write_text(json.dumps({"flowers": [
+        {"id": 0, "center": [1.5, 0.75, 0.2], "normals": {"plane": [0, 0, 1]}},
+        {"id": 1, "center": [1.5, 0.75, 0.2], "normals": {"plane": [0, 0, 1]},
+         "uncertain": True},
+        {"id": 2, "center": [1.5, 0.75, 0.2], "normals": {"plane": None}}]}))
+    flowers, skipped = read_visit_flowers(read_flowers(path))
+    assert [f.id for f in flowers] == [0] and skipped == {1: UNCERTAIN, 2: NO_NORMAL}
+    flowers, skipped = read_visit_flowers(read_flowers(path), visit_uncertain=True)
+    assert [f.id for f in flowers] == [0, 1] and skipped == {2: NO_NORMAL}
+
+
 def test_the_planners_flower_colours_are_the_runs_colour_model():
     from flowerpose.pipeline.colour import ColourConfig, flower_coloured
 
