@@ -190,7 +190,8 @@ def entry_record(entry: GuardEntry, plants: list[dict]) -> dict:
 def judge(record: dict, accepted: dict | None) -> dict:
     """An entry's verdict against its accepted record (None: none yet): "worse" where the
     recall, the plane error or the false positives are worse beyond the uncertainty
-    (module docstring), with the reasons; the paired comparison with the accepted flowers."""
+    (module docstring), "better" where one is better beyond it and none worse, else
+    "pass"; with the reasons, and the paired comparison with the accepted flowers."""
     if accepted is None:
         return {"verdict": "new", "reasons": ["no accepted value yet"], "paired": None}
     paired = compare_runs(record["plants"], accepted["plants"])
@@ -215,7 +216,15 @@ def judge(record: dict, accepted: dict | None) -> dict:
     if false["shown"] and false["ours"] > false["theirs"]:
         reasons.append(f"false positives {false['ours']} against {false['theirs']} "
                        f"(p = {false['p']:.3g})")
-    return {"verdict": "worse" if reasons else "pass", "reasons": reasons, "paired": paired}
+    if reasons:
+        return {"verdict": "worse", "reasons": reasons, "paired": paired}
+    gains = [text for shown, text in (
+        (found["shown"] and found["only_ours"] > found["only_theirs"],
+         f"{found['only_ours']} flowers gained, {found['only_theirs']} lost"),
+        (plane["shown"] and plane["direction"] == "better", "plane error lower (paired)"),
+        (false["shown"] and false["ours"] < false["theirs"], "fewer false positives"))
+        if shown]
+    return {"verdict": "better" if gains else "pass", "reasons": gains, "paired": paired}
 
 
 def read_accepted(path: Path, battery: Battery) -> dict[str, dict]:
@@ -280,8 +289,8 @@ def guard_rows(report: dict, accepted: dict[str, dict]) -> tuple[list[str], list
             f"{record['fp']}" + ("" if old is None else f" ({old['fp']})"),
             _plane(plane), "-" if old is None else _plane(old["plane"]),
             "-" if paired is None else difference_cell(paired["fits"]["plane"]),
-            row["verdict"] + (f": {'; '.join(row['reasons'])}" if row["verdict"] == "worse"
-                              else "")])
+            row["verdict"] + (f": {'; '.join(row['reasons'])}"
+                              if row["verdict"] in ("worse", "better") else "")])
     return header, rows
 
 

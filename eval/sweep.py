@@ -27,6 +27,7 @@ from flowerpose.eval.harness import (
     settings_run,
 )
 from flowerpose.eval.real_source import evaluate_real_plant
+from flowerpose.eval.paired import compare_runs
 from flowerpose.eval.report import summarise
 from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import write_json
@@ -54,27 +55,49 @@ def parse_grid(items: list[str], config: EvalConfig) -> list[tuple[str, list[str
     return grid
 
 
-def _metrics(entries: list[dict], seconds: list[float]) -> dict:
+def _metrics(entries: list[dict], seconds: list[float], intervals: bool = True) -> dict:
     """The sweep's metrics over plant entries (pooled: a recall is found over all the
-    plants' flowers) and their mean wall seconds per plant."""
-    s = summarise(entries)
+    plants' flowers; the 95 % bounds of the recall of visible flowers, the precision and
+    the plane error's mean, over plants then flowers) and their mean wall seconds per
+    plant. `intervals=False` leaves the bounds out (a single plant's row)."""
+    s = summarise(entries, intervals)
     metrics = {"recall": s["recall"], "recall_visible": s["recall_visible"],
-               "fp_rate": s["fp_rate"], "detections": s["detections"], "fp": s["fp"]}
+               "recall_visible_low": s["recall_visible_ci95"]["low"],
+               "recall_visible_high": s["recall_visible_ci95"]["high"],
+               "fp_rate": s["fp_rate"], "precision_low": s["precision_ci95"]["low"],
+               "detections": s["detections"], "fp": s["fp"]}
     for method in ("plane", "superellipsoid", "paraboloid"):
-        metrics[f"{method}_mean_deg"] = s["error_deg"][method]["mean"]
-        metrics[f"{method}_median_deg"] = s["error_deg"][method]["median"]
+        errors = s["error_deg"][method]
+        metrics[f"{method}_mean_deg"] = errors["mean"]
+        metrics[f"{method}_median_deg"] = errors["median"]
         metrics[f"{method}_failed"] = s["failed"][method]
+    plane = s["error_deg"]["plane"]["mean_ci95"]
+    metrics["plane_mean_low_deg"], metrics["plane_mean_high_deg"] = plane["low"], plane["high"]
     metrics["seconds_per_plant"] = round(sum(seconds) / len(seconds), 4)
     return metrics
 
 
 def best_row(rows: list[dict]) -> dict:
-    """The best setting: most visible flowers found, then fewest false positives, then the
-    smallest plane error."""
+    """The best setting, ranked by the intervals, not the point values: the highest lower
+    bound of the recall of visible flowers, then of the precision, then the lowest upper
+    bound of the plane error's mean (a setting that looks better on few flowers does not
+    outrank one shown good on many)."""
     def key(row: dict) -> tuple:
-        return (-(row["recall_visible"] or 0.0), row["fp_rate"] or 0.0,
-                row["plane_mean_deg"] if row["plane_mean_deg"] is not None else 1e9)
+        high = row["plane_mean_high_deg"]
+        return (-(row["recall_visible_low"] or 0.0), -(row["precision_low"] or 0.0),
+                high if high is not None else 1e9)
     return min(rows, key=key)
+
+
+def against_defaults(ours: list[dict], defaults: list[dict]) -> dict:
+    """A setting's plant entries against the defaults' on the same plants
+    (`paired.compare_runs`), and whether any difference is shown: found flowers, false
+    positives or a fit's paired error."""
+    paired = compare_runs(ours, defaults)
+    shown = (paired["found"]["shown"] or paired["fp"]["shown"]
+             or any(fit["shown"] for fit in paired["fits"].values()))
+    return {"distinguishable": bool(shown), "verdicts": paired["verdicts"],
+            "plane": paired["fits"]["plane"], "found": paired["found"], "fp": paired["fp"]}
 
 
 #: What each metric's axis in sweep.png says, with its unit.
@@ -160,7 +183,8 @@ def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle",
     plants = ([] if source == "real" else [f"plants-{k}" for k in range(count)]
               if _separate_plants([k for k, _ in grid], source) else ["plants"])
     return ("sweep.csv", "sweep.png", "best.json", *plants,
-            *(f"setting-{k}" for k in range(count)))
+            *(f"setting-{k}" for k in range(count)), "setting-defaults",
+            *(["plants-defaults"] if plants and plants != ["plants"] else []))
 
 
 def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int, seed: int,
@@ -182,11 +206,13 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     keys = [key for key, _ in grid]
     settings = [dict(zip(keys, combo, strict=True))
                 for combo in itertools.product(*(values for _, values in grid))]
-    configs = [apply_overrides(config, s) for s in settings]
+    # The last configuration run is the defaults (the settings without the grid's), which
+    # every setting is compared with flower by flower.
+    configs = [apply_overrides(config, s) for s in settings] + [config]
     if source == "real":
         subjects = real_plants(list(folders), None)
         names = [plant.name for plant in subjects]
-        jobs = [(plant, pipeline_part(cfg), out_dir / f"setting-{k}" / plant.name,
+        jobs = [(plant, pipeline_part(cfg), out_dir / f"setting-{_name(k, settings)}" / plant.name,
                  cfg.score.max_distance_m) for k, cfg in enumerate(configs) for plant in subjects]
         job = evaluate_real_plant
     else:
@@ -196,29 +222,38 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
         clouds: list[dict[int, tuple[Path, Path]]] = []
         for k, cfg in enumerate(configs):
             if k == 0 or separate:
-                base = out_dir / (f"plants-{k}" if separate else "plants")
+                base = out_dir / (f"plants-{_name(k, settings)}" if separate else "plants")
                 generate_plants(seeds, cfg.sim, base, workers, cache)
                 shared = capture_clouds(cfg, source, {s: base / f"seed-{s}" for s in seeds},
                                         workers, cache)[0]
             clouds.append(shared)
-        jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{k}" / f"seed-{s}", f"seed-{s}", cache)
-                for k, cfg in enumerate(configs) for s in seeds]
+        jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{_name(k, settings)}" / f"seed-{s}",
+                 f"seed-{s}", cache) for k, cfg in enumerate(configs) for s in seeds]
         job = evaluate_cloud
     results = run_jobs(job, jobs, workers,
-                       lambda j, v: f"setting {j // len(names)} {v[0]['plant']}: "
-                       f"{v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp",
+                       lambda j, v: f"setting {_name(j // len(names), settings)} "
+                       f"{v[0]['plant']}: {v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp",
                        stage="sweep evaluation",
-                       labels=[f"setting {k} {name}" for k in range(len(configs))
-                               for name in names])
+                       labels=[f"setting {_name(k, settings)} {name}"
+                               for k in range(len(configs)) for name in names])
     # The values as the config holds them: 0.008 a number, "mask" a string, 14 an integer.
-    typed = [{key: value_at(cfg, key) for key in keys} for cfg in configs]
+    typed = [{key: value_at(cfg, key) for key in keys} for cfg in configs[:-1]]
+    entries = [[e for e, _ in results[k * len(names):(k + 1) * len(names)]]
+               for k in range(len(configs))]
     pooled, per_plant = [], []
-    for k in range(len(settings)):
+    for k in range(len(configs)):
         chunk = results[k * len(names):(k + 1) * len(names)]
-        pooled.append(_metrics([e for e, _ in chunk], [t["total"] for _, t in chunk]))
-        per_plant.append([{"plant": e["plant"], **_metrics([e], [t["total"]])}
+        pooled.append(_metrics(entries[k], [t["total"] for _, t in chunk]))
+        per_plant.append([{"plant": e["plant"], **_metrics([e], [t["total"]], False)}
                           for e, t in chunk])
-    rows = [{**setting, **metrics} for setting, metrics in zip(typed, pooled, strict=True)]
+    defaults = {"metrics": pooled[-1], "plants": per_plant[-1]}
+    pooled, per_plant = pooled[:-1], per_plant[:-1]
+    compared = [against_defaults(entries[k], entries[-1]) for k in range(len(settings))]
+    rows = [{**setting, **metrics, "distinguishable_from_defaults": c["distinguishable"],
+             "plane_vs_defaults_deg": c["plane"]["mean_difference"],
+             "plane_vs_defaults_low_deg": c["plane"]["ci95"]["low"],
+             "plane_vs_defaults_high_deg": c["plane"]["ci95"]["high"]}
+            for setting, metrics, c in zip(typed, pooled, compared, strict=True)]
     best_index = rows.index(best_row(rows))
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=list(rows[0]))
@@ -231,19 +266,39 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     write_figure(out_dir / "sweep.png", figure)
     plt.close(figure)
     best = {"setting": typed[best_index], "metrics": pooled[best_index],
+            "vs_defaults": compared[best_index],
             "config": (settings_run(configs[best_index], "real", [p.stage for p in subjects])
                        if source == "real" else settings_run(configs[best_index], "oracle"))}
     write_json(out_dir / "best.json",
                {"best": best, "grid": {key: [value_at(apply_overrides(config, {key: v}), key)
                                              for v in values] for key, values in grid},
-                "settings": [{"setting": t, "metrics": m, "plants": p}
-                             for t, m, p in zip(typed, pooled, per_plant, strict=True)],
+                "settings": [{"setting": t, "metrics": m, "plants": p, "vs_defaults": c}
+                             for t, m, p, c in zip(typed, pooled, per_plant, compared,
+                                                   strict=True)],
+                "defaults": defaults, "rule": RANKING_RULE,
                 "plants": len(names), "seed": None if source == "real" else seed,
                 "source": source,
                 "seconds": round(watch.elapsed(), 2)})
-    for row in rows:
+    for row, against in zip(rows, compared, strict=True):
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "
-              f"{row['recall_visible']}, fp_rate {row['fp_rate']}, plane "
-              f"{row['plane_mean_deg']}°, {row['seconds_per_plant']} s/plant")
+              f"{row['recall_visible']} {_bounds(row, 'recall_visible', 3)}, fp_rate "
+              f"{row['fp_rate']}, plane {row['plane_mean_deg']}° "
+              f"{_bounds(row, 'plane_mean', 2, '_deg')}, {row['seconds_per_plant']} s/plant; "
+              f"against the defaults: {'; '.join(against['verdicts'][:1] + against['verdicts'][3:])}")
     print(f"sweep: {out_dir / 'sweep.csv'}, {out_dir / 'sweep.png'}, {out_dir / 'best.json'}")
     return best
+
+
+#: How the best setting is chosen (best.json's "rule").
+RANKING_RULE = ("the highest 95 % lower bound of the recall of visible flowers, then of the "
+                "precision, then the lowest upper bound of the plane error's mean")
+
+
+def _name(k: int, settings: list[dict]) -> str:
+    """A configuration's folder name: its index in the grid, or "defaults" for the last."""
+    return "defaults" if k == len(settings) else str(k)
+
+
+def _bounds(row: dict, key: str, digits: int, unit: str = "") -> str:
+    low, high = row[f"{key}_low{unit}"], row[f"{key}_high{unit}"]
+    return "" if low is None else f"[{low:.{digits}f}, {high:.{digits}f}]"

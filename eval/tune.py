@@ -47,9 +47,12 @@ CHOSEN_FROM = 5
 #: What tune writes into its --out folder (the study's database too, when it is there).
 TUNE_FILES = ("tune.json", "tune.md", "tune.html", "best.toml", "study.db", "plants",
               "trials")
-#: The summary numbers each trial records for training and validation.
+#: The summary numbers each trial records for training and validation (with their 95 %
+#: bounds; `f1_low` is the F1 of the recall's and precision's lower bounds).
 RECORDED = ("f1", "recall_visible", "precision", "fp", "found_visible", "visible",
-            "error_deg.plane.mean", "error_deg.plane.median")
+            "error_deg.plane.mean", "error_deg.plane.median", "recall_visible_ci95.low",
+            "precision_ci95.low", "error_deg.plane.mean_ci95.low",
+            "error_deg.plane.mean_ci95.high")
 
 
 @dataclass(frozen=True)
@@ -145,25 +148,35 @@ def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
     return study
 
 
-def _scores(scorer: SetScorer, sets: tuple[PlantSet, ...], configure: Any, folder: Path,
-            after_each: Any = None) -> dict | None:
-    """The summary of the configured settings over every plant of the sets (None without
-    sets); `after_each(entries)` after each plant's (the pruner's report)."""
+def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], configure: Any, folder: Path,
+             after_each: Any = None) -> list[dict] | None:
+    """The plant entries of the configured settings on every plant of the sets (None
+    without sets), each plant named by its set; `after_each(entries)` after each plant's
+    (the pruner's report)."""
     if not sets:
         return None
     entries: list[dict] = []
     for k, plant_set in enumerate(sets):
         for entry in scorer.score(plant_set, configure, folder / f"set-{k}"):
-            entries.append(entry)
+            entries.append({**entry, "plant": f"{plant_set.label}: {entry['plant']}"})
             if after_each is not None:
                 after_each(entries)
-    return summarise(entries)
+    return entries
 
 
-def _recorded(summary: dict | None) -> dict | None:
+def _recorded(entries: list[dict] | None) -> dict | None:
+    """A trial's recorded scores (RECORDED) over its plant entries."""
     from flowerpose.eval.gates import summary_value
 
-    return None if summary is None else {k: summary_value(summary, k) for k in RECORDED}
+    if entries is None:
+        return None
+    summary = summarise(entries)
+    recorded = {k: summary_value(summary, k) for k in RECORDED}
+    recall, precision = recorded["recall_visible_ci95.low"], recorded["precision_ci95.low"]
+    recorded["f1_low"] = (None if recall is None or precision is None else 0.0
+                          if recall + precision == 0 else
+                          round(2 * recall * precision / (recall + precision), 4))
+    return recorded
 
 
 def _objective(spec: TuneSpec, scorer: SetScorer):
@@ -178,21 +191,24 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
         try:
             def report(entries: list[dict]) -> None:
                 if len(spec.objectives) == 1:
-                    trial.report(spec.objectives[0].value(summarise(entries)), len(entries))
+                    trial.report(spec.objectives[0].value(summarise(entries, False)),
+                                 len(entries))
                     if trial.should_prune():
                         raise optuna.TrialPruned()
 
             try:
-                train = _scores(scorer, spec.train, configure, folder / "train", report)
+                train_entries = _entries(scorer, spec.train, configure, folder / "train",
+                                         report)
+                train = summarise(train_entries, False)
             except optuna.TrialPruned:
                 raise
             except Exception as err:  # noqa: BLE001 - recorded as the failed trial's reason
                 trial.set_user_attr("error", f"{type(err).__name__}: {err}"
                                     if not isinstance(err, InputError) else str(err))
                 raise
-            trial.set_user_attr("train", _recorded(train))
+            trial.set_user_attr("train", _recorded(train_entries))
             trial.set_user_attr("validate", _recorded(
-                _scores(scorer, spec.validate, configure, folder / "validate")))
+                _entries(scorer, spec.validate, configure, folder / "validate")))
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         values = tuple(o.value(train) for o in spec.objectives)
@@ -240,16 +256,39 @@ def _values_text(spec: TuneSpec, trial: Any) -> str:
 
 
 def score_defaults(spec: TuneSpec) -> dict:
-    """The user's settings without a trial's, on training and validation plants."""
+    """The user's settings without a trial's, on training and validation plants: the
+    recorded scores, and the validation plant entries (`validate_entries`, for the
+    paired comparison with the chosen trial)."""
     scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
     folder = spec.out_dir / "trials" / "defaults"
     configure = spec.configure({})
     try:
-        return {"train": _recorded(_scores(scorer, spec.train, configure, folder / "train")),
-                "validate": _recorded(_scores(scorer, spec.validate, configure,
-                                              folder / "validate"))}
+        validate = _entries(scorer, spec.validate, configure, folder / "validate")
+        return {"train": _recorded(_entries(scorer, spec.train, configure, folder / "train")),
+                "validate": _recorded(validate), "validate_entries": validate}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> dict | None:
+    """The chosen trial's settings against the defaults on the validation plants, flower by
+    flower (`paired.compare_runs`): whether any difference is shown, and the verdicts;
+    None without validation plants."""
+    from flowerpose.eval.paired import compare_runs
+
+    if not defaults.get("validate_entries"):
+        return None
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
+    folder = spec.out_dir / "trials" / "chosen"
+    try:
+        chosen = _entries(scorer, spec.validate, spec.configure(settings), folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    paired = compare_runs(chosen, defaults["validate_entries"])
+    shown = (paired["found"]["shown"] or paired["fp"]["shown"]
+             or any(fit["shown"] for fit in paired["fits"].values()))
+    return {"distinguishable": bool(shown), "verdicts": paired["verdicts"],
+            "plane": paired["fits"]["plane"], "found": paired["found"], "fp": paired["fp"]}
 
 
 def trial_rows(study: Any, spec: TuneSpec) -> list[dict]:
@@ -286,8 +325,8 @@ def front(study: Any, spec: TuneSpec) -> list[Any]:
 
 
 def choose(candidates: list[Any], validated: bool) -> Any | None:
-    """The chosen trial: the highest validation F1, then the lowest validation plane error
-    (or, without validation, the front's first)."""
+    """The chosen trial (CHOICE_RULE), by the validation scores' 95 % bounds, not their
+    point values (or, without validation, the front's first)."""
     if not candidates:
         return None
     if not validated:
@@ -295,15 +334,17 @@ def choose(candidates: list[Any], validated: bool) -> Any | None:
 
     def key(trial: Any) -> tuple[float, float]:
         scores = trial.user_attrs.get("validate") or {}
-        f1 = scores.get("f1")
-        plane = scores.get("error_deg.plane.mean")
+        f1 = scores.get("f1_low")
+        plane = scores.get("error_deg.plane.mean_ci95.high")
         return (-(f1 if f1 is not None else -1.0), plane if plane is not None else math.inf)
 
     return min(candidates, key=key)
 
 
-CHOICE_RULE = ("the chosen trial: among the training front, the highest validation F1, ties "
-               "broken by the lower validation plane error")
+CHOICE_RULE = ("the chosen trial: among the training front, the highest lower bound of the "
+               "validation F1 (the F1 of the 95 % lower bounds of the recall of visible "
+               "flowers and of the precision), ties broken by the lower upper bound of the "
+               "validation plane error's mean")
 
 
 def best_toml(settings: dict) -> str:
@@ -323,8 +364,10 @@ def tune_markdown(report: dict) -> str:
     """tune.md: the front (or top trials) with training and validation scores, the
     defaults' row, the chosen trial and its rule, the gaps and the warnings."""
     keys = ("f1", "error_deg.plane.mean")
+    bounds = ("f1_low", "error_deg.plane.mean_ci95.high")
     header = ["trial", "settings", *(f"train {k}" for k in keys),
-              *(f"validate {k}" for k in keys), "gap F1"]
+              *(f"validate {k}" for k in keys), "validate F1, lower bound",
+              "validate plane mean, upper bound", "gap F1"]
     rows = []
     defaults = report["defaults"]
     for row in report["front"]:
@@ -335,10 +378,12 @@ def tune_markdown(report: dict) -> str:
         rows.append([f"{row['number']}{chosen}",
                      ", ".join(f"{k}={_short(v)}" for k, v in row["settings"].items()),
                      *(_cell(row["train"], k) for k in keys),
-                     *(_cell(row["validate"], k) for k in keys), gap])
+                     *(_cell(row["validate"], k) for k in keys),
+                     *(_cell(row["validate"], k) for k in bounds), gap])
     rows.append(["defaults", "(the settings without a trial's)",
                  *(_cell(defaults["train"], k) for k in keys),
-                 *(_cell(defaults["validate"], k) for k in keys), "-"])
+                 *(_cell(defaults["validate"], k) for k in keys),
+                 *(_cell(defaults["validate"], k) for k in bounds), "-"])
     counts = report["counts"]
     lines = [f"# flowerpose tune: {report['study']['name']}", "",
              f"`{report['run']['command']}` ({report['run']['date']}); storage "
@@ -349,6 +394,10 @@ def tune_markdown(report: dict) -> str:
              + ("; ".join(s["label"] for s in report["validate"]) if report["validate"]
                 else "**none: nothing was validated**, the choice is by training alone") + ".",
              "", markdown_table(header, rows, [len(rows) - 1]), "", f"Rule: {CHOICE_RULE}."]
+    against = report.get("chosen_vs_defaults")
+    if against is not None:
+        lines += ["", "The chosen trial against the defaults on the validation plants, flower "
+                  "by flower: " + "; ".join(against["verdicts"]) + "."]
     lines += [f"**Warning:** {w}" for w in report["warnings"]]
     lines += ["", f"Open the study: `optuna-dashboard {report['study']['storage']}`"]
     return "\n".join(lines) + "\n"
@@ -358,12 +407,17 @@ def _short(value: Any) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
-def warnings_of(chosen: dict | None, defaults: dict) -> list[str]:
-    """What the report must say of the chosen trial against the defaults."""
+def warnings_of(chosen: dict | None, defaults: dict, against: dict | None = None) -> list[str]:
+    """What the report must say of the chosen trial against the defaults: worse point
+    values, and, compared flower by flower on the validation plants (`against`), that no
+    difference is shown."""
     if chosen is None or not chosen["validate"] or not defaults["validate"]:
         return []
     mine, theirs = chosen["validate"], defaults["validate"]
     said = []
+    if against is not None and not against["distinguishable"]:
+        said.append("the chosen settings are not distinguishable from the defaults on the "
+                    "validation plants (" + "; ".join(against["verdicts"]) + ")")
     if (mine.get("f1") or 0) < (theirs.get("f1") or 0):
         said.append(f"the chosen settings' validation F1 ({mine['f1']:.3f}) is below the "
                     f"defaults' ({theirs['f1']:.3f})")
@@ -417,6 +471,8 @@ def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
     chosen_trial = choose(candidates, bool(spec.validate))
     by_number = {r["number"]: r for r in rows}
     chosen = None if chosen_trial is None else by_number[chosen_trial.number]
+    against = (None if chosen is None or not spec.validate
+               else chosen_against_defaults(spec, chosen["settings"], defaults))
     states = [t.state for t in study.trials]
     report = {"run": run_record(), "study": {"name": spec.study_name, "storage": spec.storage},
               "space": {p.key: p.to_json() for p in spec.space},
@@ -426,11 +482,11 @@ def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
               "counts": {"complete": states.count(optuna.trial.TrialState.COMPLETE),
                          "pruned": states.count(optuna.trial.TrialState.PRUNED),
                          "failed": states.count(optuna.trial.TrialState.FAIL)},
-              "defaults": defaults, "trials": rows,
-              "front": [by_number[t.number] for t in candidates],
+              "defaults": {k: v for k, v in defaults.items() if k != "validate_entries"},
+              "trials": rows, "front": [by_number[t.number] for t in candidates],
               "rule": CHOICE_RULE if spec.validate else "nothing was validated: the training "
-              "front's first", "chosen": chosen,
-              "warnings": warnings_of(chosen, defaults), "seconds": round(seconds, 1)}
+              "front's first", "chosen": chosen, "chosen_vs_defaults": against,
+              "warnings": warnings_of(chosen, defaults, against), "seconds": round(seconds, 1)}
     write_json(spec.out_dir / "tune.json", report)
     markdown = tune_markdown(report)
     write_text(spec.out_dir / "tune.md", markdown)

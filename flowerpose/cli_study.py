@@ -52,7 +52,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     metrics = best["metrics"]
     print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
           + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
-          f"plane {metrics['plane_mean_deg']}°; its settings in {args.out / 'best.json'})")
+          f"plane {metrics['plane_mean_deg']}°; its settings in {args.out / 'best.json'})"
+          + ("" if best["vs_defaults"]["distinguishable"] else
+             "; not distinguishable from the defaults on these plants"))
     return 0
 
 

@@ -37,6 +37,12 @@ def test_a_seeded_study_resumes_and_its_choice_runs_in_eval(tmp_path, plants, ca
     chosen = report["chosen"]
     assert chosen is not None and chosen["number"] in [t["number"] for t in report["front"]]
     assert "validation F1" in report["rule"] and "defaults" in capsys.readouterr().out
+    # Chosen by the bounds, and compared with the defaults flower by flower.
+    assert chosen["validate"]["f1_low"] == max(t["validate"]["f1_low"] for t in report["front"])
+    against = report["chosen_vs_defaults"]
+    assert against["verdicts"][0].startswith("plane") and against["plane"]["n"] > 0
+    if not against["distinguishable"]:
+        assert any("not distinguishable" in w for w in report["warnings"])
     # The same command again adds trials to the same study.
     assert _tune(tmp_path, plants, SPACE, 2) == 0
     again = json.loads((tmp_path / "out" / "tune.json").read_text())
