@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import json
 import math
+import tempfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +33,8 @@ from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.match import match_flowers
 from flowerpose.eval.real_source import RealPlant, merged_candidates, read_real_plant, real_truth
-from flowerpose.eval.report import markdown_table
+from flowerpose.eval.report import markdown_table, run_record
+from flowerpose.eval.stats import interval_text
 from flowerpose.eval.truth import TruthFlower, read_plant_truth
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
@@ -147,6 +150,111 @@ def synthetic_sample(folder: Path, config: PipelineConfig, max_distance: float) 
     result = find_flowers(cloud, config)
     return _matched(folder.name, cloud, truth, result.flowers,
                     remove_ground(cloud, config.ground), max_distance)
+
+
+#: Synthetic clouds denser than the real plant by more than this factor (points a flower)
+#: are thinned to its density before their outcomes are predicted; sparser ones by more
+#: than it are said not to match.
+DENSITY_MATCH = 1.25
+
+
+def real_outcome(plant: RealPlant, config: PipelineConfig, max_distance: float) -> dict:
+    """The real plant's report.json plant entry: the pipeline's flowers scored against its
+    labels."""
+    from flowerpose.eval.real_source import evaluate_real_plant
+
+    with tempfile.TemporaryDirectory() as scratch:
+        return evaluate_real_plant(plant, config, Path(scratch), max_distance)[0]
+
+
+def predicted_outcome(folder: Path, config: PipelineConfig, max_distance: float,
+                      points_per_flower: float | None, label_error_deg: float) -> dict:
+    """A synthetic plant's report.json plant entry at the real plant's density: its cloud
+    thinned (seeded) where its flowers hold more than DENSITY_MATCH times
+    `points_per_flower`, its truth tilted as hand labels are (`label_error_deg`)."""
+    from flowerpose.eval.match import score_plant
+    from flowerpose.eval.report import plant_entry
+    from flowerpose.eval.truth import as_labelled
+    from flowerpose.perturb import thin
+
+    cloud_path, truth_path = synthetic_cloud(folder)  # type: ignore[misc]
+    cloud = read_cloud(cloud_path)
+    own = find_flowers(cloud, config)
+    own_points = np.median([len(f.crop) for f in own.flowers]) if own.flowers else None
+    result = own
+    if (points_per_flower is not None and own_points is not None
+            and own_points > DENSITY_MATCH * points_per_flower):
+        rng = np.random.default_rng(zlib.crc32(folder.name.encode()))
+        result = find_flowers(thin(cloud, points_per_flower / own_points, rng), config)
+    truth = read_plant_truth(truth_path)
+    if label_error_deg > 0:
+        truth = as_labelled(truth, label_error_deg, folder.name)
+    entry = plant_entry(folder.name, score_plant([f.pose for f in result.flowers], truth,
+                                                 max_distance))
+    kept = [len(f.crop) for f in result.flowers]
+    return {**entry, "points_per_flower": float(np.median(kept)) if kept else None}
+
+
+def outcomes(real_entry: dict, predicted: list[dict], real_points: float | None) -> dict:
+    """The real plant's recall of visible flowers and plane error with their 95 % intervals
+    beside the synthetic plants' at the real density, and whether each prediction falls
+    inside the real interval."""
+    from flowerpose.eval.report import summarise
+
+    real, synthetic = summarise([real_entry]), summarise(predicted, intervals=False)
+    densities = [p["points_per_flower"] for p in predicted if p["points_per_flower"]]
+    synthetic_points = float(np.median(densities)) if densities else None
+    matched = (real_points is not None and synthetic_points is not None
+               and synthetic_points * DENSITY_MATCH >= real_points)
+
+    def inside(value: float | None, interval: dict) -> bool | None:
+        if value is None or interval["low"] is None:
+            return None
+        return bool(interval["low"] <= value <= interval["high"])
+
+    plane, predicted_plane = real["error_deg"]["plane"], synthetic["error_deg"]["plane"]
+    return {"real": {"recall_visible": real["recall_visible"],
+                     "recall_visible_ci95": real["recall_visible_ci95"],
+                     "visible": real["visible"], "plane_mean": plane["mean"],
+                     "plane_mean_ci95": plane["mean_ci95"], "flowers": plane["n"],
+                     "points_per_flower": real_points},
+            "predicted": {"recall_visible": synthetic["recall_visible"],
+                          "visible": synthetic["visible"],
+                          "plane_mean": predicted_plane["mean"],
+                          "flowers": predicted_plane["n"],
+                          "points_per_flower": synthetic_points},
+            "density_matched": bool(matched),
+            "recall_inside": inside(synthetic["recall_visible"], real["recall_visible_ci95"]),
+            "plane_inside": inside(predicted_plane["mean"], plane["mean_ci95"])}
+
+
+def outcome_lines(outcome: dict) -> list[str]:
+    """The prediction against the real plant's intervals, in words."""
+    real, predicted = outcome["real"], outcome["predicted"]
+    if predicted["recall_visible"] is None or real["recall_visible"] is None:
+        return ["no flower to predict from"]
+
+    def said(inside: bool | None) -> str:
+        return "-" if inside is None else "inside" if inside else "outside"
+
+    lines = [f"recall of visible flowers: real {real['recall_visible']:.3f} "
+             f"{interval_text(real['recall_visible_ci95'], 2)} ({real['visible']} flowers), "
+             f"predicted {predicted['recall_visible']:.3f} ({predicted['visible']} flowers): "
+             f"{said(outcome['recall_inside'])} the real interval",
+             f"plane error's mean: real "
+             + ("-" if real["plane_mean"] is None else
+                f"{real['plane_mean']:.2f}° {interval_text(real['plane_mean_ci95'])}")
+             + f" ({real['flowers']} flowers), predicted "
+             + ("-" if predicted["plane_mean"] is None else f"{predicted['plane_mean']:.2f}°")
+             + f" ({predicted['flowers']} flowers): {said(outcome['plane_inside'])} the real "
+             "interval"]
+    if not outcome["density_matched"]:
+        lines.append(f"the synthetic flowers hold {predicted['points_per_flower']} points "
+                     f"(median), the real ones {real['points_per_flower']}: too sparse to "
+                     "predict at the real density (generate them denser, e.g. --set "
+                     f"'sim.degrade.points_per_flower=[{real['points_per_flower']:.0f}, "
+                     f"{real['points_per_flower']:.0f}]')")
+    return lines
 
 
 def synthetic_folders(paths: list[Path]) -> list[Path]:
@@ -364,23 +472,48 @@ FIDELITY_FILES = ("fidelity.json", "fidelity.md", "fidelity.png")
 
 def run_fidelity(real_dir: Path, synthetic_dirs: list[Path], out_dir: Path,
                  config: PipelineConfig, max_distance: float,
-                 truth_scale: float | None = None) -> dict[str, Any]:
-    """Statistics of a real plant folder and of synthetic plants, compared; writes
-    fidelity.json and fidelity.png to out_dir and returns the comparison."""
+                 truth_scale: float | None = None, label_error_deg: float = 0.0
+                 ) -> dict[str, Any]:
+    """Statistics of a real plant folder and of synthetic plants, compared, and the
+    synthetic plants' predicted recall and plane error at the real density against the
+    real plant's 95 % intervals (`outcomes`; the synthetic truth tilted by
+    `label_error_deg`, or by the eval run's own `score.label_error_deg` where a synthetic
+    folder is a run); writes fidelity.json, fidelity.md and fidelity.png to out_dir and
+    returns the report."""
     real_plant = read_real_plant(real_dir, truth_scale)
     folders = synthetic_folders(synthetic_dirs)
     real = statistics([real_sample(real_plant, config, max_distance)], config)
     synthetic = statistics([synthetic_sample(f, config, max_distance) for f in folders], config)
     rows = compare(real, synthetic)
+    real_points = real["points"]["p50"]
+    predicted = [predicted_outcome(f, config, max_distance, real_points,
+                                   run_label_error(f, label_error_deg)) for f in folders]
+    outcome = outcomes(real_outcome(real_plant, config, max_distance), predicted, real_points)
     out_dir.mkdir(parents=True, exist_ok=True)
     _plot(out_dir / "fidelity.png", real, synthetic, (real_plant.name, "synthetic"))
-    report = {"real": {k: v for k, v in real.items() if k != "_raw"},
+    report = {"run": run_record(), "real_plant": real_plant.name,
+              "real": {k: v for k, v in real.items() if k != "_raw"},
               "synthetic": {k: v for k, v in synthetic.items() if k != "_raw"},
-              "comparison": rows, "holds": sum(r["holds"] for r in rows), "of": len(rows)}
+              "comparison": rows, "holds": sum(r["holds"] for r in rows), "of": len(rows),
+              "outcomes": outcome}
     write_json(out_dir / "fidelity.json", json.loads(json.dumps(report)))
     write_text(out_dir / "fidelity.md",
         f"# flowerpose fidelity: {real_plant.name} against {len(folders)} synthetic plants\n\n"
-        f"{table(report)}\n\nTolerances and why:\n\n"
+        f"{table(report)}\n\n## Predicted scores at the real density\n\n"
+        + "".join(f"- {line}\n" for line in outcome_lines(outcome))
+        + "\nTolerances and why:\n\n"
         + "".join(f"- {key}: {kind} within {tolerance:g}: {why}\n"
                   for key, (kind, tolerance, why) in TOLERANCES.items()))
     return report
+
+
+def run_label_error(folder: Path, default: float) -> float:
+    """The hand labels' error the eval run a synthetic plant folder belongs to scored
+    against (its report.json's `score.label_error_deg`), else `default`."""
+    from flowerpose.jsonio import read_json
+
+    for run in (folder.parent.parent, folder.parent):
+        if (run / "report.json").is_file():
+            score = read_json(run / "report.json").get("config", {}).get("score", {})
+            return float(score.get("label_error_deg", default))
+    return default

@@ -294,7 +294,7 @@ def accuracy_figure(series: dict[str, dict]):
     """The accuracy curves on one plot: the share of flowers within each angle."""
     import plotly.graph_objects as go
 
-    figure = go.Figure([go.Scatter(x=curve["thresholds_deg"], y=curve["share"],
+    figure = go.Figure([go.Scatter(x=[0, *curve["thresholds_deg"]], y=[0.0, *curve["share"]],
                                    mode="lines+markers",
                                    name=f"{label} (AUC {curve['auc']:.3f}, {curve['n']} flowers)")
                         for label, curve in series.items()])

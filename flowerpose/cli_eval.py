@@ -274,14 +274,17 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
-    from flowerpose.eval.fidelity import FIDELITY_FILES, run_fidelity, table
+    from flowerpose.eval.fidelity import FIDELITY_FILES, outcome_lines, run_fidelity, table
     from flowerpose.eval.harness import EvalConfig, pipeline_part
 
     config = configure(EvalConfig(), args)
     with owned(args.out, "fidelity", args.overwrite, FIDELITY_FILES):
         report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
-                              config.score.max_distance_m, args.truth_scale)
+                              config.score.max_distance_m, args.truth_scale,
+                              config.score.label_error_deg)
     print(table(report))
+    for line in outcome_lines(report["outcomes"]):
+        print(f"predicted at the real density: {line}")
     print(f"{report['holds']} of {report['of']} statistics within tolerance "
           f"({report['real']['flowers']} real flowers, {report['synthetic']['flowers']} "
           f"synthetic) -> {args.out / 'fidelity.json'}, {args.out / 'fidelity.md'}, "
@@ -295,7 +298,9 @@ def add_fidelity(sub: argparse._SubParsersAction) -> None:
         "fidelity", help="the same statistics of real and synthetic flowers side by side",
         description="Describe a real labelled plant's flowers and synthetic plants' flowers "
         "by the same statistics (size, thickness, cupping, colours) and say which agree "
-        "within a stated tolerance. Writes fidelity.json, fidelity.md and fidelity.png.",
+        "within a stated tolerance; then say whether the synthetic plants' recall and plane "
+        "error, at the real plant's density (denser clouds thinned to it), fall inside the "
+        "real plant's 95 % intervals. Writes fidelity.json, fidelity.md and fidelity.png.",
         epilog="example:\n"
         "  flowerpose fidelity ../shared/real/paper-plant-3 runs/oracle --out fidelity")
     p.add_argument("real", type=Path, metavar="REAL_DIR",
@@ -392,7 +397,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
 def cmd_results(args: argparse.Namespace) -> int:
     from flowerpose.eval.results import results_markdown
 
-    print(results_markdown(args.reports, args.title, not args.no_paper), end="")
+    print(results_markdown(args.reports, args.title, not args.no_paper, args.figure), end="")
     return 0
 
 
@@ -402,9 +407,10 @@ def add_results(sub: argparse._SubParsersAction) -> None:
         "results", help="a results page (Markdown) made from runs' reports",
         description="Print a Markdown results page made from runs' own files: a table row "
         "per eval report.json (what ran, flowers found of the visible, false positives, the "
-        "fits' errors) beside the paper's own numbers, then a robustness section per "
-        "stress.json and a speed section per bench.json, each run's command, code version, "
-        "date and machine under its table.",
+        "fits' errors, with their 95 % intervals) beside the paper's own numbers, then a "
+        "robustness section per stress.json, a speed section per bench.json and a "
+        "sim-to-real section per fidelity.json, each run's command, code version, date and "
+        "machine under its table.",
         epilog="example:\n  flowerpose results runs/oracle-10/report.json "
         "runs/stress3/stress.json runs/bench/bench.json > results.md")
     p.add_argument("reports", type=Path, nargs="+", metavar="REPORT.json",
@@ -413,4 +419,8 @@ def add_results(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--title", default="Results", help="the page's title (default: %(default)s)")
     p.add_argument("--no-paper", action="store_true",
                    help="leave out the paper's own row (default: include it)")
+    p.add_argument("--figure", type=Path, metavar="FILE.png",
+                   help="also draw the runs' plane accuracy curves into this PNG, which the "
+                   "page shows by its file name (so it lies beside the page) (default: no "
+                   "figure)")
     p.set_defaults(func=cmd_results)

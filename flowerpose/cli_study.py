@@ -408,7 +408,7 @@ def add_guard(sub: argparse._SubParsersAction) -> None:
         "and hard presets on seeds outside the ones settings were chosen on, and a real "
         "plant as it is, thinned and cut) and compare each entry with its last accepted "
         "values flower by flower: an entry is worse where its recall, plane error or false "
-        "positives are worse beyond their 95 %% intervals. Settings given (--set, --config, "
+        "positives are worse beyond their 95 % intervals. Settings given (--set, --config, "
         "--profile) apply over each entry's preset: a change of settings is guarded as a "
         "change of code is. Prints one table, writes "
         "guard.json and guard.md and each entry's run; exit status 1 where an entry is "

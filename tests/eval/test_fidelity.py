@@ -64,7 +64,19 @@ def test_the_command_compares_a_real_folder_with_a_seeded_plant(tmp_path, plant0
     sizes = {r["statistic"]: r for r in report["comparison"]}
     assert not sizes["diameter (median)"]["holds"]
     assert (tmp_path / "f" / "fidelity.png").stat().st_size > 0
-    assert "statistics within tolerance" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "statistics within tolerance" in out and "predicted at the real density" in out
+    # The real plant's scores with their intervals, the synthetic plant's beside them.
+    outcome = report["outcomes"]
+    assert outcome["real"]["recall_visible"] == 1.0 and outcome["real"]["visible"] == 4
+    low, high = (outcome["real"]["plane_mean_ci95"][k] for k in ("low", "high"))
+    assert low <= outcome["real"]["plane_mean"] <= high
+    assert outcome["predicted"]["visible"] > 0
+    assert outcome["recall_inside"] == (outcome["real"]["recall_visible_ci95"]["low"]
+                                        <= outcome["predicted"]["recall_visible"])
+    # The page of results takes the fidelity run as a section of its own.
+    assert main(["results", str(tmp_path / "f" / "fidelity.json"), "--no-paper"]) == 0
+    assert "## Simulator against real [1]" in capsys.readouterr().out
 
 
 def test_crops_cannot_be_described_and_say_so(tmp_path, plant0, capsys):

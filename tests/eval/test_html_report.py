@@ -56,9 +56,11 @@ def test_a_results_page_is_made_from_reports_with_what_made_them(tmp_path, capsy
     folder = write_real_plant(tmp_path / "plant", "candidates")
     assert main(["eval", "--source", "real", str(folder), "--out", str(tmp_path / "r")]) == 0
     capsys.readouterr()
-    assert main(["results", str(tmp_path / "r" / "report.json")]) == 0
+    assert main(["results", str(tmp_path / "r" / "report.json"), "--figure",
+                 str(tmp_path / "accuracy.png")]) == 0
     page = capsys.readouterr().out
-    assert "| real: plant [1]" in page and "4 of 4" in page and "the paper" in page
+    assert "| real: plant [1]" in page and "4 of 4 [0.51, 1.00]" in page and "the paper" in page
+    assert "](accuracy.png)" in page and (tmp_path / "accuracy.png").read_bytes()[:4] == b"\x89PNG"
     assert "flowerpose eval --source real" in page and "cores" in page
     assert main(["results", str(folder / "labels.json")]) == 2
 
