@@ -241,7 +241,7 @@ def outcome_lines(outcome: dict) -> list[str]:
              f"{interval_text(real['recall_visible_ci95'], 2)} ({real['visible']} flowers), "
              f"predicted {predicted['recall_visible']:.3f} ({predicted['visible']} flowers): "
              f"{said(outcome['recall_inside'])} the real interval",
-             f"plane error's mean: real "
+             "plane error's mean: real "
              + ("-" if real["plane_mean"] is None else
                 f"{real['plane_mean']:.2f}° {interval_text(real['plane_mean_ci95'])}")
              + f" ({real['flowers']} flowers), predicted "

@@ -12,9 +12,9 @@ no other flower's petals, anthers or receptacle and push no leaflet or petiole m
 `max_push_m` from where it grew. Every true flower gets one outcome: success, or the cause
 of failure: "missed" (no detection), "no pose" (a detection without a normal),
 "uncertain" (a detection whose normal's sign the pose stage could not settle, left alone:
-`pollinate.visit_uncertain`), "unreachable" (the planner found no approach), "pose off" (the swab misses the centre,
-stops short of it or comes in too far off the axis), "collision" (another flower, or a leaf
-pushed too far). Metres and degrees, bed frame.
+`pollinate.visit_uncertain`), "unreachable" (the planner found no approach), "pose off"
+(the swab misses the centre, stops short of it or comes in too far off the axis),
+"collision" (another flower, or a leaf pushed too far). Metres and degrees, bed frame.
 """
 
 from __future__ import annotations
@@ -116,7 +116,8 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
         nearest, skipped = {f.id: f.id for f in truth}, {}
     else:
         entries = read_flowers(flowers_json)
-        estimates, skipped = read_visit_flowers(entries, visit_uncertain=plan_config.visit_uncertain)
+        estimates, skipped = read_visit_flowers(entries,
+                                                visit_uncertain=plan_config.visit_uncertain)
         nearest = _match(truth, entries, match_distance_m)
     plan = plan_pollination(estimates, None if cloud is None else cloud.points, plan_config,
                             tool=tool, corolla=None if cloud is None

@@ -232,7 +232,8 @@ def comparison_rows(report: dict, name: str = "default") -> tuple[list[str], lis
               "Paraboloid", *(f"Δ {m}" for m in PAIRED_ORDER),
               "Plane wins/ties/losses, Wilcoxon"]
     rows = [(name, report["summary"], None)]
-    rows += [(other, c["summary"], c.get("paired")) for other, c in report.get("compare", {}).items()]
+    rows += [(other, c["summary"], c.get("paired"))
+             for other, c in report.get("compare", {}).items()]
     lines = []
     for label, summary, paired in rows:
         errors = summary["error_deg"]

@@ -32,12 +32,12 @@ from flowerpose.atomic import write_figure, write_text
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
+from flowerpose.eval.match import MAX_MATCH_DISTANCE
 from flowerpose.eval.paired import compare_runs, difference_cell, record_cell
 from flowerpose.eval.report import markdown_table, run_record, summarise
-from flowerpose.eval.stats import interval_text
 from flowerpose.eval.runner import run_jobs
+from flowerpose.eval.stats import interval_text
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.eval.match import MAX_MATCH_DISTANCE
 from flowerpose.perturb import KINDS, UNITS, Perturbation, draw_cuts, perturb
 from flowerpose.stopwatch import Stopwatch
 

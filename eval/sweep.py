@@ -26,8 +26,8 @@ from flowerpose.eval.harness import (
     real_plants,
     settings_run,
 )
-from flowerpose.eval.real_source import evaluate_real_plant
 from flowerpose.eval.paired import compare_runs
+from flowerpose.eval.real_source import evaluate_real_plant
 from flowerpose.eval.report import summarise
 from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import write_json
@@ -284,7 +284,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
               f"{row['recall_visible']} {_bounds(row, 'recall_visible', 3)}, fp_rate "
               f"{row['fp_rate']}, plane {row['plane_mean_deg']}° "
               f"{_bounds(row, 'plane_mean', 2, '_deg')}, {row['seconds_per_plant']} s/plant; "
-              f"against the defaults: {'; '.join(against['verdicts'][:1] + against['verdicts'][3:])}")
+              "against the defaults: "
+              + "; ".join(against["verdicts"][:1] + against["verdicts"][3:]))
     print(f"sweep: {out_dir / 'sweep.csv'}, {out_dir / 'sweep.png'}, {out_dir / 'best.json'}")
     return best
 

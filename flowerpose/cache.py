@@ -150,7 +150,7 @@ def _imports(module: str, path: Path) -> set[str]:
     return {name for name in named if _module_file(name) is not None}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def module_closure(roots: tuple[str, ...]) -> tuple[str, ...]:
     """The flowerpose modules `roots` import, directly or through each other, with the
     roots, sorted."""
@@ -166,7 +166,7 @@ def module_closure(roots: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(sorted(seen))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def code_version(roots: tuple[str, ...] | None = None) -> str:
     """SHA-256 over flowerpose's source, by path: every source file (.py, .toml, .xml), or,
     given the modules a stage runs (`roots`), their `module_closure`'s files and the

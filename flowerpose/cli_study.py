@@ -367,6 +367,7 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_guard(args: argparse.Namespace) -> int:
+    from flowerpose.config import parse_set_options
     from flowerpose.eval.guard import (
         ACCEPTED,
         GUARD_FILES,
@@ -376,8 +377,6 @@ def cmd_guard(args: argparse.Namespace) -> int:
         run_guard,
     )
     from flowerpose.eval.report import markdown_table
-
-    from flowerpose.config import parse_set_options
     from flowerpose.eval.tune import user_overrides
 
     battery = load_battery(args.battery)
