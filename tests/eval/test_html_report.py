@@ -38,6 +38,8 @@ def test_an_eval_report_opens_from_disk_with_its_tables_and_3d_view(tmp_path, ca
     assert "http://" not in text.split("<script", 1)[0] and "src=\"http" not in text
     dom = _browser("--dump-dom", page.as_uri()).stdout
     assert 'id="table-1"' in dom and ">Total<" in dom and 'id="flowers-seed-1"' in dom
+    # The errors with their intervals and the accuracy curves.
+    assert 'id="intervals"' in dom and 'id="accuracy"' in dom and "95 % CI" in dom
     assert dom.count("<canvas") >= 1  # plotly built the WebGL view
     shot = tmp_path / "shot.png"
     _browser("--window-size=1200,2600", f"--screenshot={shot}", page.as_uri())
@@ -92,3 +94,19 @@ def test_a_results_page_has_a_section_per_stress_and_bench_run(tmp_path, capsys)
     assert "[1] `flowerpose stress --source real" in page
     assert "## Speed [2]" in page and "| 125,000 " in page and "0.125" in page
     assert re.search(r"\| visibility +\| 4\.000 +\| 3 \(over\)", page)
+
+
+@pytest.mark.slow
+def test_a_real_report_marks_its_false_positives_and_extra_detections(tmp_path, capsys):
+    from realplants import CENTRES, SCALE, write_real_plant
+
+    # Three flowers labelled, the fourth listed as unlabelled: its detection is extra.
+    folder = write_real_plant(tmp_path / "plant", "candidates", labelled=3,
+                              source={"unlabelled": [list(CENTRES[3] * SCALE)]})
+    out = tmp_path / "eval"
+    assert main(["eval", "-q", "--source", "real", str(folder), "--compare", "upstream",
+                 "--out", str(out)]) == 0
+    capsys.readouterr()
+    dom = _browser("--dump-dom", (out / "report.html").as_uri()).stdout
+    assert ">extra<" in dom and "extra (1)" in dom and ">scored<" in dom
+    assert 'id="compare"' in dom and "no difference shown" in dom
