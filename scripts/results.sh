@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The runs behind docs/results.md and the README's results table, then the page itself
 # (`make results`). Each run writes under runs/ (ignored by git); the page cites each run's
-# command, code, date and machine. About 30 minutes on 2 cores.
+# command, code, date and machine. About 40 minutes on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 flowerpose=.venv/bin/flowerpose
@@ -13,8 +13,13 @@ fi
 $flowerpose eval --suite oracle-10 --out runs/oracle-10 -q
 $flowerpose eval --suite field-10 --out runs/field-10 -q
 $flowerpose eval --source real "$real" --compare upstream --out runs/real3 -q
-$flowerpose stress --source real "$real" --thin 0.5,0.2,0.1,0.05 --repeats 3 --drop-views 3 \
-    --out runs/stress-real3 -q
+$flowerpose stress --source real "$real" --thin 0.5,0.2,0.1,0.07,0.05,0.03 --cut 0.25,0.5 \
+    --drop-views 3 --repeats 5 --compare upstream --out runs/stress-real3 -q
+# The field preset at plant 3's density (its flowers hold 818 points, fidelity.json's
+# median), for the simulator's predictions against the real plant's intervals.
+$flowerpose eval --source oracle --preset field --plants 10 --seed 0 \
+    --set 'sim.degrade.points_per_flower=[818, 818]' --out runs/field-818 -q
+$flowerpose fidelity "$real" runs/field-818 --out runs/fidelity -q
 $flowerpose bench --points 125000 1000000 --repeat 7 --out runs/bench -q
 $flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
     --set 'pollination.curve_angles_deg=[0, 15, 30, 45, 55, 65, 75]' --out runs/pollinate-10 -q
@@ -22,7 +27,8 @@ $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --s
     --out runs/pollinate-field-10 -q
 $flowerpose results runs/oracle-10/report.json runs/field-10/report.json \
     runs/real3/report.json runs/pollinate-10/report.json runs/pollinate-field-10/report.json \
-    runs/stress-real3/stress.json runs/bench/bench.json > docs/results.md.partial
+    runs/stress-real3/stress.json runs/fidelity/fidelity.json runs/bench/bench.json \
+    --figure docs/accuracy.png > docs/results.md.partial
 mv docs/results.md.partial docs/results.md
 # The README's table is the page's accuracy table, without the footnote marks.
 .venv/bin/python - <<'PY'

@@ -98,7 +98,11 @@ def test_eval_writes_the_report_contract(tmp_path, capsys):
                                         "fp", "error_deg"}
     assert set(report["summary"]) >= {"gt", "visible", "detections", "found", "recall",
                                       "recall_visible", "extra", "fp", "error_deg"}
-    assert set(report["summary"]["error_deg"]["plane"]) == {"mean", "median", "std", "n"}
+    assert set(report["summary"]["error_deg"]["plane"]) == {
+        "mean", "median", "std", "n", "mean_ci95", "median_ci95", "p90", "p90_ci95",
+        "over_20", "over_20_ci95", "over_90", "over_90_ci95"}
+    assert set(report["summary"]["accuracy"]["plane"]) == {"thresholds_deg", "share", "n",
+                                                           "auc", "auc_ci95"}
     assert report["config"]["cluster"]["eps"] == 0.01
     # An oracle run's settings: the pipeline's, the plants' and the scoring; no scan, RGB-D
     # or fusion settings, which it never used.

@@ -35,7 +35,8 @@ def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
         run_sweep(config, grid, plants=2, seed=0, out_dir=tmp_path / "ray")
     assert _rows(tmp_path / "ray") == _rows(tmp_path / "pool")
     assert len(_rows(tmp_path / "pool")) == 2
-    assert sum(session.tasks_by_node.values()) == 2 + 2 * 2  # plants, then evaluations
+    # plants, then the evaluations of the grid's two settings and of the defaults
+    assert sum(session.tasks_by_node.values()) == 2 + 3 * 2
 
 
 @pytest.mark.slow

@@ -42,11 +42,17 @@ def test_stress_command_line_and_its_refusals(tmp_path, capsys):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     assert main(["stress", "--source", "real", str(folder), "--thin", "0.5", "--exposure",
                  "0.8", "--cast", "0.1", "--channels", "g", "--noise", "0.0005",
-                 "--drop-views", "0", "--out", str(tmp_path / "out")]) == 0
+                 "--cut", "0.5", "--drop-views", "0", "--compare", "upstream",
+                 "--out", str(tmp_path / "out")]) == 0
     report = json.loads((tmp_path / "out" / "stress.json").read_text())
     assert [r["label"] for r in report["rows"]] == ["thin 0.5", "exposure 0.8", "cast g+0.1",
-                                                    "noise 0.0005"]
-    assert "| thin 0.5" in capsys.readouterr().out
+                                                    "noise 0.0005", "cut 0.5"]
+    # The published method on the very same clouds, paired at every level.
+    for row in [report["baseline"], *report["rows"]]:
+        paired = row["compare"]["upstream"]["paired"]
+        assert paired["verdicts"][0].startswith("plane") and "summary" in row["compare"]["upstream"]
+    printed = capsys.readouterr().out
+    assert "| thin 0.5" in printed and "against upstream" in printed
     assert main(["stress", "--source", "real", str(folder), "--thin", "2",
                  "--out", str(tmp_path / "bad")]) == 2
     assert "thin" in capsys.readouterr().err
