@@ -102,24 +102,38 @@ def bootstrap_interval(groups: Groups, statistic: str = "mean",
     `groups` together: over the values for one group, over groups then values for several
     (module docstring). Groups without values are left out; None bounds with fewer than two
     values."""
+    return bootstrap_intervals(groups, (statistic,), seed)[statistic]
+
+
+def bootstrap_intervals(groups: Groups, statistics: tuple[str, ...],
+                        seed: int = SEED) -> dict[str, dict[str, float | None]]:
+    """`bootstrap_interval` of several statistics at once, all from the same resamples."""
     kept = [np.asarray(g, float) for g in groups if len(g)]
     if sum(len(g) for g in kept) < 2:
-        return dict(NO_INTERVAL)
+        return {name: dict(NO_INTERVAL) for name in statistics}
     rng = np.random.default_rng(seed)
     if len(kept) > 1:
-        return _rounded(*_two_stage(kept, statistic, rng))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a degenerate sample (all equal) has a point interval
-        result = stats.bootstrap((kept[0],), _statistic(statistic), n_resamples=RESAMPLES,
-                                 confidence_level=CONFIDENCE, method="percentile",
-                                 vectorized=True, rng=rng)
-    return _rounded(*result.confidence_interval)
+        bounds = _two_stage(kept, statistics, rng)
+    else:
+        functions = [_statistic(name) for name in statistics]
+
+        def statistic(values: np.ndarray, axis: int = -1) -> np.ndarray:
+            return np.stack([f(values, axis=axis) for f in functions])
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a degenerate sample has a point interval
+            result = stats.bootstrap((kept[0],), statistic, n_resamples=RESAMPLES,
+                                     confidence_level=CONFIDENCE, method="percentile",
+                                     vectorized=True, rng=rng)
+        bounds = list(zip(result.confidence_interval.low, result.confidence_interval.high,
+                          strict=True))
+    return {name: _rounded(*b) for name, b in zip(statistics, bounds, strict=True)}
 
 
-def _two_stage(groups: list[np.ndarray], statistic: str, rng: np.random.Generator
-               ) -> tuple[float, float]:
-    """Percentile interval of `statistic` over a two-stage bootstrap: groups drawn with
-    replacement, then each drawn group's values, all resamples at once."""
+def _two_stage(groups: list[np.ndarray], statistics: tuple[str, ...],
+               rng: np.random.Generator) -> list[tuple[float, float]]:
+    """Percentile intervals of `statistics` over one two-stage bootstrap: groups drawn
+    with replacement, then each drawn group's values, all resamples at once."""
     sizes = np.array([len(g) for g in groups])
     padded = np.full((len(groups), sizes.max()), np.nan)
     for k, values in enumerate(groups):
@@ -129,9 +143,14 @@ def _two_stage(groups: list[np.ndarray], statistic: str, rng: np.random.Generato
     picks = (rng.random((*drawn.shape, sizes.max())) * counts[..., None]).astype(int)
     values = padded[drawn[..., None], picks]
     values[np.arange(sizes.max()) >= counts[..., None]] = np.nan
-    estimates = _padded_statistic(statistic, values.reshape(RESAMPLES, -1))
+    values = values.reshape(RESAMPLES, -1)
     tail = 100 * (1 - CONFIDENCE) / 2
-    return float(np.percentile(estimates, tail)), float(np.percentile(estimates, 100 - tail))
+    bounds = []
+    for name in statistics:
+        estimates = _padded_statistic(name, values)
+        bounds.append((float(np.percentile(estimates, tail)),
+                       float(np.percentile(estimates, 100 - tail))))
+    return bounds
 
 
 def error_summary(groups: Groups, intervals: bool = True) -> dict[str, Any]:
@@ -148,8 +167,11 @@ def error_summary(groups: Groups, intervals: bool = True) -> dict[str, Any]:
                 "over_90": None, "over_90_ci95": dict(NO_INTERVAL)}
     over = {threshold: int((values > threshold).sum()) for threshold in (GROSS_DEG, FLIP_DEG)}
 
+    found = (bootstrap_intervals(groups, ("mean", "median", "p90")) if intervals
+             else {name: dict(NO_INTERVAL) for name in ("mean", "median", "p90")})
+
     def interval(statistic: str) -> dict[str, float | None]:
-        return bootstrap_interval(groups, statistic) if intervals else dict(NO_INTERVAL)
+        return found[statistic]
 
     def share_interval(count: int) -> dict[str, float | None]:
         return wilson(count, len(values)) if intervals else dict(NO_INTERVAL)
