@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.cloudio import Cloud, read_cloud
-from flowerpose.config import to_dict
+from flowerpose.config import DEFAULT_PRESET, to_dict
 from flowerpose.eval.report import markdown_table, run_record
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
@@ -43,7 +43,7 @@ def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
     for _ in range(repeat):
         watch = Stopwatch()
         with watch.step("plant"):
-            plant = generate_plant(seed, preset("realistic"))
+            plant = generate_plant(seed, preset(DEFAULT_PRESET))
         views = path_cameras(plant.center[:2], plant.height)[1]
         with watch.step("visibility"):
             flower_visibility(plant, views)
@@ -58,7 +58,7 @@ def _oracle_cloud(seed: int, points: int, cache: Path | None) -> Cloud:
     """Realistic plant `seed`'s oracle cloud of `points` points, as `eval` makes it."""
     from flowerpose.eval.harness import generate_plant_files
 
-    sim = sim_preset("realistic")
+    sim = sim_preset(DEFAULT_PRESET)
     sim = dataclasses.replace(sim, oracle=dataclasses.replace(sim.oracle, points=points))
     with tempfile.TemporaryDirectory() as folder:
         generate_plant_files(seed, sim, Path(folder), cache)

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from flowerpose.atomic import write_text
-from flowerpose.config import load_toml
+from flowerpose.config import DEFAULT_PRESET, load_toml
 from flowerpose.errors import InputError
 from flowerpose.eval.paired import compare_runs, difference_cell
 from flowerpose.eval.report import markdown_table, run_record, summarise
@@ -52,7 +52,7 @@ class GuardEntry:
     name: str
     description: str
     source: str
-    preset: str = "realistic"
+    preset: str = DEFAULT_PRESET
     plants: int = 0
     seed: int = 0
     plant: str = ""

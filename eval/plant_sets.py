@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from flowerpose.config import load_suite, load_toml, suite_names, to_dict
+from flowerpose.config import DEFAULT_PRESET, load_suite, load_toml, suite_names, to_dict
 from flowerpose.errors import InputError
 
 #: The sections of the configuration each synthetic source's plants and clouds depend on.
@@ -31,7 +31,7 @@ class PlantSet:
 
     label: str
     source: str = "oracle"
-    preset: str = "realistic"
+    preset: str = DEFAULT_PRESET
     plants: int = 0
     seed: int = 0
     folders: tuple[Path, ...] = ()
@@ -115,7 +115,7 @@ class SetScorer:
         settings applied."""
         from flowerpose.eval.harness import eval_config
 
-        return eval_config("realistic" if plant_set.real else plant_set.preset,  # type: ignore[arg-type]
+        return eval_config(DEFAULT_PRESET if plant_set.real else plant_set.preset,  # type: ignore[arg-type]
                            configure)
 
     def score(self, plant_set: PlantSet, configure: Configure, out_dir: Path) -> list[dict]:

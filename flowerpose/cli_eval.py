@@ -27,13 +27,13 @@ from flowerpose.cli_options import (
     positive_number,
     stage_cache,
 )
-from flowerpose.config import profile_names, suite_names
+from flowerpose.config import DEFAULT_PRESET, profile_names, suite_names
 from flowerpose.errors import InputError
 from flowerpose.eval.kinds import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
 
 #: eval's source, preset, first seed and task when neither the command line nor a suite
 #: says (the run's from `EvalRun`).
-EVAL_DEFAULTS = {"source": EvalRun.source, "preset": "realistic", "seed": EvalRun.seed,
+EVAL_DEFAULTS = {"source": EvalRun.source, "preset": DEFAULT_PRESET, "seed": EvalRun.seed,
                  "task": EvalRun.task}
 #: What a report's config (and so its config.toml) records of the run beside the settings,
 #: which `eval --config` takes as the run's own where the command line does not say.

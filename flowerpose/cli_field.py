@@ -86,7 +86,6 @@ def cmd_scan(args: argparse.Namespace) -> int:
     from flowerpose.sim.export import read_plant
 
     config = configure(_scan_base(), args, reads=SCAN_SETTINGS, command="scan --sim")
-    camera = config.scan
     plant = read_plant(args.plant)
     plan = plan_plant_scan(plant, config.sim.viewpoints)  # the oracle's cameras, flown
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
@@ -97,7 +96,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         return 0
     from flowerpose.hardware.backends.sim_bot import write_preview
 
-    manifest = scan_plant(args.plant, args.out, camera, plan, args.via_farmduino,
+    manifest = scan_plant(args.plant, args.out, config.scan, plan, args.via_farmduino,
                           progress=True)
     frames = len(frame_files(args.out))  # on disk: a killed session never counted its own
     truth = args.out / "plant.json"

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from flowerpose.atomic import temporary_beside
+from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
 
 
@@ -137,7 +138,7 @@ def add_output(parser: argparse.ArgumentParser, help: str, required: bool = True
     add_overwrite(parser)
 
 
-def add_preset(parser: argparse.ArgumentParser, default: str | None = "realistic",
+def add_preset(parser: argparse.ArgumentParser, default: str | None = DEFAULT_PRESET,
                shown: str = "%(default)s") -> None:
     """--preset: the synthetic plants' preset (`shown`: the default the help says, where
     `default` None leaves it to the command)."""

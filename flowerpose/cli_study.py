@@ -25,6 +25,7 @@ from flowerpose.cli_options import (
     positive_number,
     stage_cache,
 )
+from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
 from flowerpose.eval.kinds import SOURCES, SYNTHETIC_SOURCES
 
@@ -261,11 +262,11 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.stopwatch import Stopwatch
 
     overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
-    base = eval_config(args.preset or "realistic", lambda c: configure(c, args))
+    base = eval_config(args.preset or DEFAULT_PRESET, lambda c: configure(c, args))
     space = tuple(read_space(args.space, base))
     objectives = tuple(parse_objectives(args.objective))
     train = parse_sets(args.train) if args.train else [
-        synthetic_set(args.source, args.preset or "realistic", args.plants, args.seed)]
+        synthetic_set(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
     validate = parse_sets(args.validate) if args.validate else validation_default(train)
     storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
     if args.ray not in (None, "local", "auto") and local_storage(storage) and not any(
@@ -345,7 +346,7 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
                    help="without --train: seeded training plants (default: %(default)s)")
     p.add_argument("--seed", type=SEED, default=0, metavar="S",
                    help="without --train: the first training seed (default: %(default)s)")
-    add_preset(p, None, "realistic")
+    add_preset(p, None, DEFAULT_PRESET)
     p.add_argument("--study", metavar="STORAGE",
                    help="the Optuna storage: an RDB URL (sqlite:///FILE, postgresql://...) or "
                    "journal:///FILE (default: sqlite:///DIR/study.db)")

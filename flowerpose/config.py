@@ -296,6 +296,10 @@ def profile_hash(name: str) -> str:
     return _asset("configs", "profile", name)[1]
 
 
+#: The synthetic world's preset where none is named: plants like the paper's, scanned cleanly.
+DEFAULT_PRESET = "realistic"
+
+
 def preset_names() -> list[str]:
     """The synthetic world's presets shipped in assets/presets (`--preset NAME`)."""
     return _asset_names("presets")

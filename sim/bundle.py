@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.cloudio import Cloud
+from flowerpose.config import DEFAULT_PRESET
 from flowerpose.scan_geometry import path_cameras
 from flowerpose.sim.degrade import degrade
 from flowerpose.sim.export import write_plant
@@ -45,7 +46,7 @@ class PlantBundle:
     """Files written (see `write_plant`), when an output folder was given."""
 
 
-def make_plant(seed: int, preset: PresetName = "realistic", points: int | None = None,
+def make_plant(seed: int, preset: PresetName = DEFAULT_PRESET, points: int | None = None,
                out_dir: str | Path | None = None, *,
                config: SimConfig | None = None) -> PlantBundle:
     """Generate plant `seed`, its viewpoints, visibility and oracle cloud; write them to

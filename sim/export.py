@@ -12,6 +12,7 @@ import trimesh
 
 from flowerpose.atomic import write_file, write_text
 from flowerpose.cloudio import Cloud, write_cloud
+from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json
 from flowerpose.sim.plant import FlowerTruth, Plant
@@ -88,7 +89,7 @@ def read_plant(plant_dir: str | Path) -> Plant:
                                int(f["petals"]), str(f.get("stage", "open")))
                    for f in truth["flowers"]]
         center = truth["plant_center"]
-        config = dataclasses.replace(preset(truth.get("preset", "realistic")),
+        config = dataclasses.replace(preset(truth.get("preset", DEFAULT_PRESET)),
                                      center_xy_m=(float(center[0]), float(center[1])))
         seed, height = int(truth["seed"]), float(truth["height"])
         distractors = truth.get("distractors", {})

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from flowerpose.config import apply_overrides, load_preset
+from flowerpose.config import DEFAULT_PRESET, apply_overrides, load_preset
 from flowerpose.errors import InputError
 from flowerpose.scan_geometry import ScanPathConfig
 
@@ -22,7 +22,7 @@ PresetName = str
 class PlantConfig:
     """Everything the procedural strawberry-plant generator varies (ranges are inclusive)."""
 
-    name: str = "realistic"
+    name: str = DEFAULT_PRESET
     """Preset this config was made from (informational, written into plant.json)."""
     center_xy_m: tuple[float, float] = (1.5, 0.75)
     """Crown position on the bed, metres, bed frame (the crown stands at z = 0): the middle

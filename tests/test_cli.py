@@ -411,7 +411,12 @@ def test_every_set_example_names_a_setting_its_command_reads():
 
     bases = {"pollinate": PollinateSettings,
              "detect": PipelineConfig, "pose": PipelineConfig, "bench": PipelineConfig}
+    checked = []
     for name, parser in _subparsers().items():
         setting = _set_example(parser)
         if setting is not None:
-            apply_overrides(bases.get(name, EvalConfig)(), parse_set_options([setting]))
+            base = bases.get(name, EvalConfig)()
+            # A key the command does not read is refused; one it reads changes its settings.
+            assert apply_overrides(base, parse_set_options([setting])) != base, (name, setting)
+            checked.append(name)
+    assert {"eval", "detect", "pollinate", "sweep"} <= set(checked)
