@@ -22,7 +22,12 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, flown_visits, judge
 from flowerpose.eval.pollination_contact import ContactWorld
-from flowerpose.hardware.flights.pollinate import Flower, PollinateConfig, plan_pollination, tilted
+from flowerpose.hardware.flights.pollination_plan import (
+    Flower,
+    PollinateConfig,
+    plan_pollination,
+    tilted,
+)
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
 from flowerpose.pipeline.colour import flower_coloured
 

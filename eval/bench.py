@@ -56,7 +56,7 @@ def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
 
 def _oracle_cloud(seed: int, points: int, cache: Path | None) -> Cloud:
     """Realistic plant `seed`'s oracle cloud of `points` points, as `eval` makes it."""
-    from flowerpose.eval.harness import generate_plant_files
+    from flowerpose.eval.plants import generate_plant_files
 
     sim = sim_preset(DEFAULT_PRESET)
     sim = dataclasses.replace(sim, oracle=dataclasses.replace(sim.oracle, points=points))

@@ -34,7 +34,7 @@ from flowerpose.atomic import write_image
 from flowerpose.config import require, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.coco import annotation, write_instances
-from flowerpose.eval.harness import EvalConfig
+from flowerpose.eval.config import EvalConfig
 from flowerpose.eval.report import run_record
 from flowerpose.eval.yolo import label_line, write_data_yaml, write_labels
 from flowerpose.jsonio import write_json

@@ -22,11 +22,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
 
 from flowerpose.atomic import write_text
 from flowerpose.config import DEFAULT_PRESET, load_toml
 from flowerpose.errors import InputError
+from flowerpose.eval.config import EvalConfig, eval_config
 from flowerpose.eval.paired import compare_runs, difference_cell
 from flowerpose.eval.report import markdown_table, run_record, summarise
 from flowerpose.eval.stats import interval_text
@@ -135,25 +135,19 @@ def real_folder(entry: GuardEntry, folders: list[Path]) -> Path:
                      f"{entry.plant} --to DIR fetches it)")
 
 
-def entry_config(entry: GuardEntry, overrides: tuple[dict, ...] = ()) -> Any:
+def entry_config(entry: GuardEntry, overrides: tuple[dict, ...] = ()) -> EvalConfig:
     """An entry's settings: its preset's (a real plant: the defaults), with the user's
     `overrides` (dotted keys) over them in order."""
-    from flowerpose.config import apply_overrides
-    from flowerpose.eval.harness import EvalConfig, eval_config
-
-    config = EvalConfig() if entry.source == "real" else eval_config(entry.preset)  # type: ignore[arg-type]
-    for layer in overrides:
-        config = apply_overrides(config, layer)
-    return config
+    return eval_config(DEFAULT_PRESET if entry.source == "real" else entry.preset, overrides)
 
 
-def run_entry(entry: GuardEntry, config: Any, out_dir: Path, folders: list[Path],
+def run_entry(entry: GuardEntry, config: EvalConfig, out_dir: Path, folders: list[Path],
               workers: int | None, cache: Path | None) -> list[dict]:
     """One entry run with `config` (`entry_config`) into out_dir: its report.json plant
     entries, each plant named so that (plant, flower) keys one flower (a perturbed entry's:
     "LEVEL rREPEAT PLANT")."""
     from flowerpose.eval.harness import run_eval
-    from flowerpose.eval.kinds import EvalRun
+    from flowerpose.eval.run import EvalRun
 
     if entry.source != "real":
         run = EvalRun(source=entry.source, plants=entry.plants, seed=entry.seed)

@@ -1,4 +1,5 @@
-"""Matching estimated flowers to true ones and scoring one plant (DESIGN.md's report fields).
+"""Matching estimated flowers to true ones and scoring one plant (DESIGN.md's report fields),
+and a flowers.json scored against a truth file (`flowerpose score`).
 
 Centres are in metres and normals unit vectors, estimates and truth in the same frame
 (the bed frame for generated plants).
@@ -6,13 +7,16 @@ Centres are in metres and normals unit vectors, estimates and truth in the same 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from flowerpose.errors import InputError
 from flowerpose.eval.truth import TruthFlower
 from flowerpose.pipeline.methods import METHODS
 from flowerpose.pipeline.pose import FlowerPose
@@ -133,3 +137,35 @@ def score_plant(estimates: Sequence[Estimate], truth: Sequence[TruthFlower],
         found=len(pairs), found_visible=len(scored), extra=len(pairs) - len(scored),
         fp=len(estimates) - len(pairs), error_deg=error_deg, failed=failed, pairs=pairs,
         matches=matches)
+
+
+def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant",
+                truth_scale: float = 25.0, max_distance: float = MAX_MATCH_DISTANCE) -> dict:
+    """A one-plant report for a flowers.json against plant.json or SageMaker labels."""
+    if not (truth_scale > 0 and math.isfinite(truth_scale)):
+        raise InputError("truth_scale", f"must be positive, got {truth_scale}")
+    if not (max_distance > 0 and math.isfinite(max_distance)):
+        raise InputError("score.max_distance_m", f"must be positive, got {max_distance}")
+    from flowerpose.eval.report import build_report, plant_entry
+    from flowerpose.eval.truth import read_plant_truth, read_sagemaker_truth
+    from flowerpose.pipeline.flowers import read_flowers
+    from flowerpose.stopwatch import Stopwatch
+
+    estimates = read_flowers(flowers_path)
+    if truth_format == "plant":
+        from flowerpose.eval.truth import is_sagemaker
+        from flowerpose.jsonio import read_json
+
+        document = read_json(truth_path)
+        if isinstance(document, dict) and "flowers" not in document and is_sagemaker(document):
+            raise InputError(truth_path, "holds SageMaker Ground Truth cuboids, not a "
+                             "plant.json: add `truth_format` sagemaker")
+    truth = (read_plant_truth(truth_path) if truth_format == "plant"
+             else read_sagemaker_truth(truth_path, truth_scale))
+    watch = Stopwatch()
+    score = score_plant(estimates, truth, max_distance)
+    config = {"truth_format": truth_format, "truth_scale": truth_scale,
+              "max_distance_m": max_distance}
+    seconds = round(watch.elapsed(), 6)
+    return build_report(config, [plant_entry(flowers_path.parent.name or "plant", score)],
+                        {"score": seconds, "total": seconds})

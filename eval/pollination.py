@@ -29,14 +29,14 @@ from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.pollination_contact import ContactWorld, Touches
 from flowerpose.hardware.bot import KinematicBot
-from flowerpose.hardware.flights.pollinate import (
+from flowerpose.hardware.flights.pollination_flight import fly_pollination
+from flowerpose.hardware.flights.pollination_plan import (
     UNCERTAIN,
     Flower,
     PollinateConfig,
     plan_pollination,
     read_visit_flowers,
 )
-from flowerpose.hardware.flights.pollination_flight import fly_pollination
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
 from flowerpose.hardware.kinematics import HeadPose, tool_forward
 from flowerpose.hardware.trajectory import Timeline

@@ -23,7 +23,8 @@ from flowerpose.pipeline.colour import flower_coloured
 from flowerpose.sim.export import read_plant
 
 if TYPE_CHECKING:
-    from flowerpose.eval.harness import EvalConfig, SyntheticJob
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.plants import SyntheticJob
 
 
 def pollinate_plants(jobs: list[SyntheticJob], entries: list[dict], config: EvalConfig,

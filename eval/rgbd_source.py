@@ -14,7 +14,6 @@ import dataclasses
 import io
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -29,9 +28,6 @@ from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.scanio import FRAME_PATTERN, TRAJECTORY_COLUMNS, trajectory_row
 from flowerpose.sim.depth import DepthSensorConfig
 from flowerpose.stopwatch import Stopwatch
-
-if TYPE_CHECKING:
-    from flowerpose.eval.harness import EvalConfig
 
 
 @dataclass(frozen=True)
@@ -147,15 +143,16 @@ def capture_rgbd(plant_dir: Path, config: RgbdConfig, fusion: FusionConfig,
             "seconds": watch.elapsed()}
 
 
-def capture_rgbd_clouds(config: EvalConfig, folders: dict[int, Path], workers: int | None,
+def capture_rgbd_clouds(config: RgbdConfig, fusion: FusionConfig, viewpoints: ScanPathConfig,
+                        folders: dict[int, Path], workers: int | None,
                         cache: Path | None = None
                         ) -> tuple[dict[int, tuple[Path, Path]], dict[str, float], list[dict]]:
-    """The RGB-D source for generated plants (seed -> folder): each filmed and fused
-    (`capture_rgbd_cached`). Returns (seed -> (cloud, truth)), seconds per stage, and each
-    plant's capture report."""
+    """The RGB-D source for generated plants (seed -> folder), filmed with `config` at the
+    waypoints `viewpoints` plans and fused by `fusion` (`capture_rgbd_cached`). Returns
+    (seed -> (cloud, truth)), seconds per stage, and each plant's capture report."""
     seeds = list(folders)
-    captured = run_jobs(capture_rgbd_cached, [(folders[s], config.rgbd, config.fusion,
-                                               config.sim.viewpoints, cache) for s in seeds],
+    captured = run_jobs(capture_rgbd_cached, [(folders[s], config, fusion, viewpoints, cache)
+                                              for s in seeds],
                         workers,
                         lambda k, v: f"seed-{seeds[k]}: RGB-D scan of {v['frames']} views "
                         f"fused into {v['points']} points "

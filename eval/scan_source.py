@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from flowerpose.cache import StageCache
 from flowerpose.config import require, to_dict
@@ -21,9 +20,6 @@ from flowerpose.pipeline.frames import FrameSelectConfig
 from flowerpose.pipeline.reconstruct import ReconstructConfig
 from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.stopwatch import Stopwatch
-
-if TYPE_CHECKING:
-    from flowerpose.eval.harness import EvalConfig
 
 #: Frames the eval's simulated camera renders a second of bot time: half the scan
 #: command's (`SimCameraConfig.frame_rate_hz`), about 560 frames of a 20-minute scan, plenty
@@ -200,24 +196,26 @@ def capture_scan_cached(plant_dir: Path, config: ScanSourceConfig,
 CAPTURE_GPU = {"patch_match": "needed", "auto": "if_any", "sgbm": "none"}
 
 
-def capture_scan_clouds(config: EvalConfig, folders: dict[int, Path], workers: int | None,
+def capture_scan_clouds(config: ScanSourceConfig, viewpoints: ScanPathConfig,
+                        folders: dict[int, Path], workers: int | None,
                         cache: Path | None = None
                         ) -> tuple[dict[int, tuple[Path, Path]], dict[str, float], list[dict]]:
-    """The scan source for generated plants (seed -> folder): each filmed along its scan and
-    reconstructed (`capture_scan_cached`), one plant at a time in the pool (rendering,
-    matching and stereo each use every core; on Ray one a node, so a cluster's nodes scan
-    in parallel). Returns (seed -> (cloud, truth with the scan's visibility)), seconds per
-    stage, and each plant's capture report."""
+    """The scan source for generated plants (seed -> folder), filmed with `config` along
+    the scan path `viewpoints` plans: each filmed and reconstructed
+    (`capture_scan_cached`), one plant at a time in the pool (rendering, matching and
+    stereo each use every core; on Ray one a node, so a cluster's nodes scan in parallel).
+    Returns (seed -> (cloud, truth with the scan's visibility)), seconds per stage, and each
+    plant's capture report."""
     seeds = list(folders)
-    captured = run_jobs(capture_scan_cached, [(folders[s], config.scan, config.sim.viewpoints,
-                                               cache) for s in seeds], 1,
+    captured = run_jobs(capture_scan_cached, [(folders[s], config, viewpoints, cache)
+                                              for s in seeds], 1,
                         lambda k, v: f"seed-{seeds[k]}: scan of {v['recorded']} frames, "
                         f"{v['registered']}/{v['frames']} chosen frames registered, "
                         f"{v['points']} points, petal F-score at 5 mm "
                         f"{v['quality']['petals']['fscore_5mm']:.2f} "
                         + said_steps(v["seconds"], v.get("cached", [])),
                         stage="scan capture", labels=[f"seed-{s}" for s in seeds],
-                        cpus=CAPTURE_CPUS, gpu=CAPTURE_GPU[config.scan.reconstruct.dense_method])
+                        cpus=CAPTURE_CPUS, gpu=CAPTURE_GPU[config.reconstruct.dense_method])
     timing = {stage: round(sum(c["seconds"][stage] for c in captured), 4)
               for stage in ("scan", "frames", "reconstruct")}
     clouds = {s: (folders[s] / "reconstruction" / "cloud.ply", folders[s] / "scan" / "plant.json")

@@ -21,25 +21,25 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flowerpose.atomic import write_figure, write_text
-from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
-from flowerpose.eval.match import MAX_MATCH_DISTANCE
 from flowerpose.eval.paired import compare_runs, difference_cell, record_cell
 from flowerpose.eval.report import markdown_table, run_record, summarise
 from flowerpose.eval.runner import run_jobs
 from flowerpose.eval.stats import interval_text
 from flowerpose.jsonio import read_json, write_json
-from flowerpose.perturb import KINDS, UNITS, Perturbation, draw_cuts, perturb
+from flowerpose.perturb import KINDS, UNITS, Perturbation
 from flowerpose.stopwatch import Stopwatch
+
+if TYPE_CHECKING:  # the harness's plants import the simulator: the command line does not
+    from flowerpose.eval.plants import Perturbed, PlantJob
 
 #: The default strengths of each perturbation: thinning through the envelope's lower
 #: bound (50 points a flower) and beyond, exposure and a cast of one channel at the
@@ -148,103 +148,22 @@ def _random(variant: Variant) -> bool:
     return variant.kind in ("thin", "noise", "cut")
 
 
-def _rng(seed: int, plant: str, variant: Variant, repeat: int) -> np.random.Generator:
-    """Each plant, perturbation and repeat's own generator, the same on every run."""
-    return np.random.default_rng([seed, repeat, zlib.crc32(plant.encode()),
-                                  zlib.crc32(variant.label.encode())])
+def _perturbed(variant: Variant, repeat: int, seed: int) -> Perturbed | None:
+    """What a job is scored under for a variant: its cloud perturbation, drawn per plant and
+    repeat from `seed` (a capture knob or the baseline: the cloud as captured)."""
+    from flowerpose.eval.plants import Perturbed
+
+    if variant.perturbation is None:
+        return None
+    return Perturbed(variant.perturbation, repeat, seed)
 
 
-def cut_flowers(truth: list) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """(centre, normal, radius) of the truth flowers a cut acts on: those with a pose (a
-    real plant's unlabelled flowers have none); a flower without a radius takes the median
-    of the others' (the match distance when none has one)."""
-    posed = [t for t in truth if not str(t.id).startswith("unlabelled")]
-    radii = [t.radius for t in posed if t.radius]
-    fallback = float(np.median(radii)) if radii else MAX_MATCH_DISTANCE
-    return [(t.center, t.normal, t.radius or fallback) for t in posed]
-
-
-def perturbed_real(clouds: list[Cloud], stage: str, variant: Variant,
-                   rng: np.random.Generator, truth: list | None = None
-                   ) -> tuple[list[Cloud], tuple[int, ...]]:
-    """A real plant's clouds (as `read_plant_clouds` gives them) under a variant, and the
-    grid views to leave out: candidates thinned file by file, a dropped view one file left
-    out (a whole cloud: that grid view's detections), colour and noise on the merged
-    points; crops each on its own; a cut of the `truth` flowers the same in every file."""
-    p = variant.perturbation
-    if p is None:
-        return clouds, ()
-    if p.kind == "cut":
-        cuts = draw_cuts(cut_flowers(truth or []), p.value, rng)
-        return [perturb(c, p, rng, cuts) for c in clouds], ()
-    if p.kind == "drop_view":
-        if stage == "cloud":
-            return clouds, (int(p.value),)
-        if stage == "crops" or int(p.value) >= len(clouds):
-            raise InputError("drop_view", f"view {int(p.value)}: the plant has "
-                             f"{len(clouds)} {stage} files" if stage == "candidates" else
-                             "crops hold one flower each: no view to drop")
-        return [c for k, c in enumerate(clouds) if k != int(p.value)], ()
-    if p.kind == "thin" or stage != "candidates":
-        return [perturb(c, p, rng) for c in clouds], ()
-    merged = Cloud(np.concatenate([c.points for c in clouds]),
-                   np.concatenate([c.colors for c in clouds]))
-    return [perturb(merged.subset(merged.first_copies()), p, rng)], ()
-
-
-def _real_job(plant: Any, variant: Variant, repeat: int, config: Any, out_dir: Path,
-              seed: int) -> dict:
-    from flowerpose.eval.real_source import evaluate_real_plant, read_plant_clouds, real_truth
-
-    clouds, drop = perturbed_real(read_plant_clouds(plant), plant.stage, variant,
-                                  _rng(seed, plant.name, variant, repeat),
-                                  real_truth(plant, config.max_distance))
-    entry, timing = evaluate_real_plant(plant, config.pipeline, out_dir, config.max_distance,
-                                        clouds, drop)
-    return {"entry": entry, "points": _points_per_flower(out_dir / "flowers.json")}
-
-
-def _synthetic_job(name: str, cloud_path: Path, truth_path: Path, variant: Variant,
-                   repeat: int, config: Any, out_dir: Path, seed: int,
-                   cache: Path | None) -> dict:
-    """One synthetic plant's cloud under a cloud perturbation (or as captured), detected and
-    scored; from the stage cache when the same cloud, truth, perturbation and settings
-    were run before."""
-
-    def compute() -> dict:
-        from flowerpose.eval.match import score_plant
-        from flowerpose.eval.report import plant_entry
-        from flowerpose.eval.truth import as_labelled, read_plant_truth
-        from flowerpose.pipeline.flowers import find_flowers, write_flowers
-
-        cloud = read_cloud(cloud_path)
-        truth = read_plant_truth(truth_path)
-        drop: tuple[int, ...] = ()
-        p = variant.perturbation
-        if p is not None and p.kind == "drop_view":
-            drop = (int(p.value),)
-        elif p is not None:
-            rng = _rng(seed, name, variant, repeat)
-            cuts = draw_cuts(cut_flowers(truth), p.value, rng) if p.kind == "cut" else None
-            cloud = perturb(cloud, p, rng, cuts)
-        result = find_flowers(cloud, config.pipeline, drop_views=drop)
-        write_flowers(out_dir / "flowers.json", result, cloud_path)
-        if config.label_error_deg > 0:
-            truth = as_labelled(truth, config.label_error_deg, name)
-        entry = plant_entry(name, score_plant([f.pose for f in result.flowers], truth,
-                                              config.max_distance))
-        return {"entry": entry, "points": _points_per_flower(out_dir / "flowers.json")}
-
-    if cache is None:
-        return compute()
-    from flowerpose.cache import StageCache
-
-    settings = {"pipeline": to_dict(config.pipeline), "variant": variant.to_json(),
-                "repeat": repeat, "seed": seed, "plant": name,
-                "max_distance": config.max_distance, "label_error_deg": config.label_error_deg}
-    result, _, _ = StageCache(cache).run("stress", settings, [cloud_path, truth_path], out_dir,
-                                         ("flowers.json",), compute)
-    return result
+def _stress_job(job: PlantJob, perturbed: Perturbed | None, config: Any, folder: Path,
+                cache: Path | None) -> dict:
+    """One plant's cloud under a perturbation (or as captured), detected and scored through
+    the job's own `score`, and the median points of the flowers it found."""
+    entry, _ = job.score(config, folder, cache, perturbed)
+    return {"entry": entry, "points": _points_per_flower(folder / "flowers.json")}
 
 
 def _points_per_flower(flowers_json: Path) -> float | None:
@@ -252,15 +171,6 @@ def _points_per_flower(flowers_json: Path) -> float | None:
     points = [f.get("points") for f in read_json(flowers_json).get("flowers", [])]
     points = [p for p in points if isinstance(p, int)]
     return float(np.median(points)) if points else None
-
-
-@dataclass(frozen=True)
-class JobConfig:
-    """What every stress job shares: the pipeline's settings and the scoring's."""
-
-    pipeline: Any
-    max_distance: float
-    label_error_deg: float = 0.0
 
 
 def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
@@ -272,7 +182,8 @@ def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
     report.html to out_dir and returns stress.json's content. `config`: an EvalConfig;
     `compare`: other settings by name (EvalConfigs, e.g. the published method's profile)
     run on the very same perturbed clouds and compared flower by flower at every level."""
-    from flowerpose.eval.harness import pipeline_part
+    from flowerpose.eval.config import pipeline_part
+    from flowerpose.eval.plants import Plants, PlantSet
 
     watch = Stopwatch()
     variants = (Variant(),) + plan.variants
@@ -281,30 +192,29 @@ def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
         raise InputError(capture[0].kind, "a capture knob needs --source scan")
     keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
     runs = out_dir / "runs"
+    made = Plants(workers, cache)
     if source == "real":
-        subjects, run_config = _real_subjects(folders, truth_scale)
-        names = [plant.name for plant in subjects]
+        plant_set = PlantSet("real", folders=tuple(folders), truth_scale=truth_scale)
+        jobs = {None: made.jobs(plant_set, config, out_dir / "plants").jobs}
+        run_config: dict = {"source": "real",
+                            "folders": [job.plant.describe() for job in jobs[None]]}
     else:
-        clouds = _synthetic_clouds(config, source, plants, seed, out_dir, workers, cache,
-                                   capture)
+        plant_set = PlantSet(source, config.sim.plant.name, plants, seed)
+        jobs = {v.capture: made.jobs(plant_set, _captured_with(config, v),
+                                     out_dir / "plants" / (_folder(v, 0) if v.capture
+                                                           else "as-captured")).jobs
+                for v in [Variant(), *capture]}
         run_config = {"source": source, "plants": plants, "seed": seed,
                       "preset": config.sim.plant.name}
-        names = [f"seed-{s}" for s in range(seed, seed + plants)]
+    names = [job.name for job in jobs[None]]
 
     def scored(settings: Any, folder: Path) -> list[dict]:
-        """Every (variant, repeat, plant) job of `settings`, its runs under `folder`."""
-        jobs_config = JobConfig(pipeline_part(settings), settings.score.max_distance_m,
-                                settings.score.label_error_deg if source != "real" else 0.0)
-        if source == "real":
-            job_args = [(plant, v, r, jobs_config, folder / _folder(v, r) / plant.name,
-                         plan.seed) for v, r in keyed for plant in subjects]
-            return run_jobs(_real_job, job_args, workers, _describe(job_args),
-                            stage="stress", labels=[a[0].name for a in job_args])
-        job_args = [(name, *clouds[(v.capture, name)], v, r, jobs_config,
-                     folder / _folder(v, r) / name, plan.seed, cache)
-                    for v, r in keyed for name in names]
-        return run_jobs(_synthetic_job, job_args, workers, _describe(job_args),
-                        stage="stress", labels=[a[0] for a in job_args])
+        """Every (variant, repeat, plant) job under `settings`, its runs under `folder`."""
+        job_args = [(job, _perturbed(v, r, plan.seed), settings,
+                     folder / _folder(v, r) / job.name, cache)
+                    for v, r in keyed for job in jobs[v.capture]]
+        return run_jobs(_stress_job, job_args, workers, _describe(keyed, names),
+                        stage="stress", labels=[a[0].name for a in job_args])
 
     rows = _rows(keyed, names, scored(config, runs),
                  {name: scored(other, runs / name) for name, other in (compare or {}).items()})
@@ -326,48 +236,20 @@ def _folder(variant: Variant, repeat: int) -> str:
     return variant.label.replace(" ", "_") + (f"-r{repeat}" if repeat else "")
 
 
-def _describe(job_args: list[tuple]):
+def _describe(keyed: list[tuple[Variant, int]], names: list[str]):
     def describe(k: int, value: dict) -> str:
-        args = job_args[k]
-        name = args[0] if isinstance(args[0], str) else args[0].name
-        variant = next(a for a in args if isinstance(a, Variant))
+        variant, _ = keyed[k // len(names)]
         entry = value["entry"]
-        return (f"{variant.label}: {name}: {entry['found_visible']}/{entry['visible']} found, "
-                f"{entry['fp']} fp")
+        return (f"{variant.label}: {names[k % len(names)]}: {entry['found_visible']}/"
+                f"{entry['visible']} found, {entry['fp']} fp")
     return describe
 
 
-def _real_subjects(folders: list[Path], truth_scale: float | None) -> tuple[list, dict]:
-    from flowerpose.eval.harness import real_plants
-
-    plants = real_plants(folders, truth_scale)
-    return plants, {"source": "real", "folders": [p.describe() for p in plants]}
-
-
-def _synthetic_clouds(config: Any, source: str, plants: int, seed: int, out_dir: Path,
-                      workers: int | None, cache: Path | None, capture: list[Variant]
-                      ) -> dict[tuple, tuple[Path, Path]]:
-    """(capture knob or None, plant name) -> (cloud, truth): the plants generated once, and
-    captured once per capture setting (its own plants folder)."""
-    from flowerpose.eval.harness import capture_clouds, generate_plants
-
-    if plants < 1:
-        raise InputError("plants", f"must be at least 1, got {plants}")
-    seeds = list(range(seed, seed + plants))
-    found: dict[tuple, tuple[Path, Path]] = {}
-    for variant in [Variant(), *capture]:
-        base = out_dir / "plants" / (_folder(variant, 0) if variant.capture else "as-captured")
-        varied = config if variant.capture is None else _with_capture(config, variant.capture)
-        generate_plants(seeds, varied.sim, base, workers, cache)
-        clouds = capture_clouds(varied, source, {s: base / f"seed-{s}" for s in seeds},
-                                workers, cache)[0]
-        for s in seeds:
-            found[(variant.capture, f"seed-{s}")] = clouds[s]
-    return found
-
-
-def _with_capture(config: Any, capture: tuple[str, str]) -> Any:
-    kind, text = capture
+def _captured_with(config: Any, variant: Variant) -> Any:
+    """The config a variant's plants are captured with: a capture knob's, or the run's."""
+    if variant.capture is None:
+        return config
+    kind, text = variant.capture
     if kind == "frames":
         return dataclasses.replace(config, scan=dataclasses.replace(
             config.scan, frames=dataclasses.replace(config.scan.frames, count=int(text))))

@@ -17,17 +17,9 @@ from pathlib import Path
 from flowerpose.atomic import write_figure, write_text
 from flowerpose.config import apply_overrides, current_name, value_at
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import (
-    EvalConfig,
-    capture_clouds,
-    evaluate_cloud,
-    generate_plants,
-    pipeline_part,
-    real_plants,
-    settings_run,
-)
+from flowerpose.eval.config import WORLD_SECTIONS, EvalConfig, settings_run
 from flowerpose.eval.paired import compare_runs
-from flowerpose.eval.real_source import evaluate_real_plant
+from flowerpose.eval.plants import Plants, PlantSet, score_job
 from flowerpose.eval.report import summarise
 from flowerpose.eval.runner import run_jobs
 from flowerpose.jsonio import write_json
@@ -162,16 +154,11 @@ def sweep_figure(settings: list[dict], pooled: list[dict], per_plant: list[list[
     return fig
 
 
-#: Settings whose change gives a source other clouds: those of its capture and the plants.
-_CAPTURE_KEYS = {"oracle": ("sim.",), "scan": ("sim.", "scan."),
-                 "rgbd": ("sim.", "rgbd.", "fusion.")}
-
-
 def _separate_plants(keys: list[str], source: str) -> bool:
-    if source == "real":
-        return False
-    """Whether each setting needs plants (and clouds) of its own."""
-    return any(key.startswith(_CAPTURE_KEYS[source]) for key in keys)
+    """Whether each setting needs plants (and clouds) of its own: the grid varies a
+    section the source's clouds depend on (`config.WORLD_SECTIONS`)."""
+    return any(key.startswith(f"{section}.") for key in keys
+               for section in WORLD_SECTIONS[source])
 
 
 def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle",
@@ -197,11 +184,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     whole resolved config. Plants are generated, and for scan and rgbd filmed and
     reconstructed, once for all settings unless a setting changes them; `cache` is the
     stage cache's folder those captures are taken from and put into (None: none)."""
-    if source != "real" and plants < 1:
-        raise InputError("plants", f"must be at least 1, got {plants}")
-    if source not in (*_CAPTURE_KEYS, "real"):
-        raise InputError("source", f"'{source}': the sweep's sources are "
-                         f"{', '.join(_CAPTURE_KEYS)}, real")
+    plant_set = (PlantSet("real", folders=tuple(folders)) if source == "real"
+                 else PlantSet(source, config.sim.plant.name, plants, seed))
     watch = Stopwatch()
     keys = [key for key, _ in grid]
     settings = [dict(zip(keys, combo, strict=True))
@@ -209,28 +193,16 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     # The last configuration run is the defaults (the settings without the grid's), which
     # every setting is compared with flower by flower.
     configs = [apply_overrides(config, s) for s in settings] + [config]
-    if source == "real":
-        subjects = real_plants(list(folders), None)
-        names = [plant.name for plant in subjects]
-        jobs = [(plant, pipeline_part(cfg), out_dir / f"setting-{_name(k, settings)}" / plant.name,
-                 cfg.score.max_distance_m) for k, cfg in enumerate(configs) for plant in subjects]
-        job = evaluate_real_plant
-    else:
-        seeds = list(range(seed, seed + plants))
-        names = [f"seed-{s}" for s in seeds]
-        separate = _separate_plants(keys, source)
-        clouds: list[dict[int, tuple[Path, Path]]] = []
-        for k, cfg in enumerate(configs):
-            if k == 0 or separate:
-                base = out_dir / (f"plants-{_name(k, settings)}" if separate else "plants")
-                generate_plants(seeds, cfg.sim, base, workers, cache)
-                shared = capture_clouds(cfg, source, {s: base / f"seed-{s}" for s in seeds},
-                                        workers, cache)[0]
-            clouds.append(shared)
-        jobs = [(*clouds[k][s], cfg, out_dir / f"setting-{_name(k, settings)}" / f"seed-{s}",
-                 f"seed-{s}", cache) for k, cfg in enumerate(configs) for s in seeds]
-        job = evaluate_cloud
-    results = run_jobs(job, jobs, workers,
+    made = Plants(workers, cache)
+    separate = _separate_plants(keys, source)
+    jobs = []
+    for k, cfg in enumerate(configs):
+        folder = out_dir / (f"plants-{_name(k, settings)}" if separate else "plants")
+        jobs.append(made.jobs(plant_set, cfg, folder).jobs)
+    names = [job.name for job in jobs[0]]
+    job_args = [(job, cfg, out_dir / f"setting-{_name(k, settings)}" / job.name, cache)
+                for k, cfg in enumerate(configs) for job in jobs[k]]
+    results = run_jobs(score_job, job_args, workers,
                        lambda j, v: f"setting {_name(j // len(names), settings)} "
                        f"{v[0]['plant']}: {v[0]['found']}/{v[0]['gt']} found, {v[0]['fp']} fp",
                        stage="sweep evaluation",
@@ -267,8 +239,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
     plt.close(figure)
     best = {"setting": typed[best_index], "metrics": pooled[best_index],
             "vs_defaults": compared[best_index],
-            "config": (settings_run(configs[best_index], "real", [p.stage for p in subjects])
-                       if source == "real" else settings_run(configs[best_index], "oracle"))}
+            "config": settings_run(configs[best_index], "real" if source == "real"
+                                   else "oracle", [job.start for job in jobs[best_index]])}
     write_json(out_dir / "best.json",
                {"best": best, "grid": {key: [value_at(apply_overrides(config, {key: v}), key)
                                              for v in values] for key, values in grid},

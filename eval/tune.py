@@ -3,7 +3,7 @@ plants the search never sees.
 
 Each trial draws the settings of the space (`tune_space.py`) from Optuna's sampler (TPE,
 seeded by `--sampler-seed`), scores them on every training plant and every validation
-plant (`plant_sets.py`), and returns the training objectives; the validation scores are
+plant (`plants.py`), and returns the training objectives; the validation scores are
 recorded beside them, never shown to the sampler. With one objective each training plant
 reports the objective so far and a median pruner stops hopeless trials; with several the
 study keeps their Pareto front. The study lives in an Optuna storage, so a rerun adds
@@ -28,14 +28,15 @@ from typing import Any
 
 from flowerpose.atomic import write_text
 from flowerpose.config import (
-    apply_overrides,
+    DEFAULT_PRESET,
     load_profile,
     load_toml,
     renamed,
     settings_toml,
 )
 from flowerpose.errors import InputError
-from flowerpose.eval.plant_sets import PlantSet, SetScorer
+from flowerpose.eval.config import EvalConfig, eval_config
+from flowerpose.eval.plants import Plants, PlantSet, world_digest
 from flowerpose.eval.report import markdown_table, run_record, summarise
 from flowerpose.eval.tune_space import Objective, Param, typed_settings
 from flowerpose.jsonio import write_json
@@ -71,13 +72,32 @@ class TuneSpec:
     out_dir: Path
     cache: Path | None
 
-    def configure(self, settings: dict) -> Any:
-        """The function that turns a preset's config into the trial's."""
-        def configure(config: Any) -> Any:
-            for overrides in (*self.overrides, settings):
-                config = apply_overrides(config, overrides)
-            return config
-        return configure
+    def layers(self, settings: dict) -> tuple[dict, ...]:
+        """The user's settings and then a trial's (`settings`), in the order they apply."""
+        return (*self.overrides, settings)
+
+
+class SetScorer:
+    """Scores settings on plant sets: each set's config is its preset's (a real set's: the
+    defaults') with the settings' layers over it; captures are made once per world
+    (`plants.Plants`) and detections come from the stage cache where the same cloud was
+    detected with the same settings."""
+
+    def __init__(self, out_dir: Path, cache: Path | None, workers: int | None = 1):
+        self.out_dir, self.cache = out_dir, cache
+        self.plants = Plants(workers, cache)
+
+    def config(self, plant_set: PlantSet, layers: tuple[dict, ...]) -> EvalConfig:
+        return eval_config(DEFAULT_PRESET if plant_set.real else plant_set.preset, layers)
+
+    def score(self, plant_set: PlantSet, layers: tuple[dict, ...], out_dir: Path) -> list[dict]:
+        """Report.json plant entries of the settings on every plant of the set (each
+        scored into out_dir/NAME/)."""
+        config = self.config(plant_set, layers)
+        world = (f"{plant_set.source}-{plant_set.preset}-"
+                 f"{world_digest(config, plant_set.source)}")
+        jobs = self.plants.jobs(plant_set, config, self.out_dir / "plants" / world).jobs
+        return [job.score(config, out_dir / job.name, self.cache)[0] for job in jobs]
 
 
 def user_overrides(profile: str | None, config_file: Path | None, sets: dict) -> tuple[dict, ...]:
@@ -148,16 +168,16 @@ def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
     return study
 
 
-def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], configure: Any, folder: Path,
-             after_each: Any = None) -> list[dict] | None:
-    """The plant entries of the configured settings on every plant of the sets (None
-    without sets), each plant named by its set; `after_each(entries)` after each plant's
-    (the pruner's report)."""
+def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], layers: tuple[dict, ...],
+             folder: Path, after_each: Any = None) -> list[dict] | None:
+    """The plant entries of the settings (`layers`, applied in order) on every plant of the
+    sets (None without sets), each plant named by its set; `after_each(entries)` after
+    each plant's (the pruner's report)."""
     if not sets:
         return None
     entries: list[dict] = []
     for k, plant_set in enumerate(sets):
-        for entry in scorer.score(plant_set, configure, folder / f"set-{k}"):
+        for entry in scorer.score(plant_set, layers, folder / f"set-{k}"):
             entries.append({**entry, "plant": f"{plant_set.label}: {entry['plant']}"})
             if after_each is not None:
                 after_each(entries)
@@ -185,7 +205,7 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
     def objective(trial: optuna.Trial) -> tuple[float, ...] | float:
         settings = typed_settings(list(spec.space),
                                   {p.key: p.suggest(trial) for p in spec.space})
-        configure = spec.configure(settings)
+        layers = spec.layers(settings)
         folder = Path(tempfile.mkdtemp(prefix=f"trial-{trial.number}-",
                                        dir=spec.out_dir / "trials"))
         try:
@@ -197,7 +217,7 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
                         raise optuna.TrialPruned()
 
             try:
-                train_entries = _entries(scorer, spec.train, configure, folder / "train",
+                train_entries = _entries(scorer, spec.train, layers, folder / "train",
                                          report)
                 train = summarise(train_entries, False)
             except optuna.TrialPruned:
@@ -208,7 +228,7 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
                 raise
             trial.set_user_attr("train", _recorded(train_entries))
             trial.set_user_attr("validate", _recorded(
-                _entries(scorer, spec.validate, configure, folder / "validate")))
+                _entries(scorer, spec.validate, layers, folder / "validate")))
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         values = tuple(o.value(train) for o in spec.objectives)
@@ -261,10 +281,10 @@ def score_defaults(spec: TuneSpec) -> dict:
     paired comparison with the chosen trial)."""
     scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
     folder = spec.out_dir / "trials" / "defaults"
-    configure = spec.configure({})
+    layers = spec.layers({})
     try:
-        validate = _entries(scorer, spec.validate, configure, folder / "validate")
-        return {"train": _recorded(_entries(scorer, spec.train, configure, folder / "train")),
+        validate = _entries(scorer, spec.validate, layers, folder / "validate")
+        return {"train": _recorded(_entries(scorer, spec.train, layers, folder / "train")),
                 "validate": _recorded(validate), "validate_entries": validate}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
@@ -281,7 +301,7 @@ def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> d
     scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
     folder = spec.out_dir / "trials" / "chosen"
     try:
-        chosen = _entries(scorer, spec.validate, spec.configure(settings), folder)
+        chosen = _entries(scorer, spec.validate, spec.layers(settings), folder)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     paired = compare_runs(chosen, defaults["validate_entries"])

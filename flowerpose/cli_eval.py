@@ -29,7 +29,7 @@ from flowerpose.cli_options import (
 )
 from flowerpose.config import DEFAULT_PRESET, profile_names, suite_names
 from flowerpose.errors import InputError
-from flowerpose.eval.kinds import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
+from flowerpose.eval.run import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
 
 #: eval's source, preset, first seed and task when neither the command line nor a suite
 #: says (the run's from `EvalRun`).
@@ -45,7 +45,8 @@ def _default_out() -> Path:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import eval_config, run_eval
+    from flowerpose.eval.config import eval_config
+    from flowerpose.eval.harness import run_eval
 
     suite = _apply_suite(args) if args.suite else None
     _run_from_config(args)
@@ -65,8 +66,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for path, flag in ((args.junit, "--junit"), (args.summary, "--summary")):
         if path is not None:
             check_writable(path, flag)
-    config = eval_config(args.preset,
-                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
+    config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
     from flowerpose.pipeline.detect import make_detector
 
     make_detector(config.detect, config.colour)  # one that cannot load says so before any work
@@ -274,8 +274,8 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
+    from flowerpose.eval.config import EvalConfig, pipeline_part
     from flowerpose.eval.fidelity import FIDELITY_FILES, outcome_lines, run_fidelity, table
-    from flowerpose.eval.harness import EvalConfig, pipeline_part
 
     config = configure(EvalConfig(), args)
     with owned(args.out, "fidelity", args.overwrite, FIDELITY_FILES):

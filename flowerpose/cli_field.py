@@ -36,7 +36,7 @@ def _scan_base():
     frame rate (`SimCameraConfig`; an eval renders fewer, `EVAL_FRAME_RATE_HZ`)."""
     import dataclasses
 
-    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.eval.config import EvalConfig
     from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 
     config = EvalConfig()
@@ -286,21 +286,21 @@ def _home_field_bot(args: argparse.Namespace, bot) -> None:
         bot.home()
 
 
-_pollinate_base = starting_config("flowerpose.hardware.flights.pollinate:PollinateSettings")
+_pollinate_base = starting_config("flowerpose.hardware.flights.pollination_plan:PollinateSettings")
 
 
 
 
 def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
-    from flowerpose.hardware.flights.pollinate import (
+    from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, read_flight
+    from flowerpose.hardware.flights.pollination_plan import (
         NO_NORMAL,
         UNCERTAIN,
         check_plant,
         plan_pollination,
         read_visit_flowers,
     )
-    from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, read_flight
     from flowerpose.hardware.flights.scan_plan import pose_header, pose_row
     from flowerpose.jsonio import read_json, write_json
     from flowerpose.pipeline.flowers import read_flowers
@@ -437,7 +437,7 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
                         "pollinate.*, pollination.json's config, and colour.*, which tells a "
                         "target's own corolla)")
     p.set_defaults(func=cmd_pollinate, **{RENAMED_ATTRIBUTE: moved_under(
-        "flowerpose.hardware.flights.pollinate:PollinateConfig", "pollinate")})
+        "flowerpose.hardware.flights.pollination_plan:PollinateConfig", "pollinate")})
 
 
 def cmd_farmduino(args: argparse.Namespace) -> int:

@@ -144,11 +144,11 @@ _dataset_base = starting_config("flowerpose.eval.dataset:DatasetConfig")
 def cmd_dataset(args: argparse.Namespace) -> int:
     from flowerpose.cli_flags import given_settings
     from flowerpose.config import apply_overrides, parse_set_options
+    from flowerpose.eval.config import eval_config
     from flowerpose.eval.dataset import DatasetConfig, write_dataset
-    from flowerpose.eval.harness import eval_config
 
     dataset = apply_overrides(DatasetConfig(), parse_set_options(given_settings(args)))
-    config = eval_config(args.preset, lambda base: configure(base, args, flags=False))
+    config = configure(eval_config(args.preset), args, flags=False)
     seeds = list(range(args.seed, args.seed + args.plants))
     manifest = write_dataset(args.out, seeds, config, dataset, args.overwrite)
     split = manifest["split"]
@@ -293,7 +293,8 @@ _eval_base = starting_config("flowerpose.eval.harness:EvalConfig")
 
 
 def cmd_score(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import EvalConfig, score_files
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.match import score_files
 
     config = configure(EvalConfig(), args, reads=("score",), command="score")
     report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,

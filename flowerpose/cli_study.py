@@ -27,17 +27,16 @@ from flowerpose.cli_options import (
 )
 from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
-from flowerpose.eval.kinds import SOURCES, SYNTHETIC_SOURCES
+from flowerpose.eval.run import SOURCES, SYNTHETIC_SOURCES
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import eval_config
+    from flowerpose.eval.config import eval_config
     from flowerpose.eval.sweep import parse_grid, run_sweep, sweep_outputs
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
-    config = eval_config(args.preset,
-                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
+    config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
     grid = parse_grid(args.grid, config)
     cache = stage_cache(args)
     writes = sweep_outputs(grid, args.source, args.folders)
@@ -115,14 +114,14 @@ def _texts(text: str) -> list[str]:
 
 
 def cmd_stress(args: argparse.Namespace) -> int:
-    from flowerpose.eval.harness import eval_config, real_plants
+    from flowerpose.eval.config import eval_config
     from flowerpose.eval.methods import ExternalMethod, parse_compare
+    from flowerpose.eval.plants import real_plants
     from flowerpose.eval.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
-    config = eval_config(args.preset,
-                         lambda base: configure(base, args, run_keys=EVAL_RUN_KEYS))
+    config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
     levels = {kind: getattr(args, kind) if getattr(args, kind) is not None
               else list(DEFAULT_LEVELS[kind]) for kind in DEFAULT_LEVELS}
     if args.source == "real":
@@ -244,8 +243,8 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
 
 def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.config import parse_set_options
-    from flowerpose.eval.harness import eval_config
-    from flowerpose.eval.plant_sets import parse_sets, synthetic_set
+    from flowerpose.eval.config import eval_config
+    from flowerpose.eval.plants import PlantSet, parse_sets
     from flowerpose.eval.tune import (
         TUNE_FILES,
         TuneSpec,
@@ -262,11 +261,11 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.stopwatch import Stopwatch
 
     overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
-    base = eval_config(args.preset or DEFAULT_PRESET, lambda c: configure(c, args))
+    base = configure(eval_config(args.preset or DEFAULT_PRESET), args)
     space = tuple(read_space(args.space, base))
     objectives = tuple(parse_objectives(args.objective))
     train = parse_sets(args.train) if args.train else [
-        synthetic_set(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
+        PlantSet(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
     validate = parse_sets(args.validate) if args.validate else validation_default(train)
     storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
     if args.ray not in (None, "local", "auto") and local_storage(storage) and not any(

@@ -343,18 +343,24 @@ SUITE_KEYS = {"source": str, "preset": str, "plants": int, "seed": int}
 
 
 def load_suite(name: str) -> dict[str, Any]:
-    """A named suite (assets/suites/NAME.toml): {"name", "version", "description", "eval":
-    {source, preset, plants, seed}}; errors name the file, and a preset that is not one of
+    """A named suite (assets/suites/NAME.toml), or a suite file (a path ending .toml, whose
+    [suite] version may be left out): {"name", "version", "description", "eval": {source,
+    preset, plants, seed}}; errors name the file, and a preset that is not one of
     assets/presets."""
     from importlib.resources import files
 
-    data = _asset("suites", "suite", name)[0]
-    path = files("flowerpose.assets") / "suites" / f"{name}.toml"
+    if name.endswith(".toml"):
+        path: Any = Path(name)
+        data, versioned, name = load_toml(path), False, Path(name).stem
+    else:
+        data, versioned = _asset("suites", "suite", name)[0], True
+        path = files("flowerpose.assets") / "suites" / f"{name}.toml"
     header, fixed = data.get("suite", {}), data.get("eval", {})
     version = header.get("version")
-    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+    if (versioned or version is not None) and (
+            not isinstance(version, int) or isinstance(version, bool) or version < 1):
         raise InputError(path, "[suite] needs a version, a whole number from 1")
-    if set(fixed) != set(SUITE_KEYS) or not all(
+    if not isinstance(fixed, dict) or set(fixed) != set(SUITE_KEYS) or not all(
             isinstance(fixed[k], t) and not isinstance(fixed[k], bool)
             for k, t in SUITE_KEYS.items()):
         raise InputError(path, f"[eval] must give exactly {', '.join(SUITE_KEYS)}")

@@ -175,7 +175,7 @@ class PollinatorTool:
 
 
 PAPER_TOOL = PollinatorTool()
-"""The pollinator this project plans for (`hardware/flights/pollinate.py`)."""
+"""The pollinator this project plans for (`hardware/flights/pollination_plan.py`)."""
 
 
 def farmbot_mm_to_bed(xyz_mm, geometry: BotGeometry = PAPER_BOT) -> np.ndarray:

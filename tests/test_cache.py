@@ -226,8 +226,9 @@ def test_the_cache_command_says_what_is_held_and_prunes_only_entries(tmp_path, c
 
 @pytest.mark.slow
 def test_an_eval_again_takes_its_plants_detections_and_scores_from_the_cache(tmp_path):
-    from flowerpose.eval.harness import EvalConfig, run_eval
-    from flowerpose.eval.kinds import EvalRun
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.harness import run_eval
+    from flowerpose.eval.run import EvalRun
 
     root, config = tmp_path / "cache", EvalConfig()
 

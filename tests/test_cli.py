@@ -405,8 +405,8 @@ def test_the_quick_help_examples_run_as_written_with_their_set_example(tmp_path,
 
 def test_every_set_example_names_a_setting_its_command_reads():
     from flowerpose.config import apply_overrides, parse_set_options
-    from flowerpose.eval.harness import EvalConfig
-    from flowerpose.hardware.flights.pollinate import PollinateSettings
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.hardware.flights.pollination_plan import PollinateSettings
     from flowerpose.pipeline.flowers import PipelineConfig
 
     bases = {"pollinate": PollinateSettings,

@@ -13,7 +13,7 @@ def _configured(base, *argv):
 
 
 def test_an_evals_renamed_scan_keys_reach_the_embedded_sections_with_a_warning(capsys):
-    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.eval.config import EvalConfig
 
     old = _configured(EvalConfig(), "eval", "--set", "scan.frame_rate_hz=0.1",
                       "--set", "scan.sensor.gain=1.2", "--set", "scan.frames=50",
@@ -62,7 +62,7 @@ def test_a_key_a_command_does_not_read_or_a_bad_value_is_one_line_naming_the_ful
 
 
 def test_sweep_grids_tune_sets_and_tune_spaces_take_renamed_keys_too(tmp_path, capsys):
-    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.eval.config import EvalConfig
     from flowerpose.eval.sweep import parse_grid
     from flowerpose.eval.tune import user_overrides
     from flowerpose.eval.tune_space import read_space

@@ -61,3 +61,59 @@ def test_importing_every_pipeline_module_loads_no_sim_hardware_or_eval_module():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=300, check=True)
     assert done.stdout.split() == [], done.stdout
+
+
+def _package_imports(folder: Path, package: str) -> dict[str, set[str]]:
+    """Each module of one package folder -> the modules of the same folder it imports,
+    anywhere (under `if TYPE_CHECKING:` too: a type is a dependency)."""
+    modules = {p.stem for p in folder.glob("*.py") if p.stem != "__init__"}
+    graph = {}
+    for name in modules:
+        found = set()
+        for node in ast.walk(ast.parse((folder / f"{name}.py").read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                if node.module == package:
+                    found |= {a.name for a in node.names}
+                elif node.module.startswith(package + "."):
+                    found.add(node.module[len(package) + 1:].split(".")[0])
+            elif isinstance(node, ast.Import):
+                found |= {a.name[len(package) + 1:].split(".")[0] for a in node.names
+                          if a.name.startswith(package + ".")}
+        graph[name] = (found & modules) - {name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle of the graph, as the modules along it, or None."""
+    state: dict[str, int] = {}
+    path: list[str] = []
+
+    def visit(module: str) -> list[str] | None:
+        state[module] = 1
+        path.append(module)
+        for other in sorted(graph[module]):
+            if state.get(other) == 1:
+                return path[path.index(other):] + [other]
+            if other not in state and (found := visit(other)):
+                return found
+        state[module] = 2
+        path.pop()
+        return None
+
+    for module in sorted(graph):
+        if module not in state and (found := visit(module)):
+            return found
+    return None
+
+
+@pytest.mark.parametrize("folder, package", [
+    ("eval", "flowerpose.eval"), ("sim", "flowerpose.sim"),
+    ("hardware", "flowerpose.hardware"), ("hardware/backends", "flowerpose.hardware.backends"),
+    ("hardware/flights", "flowerpose.hardware.flights"), ("flowerpose", "flowerpose")])
+def test_no_import_circle_within_a_package(folder, package):
+    assert _cycle(_package_imports(ROOT / folder, package)) is None
+
+
+def test_an_import_circle_is_found():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set()}) is None

@@ -9,7 +9,7 @@ import pytest
 from flowerpose.cli import main
 from flowerpose.config import load_preset, preset_hash, preset_names, profile_hash
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import eval_config
+from flowerpose.eval.config import eval_config
 from flowerpose.sim.world_config import SimConfig, preset, sim_preset
 
 

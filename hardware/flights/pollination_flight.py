@@ -1,7 +1,7 @@
 """Flying a pollination plan on any bot, and resuming one that was interrupted.
 
-The executor flies the visits of a `PollinationPlan` (`hardware/flights/pollinate.py`) in order on
-any `Bot`: the physical one on serial or through FarmBot's web app, or a simulated one in
+The executor flies the visits of a `PollinationPlan` (`flights/pollination_plan.py`) in
+order on any `Bot`: the physical one on serial or through FarmBot's web app, or a simulated one in
 the harness (`eval/pollination.py`), so what the harness scores is what a bot is told to
 do. Before anything moves, every pose of the plan is checked against the connected bot's
 own travel and head limits, and its position must be known (homed). Each visit starts
@@ -25,7 +25,7 @@ import numpy as np
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot, check_head, check_target
 from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
-from flowerpose.hardware.flights.pollinate import Move, PollinationPlan
+from flowerpose.hardware.flights.pollination_plan import Move, PollinationPlan
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
 from flowerpose.log import LOG, Tally
 

@@ -1,10 +1,13 @@
 """report.html draws the camera path a scanned plant's cloud was made from."""
 
+import dataclasses
+
 import numpy as np
 
 from flowerpose.cloudio import Cloud, write_cloud
-from flowerpose.eval.harness import EvalConfig, SyntheticJob, camera_path
+from flowerpose.eval.config import EvalConfig
 from flowerpose.eval.html_report import CAMERA_RAY_M, _view_3d, write_html_report
+from flowerpose.eval.plants import SyntheticJob, camera_path
 from flowerpose.jsonio import write_json
 
 
@@ -54,8 +57,8 @@ def test_a_scanned_plants_view_draws_its_kept_frames_in_order(tmp_path):
     np.testing.assert_allclose(camera_path(plant_dir, "scan"), poses, atol=1e-12)
     assert camera_path(plant_dir, "oracle") is None  # no camera made an oracle's cloud
     job = SyntheticJob("seed-0", plant_dir / "reconstruction" / "cloud.ply",
-                       plant_dir / "scan" / "plant.json")
-    view = job.view(EvalConfig(), out, "scan")
+                       plant_dir / "scan" / "plant.json", "scan")
+    view = job.view(EvalConfig(), out)
     traces = {trace.name: trace for trace in _view_3d(view).data}
     path = traces["camera path (6 frames)"]
     np.testing.assert_allclose(np.column_stack([path.x, path.y, path.z]), poses[:, :3, 3])
@@ -68,5 +71,5 @@ def test_a_scanned_plants_view_draws_its_kept_frames_in_order(tmp_path):
     assert np.all(np.linalg.norm(tips - centre, axis=1) < np.linalg.norm(starts - centre, axis=1))
     page = write_html_report(tmp_path / "report.html", "scan", None, [view])
     assert "camera path (6 frames)" in page.read_text()
-    oracle_view = job.view(EvalConfig(), out, "oracle")
+    oracle_view = dataclasses.replace(job, source="oracle").view(EvalConfig(), out)
     assert not any("camera" in (t.name or "") for t in _view_3d(oracle_view).data)

@@ -20,8 +20,8 @@ from flowerpose.cloudio import read_cloud
 from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
 from flowerpose.eval.coco import rle
+from flowerpose.eval.config import eval_config
 from flowerpose.eval.dataset import DatasetConfig, split_plants, write_dataset
-from flowerpose.eval.harness import eval_config
 from flowerpose.eval.yolo import outline
 from flowerpose.pipeline.flowers import find_flowers, grid_views
 

@@ -8,6 +8,7 @@ import pytest
 from realplants import write_real_plant
 
 from flowerpose.cli import main
+from flowerpose.eval.config import eval_config
 from flowerpose.eval.fidelity import (
     compare,
     real_sample,
@@ -15,7 +16,6 @@ from flowerpose.eval.fidelity import (
     synthetic_cloud,
     synthetic_folders,
 )
-from flowerpose.eval.harness import eval_config
 from flowerpose.eval.real_source import read_real_plant
 from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.flowers import PipelineConfig

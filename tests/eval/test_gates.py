@@ -64,8 +64,9 @@ def test_every_shipped_suite_loads_and_what_it_fixes_cannot_be_given_too(tmp_pat
 
 
 def test_the_report_records_the_suite(tmp_path):
-    from flowerpose.eval.harness import EvalConfig, run_eval
-    from flowerpose.eval.kinds import EvalRun
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.harness import run_eval
+    from flowerpose.eval.run import EvalRun
 
     suite = {"name": "mine", "version": 3, "description": "a test"}
     run = EvalRun(source="real", folders=(write_real_plant(tmp_path / "plant", "crops"),),

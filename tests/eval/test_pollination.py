@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, plan_and_score
-from flowerpose.hardware.flights.pollinate import PollinateConfig
+from flowerpose.hardware.flights.pollination_plan import PollinateConfig
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +69,9 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
 
 @pytest.mark.slow
 def test_eval_reports_pollination_and_its_curve(tmp_path):
-    from flowerpose.eval.harness import eval_config, run_eval
-    from flowerpose.eval.kinds import EvalRun
+    from flowerpose.eval.config import eval_config
+    from flowerpose.eval.harness import run_eval
+    from flowerpose.eval.run import EvalRun
 
     config = eval_config("easy")
     angles = (30.0,)
@@ -144,7 +145,7 @@ def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in
     from flowerpose.cloudio import Cloud
     from flowerpose.eval.pollination import flown_visits, judge
     from flowerpose.eval.pollination_contact import ContactWorld
-    from flowerpose.hardware.flights.pollinate import Flower, plan_pollination
+    from flowerpose.hardware.flights.pollination_plan import Flower, plan_pollination
     from flowerpose.hardware.geometry import PAPER_TOOL
     from flowerpose.hardware.kinematics import head_boxes
     from flowerpose.sim.pieces import Part

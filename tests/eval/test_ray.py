@@ -10,7 +10,7 @@ import pytest
 
 from flowerpose.cli import main
 from flowerpose.errors import JobsFailed
-from flowerpose.eval.harness import eval_config
+from flowerpose.eval.config import eval_config
 from flowerpose.eval.runner import TASK_RETRIES, run_jobs
 from flowerpose.eval.sweep import parse_grid, run_sweep
 

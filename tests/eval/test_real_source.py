@@ -11,9 +11,10 @@ from realplants import CENTRES, NORMALS, SCALE, cuboids, flower, write_real_plan
 from flowerpose.cli import main
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import EvalConfig, run_eval
-from flowerpose.eval.kinds import EvalRun
+from flowerpose.eval.config import EvalConfig
+from flowerpose.eval.harness import run_eval
 from flowerpose.eval.real_source import read_real_plant, real_truth
+from flowerpose.eval.run import EvalRun
 from flowerpose.eval.truth import read_sagemaker_truth
 from flowerpose.pipeline.flowers import PipelineConfig, pose_crops
 from flowerpose.pipeline.segment import cluster_flowers

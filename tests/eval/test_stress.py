@@ -7,7 +7,7 @@ from realplants import write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval.harness import EvalConfig
+from flowerpose.eval.config import EvalConfig
 from flowerpose.eval.stress import plan_from, run_stress
 
 

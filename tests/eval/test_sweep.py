@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from flowerpose.config import apply_overrides
-from flowerpose.eval.harness import eval_config
+from flowerpose.eval.config import eval_config
 from flowerpose.eval.sweep import METRICS, parse_grid, run_sweep, sweep_figure
 
 

@@ -7,7 +7,7 @@ import pytest
 from realplants import write_real_plant
 
 from flowerpose.cli import main
-from flowerpose.eval import plant_sets
+from flowerpose.eval import tune
 
 SPACE = '"cluster.eps" = { low = 0.006, high = 0.014, log = true }\n' \
         '"cluster.min_coverage" = { low = 0.2, high = 0.5 }\n'
@@ -68,16 +68,16 @@ def test_a_study_of_another_space_under_the_same_name_is_refused(tmp_path, plant
 @pytest.mark.slow
 def test_a_trial_that_raises_is_recorded_as_failed_and_the_study_goes_on(tmp_path, plants,
                                                                          monkeypatch):
-    score = plant_sets.SetScorer.score
+    score = tune.SetScorer.score
     calls = {"n": 0}
 
-    def flaky(self, plant_set, configure, out_dir):
+    def flaky(self, plant_set, layers, out_dir):
         calls["n"] += 1
         if calls["n"] == 3:  # the first trial's training plants (the defaults took 1 and 2)
             raise RuntimeError("a broken reconstruction")
-        return score(self, plant_set, configure, out_dir)
+        return score(self, plant_set, layers, out_dir)
 
-    monkeypatch.setattr(plant_sets.SetScorer, "score", flaky)
+    monkeypatch.setattr(tune.SetScorer, "score", flaky)
     assert _tune(tmp_path, plants, SPACE, 3) == 0
     report = json.loads((tmp_path / "out" / "tune.json").read_text())
     assert report["counts"] == {"complete": 2, "pruned": 0, "failed": 1}

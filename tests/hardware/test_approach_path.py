@@ -11,7 +11,7 @@ pytest.importorskip("ompl")
 
 from flowerpose.cloudio import Cloud, write_cloud  # noqa: E402
 from flowerpose.hardware.flights.approach_path import joint_state  # noqa: E402
-from flowerpose.hardware.flights.pollinate import (  # noqa: E402
+from flowerpose.hardware.flights.pollination_plan import (  # noqa: E402
     Flower,
     PollinateConfig,
     _flown,

@@ -12,8 +12,8 @@ from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import BotInfo, KinematicBot
 from flowerpose.hardware.bot_errors import StallError
-from flowerpose.hardware.flights.pollinate import Flower, plan_pollination
 from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, fly_pollination
+from flowerpose.hardware.flights.pollination_plan import Flower, plan_pollination
 from flowerpose.hardware.kinematics import HeadPose, tool_forward
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import read_json

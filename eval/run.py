@@ -1,5 +1,6 @@
-"""What an eval runs on and what it measures, and a run's description (`EvalRun`): a
-module of its own, so the command line offers them without importing the harness."""
+"""What an eval run is (`EvalRun`): what it runs on and what it measures, beside its
+settings (`config.py`); light, so the command line offers its choices without importing
+the harness."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import TYPE_CHECKING
 from flowerpose.errors import InputError
 
 if TYPE_CHECKING:
-    from flowerpose.eval.harness import EvalConfig
+    from flowerpose.eval.config import EvalConfig
     from flowerpose.eval.methods import ExternalMethod
 
 #: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
