@@ -3,7 +3,7 @@
 from pathlib import Path
 
 from flowerpose.atomic import write_text
-from flowerpose.cli_reference import markdown
+from flowerpose.cli.reference import markdown
 
 if __name__ == "__main__":
     page = Path(__file__).resolve().parents[1] / "docs" / "reference" / "cli.md"

@@ -317,8 +317,8 @@ def test_a_setting_flag_is_its_setting_with_its_docstring_and_default(capsys):
     """frames' flags are --set under other names: the same config, the config's own default
     when not given, and help written from the setting's docstring."""
     from flowerpose.cli import build_parser
-    from flowerpose.cli_options import configure
-    from flowerpose.cli_stages import _scan_stage_base
+    from flowerpose.cli.options import configure
+    from flowerpose.cli.stages import _scan_stage_base
     from flowerpose.config import setting_doc
 
     parser = build_parser()
@@ -348,7 +348,7 @@ def test_library_advice_names_settings_and_the_command_line_says_its_flags():
     """A library message quotes the setting or argument to change; each command says the
     flag it has for it, and keeps the quotes where it has none (a --set key)."""
     from flowerpose.cli import build_parser
-    from flowerpose.cli_flags import say_flags
+    from flowerpose.cli.flags import say_flags
 
     parser = build_parser()
     scan = parser.parse_args(["scan", "--port", "p", "--out", "o"])

@@ -5,7 +5,7 @@ names the full key."""
 import pytest
 
 from flowerpose.cli import build_parser, main
-from flowerpose.cli_options import configure
+from flowerpose.cli.options import configure
 
 
 def _configured(base, *argv):
@@ -31,7 +31,7 @@ def test_an_evals_renamed_scan_keys_reach_the_embedded_sections_with_a_warning(c
 
 
 def test_pollinate_takes_eval_keys_and_the_runs_colour_model(capsys):
-    from flowerpose.cli_field import _pollinate_base
+    from flowerpose.cli.field import _pollinate_base
 
     argv = ["pollinate", "f.json", "--plant-at", "1.5,0.75", "--out", "o"]
     settings = _configured(_pollinate_base(), *argv, "--set", "pollinate.standoff_m=0.04",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from flowerpose.cli_reference import markdown
+from flowerpose.cli.reference import markdown
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -41,14 +41,15 @@ def test_other_libraries_warnings_are_debug_lines_during_a_command(monkeypatch, 
 
     import numpy as np
 
-    from flowerpose import cli, cli_eval
+    from flowerpose import cli
+    from flowerpose.cli import jobs
 
     def noisy(args):
         np.log(np.zeros(1))  # RuntimeWarning: divide by zero
         logging.getLogger("matplotlib.font_manager").warning("building the font cache")
         return 0
 
-    monkeypatch.setattr(cli_eval, "cmd_bench", noisy)
+    monkeypatch.setattr(jobs, "cmd_bench", noisy)
     showwarning = warnings.showwarning
     try:
         assert cli.main(["bench"]) == 0

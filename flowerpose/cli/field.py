@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from flowerpose.cli_flags import PHRASES_ATTRIBUTE, add_setting_flags
-from flowerpose.cli_options import (
+from flowerpose.cli.flags import PHRASES_ATTRIBUTE, add_setting_flags
+from flowerpose.cli.options import (
     RENAMED_ATTRIBUTE,
     add_config_options,
     add_output,

@@ -231,7 +231,7 @@ def configure(base: Any, args: argparse.Namespace, flags: bool = True,
     `run_keys`: a --config file's top-level keys that are the command's own arguments
     (eval's source, plants, seed, as a report's config records them), taken by the command
     itself, not as settings."""
-    from flowerpose.cli_flags import given_settings
+    from flowerpose.cli.flags import given_settings
     from flowerpose.config import (
         RENAMED_SETTINGS,
         apply_overrides,

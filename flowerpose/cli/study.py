@@ -7,8 +7,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from flowerpose.cli_eval import EVAL_RUN_KEYS
-from flowerpose.cli_options import (
+from flowerpose.cli.jobs import EVAL_RUN_KEYS
+from flowerpose.cli.options import (
     PLANTS,
     POSITIVE,
     SEED,

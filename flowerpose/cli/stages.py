@@ -7,8 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
-from flowerpose.cli_flags import add_setting_flags
-from flowerpose.cli_options import (
+from flowerpose.cli.flags import add_setting_flags
+from flowerpose.cli.options import (
     CLOUD_POINTS,
     PLANTS,
     RENAMED_ATTRIBUTE,
@@ -142,7 +142,7 @@ _dataset_base = starting_config("flowerpose.eval.dataset:DatasetConfig")
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from flowerpose.cli_flags import given_settings
+    from flowerpose.cli.flags import given_settings
     from flowerpose.config import apply_overrides, parse_set_options
     from flowerpose.eval.config import eval_config
     from flowerpose.eval.dataset import DatasetConfig, write_dataset

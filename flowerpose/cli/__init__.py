@@ -1,7 +1,8 @@
 """The `flowerpose` command line: one console script, one subcommand per stage or job. This
-module builds the parser from the subcommands' modules (`cli_eval`, `cli_study`,
-`cli_stages`, `cli_field`, `cli_data`; what they share in `cli_options`) and turns what
-goes wrong into one line."""
+package's modules each hold a group of commands (`jobs`: eval, fidelity, bench, results,
+cache; `study`: sweep, stress, tune, guard; `stages`; `field`: the bot's; `data`), what
+they share (`options`, `flags`) and the generated reference (`reference`); this module
+builds the parser from them and turns what goes wrong into one line."""
 
 from __future__ import annotations
 
@@ -11,34 +12,34 @@ import sys
 import time
 from typing import Any
 
-from flowerpose import cli_data, cli_eval, cli_field, cli_stages, cli_study
-from flowerpose.cli_flags import SettingHelp, flag_for, say_flags
+from flowerpose.cli import data, field, jobs, stages, study
+from flowerpose.cli.flags import SettingHelp, flag_for, say_flags
 from flowerpose.errors import InputError, JobsFailed, missing_extra
 from flowerpose.hardware.bot_errors import BotError
 from flowerpose.stopwatch import process_age
 
 #: The subcommands in the order `flowerpose --help` lists them: each module adds its own.
 COMMANDS = (
-    cli_eval.add_eval,
-    cli_stages.add_plant,
-    cli_field.add_scan,
-    cli_field.add_pollinate,
-    cli_field.add_farmduino,
-    cli_stages.add_frames,
-    cli_stages.add_reconstruct,
-    cli_stages.add_dataset,
-    cli_stages.add_detect,
-    cli_stages.add_pose,
-    cli_stages.add_score,
-    cli_study.add_sweep,
-    cli_study.add_stress,
-    cli_study.add_tune,
-    cli_study.add_guard,
-    cli_eval.add_results,
-    cli_eval.add_fidelity,
-    cli_eval.add_cache,
-    cli_eval.add_bench,
-    cli_data.add_data,
+    jobs.add_eval,
+    stages.add_plant,
+    field.add_scan,
+    field.add_pollinate,
+    field.add_farmduino,
+    stages.add_frames,
+    stages.add_reconstruct,
+    stages.add_dataset,
+    stages.add_detect,
+    stages.add_pose,
+    stages.add_score,
+    study.add_sweep,
+    study.add_stress,
+    study.add_tune,
+    study.add_guard,
+    jobs.add_results,
+    jobs.add_fidelity,
+    jobs.add_cache,
+    jobs.add_bench,
+    data.add_data,
 )
 
 

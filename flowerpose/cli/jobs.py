@@ -1,5 +1,5 @@
 """The jobs made of stages: `eval` (the benchmark), `fidelity`, `bench`, `results`, and
-`cache`, which looks after their stage cache (the studies over settings: `cli_study`)."""
+`cache`, which looks after their stage cache (the studies over settings: `study`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 from datetime import datetime
 from pathlib import Path
 
-from flowerpose.cli_options import (
+from flowerpose.cli.options import (
     CLOUD_POINTS_MAX,
     PLANTS,
     POSITIVE,
