@@ -118,15 +118,18 @@ def frame_samples(bundle: PlantBundle, config: EvalConfig, count: int) -> list[S
     """`count` frames of the plant's planned scan, evenly spaced along it, as the scan
     camera records them at rest (`config.scan`: size, sensor, light), with each pixel's
     flower from the renderer's instance masks."""
-    from flowerpose.hardware.backends.sim_bot import MujocoPoser, plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import MujocoPoser
+    from flowerpose.hardware.flights.scan_plan import plan_plant_scan
     from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
+    from flowerpose.sim.export import plant_obstacles
     from flowerpose.sim.render import Output, PlantRenderer
     from flowerpose.sim.sensor import apply_sensor
 
     plant, scan = bundle.plant, config.scan
     masked = dataclasses.replace(plant, face_flower=np.where(
         np.isin(plant.face_part, MASK_PARTS), plant.face_flower, -1).astype(np.int32))
-    plan = plan_plant_scan(plant, config.sim.viewpoints)
+    plan = plan_plant_scan(plant.center[:2], plant.height, plant_obstacles(plant),
+                           config.sim.viewpoints)
     picked = np.unique(np.linspace(0, len(plan.waypoints) - 1, count).round().astype(int))
     intrinsics = intrinsics_from_config(CameraConfig(width=scan.camera.width,
                                                      height=scan.camera.height))

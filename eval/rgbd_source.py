@@ -54,17 +54,18 @@ def record_rgbd_scan(plant_dir: Path, out_dir: Path, config: RgbdConfig,
     synthetic world's path, or the default); write an RGB-D scan folder to out_dir (frames/,
     depth/, trajectory.csv, camera.json, plant.json with the views' visibility). Returns a
     small report."""
-    from flowerpose.hardware.backends.sim_bot import MujocoPoser, plan_plant_scan
+    from flowerpose.hardware.backends.sim_bot import MujocoPoser
+    from flowerpose.hardware.flights.scan_plan import plan_plant_scan
     from flowerpose.pipeline.rgbd import DEPTH_PATTERN
     from flowerpose.sim.camera import CameraConfig, intrinsics_from_config
     from flowerpose.sim.depth import apply_depth_sensor
-    from flowerpose.sim.export import read_plant
+    from flowerpose.sim.export import plant_obstacles, read_plant
     from flowerpose.sim.render import Output, PlantRenderer
     from flowerpose.sim.sensor import SensorConfig, apply_sensor
     from flowerpose.sim.visibility import VISIBLE_SHARE, petal_samples, seen_in_render
 
     plant = read_plant(plant_dir)
-    plan = plan_plant_scan(plant, viewpoints)
+    plan = plan_plant_scan(plant.center[:2], plant.height, plant_obstacles(plant), viewpoints)
     poser = MujocoPoser()
     intrinsics = intrinsics_from_config(CameraConfig(width=config.width, height=config.height))
     renderer = PlantRenderer([plant])

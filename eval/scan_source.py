@@ -52,7 +52,7 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
                via_farmduino: bool = False, progress: bool = False) -> dict:
     """The simulated scan, as `flowerpose scan --sim` and `eval --source scan` both run it:
     the simulated bot (through the serial backend and a virtual Farmduino when
-    `via_farmduino`) flies `plan` (`sim_bot.plan_plant_scan`) round the plant in plant_dir
+    `via_farmduino`) flies `plan` (`scan_plan.plan_plant_scan`) round the plant in plant_dir
     with the camera `config` gives, recording the scan folder out_dir; then out_dir/plant.json
     holds the truth with this scan's own visibility. Returns scan.json's content."""
     from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
@@ -101,14 +101,15 @@ def scan_and_choose(plant_dir: Path, config: ScanSourceConfig,
                     path: ScanPathConfig | None = None) -> dict:
     """The capture's first steps: film the plant in plant_dir (plant_dir/scan) and choose
     its frames (plant_dir/frames). Returns the frames recorded and chosen, and seconds."""
-    from flowerpose.hardware.backends.sim_bot import plan_plant_scan
+    from flowerpose.hardware.flights.scan_plan import plan_plant_scan
     from flowerpose.pipeline.frames import select_frames
-    from flowerpose.sim.export import read_plant
+    from flowerpose.sim.export import plant_obstacles, read_plant
 
     watch = Stopwatch()
     scan_dir = plant_dir / "scan"
-    manifest = scan_plant(plant_dir, scan_dir, config,
-                          plan_plant_scan(read_plant(plant_dir), path))
+    plant = read_plant(plant_dir)
+    manifest = scan_plant(plant_dir, scan_dir, config, plan_plant_scan(
+        plant.center[:2], plant.height, plant_obstacles(plant), path))
     watch.lap("scan")
     chosen = select_frames(scan_dir, plant_dir / "frames", config.frames, progress=False)
     watch.lap("frames")

@@ -52,20 +52,12 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot_errors import OutOfRangeError
-from flowerpose.hardware.protocol import FIRMWARE_DEFAULTS
+from flowerpose.hardware.protocol import FIRMWARE_DEFAULTS, MOTION_PARAMETERS
 
-# Firmware parameter ids per settings set: (steps/mm, max speed, min speed, ramp, timeout).
-# "z_home" is Z moving toward home (up): its own speeds and ramp, Z's steps/mm and timeout.
-FIRMWARE_PARAMETERS = {
-    "x": (55, 71, 61, 41, 11),
-    "y": (56, 72, 62, 42, 12),
-    "z": (57, 73, 63, 43, 13),
-    "z_home": (57, 74, 64, 44, 13),
-}
 # The firmware's defaults (`protocol.FIRMWARE_DEFAULTS`); X and Y belts at 5 steps/mm, the
 # Z lead screw at 25.
 DEFAULT_STEPS_PER_MM = {name: float(FIRMWARE_DEFAULTS[ids[0]])
-                        for name, ids in FIRMWARE_PARAMETERS.items()}
+                        for name, ids in MOTION_PARAMETERS.items()}
 _FIELDS = ("steps_per_mm", "max_speed", "min_speed", "ramp_steps", "timeout_s")
 
 
@@ -101,12 +93,12 @@ class AxisMotion:
 
     @classmethod
     def from_firmware(cls, params: Mapping[int, float], settings: str) -> AxisMotion:
-        """The settings set `settings` ("x", "y", "z" or "z_home", see FIRMWARE_PARAMETERS)
+        """The settings set `settings` ("x", "y", "z" or "z_home", `protocol.MOTION_PARAMETERS`)
         from firmware parameters {id: value} as F21 reads them; ids left out take the
         firmware's defaults."""
         default = cls(DEFAULT_STEPS_PER_MM[settings])
         values = {}
-        for name, pid in zip(_FIELDS, FIRMWARE_PARAMETERS[settings], strict=True):
+        for name, pid in zip(_FIELDS, MOTION_PARAMETERS[settings], strict=True):
             values[name] = float(params.get(pid, getattr(default, name)))
             _check_positive(f"firmware parameter {pid}", name, values[name])
         return cls(**values)

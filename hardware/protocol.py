@@ -25,12 +25,70 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.bot_errors import BotError, OutOfRangeError
 from flowerpose.jsonio import read_json
 
-STARTUP_TEXT = "ARDUINO STARTUP COMPLETE"
+# The reply codes the client reads (farmbot-arduino-firmware 6.x, "Codes received").
+IDLE = "R00"
+"""Idle: reported every few seconds while nothing runs (Q0)."""
+STARTED = "R01"
+DONE = "R02"
+"""The command finished."""
+ERROR = "R03"
+"""The command failed (`V<code>`: `bot_errors.error_for_code`)."""
+BUSY = "R04"
+MOTOR_STATE = "R05"
+"""Which motors run (reported after a stop)."""
+RETRY = "R07"
+"""A movement retried after missed steps."""
+ECHO = "R08"
+"""The command as the firmware read it, between asterisks."""
+UNKNOWN = "R09"
+"""The command is not one the firmware knows."""
+PARAMETER_VALUE = "R21"
+"""A parameter's value, `P<id> V<value>`, the reply to `read_parameter_line`."""
+AXIS_LENGTH = "R23"
+"""A calibration's measured axis length, steps (`P801`-`P803`)."""
+STATUS_VALUE = "R31"
+PIN_VALUE = "R41"
+HOMING_TIMEOUTS = {"R71": "x", "R72": "y", "R73": "z"}
+"""A homing that timed out on this axis."""
+ENDSTOP_STATES = "R81"
+POSITION = "R82"
+"""The position, `X Y Z` in millimetres, the reply to `POSITION_LINE` and reported while
+moving."""
+VERSION = "R83"
+"""The firmware's version, the reply to `VERSION_LINE`."""
+ENCODER_SCALED = "R84"
+ENCODER_RAW = "R85"
+LOCKED = "R87"
+"""Locked after an emergency stop: nothing but `UNLOCK_LINE` runs."""
+NOT_CONFIGURED = "R88"
+"""The parameters were never approved (`approve_line`)."""
+TEXT = "R99"
+"""Free text; at a (re)start `R99 ARDUINO TEXT COMPLETE`, during a homing its reasons."""
+
+STARTUP_TEXT = "ARDUINO TEXT COMPLETE"
 """What the firmware's `R99` says when the board has (re)started."""
-BANNER = f"R99 {STARTUP_TEXT}"
-FINAL_REPLIES = frozenset({"R02", "R03", "R09", "R87", "R88"})
+BANNER = f"{TEXT} {STARTUP_TEXT}"
+FINAL_REPLIES = frozenset({DONE, ERROR, UNKNOWN, LOCKED, NOT_CONFIGURED})
 """Replies that end a command: done, error, unknown, locked, not configured (the last
 three come without an R03)."""
+
+# The lines the client sends that take no value (the others are built below).
+EMERGENCY_STOP = b"E"
+"""Read by the firmware as an emergency stop wherever it is, at once (not a line)."""
+ABORT = b"@"
+"""Read as an abort of the running command, at once (not a line)."""
+UNLOCK_LINE = "F09"
+"""Unlock after an emergency stop."""
+POSITION_LINE = "F82"
+VERSION_LINE = "F83"
+ZERO_LINE = "F84 X1 Y1 Z1"
+"""Make the current position the origin of all three axes."""
+HOME_LINES = {"x": "F11", "y": "F12", "z": "F13"}
+"""Find one axis's home, which the firmware's counter then calls 0."""
+CALIBRATE_LINES = {"x": "F14", "y": "F15", "z": "F16"}
+"""Measure one axis's length: to home, then to the far end (`AXIS_LENGTH`)."""
+CONFIG_APPROVED = 2
+"""The parameter that says the configuration is approved (`param_config_ok`)."""
 SERVO_PINS = (4, 5, 6, 11)
 """The only Farmduino pins that drive servos (F61 on another answers R02 and does nothing)."""
 
@@ -107,6 +165,19 @@ FIRMWARE_DEFAULTS: dict[int, float] = {
 """The firmware's defaults (its Config.h) of the parameters flowerpose reads or models: what
 a board runs on after a reset unless its EEPROM holds others."""
 
+MOTION_PARAMETERS = {
+    "x": (55, 71, 61, 41, 11),
+    "y": (56, 72, 62, 42, 12),
+    "z": (57, 73, 63, 43, 13),
+    "z_home": (57, 74, 64, 44, 13),
+}
+"""Per settings set of the motion model (`motion.AxisMotion`), its parameters: steps/mm,
+maximum speed, minimum speed, ramp and timeout. "z_home" is Z moving toward home (up): its
+own speeds and ramp, Z's steps/mm and timeout."""
+AXIS_LENGTHS = {"x": 141, "y": 142, "z": 143}
+"""Per axis, the parameter holding its measured length, steps (0: not measured)."""
+MOVEMENT_RETRIES = 5
+"""The parameter holding how many times the firmware retries a failed movement."""
 ENDSTOPS = {"x": 25, "y": 26, "z": 27}
 """Per axis, the parameter that enables its endstops (1: on)."""
 ENCODERS = {"x": 101, "y": 102, "z": 103}
@@ -223,3 +294,18 @@ def servo_line(pin: int, degrees: float) -> str:
     if not (math.isfinite(degrees) and -0.5 < degrees < 180.5):
         raise OutOfRangeError(f"servo pin {pin}", f"{degrees!r} degrees is outside 0-180")
     return checked_line(f"F61 P{pin} V{round(degrees)}")
+
+
+def read_parameter_line(pid: int) -> str:
+    """The F21 line asking parameter `pid`'s value (answered by `PARAMETER_VALUE`)."""
+    return checked_line(f"F21 P{int(pid)}")
+
+
+def write_parameter_line(pid: int, value: float) -> str:
+    """The F22 line writing parameter `pid` (the firmware keeps whole numbers)."""
+    return checked_line(f"F22 P{int(pid)} V{round(value)}")
+
+
+def approve_line() -> str:
+    """The line approving the configuration once the parameters are written."""
+    return write_parameter_line(CONFIG_APPROVED, 1)

@@ -182,7 +182,3 @@ def main(argv: list[str] | None = None) -> int:
     except Terminated:
         print("flowerpose: terminated", file=sys.stderr)
         return 143
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -81,13 +81,14 @@ def cmd_scan(args: argparse.Namespace) -> int:
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
     from flowerpose.eval.scan_source import scan_plant
-    from flowerpose.hardware.backends.sim_bot import plan_plant_scan
-    from flowerpose.hardware.flights.scan_plan import plan_table
-    from flowerpose.sim.export import read_plant
+    from flowerpose.hardware.flights.scan_plan import plan_plant_scan, plan_table
+    from flowerpose.sim.export import plant_obstacles, read_plant
 
     config = configure(_scan_base(), args, reads=SCAN_SETTINGS, command="scan --sim")
     plant = read_plant(args.plant)
-    plan = plan_plant_scan(plant, config.sim.viewpoints)  # the oracle's cameras, flown
+    # The oracle's cameras, flown.
+    plan = plan_plant_scan(plant.center[:2], plant.height, plant_obstacles(plant),
+                           config.sim.viewpoints)
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at "
           f"({plant.center[0]:.3f}, {plant.center[1]:.3f}) m, {plan.duration_s / 60:.1f} min "
           "of bot time; reach and collisions checked")

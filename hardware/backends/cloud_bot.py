@@ -83,17 +83,16 @@ from flowerpose.hardware.geometry import (
 )
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import (
-    FIRMWARE_PARAMETERS,
     MotionProfile,
     move_duration,
     move_trajectory,
 )
-from flowerpose.hardware.protocol import PARAMETERS
+from flowerpose.hardware.protocol import MOTION_PARAMETERS, PARAMETERS
 
 # The firmware parameters the motion model reads (motion.py), by their names in FarmBot OS's
 # status tree, mcu_params.
 _MCU_PARAMETERS = {pid: PARAMETERS[pid]
-                   for ids in FIRMWARE_PARAMETERS.values() for pid in ids}
+                   for ids in MOTION_PARAMETERS.values() for pid in ids}
 
 
 class CloudCommandError(BotError):

@@ -13,7 +13,7 @@ protocol") defensively:
   stop, so no line but the emergency stop itself may hold one (`protocol.checked_line`).
   Every G00 names all three axes (a missing axis means 0). Servo angles are whole degrees,
   as the firmware reads them, on pins 6 (yaw) and 5 (pitch) only.
-- At connect: wait for `R99 ARDUINO STARTUP COMPLETE` (opening the port resets the board)
+- At connect: wait for `R99 ARDUINO TEXT COMPLETE` (opening the port resets the board)
   or an idle report, read the version (F83) and the parameters the motion model needs
   (F21: 11-13 timeouts, 41-44 ramps, 55-57 steps/mm, 61-64 and 71-74 speeds, 5 retries,
   141-143 axis lengths), approve the configuration (`F22 P2 V1`) when the firmware has not,
@@ -112,10 +112,24 @@ from flowerpose.hardware.geometry import (
 from flowerpose.hardware.kinematics import HeadPose, from_servo_commands, servo_commands
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
 from flowerpose.hardware.protocol import (
+    ABORT,
+    DONE,
+    EMERGENCY_STOP,
     ENCODERS,
     ENDSTOPS,
+    ERROR,
     FINAL_REPLIES,
+    HOME_LINES,
+    HOMING_TIMEOUTS,
+    IDLE,
+    LOCKED,
+    MOVEMENT_RETRIES,
+    NOT_CONFIGURED,
+    POSITION,
     STARTUP_TEXT,
+    TEXT,
+    UNLOCK_LINE,
+    ZERO_LINE,
     Reply,
     checked_line,
     describe,
@@ -124,8 +138,6 @@ from flowerpose.hardware.protocol import (
     servo_line,
 )
 
-_HOMING_FAILURES = {"R71": "X", "R72": "Y", "R73": "Z"}
-"""The firmware's axis timeout reports while homing."""
 MOVE_SLACK_S = 15.0
 """Wall seconds a move may take beyond the firmware's own timeouts (the link, the retries'
 start-up, the board's reports)."""
@@ -143,7 +155,7 @@ HEAD_SETTLE_S = 0.5
 def _ends_stop(reply: Reply) -> bool:
     """Whether a reply says an emergency stop is over: the stopped command's `R03`, or an
     idle report (`R00` or `R87` with Q0) from a board with nothing left to stop."""
-    return reply.code == "R03" or (reply.code in ("R00", "R87") and reply.q == 0)
+    return reply.code == ERROR or (reply.code in (IDLE, LOCKED) and reply.q == 0)
 
 
 @dataclass(frozen=True)
@@ -160,7 +172,7 @@ class _Exchange:
     def position_mm(self) -> np.ndarray | None:
         """The last position (R82) the firmware reported with this command, millimetres."""
         for reply in reversed(self.replies):
-            if reply.code == "R82" and {"X", "Y", "Z"} <= reply.values.keys():
+            if reply.code == POSITION and {"X", "Y", "Z"} <= reply.values.keys():
                 return np.array([reply.values[a] for a in "XYZ"])
         return None
 
@@ -294,7 +306,7 @@ class FarmduinoBot(Connection, Bot):
         with self._one_command("home_here") as command:
             if self._locked.is_set():
                 raise LockedError(command)
-            self._command("F84 X1 Y1 Z1")
+            self._command(ZERO_LINE)
             with self._state_lock:
                 self._xyz = self._info.home
             self._homed = {"x", "y", "z"}
@@ -360,13 +372,13 @@ class FarmduinoBot(Connection, Bot):
         # The link may be gone: then only the bot's own stop button stops it, and the
         # firmware is locked again as soon as the port is back (_initialise).
         link = self._link
-        if link is not None and link.try_write(b"E"):
+        if link is not None and link.try_write(EMERGENCY_STOP):
             self._stop_sent = time.monotonic()
         self._locked.set()
 
     def unlock(self) -> None:
         with self._one_command("unlock"):
-            self._command("F09")
+            self._command(UNLOCK_LINE)
             self._locked.clear()
             if self._servo is not None:
                 self._send_servos(self._servo)
@@ -379,7 +391,7 @@ class FarmduinoBot(Connection, Bot):
             moving = self._moving is not None
         link = self._link
         if moving and link is not None:
-            link.try_write(b"@")  # stop the move the owner thread waits for (abort, not lock)
+            link.try_write(ABORT)  # stop the move the owner thread waits for (not a lock)
         self._disconnect()
 
     # --- commands ---------------------------------------------------------------------
@@ -410,7 +422,7 @@ class FarmduinoBot(Connection, Bot):
         """Wall seconds a movement of `axes` may take: every attempt (parameter 5) may run
         to the slowest axis's firmware timeout (parameters 11-13)."""
         timeout = max(getattr(self._info.motion, a).timeout_s for a in axes)
-        attempts = max(1, int(self._params.get(5, 1)))
+        attempts = max(1, int(self._params.get(MOVEMENT_RETRIES, 1)))
         return attempts * timeout / self._scale + MOVE_SLACK_S
 
     def _home_axis(self, name: str) -> None:
@@ -418,17 +430,16 @@ class FarmduinoBot(Connection, Bot):
         i = "xyz".index(name)
         target = self.position()
         target[i] = self._info.home[i]
-        code = {"x": "F11", "y": "F12", "z": "F13"}[name]
-        self._move(code, target, self._info.motion, name, f"home({name})", homing=name)
+        self._move(HOME_LINES[name], target, self._info.motion, name, f"home({name})", homing=name)
         self._homed.add(name)
 
     def _homing_failure(self, reply: Reply) -> str | None:
         """What in a reply says a homing will never finish: an axis timeout (R71-R73) or the
         firmware's own timeout or displaced-home message."""
-        if reply.code in _HOMING_FAILURES:
-            return f"a {_HOMING_FAILURES[reply.code]} axis timeout ({reply.code})"
-        if reply.code == "R99" and ("timeout" in reply.text or "displaced" in reply.text):
-            return f"'{reply.text.strip()}' (R99)"
+        if reply.code in HOMING_TIMEOUTS:
+            return f"a {HOMING_TIMEOUTS[reply.code].upper()} axis timeout ({reply.code})"
+        if reply.code == TEXT and ("timeout" in reply.text or "displaced" in reply.text):
+            return f"'{reply.text.strip()}' ({TEXT})"
         return None
 
     def _move(self, line: str, target: np.ndarray, profile: MotionProfile, axes: str,
@@ -459,7 +470,7 @@ class FarmduinoBot(Connection, Bot):
                 self._moved(t0, start, target, profile, None)
                 raise
             final = exchange.replies[-1] if exchange.replies else None
-            done = final is not None and final.code == "R02" and not exchange.stopped
+            done = final is not None and final.code == DONE and not exchange.stopped
             reported = exchange.position_mm()
             if homing:
                 # A homed axis sits exactly at home; the other counters may still be lost.
@@ -511,17 +522,17 @@ class FarmduinoBot(Connection, Bot):
             self._locked.set()
             raise EmergencyStopError(exchange.line, 1)
         final = exchange.replies[-1]
-        if final.code == "R02":
+        if final.code == DONE:
             return
-        if final.code == "R03":
+        if final.code == ERROR:
             code = int(final.values.get("V", 0))
             if code == 1:
                 self._locked.set()
             raise error_for_code(code, exchange.line)
-        if final.code == "R87":
+        if final.code == LOCKED:
             self._locked.set()
             raise LockedError(exchange.line)
-        if final.code == "R88":
+        if final.code == NOT_CONFIGURED:
             raise NotConfiguredError(exchange.line)
         raise UnknownCommandError(exchange.line)
 
@@ -569,13 +580,13 @@ class FarmduinoBot(Connection, Bot):
             if reply is not None and watch is not None and failure is None:
                 failure = watch(reply)
                 if failure is not None:
-                    self._write(b"@")
+                    self._write(ABORT)
                     deadline = min(deadline, now + ESTOP_GRACE_S)
             if reply is None or reply.q != q:
                 continue
             replies.append(reply)
             # After an E, the R87 only says the firmware is stopping: R03 V1 ends it.
-            if reply.code in FINAL_REPLIES and not (stopped and reply.code == "R87"):
+            if reply.code in FINAL_REPLIES and not (stopped and reply.code == LOCKED):
                 return _Exchange(line, replies, stopped, failure)
 
     def _await_stop_end(self, lines: queue.Queue) -> None:
@@ -599,8 +610,8 @@ class FarmduinoBot(Connection, Bot):
         if isinstance(item, Dropped):
             raise LinkDropped(self._port, item.detail)
         reply = parse_reply(item)
-        if reply is not None and reply.code == "R99" and STARTUP_TEXT in reply.text:
-            raise BoardStarted("Farmduino", "the board restarted (R99 ARDUINO STARTUP "
+        if reply is not None and reply.code == TEXT and STARTUP_TEXT in reply.text:
+            raise BoardStarted("Farmduino", "the board restarted (R99 ARDUINO TEXT "
                                 "COMPLETE)")
         return reply
 

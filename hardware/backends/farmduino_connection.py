@@ -29,7 +29,19 @@ from flowerpose.hardware.bot_errors import (
 )
 from flowerpose.hardware.geometry import PITCH_PIN, YAW_PIN, farmbot_mm_to_bed
 from flowerpose.hardware.motion import MotionProfile
-from flowerpose.hardware.protocol import BANNER, Reply, servo_line
+from flowerpose.hardware.protocol import (
+    BANNER,
+    EMERGENCY_STOP,
+    IDLE,
+    LOCKED,
+    NOT_CONFIGURED,
+    POSITION_LINE,
+    VERSION,
+    VERSION_LINE,
+    Reply,
+    approve_line,
+    servo_line,
+)
 
 BAUD = 115200
 REPLY_TIMEOUT_S = 15.0
@@ -90,10 +102,10 @@ class Connection:
                 return True, approve
             if reply is None:
                 continue
-            approve = approve or reply.code == "R88"
-            if reply.code == "R87":
+            approve = approve or reply.code == NOT_CONFIGURED
+            if reply.code == LOCKED:
                 self._locked.set()
-            if reply.code in ("R00", "R87", "R88"):
+            if reply.code in (IDLE, LOCKED, NOT_CONFIGURED):
                 return False, approve
 
     def _ask(self, body: str) -> list[Reply]:
@@ -105,23 +117,24 @@ class Connection:
 
     def _initialise(self, restarted: bool, approve: bool, first: bool) -> None:
         """Version, parameters, approval, lock and servos, position: after every start."""
-        self._firmware = next((r.text for r in self._ask("F83") if r.code == "R83"), None)
+        self._firmware = next((r.text for r in self._ask(VERSION_LINE) if r.code == VERSION),
+                              None)
         write_settings(self._ask, self._settings, self._port)
         self._params = read_parameters(self._ask, self._port)
         if approve or self._params.get(2) != 1:
-            self._ask("F22 P2 V1")
+            self._ask(approve_line())
         self._info = travel_limits(self._base_info, self._params,
                                    MotionProfile.from_firmware(self._params), self._firmware)
         if restarted:
             self._homed.clear()
         if self._locked.is_set():
             # An emergency stop asked for while the link was down, or before a restart.
-            self._write(b"E")
+            self._write(EMERGENCY_STOP)
             self._stop_sent = time.monotonic()
         elif self._servo is not None:
             for pin, value in zip((YAW_PIN, PITCH_PIN), self._servo, strict=True):
                 self._ask(servo_line(pin, value))
-        where = self._transact("F82", REPLY_TIMEOUT_S)
+        where = self._transact(POSITION_LINE, REPLY_TIMEOUT_S)
         self._raise_for(where)
         # After a restart the counters say 0 wherever the gantry is: keep our estimate.
         if (first or not restarted) and where.position_mm() is not None:

@@ -17,14 +17,26 @@ import numpy as np
 from flowerpose.hardware.bot import BotInfo
 from flowerpose.hardware.bot_errors import BotError
 from flowerpose.hardware.motion import MotionProfile
-from flowerpose.hardware.protocol import ENCODERS, ENDSTOPS, Reply, describe
+from flowerpose.hardware.protocol import (
+    AXIS_LENGTHS,
+    CONFIG_APPROVED,
+    ENCODERS,
+    ENDSTOPS,
+    MOTION_PARAMETERS,
+    MOVEMENT_RETRIES,
+    PARAMETER_VALUE,
+    Reply,
+    describe,
+    read_parameter_line,
+    write_parameter_line,
+)
 
-AXIS_LENGTH_PARAMETERS = (141, 142, 143)
-READ_PARAMETERS = (2, 5, 11, 12, 13, 41, 42, 43, 44, 55, 56, 57, 61, 62, 63, 64, 71, 72, 73, 74,
-                   *AXIS_LENGTH_PARAMETERS, *ENDSTOPS.values(), *ENCODERS.values())
-"""Parameters read at connect: 2 configuration approved, 5 movement retries, the motion
-model's (motion.FIRMWARE_PARAMETERS), the axis lengths, and what homing needs (endstops
-25-27, encoders 101-103)."""
+READ_PARAMETERS = (CONFIG_APPROVED, MOVEMENT_RETRIES,
+                   *sorted({pid for ids in MOTION_PARAMETERS.values() for pid in ids}),
+                   *AXIS_LENGTHS.values(), *ENDSTOPS.values(), *ENCODERS.values())
+"""Parameters read at connect (`protocol`'s tables): the configuration approved, the
+movement retries, the motion model's, the axis lengths, and what homing needs (endstops,
+encoders)."""
 _OPTIONAL_PARAMETERS = {*ENDSTOPS.values(), *ENCODERS.values()}
 """Read when the firmware has them; without them homing is not checked beforehand."""
 _Z_HOME_FALLBACK = {44: 43, 64: 63, 74: 73}
@@ -36,16 +48,16 @@ Ask = Callable[[str], list[Reply]]
 def _reported(replies: list[Reply], pid: int) -> float | None:
     """The value an F21's replies give parameter `pid` (its R21), None when none does."""
     return next((r.values.get("V") for r in replies
-                 if r.code == "R21" and r.values.get("P") == pid), None)
+                 if r.code == PARAMETER_VALUE and r.values.get("P") == pid), None)
 
 
 def write_settings(ask: Ask, settings: dict[int, float], port: str) -> None:
     """Write the bot's settings (F22) and read each back (F21); BotError naming the first
     that did not take."""
     for pid, value in settings.items():
-        ask(f"F22 P{pid} V{round(value)}")
+        ask(write_parameter_line(pid, value))
     for pid, value in settings.items():
-        held = _reported(ask(f"F21 P{pid}"), pid)
+        held = _reported(ask(read_parameter_line(pid)), pid)
         if held is None or round(held) != round(value):
             raise BotError(f"serial {port}: firmware parameter {describe(pid)} did not take: "
                            f"wrote {round(value)}, the board holds "
@@ -60,10 +72,10 @@ def read_parameters(ask: Ask, port: str) -> dict[int, float]:
     without that the firmware does not report is a BotError."""
     params: dict[int, float] = {}
     for pid in READ_PARAMETERS:
-        value = _reported(ask(f"F21 P{pid}"), pid)
+        value = _reported(ask(read_parameter_line(pid)), pid)
         if value is not None:
             params[pid] = value
-        elif pid in AXIS_LENGTH_PARAMETERS:
+        elif pid in AXIS_LENGTHS.values():
             params[pid] = 0.0  # not calibrated
         elif pid not in _Z_HOME_FALLBACK and pid not in _OPTIONAL_PARAMETERS:
             raise BotError(f"serial {port}: the firmware does not report parameter {pid} "
@@ -79,7 +91,7 @@ def travel_limits(base: BotInfo, params: dict[int, float], profile: MotionProfil
     lengths (parameters 141-143, in steps; 0 is not calibrated), metres, bed frame."""
     low, high, home = np.array(base.travel_min), np.array(base.travel_max), base.home
     for i, axis in enumerate((profile.x, profile.y, profile.z)):
-        steps = params.get(AXIS_LENGTH_PARAMETERS[i], 0.0)
+        steps = params.get(AXIS_LENGTHS["xyz"[i]], 0.0)
         if steps > 0:
             length = steps / axis.steps_per_m
             if i < 2:

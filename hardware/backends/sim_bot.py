@@ -40,7 +40,6 @@ from flowerpose.errors import InputError
 from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 from flowerpose.hardware.bot import Activity, BotInfo, Camera, Frame, KinematicBot, Recording
 from flowerpose.hardware.bot_errors import CameraError
-from flowerpose.hardware.flights.scan_plan import ScanConfig, ScanPlan, plan_scan
 from flowerpose.hardware.geometry import FARMBOT_ASSETS
 from flowerpose.hardware.kinematics import HeadPose, joint_positions
 from flowerpose.hardware.motion import move_duration
@@ -52,7 +51,6 @@ from flowerpose.hardware.trajectory import (
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG
 from flowerpose.processes import quiet_worker
-from flowerpose.scan_geometry import ScanPathConfig
 from flowerpose.scanio import (
     FRAME_PATTERN,
     TRAJECTORY_COLUMNS,
@@ -452,13 +450,3 @@ def write_preview(scan_dir: Path, plant_centers: list[np.ndarray], plant_heights
         return write_file(scan_dir / "preview.mp4", film)
     finally:
         renderer.close()
-
-
-def plan_plant_scan(plant, path: ScanPathConfig | None = None) -> ScanPlan:
-    """The scan path round a simulated plant (`sim.export.read_plant`), with reach and
-    collisions against its mesh checked: `path` (the synthetic world's `sim.viewpoints`,
-    the same cameras that decide the oracle's visibility) or the default."""
-    from flowerpose.sim.export import plant_obstacles
-
-    return plan_scan(plant.center[:2], plant.height, ScanConfig(path=path or ScanPathConfig()),
-                     obstacles=plant_obstacles(plant))

@@ -5,7 +5,7 @@ keeps a stable symlink to it (`path`, like /dev/serial/by-id) that survives a si
 reconnect. It behaves as farmbot-arduino-firmware 6.6 does (docs/guides/physical-bot.md,
 "The wire protocol"):
 
-- Opening the port resets the board (as DTR does on a real one): `R99 ARDUINO STARTUP
+- Opening the port resets the board (as DTR does on a real one): `R99 ARDUINO TEXT
   COMPLETE` after the boot time, the position counters at 0 wherever the gantry stands
   (the position is lost), the parameters reloaded from "EEPROM" (the `params` given) with
   the configuration not approved, no servo pulses, no emergency stop.
@@ -98,9 +98,16 @@ from flowerpose.hardware.motion import (
 )
 from flowerpose.hardware.protocol import (
     BANNER,
+    BUSY,
+    DONE,
     ENCODERS,
     FIRMWARE_DEFAULTS,
+    IDLE,
+    LOCKED,
+    NOT_CONFIGURED,
+    PARAMETER_VALUE,
     PARAMETERS,
+    POSITION,
 )
 
 REPORT_PERIOD_S = 0.5
@@ -390,7 +397,7 @@ class VirtualFarmduino(FirmwareBehaviour):
 
     def _position_report(self, q: int) -> str:
         x, y, z = (self._physical() - self._offset) * 1000.0 + 0.0
-        return f"R82 X{x:.2f} Y{y:.2f} Z{z:.2f} Q{q}"
+        return f"{POSITION} X{x:.2f} Y{y:.2f} Z{z:.2f} Q{q}"
 
     def _report_period(self) -> float:
         return max(self.report_period_s, MIN_REPORT_WALL_S * self.time_scale)
@@ -516,7 +523,7 @@ class VirtualFarmduino(FirmwareBehaviour):
             self._next_report = now + self._report_period()
             self._say(BANNER)
             for pid in sorted(self._params):  # the real firmware lists them all at boot
-                self._say(f"R21 P{pid} V{self._params[pid]:g} Q0")
+                self._say(f"{PARAMETER_VALUE} P{pid} V{self._params[pid]:g} Q0")
         if self._drop_at is not None and now >= self._drop_at[0]:
             down = self._drop_at[1]
             self._drop_at = None
@@ -526,7 +533,7 @@ class VirtualFarmduino(FirmwareBehaviour):
         if self._closing is not None and now >= self._closing[1]:
             (q, due), self._closing = self._closing, None
             self._say(self._position_report(q))
-            self._say(f"R02 Q{q}")
+            self._say(f"{DONE} Q{q}")
             self._answered_at = due
             self._next_report = now + self._report_period()
         running = self._running
@@ -553,13 +560,13 @@ class VirtualFarmduino(FirmwareBehaviour):
         busy = self._running.q if self._running is not None else (
             self._closing[0] if self._closing is not None else None)
         if busy is not None:
-            self._say(f"R04 Q{busy}")
+            self._say(f"{BUSY} Q{busy}")
             self._say(self._position_report(busy))
             return
-        self._say("R87 Q0" if self._locked else "R00 Q0")
+        self._say(f"{LOCKED} Q0" if self._locked else f"{IDLE} Q0")
         self._say(self._position_report(0))
         if self._params.get(2) != 1:
-            self._say("R88 Q0")
+            self._say(f"{NOT_CONFIGURED} Q0")
 
     def describe(self) -> dict:
         """The device's settings, for scan.json."""

@@ -21,7 +21,31 @@ from flowerpose.hardware.motion import (
     axis_motions,
     move_trajectory,
 )
-from flowerpose.hardware.protocol import ENCODERS, ENDSTOPS, SERVO_PINS
+from flowerpose.hardware.protocol import (
+    AXIS_LENGTH,
+    CALIBRATE_LINES,
+    DONE,
+    ECHO,
+    ENCODER_RAW,
+    ENCODER_SCALED,
+    ENCODERS,
+    ENDSTOP_STATES,
+    ENDSTOPS,
+    ERROR,
+    HOME_LINES,
+    LOCKED,
+    MOTOR_STATE,
+    NOT_CONFIGURED,
+    PARAMETER_VALUE,
+    PIN_VALUE,
+    RETRY,
+    SERVO_PINS,
+    STARTED,
+    STATUS_VALUE,
+    TEXT,
+    UNKNOWN,
+    VERSION,
+)
 
 FIRMWARE_VERSION = "6.6.23.V.virtual"
 STOP_ACK_S = 0.05
@@ -39,7 +63,7 @@ it, and the firmware tries again, for good."""
 SERVO_JOINTS = {6: 3, 5: 4}
 """The servo pins that turn the head, and their joints' places in `joints` (yaw, pitch)."""
 
-_MOVEMENTS = {"G00", "F11", "F12", "F13", "F14", "F15", "F16"}
+_MOVEMENTS = {"G00", *HOME_LINES.values(), *CALIBRATE_LINES.values()}
 _WHILE_LOCKED = {"F09", "F20", "F21", "F22", "F81", "F82", "F83"}
 _ALIASES = {"G0": "G00", "G01": "G00", "G1": "G00", "F9": "F09"}
 _KNOWN = {"G00", "G28", "F09", "F11", "F12", "F13", "F14", "F15", "F16", "F20", "F21", "F22",
@@ -106,7 +130,7 @@ class FirmwareBehaviour:
         """One command line; `echo` is what the firmware echoes, the sender's carriage
         return included (the real firmware keeps it)."""
         self.received.append(line)
-        self._say(f"R08 *{line if echo is None else echo}*")
+        self._say(f"{ECHO} *{line if echo is None else echo}*")
         tokens = line.split()
         code = _ALIASES.get(tokens[0], tokens[0])
         values: dict[str, float] = {}
@@ -115,20 +139,20 @@ class FirmwareBehaviour:
                 values.setdefault(token[0], _atof(token[1:]))
         q = int(values.get("Q", 0))
         if self._locked and code not in _WHILE_LOCKED:
-            self._say(f"R87 Q{q}")
+            self._say(f"{LOCKED} Q{q}")
             return
         if code in _MOVEMENTS and self._params.get(2) != 1:
-            self._say(f"R88 Q{q}")
+            self._say(f"{NOT_CONFIGURED} Q{q}")
             return
         handler = getattr(self, f"_cmd_{code}", None) if code in _KNOWN else None
         if handler is None:
-            self._say(f"R09 Q{q}")
+            self._say(f"{UNKNOWN} Q{q}")
             return
-        self._say(f"R01 Q{q}")
+        self._say(f"{STARTED} Q{q}")
         handler(q, values)
 
     def _done(self, q: int) -> None:
-        self._say(f"R02 Q{q}")
+        self._say(f"{DONE} Q{q}")
 
     def _to_physical(self, axis: int, mm: float) -> float:
         """The physical joint (metres) of a firmware coordinate on `axis`, in whole steps
@@ -201,7 +225,7 @@ class FirmwareBehaviour:
 
     def _cmd_F31(self, q: int, values: dict[str, float]) -> None:
         """Read a status value (the firmware keeps one, "general", at 0)."""
-        self._say(f"R31 P{int(values.get('P', 0))} V0 Q{q}")
+        self._say(f"{STATUS_VALUE} P{int(values.get('P', 0))} V0 Q{q}")
         self._done(q)
 
     def _cmd_F32(self, q: int, values: dict[str, float]) -> None:
@@ -211,12 +235,12 @@ class FirmwareBehaviour:
     def _cmd_F20(self, q: int, values: dict[str, float]) -> None:
         """Report every parameter."""
         for pid in sorted(self._params):
-            self._say(f"R21 P{pid} V{self._params[pid]:g} Q{q}")
+            self._say(f"{PARAMETER_VALUE} P{pid} V{self._params[pid]:g} Q{q}")
         self._done(q)
 
     def _cmd_F81(self, q: int, values: dict[str, float]) -> None:
         """Report the endstops: none is wired to this board, so none is pressed."""
-        self._say(f"R81 XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}")
+        self._say(f"{ENDSTOP_STATES} XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}")
         self._done(q)
 
     def _cmd_F43(self, q: int, values: dict[str, float]) -> None:
@@ -244,7 +268,7 @@ class FirmwareBehaviour:
     def _cmd_F21(self, q: int, values: dict[str, float]) -> None:
         pid = int(values.get("P", 0))
         if pid in self._params:
-            self._say(f"R21 P{pid} V{self._params[pid]:g} Q{q}")
+            self._say(f"{PARAMETER_VALUE} P{pid} V{self._params[pid]:g} Q{q}")
         self._done(q)
 
     def _cmd_F22(self, q: int, values: dict[str, float]) -> None:
@@ -259,7 +283,7 @@ class FirmwareBehaviour:
 
     def _cmd_F42(self, q: int, values: dict[str, float]) -> None:
         pin = int(values.get("P", 0))
-        self._say(f"R41 P{pin} V{self._pins.get(pin, 0)} Q{q}")
+        self._say(f"{PIN_VALUE} P{pin} V{self._pins.get(pin, 0)} Q{q}")
         self._done(q)
 
     def _cmd_F61(self, q: int, values: dict[str, float]) -> None:
@@ -281,7 +305,7 @@ class FirmwareBehaviour:
         self._done(q)
 
     def _cmd_F83(self, q: int, values: dict[str, float]) -> None:
-        self._say(f"R83 {FIRMWARE_VERSION} Q{q}")
+        self._say(f"{VERSION} {FIRMWARE_VERSION} Q{q}")
         self._done(q)
 
     # --- movement ---------------------------------------------------------------------
@@ -336,8 +360,8 @@ class FirmwareBehaviour:
         again, never ending the command."""
         axis = "XYZ"[stage.home_axis]
         self._say(f"R7{stage.home_axis + 1} Q{running.q}")
-        self._say(f"R99 timeout {axis} axis")
-        self._say(f"R99 homing displaced {axis} axis")
+        self._say(f"{TEXT} timeout {axis} axis")
+        self._say(f"{TEXT} homing displaced {axis} axis")
         self._start_stage(running, at=running.t0 + running.stop_at)
 
     def _arrive(self, running: Running, stage: Stage) -> None:
@@ -347,8 +371,8 @@ class FirmwareBehaviour:
             axis = stage.measure_axis
             steps = round(self.firmware_position_mm()[axis]
                           * self._profile().axis(axis, False).steps_per_mm)
-            self._say(f"R23 P{21 + axis} V0 Q{running.q}")  # the home end is not inverted
-            self._say(f"R23 P{801 + axis} V{float(abs(steps)):.2f} Q{running.q}")
+            self._say(f"{AXIS_LENGTH} P{21 + axis} V0 Q{running.q}")  # the home end is not inverted
+            self._say(f"{AXIS_LENGTH} P{801 + axis} V{float(abs(steps)):.2f} Q{running.q}")
         arrived = running.t0 + running.stop_at
         running.stages.pop(0)
         if running.stages:
@@ -363,22 +387,23 @@ class FirmwareBehaviour:
         q, mm = running.q, self.firmware_position_mm()
         xyz = " ".join(f"{a}{v:.2f}" for a, v in zip("XYZ", mm, strict=True))
         self._running = None
-        self._say("R99 stopped")
-        for line in (f"R05 X0 Y0 Z0 Q{q}", f"R81 XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}",
-                     f"R84 {xyz} Q{q}", f"R85 {xyz} Q{q}"):
+        self._say(f"{TEXT} stopped")
+        for line in (f"{MOTOR_STATE} X0 Y0 Z0 Q{q}",
+                     f"{ENDSTOP_STATES} XA0 XB0 YA0 YB0 ZA0 ZB0 Q{q}",
+                     f"{ENCODER_SCALED} {xyz} Q{q}", f"{ENCODER_RAW} {xyz} Q{q}"):
             self._say(line)
         self._closing = (q, arrived + END_OF_MOVE_S)
 
     def _stalled_or_timed_out(self, running: Running) -> None:
         if running.error != ERR_TIMEOUT:
             axis = "XYZ"[running.error - 31]
-            self._say(f"R99 deactivate motor {axis} due to missed steps")
+            self._say(f"{TEXT} deactivate motor {axis} due to missed steps")
             # The obstruction is still there: every retry stalls at once.
             for _ in range(1, int(self._params.get(5, 1))):
-                self._say(f"R07 Q{running.q}")
-                self._say(f"R99 deactivate motor {axis} due to missed steps")
+                self._say(f"{RETRY} Q{running.q}")
+                self._say(f"{TEXT} deactivate motor {axis} due to missed steps")
         else:
-            self._say("R99 timeout")
+            self._say(f"{TEXT} timeout")
         self._finish(running.error)
 
     def _finish(self, error: int) -> None:
@@ -390,7 +415,7 @@ class FirmwareBehaviour:
             self._set_joints(self._along(running, min(self.now() - running.t0,
                                                       running.stop_at)))
         self._say(self._position_report(running.q))
-        self._say(f"R03 V{error} Q{running.q}" if error else f"R02 Q{running.q}")
+        self._say(f"{ERROR} V{error} Q{running.q}" if error else f"{DONE} Q{running.q}")
         self._answered_at = min(self.now(), running.t0 + running.stop_at)
         self._next_report = self.now() + self._report_period()
 
@@ -418,12 +443,12 @@ class FirmwareBehaviour:
             return
         if not stop.acknowledged:
             stop.acknowledged = True
-            self._say(f"R87 Q{stop.q}")
-            self._say("R99 emergency stop")
+            self._say(f"{LOCKED} Q{stop.q}")
+            self._say(f"{TEXT} emergency stop")
         if now >= stop.at + STOP_DONE_S:
             self._stopping = None
             self._say(self._position_report(stop.q))
-            self._say(f"R03 V{ERR_EMERGENCY_STOP} Q{stop.q}")
+            self._say(f"{ERROR} V{ERR_EMERGENCY_STOP} Q{stop.q}")
             self._answered_at = stop.at + STOP_DONE_S
             self._input.clear()
             self._next_report = now + self._report_period()

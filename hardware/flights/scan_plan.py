@@ -86,6 +86,16 @@ def head_points(pose: HeadPose, geometry: BotGeometry = PAPER_BOT) -> np.ndarray
     return np.stack([np.atleast_2d(camera), np.atleast_2d(axis)], axis=1)
 
 
+def plan_plant_scan(plant_center, plant_height: float, obstacles: np.ndarray,
+                    path: ScanPathConfig | None = None) -> ScanPlan:
+    """The scan path round a plant whose surfaces are known (a simulated plant's mesh
+    samples, `sim.export.plant_obstacles`), reach and collisions checked: `path` (the
+    synthetic world's `sim.viewpoints`, the same cameras that decide the oracle's
+    visibility) or the default. plant_center: (2,) metres, bed frame; plant_height: metres."""
+    return plan_scan(plant_center, plant_height, ScanConfig(path=path or ScanPathConfig()),
+                     obstacles=obstacles)
+
+
 def plan_scan(plant_center, plant_height: float, config: ScanConfig = ScanConfig(),
               geometry: BotGeometry = PAPER_BOT, profile: MotionProfile | None = None,
               obstacles: np.ndarray | None = None, samples_per_move: int = 16) -> ScanPlan:

@@ -35,7 +35,7 @@ def _interruptible() -> None:
 
 
 def _scan(plant_dir: Path, out: Path) -> subprocess.Popen:
-    command = [sys.executable, "-m", "flowerpose.cli", "scan", "--sim", "--plant",
+    command = [sys.executable, "-m", "flowerpose", "scan", "--sim", "--plant",
                str(plant_dir), "--out", str(out), "--width", "96", "--height", "54",
                "--frame-rate", "0.2", "--workers", "1", "--no-preview"]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -133,7 +133,7 @@ def test_an_eval_stopped_from_the_terminal_says_one_line_and_leaves_no_worker(tm
     # The whole process group gets the signal, as from a terminal's Ctrl-C. An empty stage
     # cache of its own: the plants are made, so the eval is still running when it comes.
     process = subprocess.Popen(
-        [sys.executable, "-m", "flowerpose.cli", "eval", "--source", "oracle", "--plants", "6",
+        [sys.executable, "-m", "flowerpose", "eval", "--source", "oracle", "--plants", "6",
          "--workers", "2", "--out", str(tmp_path / "run")], stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_interruptible,
         env={**os.environ, "FLOWERPOSE_CACHE": str(tmp_path / "cache")})

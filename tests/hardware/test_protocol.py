@@ -7,11 +7,11 @@ import pytest
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot_errors import BotError, OutOfRangeError
-from flowerpose.hardware.motion import FIRMWARE_PARAMETERS
 from flowerpose.hardware.protocol import (
     ENCODERS,
     ENDSTOPS,
     IDS,
+    MOTION_PARAMETERS,
     PARAMETERS,
     checked_line,
     describe,
@@ -25,7 +25,7 @@ from flowerpose.hardware.protocol import (
 
 def test_the_table_names_every_parameter_the_client_uses_once():
     assert len(IDS) == len(PARAMETERS)
-    used = {p for ids in FIRMWARE_PARAMETERS.values() for p in ids}
+    used = {p for ids in MOTION_PARAMETERS.values() for p in ids}
     used |= set(ENDSTOPS.values()) | set(ENCODERS.values())
     assert used <= set(PARAMETERS)
     assert describe(101) == "101 (encoder_enabled_x)" and describe(9999) == "9999"

@@ -132,11 +132,12 @@ def test_the_configured_camera_processing_and_light_reach_the_recorded_frames(pl
 def test_the_simulated_bot_flies_the_synthetic_worlds_path(plant_dir):
     """`--set sim.viewpoints.*` moves the cameras that decide visibility and the path the
     bot flies alike."""
-    from flowerpose.hardware.backends.sim_bot import plan_plant_scan
-    from flowerpose.sim.export import read_plant
+    from flowerpose.hardware.flights.scan_plan import plan_plant_scan
+    from flowerpose.sim.export import plant_obstacles, read_plant
 
     plant = read_plant(plant_dir)
+    around = (plant.center[:2], plant.height, plant_obstacles(plant))
     coarse = ScanPathConfig(azimuth_step_deg=90.0, cylinder_bottom_m=0.22, dome_polar_deg=(50.0,))
-    plan = plan_plant_scan(plant, coarse)
+    plan = plan_plant_scan(*around, coarse)
     assert plan.config.path == coarse
-    assert len(plan.waypoints) < len(plan_plant_scan(plant).waypoints)
+    assert len(plan.waypoints) < len(plan_plant_scan(*around).waypoints)

@@ -434,7 +434,7 @@ def test_time_scale_is_checked():
 @pytest.mark.slow
 def test_command_line_serves_until_ctrl_c():
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen([sys.executable, "-m", "flowerpose.cli", "farmduino", "--virtual",
+    process = subprocess.Popen([sys.executable, "-m", "flowerpose", "farmduino", "--virtual",
                                 "--time-scale", "50"], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=env,
                                # as from a terminal, even where this runs as a background job
@@ -451,7 +451,7 @@ def test_command_line_serves_until_ctrl_c():
         process.kill()
     assert process.returncode == 0 and "Traceback" not in err and "stopped" in err
     assert not os.path.exists(path)
-    bad = subprocess.run([sys.executable, "-m", "flowerpose.cli", "farmduino"],
+    bad = subprocess.run([sys.executable, "-m", "flowerpose", "farmduino"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--virtual" in bad.stderr
 
