@@ -19,8 +19,10 @@ $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
 eval: setup
 	$(BIN)/flowerpose eval
 
+# One worker a core (at most 4), a test file's tests on one worker so its module fixtures are
+# made once.
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
 # The tests of under a second each, while working (the full suite is `make test`).
 test-fast: setup

@@ -87,6 +87,20 @@ HOME_LINES = {"x": "F11", "y": "F12", "z": "F13"}
 """Find one axis's home, which the firmware's counter then calls 0."""
 CALIBRATE_LINES = {"x": "F14", "y": "F15", "z": "F16"}
 """Measure one axis's length: to home, then to the far end (`AXIS_LENGTH`)."""
+COMMANDS = frozenset({"G00", "G28", "F09", "F11", "F12", "F13", "F14", "F15", "F16", "F20",
+                      "F21", "F22", "F31", "F32", "F41", "F42", "F43", "F44", "F61", "F81",
+                      "F82", "F83", "F84"})
+"""The commands firmware 6.6 knows; another answers `UNKNOWN`."""
+COMMAND_ALIASES = {"G0": "G00", "G01": "G00", "G1": "G00", "F9": "F09"}
+"""Spellings the firmware reads as another command."""
+MOVEMENT_COMMANDS = frozenset({"G00", *HOME_LINES.values(), *CALIBRATE_LINES.values()})
+"""The commands that move an axis, refused (`NOT_CONFIGURED`) until the configuration is
+approved."""
+COMMANDS_WHILE_LOCKED = frozenset({"F09", "F20", "F21", "F22", "F81", "F82", "F83"})
+"""The commands still served after an emergency stop; another answers `LOCKED`."""
+ERROR_EMERGENCY_STOP, ERROR_TIMEOUT, ERROR_ABORTED = 1, 2, 5
+"""The `ERROR` reply's codes (`R03 V<code>`) the client acts on; the errors module names
+them all."""
 CONFIG_APPROVED = 2
 """The parameter that says the configuration is approved (`param_config_ok`)."""
 SERVO_PINS = (4, 5, 6, 11)

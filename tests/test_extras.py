@@ -48,7 +48,9 @@ def test_the_virtual_farmduino_serves_on_the_core_install():
     import signal
 
     board = subprocess.Popen([sys.executable, "-c", BLOCK, "farmduino", "--virtual"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             # as from a terminal, even where this runs as a background job
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         path = board.stdout.readline().strip()
         assert path.endswith("ttyFarmduino"), board.stderr.read() if board.poll() else path

@@ -86,7 +86,6 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.backends.virtual_firmware import (
-    ERR_ABORTED,
     FIRMWARE_VERSION,
     HOMING_MARKER,
     FirmwareBehaviour,
@@ -101,6 +100,7 @@ from flowerpose.hardware.protocol import (
     BUSY,
     DONE,
     ENCODERS,
+    ERROR_ABORTED,
     FIRMWARE_DEFAULTS,
     IDLE,
     LOCKED,
@@ -497,7 +497,7 @@ class VirtualFarmduino(FirmwareBehaviour):
                 continue
             if self._running is not None:
                 if byte == ord("@"):
-                    self._finish(ERR_ABORTED)
+                    self._finish(ERROR_ABORTED)
                 else:
                     self.discarded += 1
                 continue

@@ -23,7 +23,9 @@ from flowerpose.hardware.motion import (
 )
 from flowerpose.hardware.protocol import (
     AXIS_LENGTH,
-    CALIBRATE_LINES,
+    COMMAND_ALIASES,
+    COMMANDS,
+    COMMANDS_WHILE_LOCKED,
     DONE,
     ECHO,
     ENCODER_RAW,
@@ -32,9 +34,11 @@ from flowerpose.hardware.protocol import (
     ENDSTOP_STATES,
     ENDSTOPS,
     ERROR,
-    HOME_LINES,
+    ERROR_EMERGENCY_STOP,
+    ERROR_TIMEOUT,
     LOCKED,
     MOTOR_STATE,
+    MOVEMENT_COMMANDS,
     NOT_CONFIGURED,
     PARAMETER_VALUE,
     PIN_VALUE,
@@ -63,13 +67,7 @@ it, and the firmware tries again, for good."""
 SERVO_JOINTS = {6: 3, 5: 4}
 """The servo pins that turn the head, and their joints' places in `joints` (yaw, pitch)."""
 
-_MOVEMENTS = {"G00", *HOME_LINES.values(), *CALIBRATE_LINES.values()}
-_WHILE_LOCKED = {"F09", "F20", "F21", "F22", "F81", "F82", "F83"}
-_ALIASES = {"G0": "G00", "G01": "G00", "G1": "G00", "F9": "F09"}
-_KNOWN = {"G00", "G28", "F09", "F11", "F12", "F13", "F14", "F15", "F16", "F20", "F21", "F22",
-          "F31", "F32", "F41", "F42", "F43", "F44", "F61", "F81", "F82", "F83", "F84"}
 _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)")
-ERR_EMERGENCY_STOP, ERR_TIMEOUT, ERR_ABORTED = 1, 2, 5
 
 
 def _atof(text: str) -> float:
@@ -132,19 +130,19 @@ class FirmwareBehaviour:
         self.received.append(line)
         self._say(f"{ECHO} *{line if echo is None else echo}*")
         tokens = line.split()
-        code = _ALIASES.get(tokens[0], tokens[0])
+        code = COMMAND_ALIASES.get(tokens[0], tokens[0])
         values: dict[str, float] = {}
         if code[0] in "GF":
             for token in tokens[1:]:
                 values.setdefault(token[0], _atof(token[1:]))
         q = int(values.get("Q", 0))
-        if self._locked and code not in _WHILE_LOCKED:
+        if self._locked and code not in COMMANDS_WHILE_LOCKED:
             self._say(f"{LOCKED} Q{q}")
             return
-        if code in _MOVEMENTS and self._params.get(2) != 1:
+        if code in MOVEMENT_COMMANDS and self._params.get(2) != 1:
             self._say(f"{NOT_CONFIGURED} Q{q}")
             return
-        handler = getattr(self, f"_cmd_{code}", None) if code in _KNOWN else None
+        handler = getattr(self, f"_cmd_{code}", None) if code in COMMANDS else None
         if handler is None:
             self._say(f"{UNKNOWN} Q{q}")
             return
@@ -329,7 +327,7 @@ class FirmwareBehaviour:
         timeouts = [a.timeout_s for a in axis_motions(running.start, stage.end, stage.profile)]
         late = [timeouts[i] for i in range(3) if durations[i] > timeouts[i]]
         if late:
-            running.stop_at, running.error = min(late), ERR_TIMEOUT
+            running.stop_at, running.error = min(late), ERROR_TIMEOUT
         if stage.calibrating:
             running.stop_at, running.error = float(durations.max()), 0
         if stage.blind and stage.calibrating:
@@ -395,7 +393,7 @@ class FirmwareBehaviour:
         self._closing = (q, arrived + END_OF_MOVE_S)
 
     def _stalled_or_timed_out(self, running: Running) -> None:
-        if running.error != ERR_TIMEOUT:
+        if running.error != ERROR_TIMEOUT:
             axis = "XYZ"[running.error - 31]
             self._say(f"{TEXT} deactivate motor {axis} due to missed steps")
             # The obstruction is still there: every retry stalls at once.
@@ -429,7 +427,7 @@ class FirmwareBehaviour:
             running = self._running
             # The motors run on until the firmware acknowledges the stop.
             running.stop_at = min(running.stop_at, now - running.t0 + STOP_ACK_S)
-            running.error, running.reset = ERR_EMERGENCY_STOP, False
+            running.error, running.reset = ERROR_EMERGENCY_STOP, False
             self._stopping = Stopping(running.q, now, next_report=now + STOP_ACK_S)
 
     def _advance_stop(self, now: float) -> None:
@@ -448,7 +446,7 @@ class FirmwareBehaviour:
         if now >= stop.at + STOP_DONE_S:
             self._stopping = None
             self._say(self._position_report(stop.q))
-            self._say(f"{ERROR} V{ERR_EMERGENCY_STOP} Q{stop.q}")
+            self._say(f"{ERROR} V{ERROR_EMERGENCY_STOP} Q{stop.q}")
             self._answered_at = stop.at + STOP_DONE_S
             self._input.clear()
             self._next_report = now + self._report_period()
