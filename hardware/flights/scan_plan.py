@@ -147,10 +147,21 @@ def poses_along(a: HeadPose, b: HeadPose, profile: MotionProfile, samples: int) 
                     a.pitch + fractions * (b.pitch - a.pitch))
 
 
+def check_clearance(plan: ScanPlan, obstacles: np.ndarray, what: str, advice: str,
+                    geometry: BotGeometry = PAPER_BOT, profile: MotionProfile | None = None,
+                    samples_per_move: int = 16) -> None:
+    """Refuse a planned scan whose head passes closer than its `head_clearance_m` to
+    `obstacles` ((M, 3) points, metres, bed frame) at a waypoint or on a move; InputError
+    names the waypoint, `what` the obstacles are ("plant north-2") and `advice`."""
+    _check_collisions(plan.waypoints, np.asarray(obstacles, float), plan.config, geometry,
+                      profile or MotionProfile(), samples_per_move, what, advice)
+
+
 def _check_collisions(waypoints: list[Waypoint], obstacles: np.ndarray,
                       config: ScanConfig, geometry: BotGeometry, profile: MotionProfile,
-                      samples: int) -> None:
-    """Refuse a path whose head passes too close to the plant at a waypoint or on a move
+                      samples: int, what: str = "the plant",
+                      advice: str = "widen the cylinder or the dome") -> None:
+    """Refuse a path whose head passes too close to `what` at a waypoint or on a move
     (`poses_along`)."""
     tree = cKDTree(obstacles)
     for a, b in zip([None] + waypoints[:-1], waypoints, strict=True):
@@ -160,10 +171,9 @@ def _check_collisions(waypoints: list[Waypoint], obstacles: np.ndarray,
         if distance.min() < config.head_clearance_m:
             where = "at" if a is None else f"on the move from waypoint {a.index} to"
             raise InputError(f"scan waypoint {b.index}",
-                             f"the camera head passes {distance.min() * 1000:.0f} mm from the "
-                             f"plant {where} waypoint {b.index} (least "
-                             f"{config.head_clearance_m * 1000:.0f} mm): widen the cylinder "
-                             "or the dome")
+                             f"the camera head passes {distance.min() * 1000:.0f} mm from "
+                             f"{what} {where} waypoint {b.index} (least "
+                             f"{config.head_clearance_m * 1000:.0f} mm): {advice}")
 
 
 def plant_envelope(center, height: float, radius: float, spacing: float = 0.01) -> np.ndarray:

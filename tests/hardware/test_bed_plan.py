@@ -1,0 +1,107 @@
+"""A bed of plants: the bed file read (TOML or CSV) or refused in one line naming the plant,
+every scan checked against the bot's reach and the neighbours before anything moves, and
+the visits ordered to keep the gantry's travel short."""
+
+from importlib.resources import files
+
+import pytest
+
+from flowerpose.errors import InputError
+from flowerpose.hardware.flights.bed_plan import (
+    PLANT_HEIGHT_M,
+    PLANT_RADIUS_M,
+    Bed,
+    BedPlant,
+    plan_bed,
+    read_bed,
+)
+from flowerpose.hardware.flights.scan_plan import ScanConfig
+from flowerpose.scan_geometry import ScanPathConfig
+
+EXAMPLE = files("flowerpose.assets") / "beds" / "example-4.toml"
+NARROW = ScanConfig(path=ScanPathConfig(cylinder_radius_m=0.3))
+
+
+def _toml(tmp_path, text: str):
+    path = tmp_path / "bed.toml"
+    path.write_text(text)
+    return path
+
+
+def test_a_toml_and_a_csv_bed_give_the_same_plants_with_the_defaults_where_none_is_given(
+        tmp_path):
+    toml = _toml(tmp_path, '[[plant]]\nname = "a"\nx = 0.7\ny = 0.75\n\n'
+                           '[[plant]]\nname = "b"\nx = 1.5\ny = 0.8\nheight = 0.3\n')
+    csv = tmp_path / "bed.csv"
+    csv.write_text("name,x,y,height,radius\na,0.7,0.75,,\nb,1.5,0.8,0.3,\n")
+    expected = [BedPlant("a", 0.7, 0.75, PLANT_HEIGHT_M, PLANT_RADIUS_M),
+                BedPlant("b", 1.5, 0.8, 0.3, PLANT_RADIUS_M)]
+    assert read_bed(toml) == read_bed(csv) == Bed(expected, ScanConfig())
+
+
+def test_the_bed_file_carries_its_scan_settings():
+    bed = read_bed(EXAMPLE)
+    assert bed.scan.path.cylinder_radius_m == 0.3
+    assert [plant.name for plant in bed.plants] == ["row-1", "row-2", "row-3", "row-4"]
+
+
+@pytest.mark.parametrize("text, words", [
+    ('[[plant]]\nname = "a"\nx = 0.7\n', "plant 'a': 'y' is missing"),
+    ('[[plant]]\nname = "a"\nx = "left"\ny = 0.7\n', "plant 'a': 'x' must be a number"),
+    ('[[plant]]\nname = "a"\nx = 0.7\ny = 0.7\nwidth = 1\n', "plant 1: unknown key 'width'"),
+    ('[[plant]]\nname = "a b"\nx = 0.7\ny = 0.7\n', "plant 1: 'name' must be"),
+    ('[[plant]]\nx = 0.7\ny = 0.7\n', "plant 1: 'name' must be"),
+    ('[[plant]]\nname = "a"\nx = 0.7\ny = 0.7\n[[plant]]\nname = "a"\nx = 1.5\ny = 0.7\n',
+     "plant 'a' is named twice"),
+    ('[[plant]]\nname = "a"\nx = 0.7\ny = nan\n', "'y' must be a number"),
+    ('[scan]\npause_s = 1.0\n', "no plant in the bed"),
+    ('[scan.path]\ncylinder_radius = 0.3\n[[plant]]\nname = "a"\nx = 1\ny = 0.7\n',
+     "scan.path.cylinder_radius: no such setting"),
+    ('[beds]\n', "unknown key 'beds'"),
+    ('plant = 3\n', "'plant' must be an array of tables"),
+])
+def test_a_bad_bed_file_is_refused_naming_the_file_and_the_plant(tmp_path, text, words):
+    path = _toml(tmp_path, text)
+    with pytest.raises(InputError, match="^" + str(path)) as error:
+        read_bed(path)
+    assert words in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_csv_without_the_position_columns_or_a_file_of_another_kind_is_refused(tmp_path):
+    csv = tmp_path / "bed.csv"
+    csv.write_text("plant,x\na,0.7\n")
+    with pytest.raises(InputError, match="'name' is missing"):
+        read_bed(csv)
+    other = tmp_path / "bed.json"
+    other.write_text("{}")
+    with pytest.raises(InputError, match=r"\.toml or \.csv"):
+        read_bed(other)
+    with pytest.raises(InputError, match="not found"):
+        read_bed(tmp_path / "none.csv")
+
+
+def test_the_visits_follow_the_row_whatever_the_files_order():
+    bed = read_bed(EXAMPLE)
+    shuffled = Bed([bed.plants[i] for i in (2, 0, 3, 1)], bed.scan)
+    plan = plan_bed(shuffled)
+    assert [plant.name for plant in plan.plants] == ["row-1", "row-2", "row-3", "row-4"]
+    # From the far end the row is flown the other way.
+    far = plan_bed(shuffled, start=(2.8, 1.3, 0.6))
+    assert [plant.name for plant in far.plants] == ["row-4", "row-3", "row-2", "row-1"]
+    assert plan.duration_s == pytest.approx(sum(s.duration_s for s in plan.scans)
+                                            + sum(plan.travel_s))
+    assert len(plan.table()) == 6 and plan.table()[1].split()[1] == "row-1"
+
+
+def test_a_plant_out_of_reach_is_refused_before_anything_moves_naming_it():
+    plants = [BedPlant("near", 1.0, 0.75), BedPlant("edge", 2.6, 0.75)]
+    with pytest.raises(InputError, match=r"^plant edge: .*gantry X.*fits a plant"):
+        plan_bed(Bed(plants))
+
+
+def test_neighbours_the_scan_would_hit_are_refused_naming_both():
+    plants = [BedPlant("a", 0.9, 0.75), BedPlant("b", 1.55, 0.75)]
+    with pytest.raises(InputError, match=r"^plant a: .* from plant b .*move the plants apart"):
+        plan_bed(Bed(plants))
+    # A narrower cylinder keeps clear of them.
+    assert [p.name for p in plan_bed(Bed(plants, NARROW)).plants] == ["a", "b"]
