@@ -72,14 +72,16 @@ def scan_plant(plant_dir: Path, out_dir: Path, config: ScanSourceConfig, plan,
     return manifest
 
 
-def write_scan_truth(scan_dir: Path, plant_dir: Path) -> Path:
+def write_scan_truth(scan_dir: Path, plant_dir: Path, first_instance: int = 0) -> Path:
     """scan_dir/plant.json: the plant's truth with `visible` and `visible_fraction` from this
     scan's own views (visibility.json: rendered instance masks at every settled waypoint)
-    instead of the path's geometry alone. Scores of this scan's clouds use it."""
+    instead of the path's geometry alone. Scores of this scan's clouds use it.
+    first_instance: the plant's flower ids' offset in the render (`render.instance_offsets`),
+    where the scan filmed it among other plants."""
     truth = read_json(Path(plant_dir) / "plant.json")
     seen = read_json(Path(scan_dir) / "visibility.json")
     for flower in truth["flowers"]:
-        key = str(flower["id"])
+        key = str(flower["id"] + first_instance)
         flower["visible"] = bool(seen["visible"].get(key, False))
         flower["visible_fraction"] = float(seen["fraction"].get(key, 0.0))
     truth["visibility"] = "scan"

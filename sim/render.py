@@ -269,6 +269,13 @@ def _double_sided(position: np.ndarray, front: np.ndarray, back: np.ndarray,
     return pyrender.Mesh([primitive])
 
 
+def instance_offsets(plants: list[Plant]) -> list[int]:
+    """Per plant, what its flowers' ids are offset by in a render of `plants` together: 0
+    for the first, then past the ids of the plants before it."""
+    return [int(v) for v in np.cumsum([0] + [max((f.id for f in p.flowers), default=-1) + 1
+                                             for p in plants[:-1]])]
+
+
 class PlantRenderer:
     """Renders plants (and a ground) from any camera pose; build once, render many.
 
@@ -283,8 +290,7 @@ class PlantRenderer:
         self.plants = [plants] if isinstance(plants, Plant) else list(plants)
         self.config = cfg = config or RenderConfig()
         self.camera = camera or CameraConfig()
-        self._offsets = list(np.cumsum([0] + [max((f.id for f in p.flowers), default=-1) + 1
-                                              for p in self.plants[:-1]]))
+        self._offsets = instance_offsets(self.plants)
 
         # Everything in one list of triangles; `code` is each face's instance + 1 (0: none).
         vertices, faces, rgba, part, code = [], [], [], [], []

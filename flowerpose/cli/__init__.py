@@ -24,6 +24,7 @@ COMMANDS = (
     stages.add_plant,
     field.add_scan,
     field.add_pollinate,
+    field.add_field,
     field.add_farmduino,
     stages.add_frames,
     stages.add_reconstruct,

@@ -1,5 +1,6 @@
 """The bot's subcommands: `scan` and `pollinate` on the simulated or the physical FarmBot
-(--port, --cloud), and `farmduino`, a virtual Farmduino for any serial client."""
+(--port, --cloud), `field` over a bed, and `farmduino`, a virtual Farmduino for any serial
+client."""
 
 from __future__ import annotations
 
@@ -475,3 +476,64 @@ def add_farmduino(sub: argparse._SubParsersAction) -> None:
                    "no endstops or encoders, so it cannot find home (default: encoders on, as "
                    "FarmBot OS sets a Genesis up)")
     p.set_defaults(func=cmd_farmduino)
+
+
+def cmd_field(args: argparse.Namespace) -> int:
+    from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed, run_sim_bed
+    from flowerpose.eval.config import eval_config
+    from flowerpose.hardware.flights.bed_plan import read_bed
+
+    if not args.sim:
+        raise InputError("field", "a bed is run in the simulator only so far (--sim); with the "
+                         "physical bot, scan each plant with flowerpose scan --port or --cloud")
+    if args.seed < 0:
+        raise InputError("--seed", f"must be 0 or more, got {args.seed}")
+    bed = read_bed(args.bed)
+    config = configure(eval_config(args.preset), args, command="field --sim")
+    if args.dry_run:
+        plan = plan_sim_bed(make_bed_plants(bed, config, args.seed, None))
+        print("\n".join(plan.table()))
+        return 0
+    report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going)
+    summary = report["summary"]
+    print(f"bed: {len(report['plants'])} of {len(bed.plants)} plants detected; "
+          f"{summary['found_visible']} of {summary['visible']} visible flowers found, "
+          f"{summary['fp']} false positives -> {args.out / 'report.md'}")
+    return 0
+
+
+def add_field(sub: argparse._SubParsersAction) -> None:
+    """The `field` subcommand's parser."""
+    from flowerpose.cli.options import add_preset
+
+    p = sub.add_parser(
+        "field", help="a field run over a bed of plants: each filmed, reconstructed while the "
+        "bot films the next, its flowers found (--sim: scored against the truth)",
+        description="Run a whole bed: the plants of a bed file (TOML or CSV; DESIGN.md, 'A bed "
+        "file') planned and checked before anything moves, filmed one after another in the "
+        "order that keeps the travel short, each reconstructed and its flowers found in a "
+        "worker while the bot films the next. --sim generates a plant at each place, all in "
+        "one simulated world, and scores each against its exact truth. Rerunning the "
+        "command resumes the bed (bed.json): finished plants are left alone.",
+        epilog="examples:\n"
+        "  flowerpose field --sim --bed bed.toml --out bed4 --dry-run\n"
+        "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120")
+    p.add_argument("--bed", type=Path, required=True, metavar="FILE",
+                   help="the bed file: where each plant stands (an example: "
+                   "assets/beds/example-4.toml in the package)")
+    p.add_argument("--sim", action="store_true", help="the simulated bot and generated plants")
+    p.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="--sim: the bed file's i-th plant is generated from seed S+i "
+                   "(default: %(default)s)")
+    add_preset(p)
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the bed's folder (resumes the run already there)")
+    p.add_argument("--keep-going", action="store_true",
+                   help="a plant that fails is marked so in bed.json and the bed goes on "
+                   "(default: the bed stops, the bot parked)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the bed's plan (order, waypoints, bot time), every scan checked "
+                   "against the bot's reach and the neighbours, and stop")
+    add_config_options(p, detector=False,
+                       example="scan.frames.count=120 (--sim reads every section)")
+    p.set_defaults(func=cmd_field)

@@ -22,6 +22,7 @@ with the paper's path.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import re
 from dataclasses import dataclass, field
@@ -48,8 +49,13 @@ PLANT_RADIUS_M = 0.15
 """A plant's radius where its bed file gives none, metres."""
 
 _KEYS = ("name", "x", "y", "height", "radius")
-_TIE_S_PER_M = 0.01
-"""Seconds a metre of travel adds to a move's cost when ordering (`_short_tour`)."""
+EXACT_TOUR_UP_TO = 8
+"""Beds of up to this many plants are ordered by trying every order (8! = 40,320)."""
+_TIE_S_PER_M = 0.5
+"""Seconds a metre of travel adds to a move's cost when ordering (`_short_tour`): between
+plants the Z axis's descent from one dome's top to the next cylinder's lowest ring takes
+about 21 s whatever the order, so without it tenths of a second of Z decide and the bot
+zigzags along the bed."""
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
 
@@ -197,12 +203,15 @@ class BedPlan:
 
 
 def plan_bed(bed: Bed, geometry: BotGeometry = PAPER_BOT,
-             profile: MotionProfile | None = None, start=None) -> BedPlan:
+             profile: MotionProfile | None = None, start=None,
+             surfaces: dict[str, np.ndarray] | None = None) -> BedPlan:
     """Plan and check every plant's scan (`bed.scan`) before anything moves, then order the
     visits.
 
     Each scan is checked against the bot's reach and its plant's envelope, then against
-    every neighbour's envelope (the head keeps `head_clearance_m` from it). The order
+    every neighbour's envelope (the head keeps `head_clearance_m` from it); `surfaces`
+    (name -> (M, 3) points, metres, bed frame: a simulated plant's own surface) stands in
+    for the envelope of the plants it names. The order
     starts at the plant nearest `start` (the gantry's bed-frame position, metres; the home
     position when None) and keeps the travel short (`_short_tour`). Raises InputError
     naming the plant (and the neighbour) that cannot be scanned."""
@@ -210,12 +219,15 @@ def plan_bed(bed: Bed, geometry: BotGeometry = PAPER_BOT,
     profile = profile or MotionProfile()
     if not plants:
         raise InputError("bed", "no plant in the bed")
-    scans = [_plant_scan(plant, config, geometry) for plant in plants]
+    surfaces = surfaces or {}
+    solid = {plant.name: surfaces.get(plant.name) if plant.name in surfaces
+             else plant.envelope() for plant in plants}
+    scans = [_plant_scan(plant, config, geometry, solid[plant.name]) for plant in plants]
     for plant, scan in zip(plants, scans, strict=True):
         for neighbour in plants:
             if neighbour is not plant and _near(plant, neighbour, config):
                 try:
-                    check_clearance(scan, neighbour.envelope(), f"plant {neighbour.name}",
+                    check_clearance(scan, solid[neighbour.name], f"plant {neighbour.name}",
                                     "move the plants apart or narrow the scan path's "
                                     "cylinder", geometry, profile)
                 except InputError as error:
@@ -230,11 +242,11 @@ def plan_bed(bed: Bed, geometry: BotGeometry = PAPER_BOT,
     return BedPlan([plants[i] for i in order], [scans[i] for i in order], travel)
 
 
-def _plant_scan(plant: BedPlant, config: ScanConfig, geometry: BotGeometry) -> ScanPlan:
+def _plant_scan(plant: BedPlant, config: ScanConfig, geometry: BotGeometry,
+                surface: np.ndarray) -> ScanPlan:
     try:
         x, y = check_plant_position(plant.at, plant.height, plant.radius, geometry)
-        return plan_scan(np.array([x, y]), plant.height, config, geometry,
-                         obstacles=plant.envelope())
+        return plan_scan(np.array([x, y]), plant.height, config, geometry, obstacles=surface)
     except InputError as error:
         raise InputError(f"plant {plant.name}", f"{error.source}: {error.problem}") from None
 
@@ -250,11 +262,10 @@ def _near(plant: BedPlant, neighbour: BedPlant, config: ScanConfig) -> bool:
 def _short_tour(begin: np.ndarray, end: np.ndarray, start: np.ndarray,
                 profile: MotionProfile) -> list[int]:
     """A visiting order of the scans (each entered at `begin[i]`, left at `end[i]`, (N, 3)
-    metres) from `start` that keeps the gantry's travel short: nearest neighbour, then
-    2-opt reversals and single moves while one shortens it. A move's cost is its time, the
-    slowest axis's, plus `_TIE_S_PER_M` for its length, so that where the Z axis's climb
-    from one dome's top to the next cylinder's lowest ring sets the time whatever the
-    order, the shorter way along the bed still wins."""
+    metres) from `start` that keeps the gantry's travel short: the shortest of all orders
+    for a bed of up to `EXACT_TOUR_UP_TO` plants, else nearest neighbour, then 2-opt
+    reversals and single moves while one shortens it. A move's cost is its time, the
+    slowest axis's, plus `_TIE_S_PER_M` for its length."""
     count = len(begin)
 
     def cost(a: np.ndarray, b: np.ndarray) -> float:
@@ -266,6 +277,10 @@ def _short_tour(begin: np.ndarray, end: np.ndarray, start: np.ndarray,
     def total(order: list[int]) -> float:
         return float(first[order[0]] + between[order[:-1], order[1:]].sum())
 
+    if count <= EXACT_TOUR_UP_TO:
+        orders = np.array(list(itertools.permutations(range(count))), dtype=np.intp)
+        costs = first[orders[:, 0]] + between[orders[:, :-1], orders[:, 1:]].sum(axis=1)
+        return [int(i) for i in orders[int(np.argmin(costs))]]
     order = [int(np.argmin(first))]
     while len(order) < count:
         left = [j for j in range(count) if j not in order]

@@ -1,0 +1,325 @@
+"""A field run over a bed of simulated plants (`flowerpose field --sim`): a plant generated
+at each of the bed file's places, all of them in one simulated world, the bot filming them
+one after another in the planned order while, in a worker process, each filmed plant is
+reconstructed, its cloud cut to the plant, its flowers found and scored against its exact
+truth. The bot never waits for the computer: plant k is reconstructed while plant k+1 is
+filmed, and the last plants' reconstructions finish after the bot parks.
+
+The run's folder (`out`):
+
+- `bed.json`: the bed's journal, rewritten atomically after every step: the bed, the
+  order, and per plant its stage ("planned", "scanned", "detected" or "failed" with the
+  error) and seconds; its sessions as a flight's (`flight_journal`). Running the same
+  command again resumes: a detected plant is left alone, a scanned one only reconstructed,
+  a scan cut short resumed where its frames end. Another bed or other settings in the same
+  folder are refused.
+- `plants/NAME/`: the plant (plant.json, its mesh), `scan/` (the recording, and the truth
+  with this scan's visibility), `frames/`, `reconstruction/` (the whole cloud and
+  `plant_cloud.ply`, cut to the plant), `flowers.json`, `normals.ply`.
+- `report.json`, `report.md`: Table I over the bed and per plant, the bed's times.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import multiprocessing
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from flowerpose.config import to_dict
+from flowerpose.errors import InputError
+from flowerpose.eval.config import EvalConfig
+from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant, plan_bed
+from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
+from flowerpose.processes import quiet_worker
+from flowerpose.stopwatch import Stopwatch
+
+JOURNAL = "bed.json"
+LOCK = ".bed.lock"
+CROP_MARGIN_M = 0.03
+"""How far beyond a simulated plant's own reach (its mesh's widest distance from its axis)
+its cloud is kept: a neighbour's leaves that reach into it stay, its flowers mostly not."""
+OTHER_BED = ("holds a field run of another bed, seed or settings; choose another --out (a "
+             "run resumes only with the command that started it)")
+
+
+@dataclasses.dataclass(frozen=True)
+class SimBed:
+    """A bed's simulated plants: the bed with each plant's own height and reach, their
+    folders and surfaces (what the scans keep clear of)."""
+
+    bed: Bed
+    folders: dict[str, Path]
+    surfaces: dict[str, np.ndarray]
+
+
+def fingerprint(bed: Bed, config: EvalConfig, seed: int) -> str:
+    """The run's identity: its bed, scan settings, seed and every setting (SHA-256)."""
+    text = json.dumps({"plants": [dataclasses.asdict(p) for p in bed.plants],
+                       "scan": to_dict(bed.scan), "seed": seed, "config": to_dict(config)},
+                      sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def make_bed_plants(bed: Bed, config: EvalConfig, seed: int, out: Path | None) -> SimBed:
+    """A plant of seed `seed + i` for the i-th plant of the bed file, standing at its
+    place, written to out/plants/NAME (None: kept in memory, for a dry run). The bed's
+    heights and radii become the generated plants' own."""
+    from flowerpose.sim.bundle import make_plant
+    from flowerpose.sim.export import plant_obstacles, read_plant
+
+    plants, folders, surfaces = [], {}, {}
+    for index, spot in enumerate(bed.plants):
+        sim = dataclasses.replace(config.sim, plant=dataclasses.replace(
+            config.sim.plant, center_xy_m=(spot.x, spot.y)))
+        folder = None if out is None else out / "plants" / spot.name
+        if folder is not None and (folder / "plant.json").exists():
+            plant = read_plant(folder)  # made by this run before (the journal says whose)
+        else:
+            plant = make_plant(seed + index, config=sim, out_dir=folder).plant
+        reach = float(np.hypot(*(np.asarray(plant.mesh.vertices)[:, :2]
+                                 - np.asarray(plant.center[:2])).T).max())
+        plants.append(dataclasses.replace(spot, height=float(plant.height), radius=reach))
+        if folder is not None:
+            folders[spot.name] = folder
+        surfaces[spot.name] = plant_obstacles(plant)
+    return SimBed(dataclasses.replace(bed, plants=plants), folders, surfaces)
+
+
+def plan_sim_bed(sim_bed: SimBed) -> BedPlan:
+    """The bed's scans round the simulated plants' own surfaces, ordered (`plan_bed`)."""
+    return plan_bed(sim_bed.bed, surfaces=sim_bed.surfaces)
+
+
+def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: float) -> dict:
+    """A filmed plant's reconstruction (folder/frames -> folder/reconstruction), its cloud
+    cut to `crop_radius` metres round the plant's axis (plant_cloud.ply), measured against
+    its mesh, then its flowers found and scored against the truth with the scan's
+    visibility. Runs in a worker: returns the report's plant entry, the reconstruction's
+    counts and quality, and seconds per step."""
+    from flowerpose.cloudio import write_cloud
+    from flowerpose.eval.plants import SyntheticJob
+    from flowerpose.eval.quality import reconstruction_quality
+    from flowerpose.pipeline.reconstruct import reconstruct
+    from flowerpose.sim.export import read_plant
+
+    watch = Stopwatch()
+    built = reconstruct(folder / "frames", folder / "reconstruction", config.scan.reconstruct,
+                        progress=False, overwrite=True)
+    watch.lap("reconstruct")
+    plant = read_plant(folder)
+    points = built.cloud.points
+    keep = np.hypot(*(points[:, :2] - np.asarray(plant.center[:2])).T) <= crop_radius
+    cloud = write_cloud(folder / "reconstruction" / "plant_cloud.ply", built.cloud.subset(keep))
+    quality = reconstruction_quality(points[keep], plant.mesh, plant.face_part,
+                                     samples=100_000)
+    watch.lap("crop")
+    job = SyntheticJob(name, cloud, folder / "scan" / "plant.json", source="scan")
+    entry, timing = job.score(config, folder)
+    watch.lap("detect")
+    return {"entry": entry, "points": int(keep.sum()),
+            "registered": built.report["images_registered"],
+            "quality": quality, "seconds": watch.report(digits=3, total=None),
+            "pipeline_s": {k: round(v, 3) for k, v in timing.items()}}
+
+
+def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool = False,
+                say: Callable[[str], None] = print) -> dict:
+    """The bed's field run in the simulator, resumable (the module's docstring). Returns
+    report.json's content. InputError where the bed cannot be scanned (naming the plant) or
+    the folder holds another run; a plant whose scan or reconstruction fails is marked
+    failed with its error and, with `keep_going`, the bed goes on without it."""
+    with folder_lock(out, LOCK, "field run"):
+        return _run(bed, config, seed, out, keep_going, say)
+
+
+def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
+         say: Callable[[str], None]) -> dict:
+    from flowerpose.eval.scan_source import write_scan_truth
+    from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
+    from flowerpose.hardware.flights.scan_flight import run_scan
+    from flowerpose.pipeline.frames import select_frames
+    from flowerpose.sim.export import read_plant
+    from flowerpose.sim.render import instance_offsets
+
+    wall = Stopwatch()
+    journal = Journal.open(out / JOURNAL, fingerprint(bed, config, seed),
+                           {"seed": seed, "plants": {p.name: {"stage": "planned"}
+                                                     for p in bed.plants}},
+                           kept=("plants", "timing_s"), other_plan=OTHER_BED,
+                           redone="the plant being filmed resumes its scan")
+    record = journal.record
+    sim_bed = make_bed_plants(bed, config, seed, out)
+    plan = plan_sim_bed(sim_bed)
+    record["order"] = [p.name for p in plan.plants]
+    record["plan"] = {"bot_s": round(plan.duration_s, 1),
+                      "travel_s": [round(t, 1) for t in plan.travel_s]}
+    journal.save()
+    names = [p.name for p in bed.plants]
+    offsets = dict(zip(names, instance_offsets([read_plant(sim_bed.folders[n])
+                                                  for n in names]), strict=True))
+    reach = {p.name: p.radius + CROP_MARGIN_M for p in sim_bed.bed.plants}
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=quiet_worker)
+    pending: dict[str, Future] = {}
+    busy = _Busy()
+
+    def submit(name: str) -> None:
+        busy.start()
+        pending[name] = pool.submit(process_plant, sim_bed.folders[name], name, config,
+                                    reach[name])
+        pending[name].add_done_callback(lambda _: busy.stop())
+
+    def collect(block: bool) -> None:
+        for name in [n for n, f in pending.items() if block or f.done()]:
+            entry = record["plants"][name]
+            try:
+                result = pending.pop(name).result()
+            except Exception as error:  # a failed reconstruction or detection
+                _fail(entry, "reconstruct", error)
+                journal.save()
+                say(f"{name}: failed ({entry['error']})")
+                if not keep_going:
+                    raise
+                continue
+            seconds = {**entry.get("seconds", {}), **result.pop("seconds")}
+            entry.update(stage="detected", **result, seconds=seconds)
+            journal.save()
+            score = result["entry"]
+            say(f"{name}: {score['found_visible']} of {score['visible']} visible flowers "
+                f"found, {score['fp']} false positives, {result['points']} points "
+                f"({_done(record)} of {len(names)} plants done)")
+
+    bot = SimBot([sim_bed.folders[n] for n in names], SimBotConfig(camera=config.scan.camera))
+    try:
+        with bot, journal.session(bot):
+            for order, (spot, scan_plan) in enumerate(zip(plan.plants, plan.scans,
+                                                           strict=True), start=1):
+                entry = record["plants"][spot.name]
+                if entry["stage"] == "detected":
+                    continue
+                if entry["stage"] == "scanned":
+                    submit(spot.name)
+                    continue
+                folder = sim_bed.folders[spot.name]
+                say(f"[{order}/{len(names)}] {spot.name}: filming {len(scan_plan.waypoints)} "
+                    f"waypoints ({scan_plan.duration_s / 60:.1f} min of bot time)")
+                watch = Stopwatch()
+                try:
+                    run_scan(bot, scan_plan, folder / "scan", progress=False,
+                             source={**bot.describe(), "plants": [str(folder.resolve())]})
+                    write_scan_truth(folder / "scan", folder, offsets[spot.name])
+                    watch.lap("scan")
+                    select_frames(folder / "scan", folder / "frames", config.scan.frames,
+                                  progress=False, overwrite=True)
+                    watch.lap("frames")
+                except (InputError, OSError, RuntimeError) as error:
+                    _fail(entry, "scan", error)
+                    journal.save()
+                    say(f"{spot.name}: failed ({entry['error']})")
+                    if not keep_going:
+                        raise
+                    continue
+                entry.update(stage="scanned", seconds=watch.report(digits=3, total=None))
+                journal.save()
+                submit(spot.name)
+                collect(block=False)
+            filmed = wall.elapsed()
+            collect(block=True)
+            _add_times(record, {"bed": wall.elapsed(), "filming": filmed,
+                                "after_filming": wall.elapsed() - filmed,
+                                "computer_idle_while_filming": filmed - busy.total(filmed)})
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+    return _report(out, record, sim_bed.bed, config)
+
+
+def _add_times(record: dict, seconds: dict[str, float]) -> None:
+    """The bed's wall seconds, over every session that ran it."""
+    times = record.setdefault("timing_s", {})
+    for key, value in seconds.items():
+        times[key] = round(times.get(key, 0.0) + value, 3)
+
+
+class _Busy:
+    """How long the worker has had a plant to process, between `start` and `stop` calls
+    (the worker takes one plant at a time; a plant queued behind another counts once)."""
+
+    def __init__(self) -> None:
+        self._watch = Stopwatch()
+        self._queued = 0
+        self._since: float | None = None
+        self._spans: list[tuple[float, float]] = []
+
+    def start(self) -> None:
+        if self._queued == 0:
+            self._since = self._watch.elapsed()
+        self._queued += 1
+
+    def stop(self) -> None:
+        self._queued -= 1
+        if self._queued == 0 and self._since is not None:
+            self._spans.append((self._since, self._watch.elapsed()))
+            self._since = None
+
+    def total(self, until: float) -> float:
+        """Busy seconds up to `until` seconds after the run began."""
+        spans = self._spans + ([(self._since, until)] if self._since is not None else [])
+        return sum(max(0.0, min(end, until) - begin) for begin, end in spans)
+
+
+def _fail(entry: dict, stage: str, error: BaseException) -> None:
+    entry.update(stage="failed", failed_at=stage, error=str(error).splitlines()[0])
+
+
+def _done(record: dict) -> int:
+    return sum(p["stage"] == "detected" for p in record["plants"].values())
+
+
+def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
+    """report.json and report.md: Table I over the bed's detected plants, a row a plant."""
+    from flowerpose.atomic import write_text
+    from flowerpose.eval.report import build_report, markdown_table, write_report
+
+    spots: dict[str, BedPlant] = {p.name: p for p in bed.plants}
+    entries = [record["plants"][n]["entry"] for n in record["order"]
+               if record["plants"][n]["stage"] == "detected"]
+    rows = [_bed_row(n, spots[n], record["plants"][n]) for n in record["order"]]
+    report = build_report(to_dict(config), entries, record["timing_s"],
+                          {"bed": {"order": record["order"], "plants": rows,
+                                   "plan": record["plan"]}})
+    write_report(out, report, "flowerpose field --sim: the bed")
+    header = ["plant", "x m", "y m", "stage", "found (visible)", "FP", "points", "scan s",
+              "reconstruct s", "detect s"]
+    table = markdown_table(header, [[r["plant"], f"{r['x']:.2f}", f"{r['y']:.2f}", r["stage"],
+                                     r["found"], _text(r["fp"]), _text(r["points"]),
+                                     *(f"{r['seconds'].get(k, 0):.0f}" for k in
+                                       ("scan", "reconstruct", "detect"))] for r in rows])
+    times = record["timing_s"]
+    md = (out / "report.md").read_text()
+    bed_md = ["", "## The bed", "", table, "",
+              f"Bed: {times['bed']:.0f} s of wall time, {times['filming']:.0f} s of it filming "
+              f"(the computer idle {times['computer_idle_while_filming']:.0f} s of those), "
+              f"{times['after_filming']:.0f} s after the last plant was filmed. The bot never "
+              "waits for the computer: each plant is reconstructed in a worker while the next "
+              "is filmed.", ""]
+    write_text(out / "report.md", md + "\n".join(bed_md))
+    return report
+
+
+def _text(value) -> str:
+    return "-" if value is None else str(value)
+
+
+def _bed_row(name: str, spot: BedPlant, entry: dict) -> dict:
+    score = entry.get("entry")
+    found = "-" if score is None else f"{score['found_visible']} of {score['visible']}"
+    return {"plant": name, "x": spot.x, "y": spot.y, "stage": entry["stage"],
+            "error": entry.get("error"), "found": found,
+            "fp": None if score is None else score["fp"], "points": entry.get("points"),
+            "seconds": entry.get("seconds", {})}
