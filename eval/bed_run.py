@@ -16,7 +16,8 @@ The run's folder (`out`):
 - `plants/NAME/`: the plant (plant.json, its mesh), `scan/` (the recording, and the truth
   with this scan's visibility), `frames/`, `reconstruction/` (the whole cloud and
   `plant_cloud.ply`, cut to the plant), `flowers.json`, `normals.ply`.
-- `report.json`, `report.md`: Table I over the bed and per plant, the bed's times.
+- `report.json`, `report.md`: Table I over the bed and per plant, the bed's times;
+  `report.html`: the same with each plant's cloud, flowers and truth in 3D.
 """
 
 from __future__ import annotations
@@ -103,7 +104,6 @@ def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: floa
     visibility. Runs in a worker: returns the report's plant entry, the reconstruction's
     counts and quality, and seconds per step."""
     from flowerpose.cloudio import write_cloud
-    from flowerpose.eval.plants import SyntheticJob
     from flowerpose.eval.quality import reconstruction_quality
     from flowerpose.pipeline.reconstruct import reconstruct
     from flowerpose.sim.export import read_plant
@@ -115,12 +115,11 @@ def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: floa
     plant = read_plant(folder)
     points = built.cloud.points
     keep = np.hypot(*(points[:, :2] - np.asarray(plant.center[:2])).T) <= crop_radius
-    cloud = write_cloud(folder / "reconstruction" / "plant_cloud.ply", built.cloud.subset(keep))
+    write_cloud(folder / "reconstruction" / "plant_cloud.ply", built.cloud.subset(keep))
     quality = reconstruction_quality(points[keep], plant.mesh, plant.face_part,
                                      samples=100_000)
     watch.lap("crop")
-    job = SyntheticJob(name, cloud, folder / "scan" / "plant.json", source="scan")
-    entry, timing = job.score(config, folder)
+    entry, timing = _job(folder, name).score(config, folder)
     watch.lap("detect")
     return {"entry": entry, "points": int(keep.sum()),
             "registered": built.report["images_registered"],
@@ -282,8 +281,10 @@ def _done(record: dict) -> int:
 
 
 def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
-    """report.json and report.md: Table I over the bed's detected plants, a row a plant."""
+    """report.json, report.md and report.html: Table I over the bed's detected plants, a
+    row a plant, each plant's 3D view."""
     from flowerpose.atomic import write_text
+    from flowerpose.eval.html_report import write_html_report
     from flowerpose.eval.report import build_report, markdown_table, write_report
 
     spots: dict[str, BedPlant] = {p.name: p for p in bed.plants}
@@ -309,7 +310,19 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
               "waits for the computer: each plant is reconstructed in a worker while the next "
               "is filmed.", ""]
     write_text(out / "report.md", md + "\n".join(bed_md))
+    views = [_job(out / "plants" / n, n).view(config, out) for n in record["order"]
+             if record["plants"][n]["stage"] == "detected"]
+    write_html_report(out / "report.html", "flowerpose field --sim: the bed", report, views)
     return report
+
+
+def _job(folder: Path, name: str):
+    """A filmed plant as eval scores it: its cut cloud and the truth with its scan's
+    visibility."""
+    from flowerpose.eval.plants import SyntheticJob
+
+    return SyntheticJob(name, folder / "reconstruction" / "plant_cloud.ply",
+                        folder / "scan" / "plant.json", source="scan")
 
 
 def _text(value) -> str:

@@ -61,6 +61,8 @@ def test_a_bed_is_filmed_reconstructed_and_scored_plant_by_plant(bed_run):
     assert times["bed"] >= times["filming"] >= times["computer_idle_while_filming"] >= 0
     assert "2 of 2 plants detected" in said
     assert "## The bed" in (out / "report.md").read_text()
+    page = (out / "report.html").read_text()
+    assert all(f"<h2>{name}</h2>" in page for name in ("a", "b"))
 
 
 @pytest.mark.slow
