@@ -92,6 +92,8 @@ def read_bed(path: Path) -> Bed:
     what is wrong: an unknown key or setting, a missing or non-numeric value, a name that
     cannot name a folder or is given twice, no plant at all."""
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "bed file not found")
     scan = ScanConfig()
     if path.suffix.lower() == ".csv":
         rows = _csv_rows(path)
