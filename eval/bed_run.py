@@ -25,9 +25,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import multiprocessing
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +34,9 @@ import numpy as np
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.config import EvalConfig
+from flowerpose.eval.runner import spawn_pool
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant, plan_bed
 from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
-from flowerpose.processes import quiet_worker
 from flowerpose.stopwatch import Stopwatch
 
 JOURNAL = "bed.json"
@@ -57,6 +56,9 @@ class SimBed:
     bed: Bed
     folders: dict[str, Path]
     surfaces: dict[str, np.ndarray]
+    first_instance: dict[str, int]
+    """Each plant's flower ids' offset in a render of the whole bed
+    (`render.instance_offsets`)."""
 
 
 def fingerprint(bed: Bed, config: EvalConfig, seed: int) -> str:
@@ -73,8 +75,9 @@ def make_bed_plants(bed: Bed, config: EvalConfig, seed: int, out: Path | None) -
     heights and radii become the generated plants' own."""
     from flowerpose.sim.bundle import make_plant
     from flowerpose.sim.export import plant_obstacles, read_plant
+    from flowerpose.sim.render import instance_offsets
 
-    plants, folders, surfaces = [], {}, {}
+    plants, made, folders, surfaces = [], [], {}, {}
     for index, spot in enumerate(bed.plants):
         sim = dataclasses.replace(config.sim, plant=dataclasses.replace(
             config.sim.plant, center_xy_m=(spot.x, spot.y)))
@@ -85,11 +88,13 @@ def make_bed_plants(bed: Bed, config: EvalConfig, seed: int, out: Path | None) -
             plant = make_plant(seed + index, config=sim, out_dir=folder).plant
         reach = float(np.hypot(*(np.asarray(plant.mesh.vertices)[:, :2]
                                  - np.asarray(plant.center[:2])).T).max())
+        made.append(plant)
         plants.append(dataclasses.replace(spot, height=float(plant.height), radius=reach))
         if folder is not None:
             folders[spot.name] = folder
         surfaces[spot.name] = plant_obstacles(plant)
-    return SimBed(dataclasses.replace(bed, plants=plants), folders, surfaces)
+    offsets = dict(zip([p.name for p in bed.plants], instance_offsets(made), strict=True))
+    return SimBed(dataclasses.replace(bed, plants=plants), folders, surfaces, offsets)
 
 
 def plan_sim_bed(sim_bed: SimBed) -> BedPlan:
@@ -133,6 +138,8 @@ def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: 
     report.json's content. InputError where the bed cannot be scanned (naming the plant) or
     the folder holds another run; a plant whose scan or reconstruction fails is marked
     failed with its error and, with `keep_going`, the bed goes on without it."""
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file; --out is the bed's folder")
     with folder_lock(out, LOCK, "field run"):
         return _run(bed, config, seed, out, keep_going, say)
 
@@ -143,8 +150,6 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
     from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
     from flowerpose.hardware.flights.scan_flight import run_scan
     from flowerpose.pipeline.frames import select_frames
-    from flowerpose.sim.export import read_plant
-    from flowerpose.sim.render import instance_offsets
 
     wall = Stopwatch()
     journal = Journal.open(out / JOURNAL, fingerprint(bed, config, seed),
@@ -160,11 +165,8 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                       "travel_s": [round(t, 1) for t in plan.travel_s]}
     journal.save()
     names = [p.name for p in bed.plants]
-    offsets = dict(zip(names, instance_offsets([read_plant(sim_bed.folders[n])
-                                                  for n in names]), strict=True))
     reach = {p.name: p.radius + CROP_MARGIN_M for p in sim_bed.bed.plants}
-    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=quiet_worker)
+    pool = spawn_pool(1)
     pending: dict[str, Future] = {}
     busy = _Busy()
 
@@ -212,7 +214,7 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                 try:
                     run_scan(bot, scan_plan, folder / "scan", progress=False,
                              source={**bot.describe(), "plants": [str(folder.resolve())]})
-                    write_scan_truth(folder / "scan", folder, offsets[spot.name])
+                    write_scan_truth(folder / "scan", folder, sim_bed.first_instance[spot.name])
                     watch.lap("scan")
                     select_frames(folder / "scan", folder / "frames", config.scan.frames,
                                   progress=False, overwrite=True)

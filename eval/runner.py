@@ -140,9 +140,12 @@ def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
 
 
 def _pool(workers: int) -> ProcessPoolExecutor | None:
-    if workers <= 1:
-        return None
-    # Spawned workers: forking a process that already runs Open3D's threads is unsafe.
+    return spawn_pool(workers) if workers > 1 else None
+
+
+def spawn_pool(workers: int) -> ProcessPoolExecutor:
+    """A local pool of `workers` quiet worker processes (`quiet_worker`), spawned: forking a
+    process that already runs Open3D's threads is unsafe."""
     return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=quiet_worker)
 
