@@ -55,7 +55,7 @@ from flowerpose.errors import InputError
 from flowerpose.log import LOG
 from flowerpose.pipeline.dense_config import DenseConfig
 from flowerpose.pipeline.dense_fusion import fuse_and_filter
-from flowerpose.pipeline.dense_pairs import depth_ranges, select_pairs
+from flowerpose.pipeline.dense_pairs import depth_ranges, narrow_to_points, select_pairs
 from flowerpose.pipeline.dense_stereo import View, stereo_all
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
@@ -121,7 +121,8 @@ def _load_image(path: Path, size: tuple[int, int], expected: tuple[int, int]
 def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
                       intrinsics: Intrinsics | None = None,
                       config: DenseConfig | None = None,
-                      progress: bool = False) -> tuple[Cloud, dict]:
+                      progress: bool = False,
+                      scene_points: np.ndarray | None = None) -> tuple[Cloud, dict]:
     """A dense coloured cloud (bed frame, metres) from posed frames, and a report.
 
     frames_dir holds frames.json (frame "index" and "file" per frame) and the images;
@@ -131,6 +132,8 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
     its order; None: frames.json's own poses (the bot's).
     intrinsics: None reads frames_dir/camera.json (the project's pixel convention).
     config: default DenseConfig().
+    scene_points: (M, 3) points of the scene, bed frame, metres (the sparse model's): each
+    view searches only the depths at which it sees them (`DenseConfig.scene_points_stretch`).
     The report: views, pairs (candidates, used, skipped with reasons), points before and
     after fusion and filtering, seconds per step, and the config.
     """
@@ -170,10 +173,13 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
     loaded = [loaded[n] for n in keep]
     centres, axes = pose_array[:, :3, 3], pose_array[:, :3, 2]
     ranges, scene_centre = depth_ranges(centres, axes, config)
+    pairs, counts = select_pairs(pose_array, config, expected_depth=ranges.mean(axis=1))
+    if scene_points is not None and config.scene_points_stretch is not None:
+        ranges = narrow_to_points(ranges, pose_array, k, size, scene_points,
+                                  config.scene_points_stretch)
     views = [View(grey, rgb, pose, (float(r[0]), float(r[1])))
              for (grey, rgb, _), pose, r in zip(loaded, pose_array, ranges, strict=True)]
     del loaded
-    pairs, counts = select_pairs(pose_array, config, expected_depth=ranges.mean(axis=1))
     watch.lap("pairs")
     if not pairs:
         raise InputError(frames_dir, f"no usable stereo pairs among {len(views)} views "
@@ -201,6 +207,8 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
         "frames": len(frames), "posed": len(posed), "views": len(views),
         "duplicate_views": len(posed) - len(views),
         "image_size": list(size),
+        "depth_search_m": {"near_median": round(float(np.median(ranges[:, 0])), 4),
+                           "far_median": round(float(np.median(ranges[:, 1])), 4)},
         "pairs": {"candidates": counts["candidates"], "selected": len(pairs), "used": used,
                   "skipped": skipped,
                   "matched_fraction_mean": round(float(np.mean(matched)), 4)},

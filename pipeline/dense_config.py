@@ -94,6 +94,11 @@ class DenseConfig:
     this sphere (the bed and sky beyond are not the plant). The paper's plants, 0.3 m tall
     and 0.4 m wide, fit with a margin (the development plant reaches 0.24 m). None: no
     crop, `depth_range_m` alone."""
+    scene_points_stretch: float | None = 0.25
+    """Given the sparse model's points, each view searches only the depths where it sees
+    them: their 1st to 99th percentile, widened by this fraction each way (COLMAP's rule for
+    its own stereo) and kept within the ranges above. Stereo's time grows with the
+    disparity range, which the nearest depth sets. None: the ranges above alone."""
     # --- fusion ---
     min_pair_support: int = 1
     """A view's pixel needs this many of its pairs' depth maps agreeing (within
@@ -181,6 +186,8 @@ class DenseConfig:
             (self.voxel_colour_quantile is None or 0 <= self.voxel_colour_quantile <= 1,
              "voxel_colour_quantile", "must be within 0-1 or unset"),
             (self.threads >= 0, "threads", "must be 0 (every core) or more"),
+            (self.scene_points_stretch is None or 0 <= self.scene_points_stretch < 1,
+             "scene_points_stretch", "must be within 0-1 or unset"),
             (self.sgbm_mode in SGBM_MODES, "sgbm_mode", f"one of {', '.join(SGBM_MODES)}"),
         ]
         for ok, key, problem in checks:

@@ -49,6 +49,39 @@ def depth_ranges(centres: np.ndarray, axes: np.ndarray, config: DenseConfig
     return ranges, centre
 
 
+def narrow_to_points(ranges: np.ndarray, poses: np.ndarray, k: np.ndarray,
+                     size: tuple[int, int], points: np.ndarray, stretch: float,
+                     min_points: int = 20) -> np.ndarray:
+    """(N, 2) depth ranges cut to what each view sees of `points`: the 1st and 99th
+    percentile of the depths of the points in its image, times (1 - stretch) and
+    (1 + stretch), intersected with `ranges` (COLMAP's rule for its own stereo, with
+    stretch 0.25). A view with fewer than `min_points` points in its image, or whose cut
+    would leave nothing, keeps its range.
+
+    ranges: (N, 2) metres; poses: (N, 4, 4) camera-to-bed, metres, OpenCV axes; k: (3, 3)
+    OpenCV camera matrix at `size` (width, height) pixels; points: (M, 3) bed frame, metres
+    (the sparse model's).
+    """
+    narrowed = ranges.copy()
+    points = np.asarray(points, float).reshape(-1, 3)
+    width, height = size
+    for n, pose in enumerate(poses):
+        camera = (points - pose[:3, 3]) @ pose[:3, :3]
+        depth = camera[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = k[0, 0] * camera[:, 0] / depth + k[0, 2]
+            v = k[1, 1] * camera[:, 1] / depth + k[1, 2]
+        seen = depth[(depth > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)]
+        if len(seen) < min_points:
+            continue
+        low, high = np.percentile(seen, [1, 99])
+        near = max(ranges[n, 0], low * (1 - stretch))
+        far = min(ranges[n, 1], high * (1 + stretch))
+        if far > near:
+            narrowed[n] = near, far
+    return narrowed
+
+
 def select_pairs(poses: np.ndarray, config: DenseConfig | None = None,
                  expected_depth: np.ndarray | None = None) -> tuple[list[tuple[int, int]], dict]:
     """Stereo pairs among views with (N, 4, 4) camera-to-bed poses.

@@ -161,9 +161,9 @@ def _stereo_pair(view_i: View, view_j: View, k: np.ndarray, config: DenseConfig
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     right = cv2.remap(view_j.grey, *_rectify_maps(k, rect_j, focal, cx_j, cy, out_size),
                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    matcher = _matcher(config, num)
-    raw_l = matcher.compute(left, right)
-    raw_r = cv2.flip(matcher.compute(cv2.flip(right, 1), cv2.flip(left, 1)), 1)
+    raw_l, raw_r = _match_both_ways(left, right, _matcher(config, num),
+                                    int(np.ceil(cx_i + umax_i)) + 1,
+                                    max(0, int(np.floor(cx_j + umin_j))))
     # Pixels outside an image (0 after the remap; images hold 1..255) and a block's width
     # round them match the image border itself, not the scene.
     grow = np.ones((config.block_size + 2, config.block_size + 2), np.uint8)
@@ -184,6 +184,27 @@ def _stereo_pair(view_i: View, view_j: View, k: np.ndarray, config: DenseConfig
             depth[~((depth >= view.depth_range[0]) & (depth <= view.depth_range[1]))] = np.nan
         depths.append(depth.astype(np.float32))
     return depths[0], depths[1], matched
+
+
+def _match_both_ways(left: np.ndarray, right: np.ndarray, matcher, left_end: int,
+                     right_start: int) -> tuple[np.ndarray, np.ndarray]:
+    """SGBM's raw disparities (int16, 16ths of a pixel, -16 unmatched) of the rectified
+    left image on the right one, and of the right on the left (on mirrored images), on the
+    full rectified grid.
+
+    Each pass sees only the columns it can use: the left-on-right pass those before the
+    left image's content ends (`left_end`), the right-on-left pass those from where the
+    right image's content starts (`right_start`). The grid pads each image with the other
+    pass's search room; SGM's time grows with the width, so this saves about a fifth of it.
+    """
+    unmatched = np.int16(-16)  # (minDisparity - 1) * 16
+    raw_l = np.full(left.shape, unmatched, np.int16)
+    raw_r = np.full(left.shape, unmatched, np.int16)
+    raw_l[:, :left_end] = matcher.compute(np.ascontiguousarray(left[:, :left_end]),
+                                          np.ascontiguousarray(right[:, :left_end]))
+    raw_r[:, right_start:] = cv2.flip(matcher.compute(
+        cv2.flip(right[:, right_start:], 1), cv2.flip(left[:, right_start:], 1)), 1)
+    return raw_l, raw_r
 
 
 def _textureless(grey: np.ndarray, config: DenseConfig) -> np.ndarray:

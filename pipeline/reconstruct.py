@@ -146,7 +146,8 @@ def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: Recons
         poses = refined_poses(sparse) if config.dense_poses == "refined" else None
         cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
                                                 intrinsics=sparse_intrinsics(sparse),
-                                                config=config.dense, progress=progress)
+                                                config=config.dense, progress=progress,
+                                                scene_points=sparse.cloud.points)
     write_cloud(work_dir / "cloud.ply", cloud)
     watch.lap("dense")
     sparse_report = {k: v for k, v in sparse.report.items() if k != "config"}

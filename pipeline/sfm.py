@@ -274,6 +274,13 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
+def unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """(N, D) descriptors as float32 rows of unit length."""
+    unit = descriptors.astype(np.float32)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-9)
+    return unit
+
+
 def epipolar_matches(points1: np.ndarray, points2: np.ndarray, descriptors1: np.ndarray,
                      descriptors2: np.ndarray, fundamental: np.ndarray, max_px: float,
                      max_ratio: float = 0.8, max_angle: float = 0.7) -> np.ndarray:
@@ -297,16 +304,16 @@ def epipolar_matches(points1: np.ndarray, points2: np.ndarray, descriptors1: np.
     lines2 /= np.maximum(np.linalg.norm(lines2[:, :2], axis=1, keepdims=True), 1e-12)
     # A band round each epipolar line holds a few percent of the other image's features:
     # one dense pass finds them, everything after works on that short list.
-    rows, cols = np.nonzero(np.abs(lines2.astype(np.float32) @ x2.T.astype(np.float32))
-                            < max_px)
+    distance = lines2.astype(np.float32) @ x2.T.astype(np.float32)
+    np.abs(distance, out=distance)
+    # flatnonzero then divmod: several times faster than a 2-D np.nonzero.
+    rows, cols = np.divmod(np.flatnonzero(distance < max_px), len(points2))
+    del distance
     if len(rows) == 0:
         return empty
-    d1 = descriptors1.astype(np.float32)
-    d2 = descriptors2.astype(np.float32)
-    d1 /= np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-9)
-    d2 /= np.maximum(np.linalg.norm(d2, axis=1, keepdims=True), 1e-9)
+    d1, d2 = unit_descriptors(descriptors1), unit_descriptors(descriptors2)
     angle = np.arccos(np.clip((d1 @ d2.T)[rows, cols], -1.0, 1.0))
-    # rows come sorted from np.nonzero, so each feature's candidates are contiguous.
+    # rows come sorted, so each feature's candidates are contiguous.
     starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     counts = np.diff(np.r_[starts, len(rows)])
     nearest = np.minimum.reduceat(angle, starts)
@@ -318,8 +325,11 @@ def epipolar_matches(points1: np.ndarray, points2: np.ndarray, descriptors1: np.
     second = np.minimum.reduceat(others, starts)
     good = (nearest < max_angle) & (nearest < max_ratio * second)
     chosen = best[good]
+    # Mutual: no other feature of image 1 is nearer this one's match in image 2.
+    by_col = np.argsort(cols, kind="stable")  # a radix sort: integers
+    col_starts = np.flatnonzero(np.r_[True, cols[by_col][1:] != cols[by_col][:-1]])
     nearest_of_col = np.full(len(points2), np.inf)
-    np.minimum.at(nearest_of_col, cols, angle)
+    nearest_of_col[cols[by_col[col_starts]]] = np.minimum.reduceat(angle[by_col], col_starts)
     chosen = chosen[angle[chosen] <= nearest_of_col[cols[chosen]]]
     chosen = chosen[np.unique(cols[chosen], return_index=True)[1]]
     return np.c_[rows[chosen], cols[chosen]]

@@ -23,6 +23,8 @@ from flowerpose.pipeline.dense import (
     reconstruct_dense,
     select_pairs,
 )
+from flowerpose.pipeline.dense_pairs import narrow_to_points
+from flowerpose.pipeline.dense_stereo import _match_both_ways, _matcher
 from flowerpose.pipeline.frames import read_frames
 from flowerpose.scanio import FRAME_PATTERN, Intrinsics
 
@@ -184,6 +186,71 @@ def test_depth_search_spans_the_scene_sphere(scene):
     assert np.percentile(_surface_distance(cloud.points), 95) < 0.002
 
 
+def _surface_samples(count: int, seed: int = 0) -> np.ndarray:
+    """Points on the ground (inside the ring's view) and on the plate, bed frame."""
+    rng = np.random.default_rng(seed)
+    ground = np.c_[rng.uniform(-0.15, 0.15, (count, 2)), np.zeros(count)]
+    plate = np.c_[rng.uniform(-PLATE_HALF, PLATE_HALF, (count, 2)), np.full(count, PLATE_Z)]
+    return np.r_[ground, plate]
+
+
+def test_scene_points_narrow_the_depth_search():
+    """A view searches the 1st-99th percentile of the depths at which it sees the points,
+    widened by the stretch, within its range; points behind it or outside its image do not
+    count, and a view that sees too few keeps its range."""
+    k = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    looking_up = np.eye(4)  # OpenCV axes: the optical axis is the bed's +z
+    rng = np.random.default_rng(1)
+    seen = np.c_[rng.uniform(-0.05, 0.05, (400, 2)), rng.uniform(0.4, 0.6, 400)]
+    behind = seen * [1, 1, -1]
+    beside = seen + [2.0, 0, 0]  # far outside the image
+    ranges = np.array([[0.08, 1.5], [0.08, 0.5]])
+    narrowed = narrow_to_points(ranges, np.stack([looking_up, looking_up]), k, (320, 240),
+                                np.r_[seen, behind, beside], stretch=0.25)
+    low, high = np.percentile(seen[:, 2], [1, 99])
+    assert narrowed[0] == pytest.approx([0.75 * low, 1.25 * high])
+    assert narrowed[1] == pytest.approx([0.75 * low, 0.5])  # kept within the range given
+    few = narrow_to_points(ranges, np.stack([looking_up, looking_up]), k, (320, 240),
+                           seen[:5], stretch=0.25)
+    assert np.array_equal(few, ranges)
+
+
+def test_scene_points_keep_every_surface(scene, result):
+    """Given the scene's points, the search narrows and the cloud still lies on the true
+    surfaces, the plate and the ground both found."""
+    cloud, report = reconstruct_dense(scene, config=CONFIG, scene_points=_surface_samples(500))
+    wide = result[1]["depth_search_m"]
+    narrow = report["depth_search_m"]
+    assert narrow["near_median"] > wide["near_median"]
+    assert narrow["far_median"] < wide["far_median"]
+    assert np.percentile(_surface_distance(cloud.points), 95) < 0.002
+    on_plate = np.abs(cloud.points[:, 2] - PLATE_Z) < 0.003
+    on_ground = np.abs(cloud.points[:, 2]) < 0.003
+    assert on_plate.sum() > 500 and on_ground.sum() > 2000
+
+
+def test_each_matching_pass_sees_only_its_columns():
+    """Cropping each SGM pass to the columns it can use gives the disparities the full
+    padded grid gives, away from the crop's edge."""
+    rng = np.random.default_rng(2)
+    texture = cv2.GaussianBlur(rng.integers(1, 255, (120, 400)).astype(np.uint8), (3, 3), 0)
+    num, shift, pad = 32, 12, 48
+    left = np.zeros((120, 400 + 2 * pad), np.uint8)
+    right = np.zeros_like(left)
+    left[:, pad + num:pad + 400] = texture[:, num:]
+    right[:, pad + num - shift:pad + 400 - shift] = texture[:, num:]
+    matcher = _matcher(DenseConfig(), num)
+    raw_l, raw_r = _match_both_ways(left, right, matcher, pad + 400, pad + num - shift)
+    full_l = matcher.compute(left, right)
+    full_r = cv2.flip(matcher.compute(cv2.flip(right, 1), cv2.flip(left, 1)), 1)
+    inner = np.s_[10:-10, pad + 2 * num:pad + 400 - num]
+    assert np.median(raw_l[inner]) == 16 * shift
+    assert np.mean(raw_l[inner] == full_l[inner]) > 0.99
+    inner_r = np.s_[10:-10, pad + 2 * num - shift:pad + 400 - num - shift]
+    assert np.median(raw_r[inner_r]) == 16 * shift
+    assert np.mean(raw_r[inner_r] == full_r[inner_r]) > 0.99
+
+
 def test_report(result):
     _, report = result
     pairs = report["pairs"]
@@ -191,6 +258,7 @@ def test_report(result):
     assert pairs["skipped"]["degenerate_geometry"] >= 1  # the forward-moving pair
     points = report["points"]
     assert points["fused"] >= points["in_scene"] >= points["voxel"] >= points["final"] > 0
+    assert report["depth_search_m"]["near_median"] < report["depth_search_m"]["far_median"]
     assert set(report["seconds"]) >= {"load", "pairs", "stereo", "fusion", "voxel",
                                       "free_space", "outliers", "total"}
     json.dumps(report)  # a report must be writable as JSON
