@@ -231,6 +231,12 @@ def _extract(database: Path, frames_dir: Path, names: list[str],
     options.sift.first_octave = config.first_octave if config.first_octave is not None \
         else (0 if mode == "poses" else -1)
     options.sift.peak_threshold = config.peak_threshold
+    # Images enter the database first, one after another in `names`' order: extraction
+    # would number them as its threads finish, and matching and triangulation follow the
+    # numbers, so the same frames would give another model each run.
+    pycolmap.Database.open(database).close()  # made empty
+    pycolmap.import_images(database, frames_dir, camera_mode=pycolmap.CameraMode.SINGLE,
+                           image_names=names, options=reader)
     chunk = 25
     with Tally(len(names), "features") as tally:
         for first in range(0, len(names), chunk):

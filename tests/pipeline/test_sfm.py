@@ -315,3 +315,20 @@ def test_refined_poses_for_dense_stereo_match_the_recorded_ones(scene, tmp_path)
     intrinsics = sparse_intrinsics(result)
     assert (intrinsics.width, intrinsics.height) == (WIDTH, HEIGHT)
     assert intrinsics.fx == pytest.approx(FOCAL) and intrinsics.cx == pytest.approx(WIDTH / 2)
+
+
+def test_the_same_frames_give_the_same_model(scene, tmp_path):
+    """Images are numbered in the frames' order, not as extraction's threads finish them,
+    so matching and triangulation (which follow the numbers) repeat: the same points twice."""
+    import pycolmap
+
+    folder, _ = scene
+    first = reconstruct_sparse(folder, tmp_path / "one", SfmConfig(num_threads=2))
+    again = reconstruct_sparse(folder, tmp_path / "two", SfmConfig(num_threads=2))
+    database = pycolmap.Database.open(tmp_path / "one" / "database.db")
+    try:
+        numbered = sorted(database.read_all_images(), key=lambda image: image.image_id)
+    finally:
+        database.close()
+    assert [image.name for image in numbered] == [f.file for f in read_frames(folder)]
+    assert np.array_equal(first.cloud.points, again.cloud.points)
