@@ -286,7 +286,7 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
     """report.json, report.md and report.html: Table I over the bed's detected plants, a
     row a plant, each plant's 3D view."""
     from flowerpose.atomic import write_text
-    from flowerpose.eval.html_report import write_html_report
+    from flowerpose.eval.html_report import BedSection, BedSpot, write_html_report
     from flowerpose.eval.report import build_report, markdown_table, write_report
 
     spots: dict[str, BedPlant] = {p.name: p for p in bed.plants}
@@ -305,16 +305,24 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
                                        ("scan", "reconstruct", "detect"))] for r in rows])
     times = record["timing_s"]
     md = (out / "report.md").read_text()
-    bed_md = ["", "## The bed", "", table, "",
-              f"Bed: {times['bed']:.0f} s of wall time, {times['filming']:.0f} s of it filming "
-              f"(the computer idle {times['computer_idle_while_filming']:.0f} s of those), "
-              f"{times['after_filming']:.0f} s after the last plant was filmed. The bot never "
-              "waits for the computer: each plant is reconstructed in a worker while the next "
-              "is filmed.", ""]
-    write_text(out / "report.md", md + "\n".join(bed_md))
+    timing = (f"Bed: {times['bed']:.0f} s of wall time, {times['filming']:.0f} s of it "
+              f"filming (the computer idle {times['computer_idle_while_filming']:.0f} s of "
+              f"those), {times['after_filming']:.0f} s after the last plant was filmed. The "
+              "bot never waits for the computer: each plant is reconstructed in a worker "
+              "while the next is filmed.")
+    write_text(out / "report.md", md + "\n".join(["", "## The bed", "", table, "", timing, ""]))
     views = [_job(out / "plants" / n, n).view(config, out) for n in record["order"]
              if record["plants"][n]["stage"] == "detected"]
-    write_html_report(out / "report.html", "flowerpose field --sim: the bed", report, views)
+    section = BedSection(
+        [BedSpot(p.name, p.x, p.y, p.radius) for p in bed.plants],
+        [*header, "error"],
+        [[r["plant"], f"{r['x']:.2f}", f"{r['y']:.2f}", r["stage"], r["found"],
+          _text(r["fp"]), _text(r["points"]),
+          *(f"{r['seconds'].get(k, 0):.0f}" for k in ("scan", "reconstruct", "detect")),
+          r["error"] or ""] for r in rows],
+        [timing])
+    write_html_report(out / "report.html", "flowerpose field --sim: the bed", report, views,
+                      section)
     return report
 
 

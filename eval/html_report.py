@@ -59,16 +59,40 @@ class PlantView:
     without a camera (oracle, real)."""
 
 
+@dataclass
+class BedSpot:
+    """A plant's place in the bed: its name, centre (x, y) and radius, metres, bed frame."""
+
+    name: str
+    x: float
+    y: float
+    radius: float
+
+
+@dataclass
+class BedSection:
+    """The bed's part of a field run's page: a top-down map and a row a plant."""
+
+    spots: list[BedSpot]
+    header: list[str]
+    rows: list[list[str]]
+    """A row a plant, its first cell the plant's name (linked to the plant's section)."""
+    notes: list[str]
+    """Sentences under the table (the bed's times)."""
+
+
 def write_html_report(path: Path, title: str, report: dict | None,
-                      plants: list[PlantView]) -> Path:
+                      plants: list[PlantView], bed: BedSection | None = None) -> Path:
     """Write report.html: `report` is report.json's content (None for a detection, which
-    has no scores)."""
+    has no scores); `bed`: a field run's bed, shown first."""
     parts = [f"<h1>{_e(title)}</h1>"]
+    if bed is not None:
+        parts += _bed(bed, plants)
     if report is not None:
         parts += _scores(report)
     for plant in plants:
         entry = _entry(report, plant.name)
-        parts.append(f"<h2>{_e(plant.name)}</h2>")
+        parts.append(f'<h2 id="{_e(_anchor(plant.name))}">{_e(plant.name)}</h2>')
         parts.append(_flower_table(plant, report, entry))
         parts.append(_figure_html(_view_3d(plant, entry), f"view-{plant.name}"))
         if plant.views_png is not None and plant.views_png.is_file():
@@ -83,6 +107,72 @@ def write_html_report(path: Path, title: str, report: dict | None,
 
     return write_text(path, _PAGE.format(title=_e(title), plotly=get_plotlyjs(),
                                          body="\n".join(parts)))
+
+
+def _anchor(name: str) -> str:
+    return f"plant-{name}"
+
+
+def _bed(bed: BedSection, plants: list[PlantView]) -> list[str]:
+    """The bed's map, its table (each plant linked to its section) and its notes."""
+    shown = {p.name for p in plants}
+    head = "".join(f"<th>{_e(h)}</th>" for h in bed.header)
+    body = "".join(
+        "<tr>" + "".join(
+            (f'<td><a href="#{_e(_anchor(c))}">{_e(c)}</a></td>' if k == 0 and c in shown
+             else f"<td>{_e(c)}</td>") for k, c in enumerate(row)) + "</tr>"
+        for row in bed.rows)
+    return ["<h2>The bed</h2>", _figure_html(bed_map(bed.spots, plants), "bed-map"),
+            f'<table id="bed"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>',
+            "<ul>" + "".join(f"<li>{_e(n)}</li>" for n in bed.notes) + "</ul>"]
+
+
+#: How long a horizontal normal is drawn on the bed map, metres; a normal's top-down
+#: projection is drawn at this times its horizontal part, so an upward flower is a dot.
+MAP_NORMAL_M = 0.08
+
+
+def bed_map(spots: list[BedSpot], plants: list[PlantView]):
+    """Top-down map of the bed (x along it, y across, metres): each plant's circle and name,
+    its flowers' centres and the top-down projection of their estimated normals (red) and,
+    where scored, of the true ones (green)."""
+    import plotly.graph_objects as go
+
+    figure = go.Figure()
+    for spot in spots:
+        figure.add_shape(type="circle", x0=spot.x - spot.radius, x1=spot.x + spot.radius,
+                         y0=spot.y - spot.radius, y1=spot.y + spot.radius,
+                         line={"color": "rgb(90,140,60)"}, fillcolor="rgba(90,140,60,0.12)")
+    figure.add_trace(go.Scatter(x=[s.x for s in spots], y=[s.y + s.radius for s in spots],
+                                mode="text", text=[s.name for s in spots],
+                                textposition="top center", showlegend=False,
+                                hoverinfo="skip"))
+    estimated = [(f"{p.name}: {f.get('id', k)}", np.asarray(f["center"], float),
+                  np.asarray(f["normals"]["plane"], float))
+                 for p in plants for k, f in enumerate(p.flowers)
+                 if f["normals"].get("plane") is not None]
+    truth = [(f"{p.name}: {t.id}", np.asarray(t.center, float), np.asarray(t.normal, float))
+             for p in plants for t in (p.truth or []) if t.visible]
+    for flowers, colour, name in ((estimated, ESTIMATE_COLOUR, "estimated normal (plane)"),
+                                  (truth, TRUTH_COLOUR, "true normal")):
+        if not flowers:
+            continue
+        x: list[float | None] = []
+        y: list[float | None] = []
+        for _, centre, normal in flowers:
+            x += [centre[0], centre[0] + MAP_NORMAL_M * normal[0], None]
+            y += [centre[1], centre[1] + MAP_NORMAL_M * normal[1], None]
+        figure.add_trace(go.Scatter(x=x, y=y, mode="lines", name=name,
+                                    line={"color": colour, "width": 2}, hoverinfo="skip"))
+        figure.add_trace(go.Scatter(x=[c[0] for _, c, _ in flowers],
+                                    y=[c[1] for _, c, _ in flowers], mode="markers",
+                                    text=[label for label, _, _ in flowers], hoverinfo="text",
+                                    marker={"size": 5, "color": colour}, showlegend=False))
+    figure.update_layout(height=420, margin={"l": 40, "r": 10, "t": 40, "b": 40},
+                         title="The bed from above: plants, flowers and their normals",
+                         xaxis_title="x (m, along the bed)", yaxis_title="y (m, across)",
+                         yaxis={"scaleanchor": "x", "scaleratio": 1})
+    return figure
 
 
 def _scores(report: dict) -> list[str]:

@@ -3,8 +3,10 @@ reconstructed while the next is filmed, scored against its truth, resumable."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -62,7 +64,10 @@ def test_a_bed_is_filmed_reconstructed_and_scored_plant_by_plant(bed_run):
     assert "2 of 2 plants detected" in said
     assert "## The bed" in (out / "report.md").read_text()
     page = (out / "report.html").read_text()
-    assert all(f"<h2>{name}</h2>" in page for name in ("a", "b"))
+    assert all(f'<h2 id="plant-{name}">{name}</h2>' in page for name in ("a", "b"))
+    # the bed first: its map, and its table linking each plant to its section
+    assert page.index('id="bed-map"') < page.index('id="plant-a"')
+    assert all(f'<a href="#plant-{name}">{name}</a>' in page for name in ("a", "b"))
 
 
 @pytest.mark.slow
@@ -93,6 +98,60 @@ def test_running_the_bed_again_films_nothing_and_another_seed_is_refused(bed_run
     assert json.loads((out / "bed.json").read_text()) == journal
 
 
+def _plane_normals(out, name) -> dict:
+    """The plane normal of each truth flower found, by truth id."""
+    report = json.loads((out / "report.json").read_text())
+    entry = next(p for p in report["plants"] if p["plant"] == name)
+    flowers = json.loads((out / "plants" / name / "flowers.json").read_text())["flowers"]
+    by_id = {f["id"]: f["normals"]["plane"] for f in flowers}
+    return {m["truth"]: np.asarray(by_id[m["detection"]]) for m in entry["matches"]
+            if m.get("error_deg", {}).get("plane") is not None}
+
+
+@pytest.mark.slow
+def test_a_bed_killed_while_filming_its_second_plant_resumes_that_scan(bed_run, tmp_path):
+    """SIGKILL in the middle of the second plant's scan, then the same command again: the
+    first plant is not filmed again, the second's scan goes on from where it was cut, and
+    the flowers are those of a run that was never stopped."""
+    bed, uninterrupted, _ = bed_run
+    out = tmp_path / "killed"
+    command = [sys.executable, "-m", "flowerpose", "field", "--sim", "--bed", str(bed),
+               "--out", str(out), *SMALL, "-q"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env)
+    second = next(line.split()[1].rstrip(":") for line in run.stdout
+                  if line.startswith("[2/2]"))
+    first = ({"a", "b"} - {second}).pop()
+    scan = out / "plants" / second / "scan" / "scan.json"
+    while not (scan.exists() and json.loads(scan.read_text())["completed"] >= 2):
+        assert run.poll() is None, "the run ended before it could be killed"
+        time.sleep(0.1)
+    run.kill()
+    run.wait()
+    assert run.returncode == -signal.SIGKILL
+    done = subprocess.run(command, capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert "2 of 2 plants detected" in done.stdout
+    first_scan = json.loads((out / "plants" / first / "scan" / "scan.json").read_text())
+    assert len(first_scan["sessions"]) == 1  # filmed once
+    second_scan = json.loads(scan.read_text())
+    cut, resumed = second_scan["sessions"]
+    assert "ended without closing" in cut["error"] and resumed["started_waypoint"] >= 2
+    assert second_scan["status"] == "complete"
+    # The plant filmed before the kill: the same frames, so the same flowers to the bit.
+    before, after = _plane_normals(uninterrupted, first), _plane_normals(out, first)
+    assert before.keys() == after.keys() and all(
+        np.array_equal(before[k], after[k]) for k in before)
+    # The resumed plant's frames are other frames of the same stops (each frame has its own
+    # sensor noise and moment, as a real camera's would), so a flower on the edge of
+    # detection may come or go: the same flowers but at most one, normals within degrees.
+    before, after = _plane_normals(uninterrupted, second), _plane_normals(out, second)
+    common = before.keys() & after.keys()
+    assert len(common) >= max(len(before), len(after)) - 1
+    angles = [np.degrees(np.arccos(np.clip(before[k] @ after[k], -1, 1))) for k in common]
+    assert max(angles) < 5.0, angles
+
+
 @pytest.mark.slow
 def test_a_dry_run_prints_the_beds_plan_in_row_order_and_writes_nothing(tmp_path, capsys):
     from importlib.resources import files
@@ -115,3 +174,22 @@ def test_a_bed_needs_the_simulator_and_a_good_bed_file(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert str(bed) in err and "'y' is missing" in err and err.count("\n") == 0
     assert not (tmp_path / "o").exists()
+
+
+def test_the_bed_map_draws_each_plant_and_its_flowers_normals_from_above():
+    from flowerpose.cloudio import Cloud
+    from flowerpose.eval.html_report import MAP_NORMAL_M, BedSpot, PlantView, bed_map
+
+    flowers = [{"id": 0, "center": [1.0, 0.8, 0.2], "normals": {"plane": [1.0, 0.0, 0.0]}},
+               {"id": 1, "center": [1.05, 0.7, 0.2], "normals": {"plane": None}}]
+    empty = Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+    figure = bed_map([BedSpot("a", 1.0, 0.75, 0.12), BedSpot("b", 1.6, 0.75, 0.1)],
+                     [PlantView("a", empty, flowers)])
+    circles = [(s.x0, s.x1, s.y0, s.y1) for s in figure.layout.shapes]
+    assert np.allclose(circles, [(0.88, 1.12, 0.63, 0.87), (1.5, 1.7, 0.65, 0.85)])
+    names = next(t for t in figure.data if t.mode == "text")
+    assert list(names.text) == ["a", "b"]
+    normals = next(t for t in figure.data if t.mode == "lines")
+    # a horizontal normal along +x is drawn MAP_NORMAL_M long; a flower without one is not
+    assert list(normals.x) == [1.0, 1.0 + MAP_NORMAL_M, None]
+    assert list(normals.y) == [0.8, 0.8, None]
