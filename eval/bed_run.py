@@ -1,9 +1,10 @@
 """A field run over a bed of simulated plants (`flowerpose field --sim`): a plant generated
 at each of the bed file's places, all of them in one simulated world, the bot filming them
-one after another in the planned order while, in a worker process, each filmed plant is
-reconstructed, its cloud cut to the plant, its flowers found and scored against its exact
-truth. The bot never waits for the computer: plant k is reconstructed while plant k+1 is
-filmed, and the last plants' reconstructions finish after the bot parks.
+one after another in the planned order while, in a worker process (or a Ray task, inside
+`runner.on_ray`), each filmed plant is reconstructed, its cloud cut to the plant, its
+flowers found and scored against its exact truth. The bot never waits for the computer:
+plant k is reconstructed while plant k+1 is filmed, and the last plants' reconstructions
+finish after the bot parks.
 
 The run's folder (`out`):
 
@@ -34,7 +35,7 @@ import numpy as np
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.config import EvalConfig
-from flowerpose.eval.runner import spawn_pool
+from flowerpose.eval.runner import CAPTURE_CPUS, running_on_ray, spawn_pool, submit_job
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant, plan_bed
 from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
 from flowerpose.stopwatch import Stopwatch
@@ -166,14 +167,14 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
     journal.save()
     names = [p.name for p in bed.plants]
     reach = {p.name: p.radius + CROP_MARGIN_M for p in sim_bed.bed.plants}
-    pool = spawn_pool(1)
+    pool = None if running_on_ray() else spawn_pool(1)
     pending: dict[str, Future] = {}
     busy = _Busy()
 
     def submit(name: str) -> None:
         busy.start()
-        pending[name] = pool.submit(process_plant, sim_bed.folders[name], name, config,
-                                    reach[name])
+        pending[name] = submit_job(pool, process_plant, (sim_bed.folders[name], name, config,
+                                                         reach[name]), cpus=CAPTURE_CPUS)
         pending[name].add_done_callback(lambda _: busy.stop())
 
     def collect(block: bool) -> None:
@@ -236,7 +237,8 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                                 "after_filming": wall.elapsed() - filmed,
                                 "computer_idle_while_filming": filmed - busy.total(filmed)})
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
     return _report(out, record, sim_bed.bed, config)
 
 

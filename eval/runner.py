@@ -18,7 +18,7 @@ import os
 import socket
 from collections import Counter
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -148,6 +148,40 @@ def spawn_pool(workers: int) -> ProcessPoolExecutor:
     process that already runs Open3D's threads is unsafe."""
     return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=quiet_worker)
+
+
+def running_on_ray() -> bool:
+    """Whether jobs go to Ray now (inside `on_ray`)."""
+    return _session is not None
+
+
+def submit_job(pool: ProcessPoolExecutor | None, function: Callable, job: tuple,
+               cpus: int = 1) -> Future:
+    """function(*job) in the background, its result a Future: a Ray task of `cpus` cores
+    inside `on_ray` (tried once more if it raises; the Future then holds the task's own
+    exception), else in `pool`, which is then needed."""
+    if _session is None:
+        if pool is None:
+            raise ValueError("submit_job needs a pool outside on_ray")
+        return pool.submit(function, *job)
+    import ray
+
+    session = _session
+    task = ray.remote(_ray_task).options(num_cpus=min(cpus, session.largest_node_cpus()),
+                                         max_retries=TASK_RETRIES, retry_exceptions=True)
+    result: Future = Future()
+
+    def settle(done: Future) -> None:
+        try:
+            value, node = done.result()
+        except ray.exceptions.RayError as error:
+            result.set_exception(getattr(error, "cause", None) or error)
+            return
+        session.tasks_by_node[node] += 1
+        result.set_result(value)
+
+    task.remote(function, job).future().add_done_callback(settle)
+    return result
 
 
 def _task_gpus(gpu: str, stage: str) -> int:

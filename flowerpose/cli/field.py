@@ -13,6 +13,7 @@ from flowerpose.cli.options import (
     add_config_options,
     add_output,
     configure,
+    jobs_on,
     moved_under,
     owned,
     plant_xy,
@@ -494,7 +495,8 @@ def cmd_field(args: argparse.Namespace) -> int:
         plan = plan_sim_bed(make_bed_plants(bed, config, args.seed, None))
         print("\n".join(plan.table()))
         return 0
-    report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going)
+    with jobs_on(args):
+        report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going)
     summary = report["summary"]
     print(f"bed: {len(report['plants'])} of {len(bed.plants)} plants detected; "
           f"{summary['found_visible']} of {summary['visible']} visible flowers found, "
@@ -504,7 +506,7 @@ def cmd_field(args: argparse.Namespace) -> int:
 
 def add_field(sub: argparse._SubParsersAction) -> None:
     """The `field` subcommand's parser."""
-    from flowerpose.cli.options import add_preset
+    from flowerpose.cli.options import add_preset, add_ray_option
 
     p = sub.add_parser(
         "field", help="a field run over a bed of plants: each filmed, reconstructed while the "
@@ -517,7 +519,8 @@ def add_field(sub: argparse._SubParsersAction) -> None:
         "command resumes the bed (bed.json): finished plants are left alone.",
         epilog="examples:\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --dry-run\n"
-        "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120")
+        "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120\n"
+        "  flowerpose field --sim --bed bed.toml --out bed4 --ray   # reconstruct on a local Ray")
     p.add_argument("--bed", type=Path, required=True, metavar="FILE",
                    help="the bed file: where each plant stands (an example: "
                    "assets/beds/example-4.toml in the package)")
@@ -534,6 +537,7 @@ def add_field(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="print the bed's plan (order, waypoints, bot time), every scan checked "
                    "against the bot's reach and the neighbours, and stop")
+    add_ray_option(p)
     add_config_options(p, detector=False,
                        example="scan.frames.count=120 (--sim reads every section)")
     p.set_defaults(func=cmd_field)

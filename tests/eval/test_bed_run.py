@@ -153,6 +153,21 @@ def test_a_bed_killed_while_filming_its_second_plant_resumes_that_scan(bed_run, 
 
 
 @pytest.mark.slow
+def test_on_ray_the_bed_gives_the_pools_flowers(bed_run, tmp_path, capsys):
+    """The reconstructions as Ray tasks: the same frames, so the same flowers to the bit."""
+    pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowerpose[ray]')")
+    bed, pool, _ = bed_run
+    out = tmp_path / "ray"
+    assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), "--ray", *SMALL,
+                 "-q"]) == 0
+    assert "2 of 2 plants detected" in capsys.readouterr().out
+    for name in ("a", "b"):
+        before, after = _plane_normals(pool, name), _plane_normals(out, name)
+        assert before.keys() == after.keys() and len(before) >= 1
+        assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+@pytest.mark.slow
 def test_a_dry_run_prints_the_beds_plan_in_row_order_and_writes_nothing(tmp_path, capsys):
     from importlib.resources import files
 
