@@ -104,17 +104,22 @@ def plan_sim_bed(sim_bed: SimBed) -> BedPlan:
 
 
 def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: float) -> dict:
-    """A filmed plant's reconstruction (folder/frames -> folder/reconstruction), its cloud
+    """A filmed plant's frames chosen (folder/scan -> folder/frames), its reconstruction
+    (folder/frames -> folder/reconstruction), its cloud
     cut to `crop_radius` metres round the plant's axis (plant_cloud.ply), measured against
     its mesh, then its flowers found and scored against the truth with the scan's
     visibility. Runs in a worker: returns the report's plant entry, the reconstruction's
     counts and quality, and seconds per step."""
     from flowerpose.cloudio import write_cloud
     from flowerpose.eval.quality import reconstruction_quality
+    from flowerpose.pipeline.frames import select_frames
     from flowerpose.pipeline.reconstruct import reconstruct
     from flowerpose.sim.export import read_plant
 
     watch = Stopwatch()
+    select_frames(folder / "scan", folder / "frames", config.scan.frames, progress=False,
+                  overwrite=True)
+    watch.lap("frames")
     built = reconstruct(folder / "frames", folder / "reconstruction", config.scan.reconstruct,
                         progress=False, overwrite=True)
     watch.lap("reconstruct")
@@ -134,23 +139,36 @@ def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: floa
 
 
 def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool = False,
-                say: Callable[[str], None] = print) -> dict:
+                say: Callable[[str], None] = print,
+                serial_time_scale: float | None = None) -> dict:
     """The bed's field run in the simulator, resumable (the module's docstring). Returns
     report.json's content. InputError where the bed cannot be scanned (naming the plant) or
     the folder holds another run; a plant whose scan or reconstruction fails is marked
-    failed with its error and, with `keep_going`, the bed goes on without it."""
+    failed with its error and, with `keep_going`, the bed goes on without it.
+    serial_time_scale: None films with the simulated bot directly; K through the physical
+    bot's serial backend on a virtual Farmduino running at K times real time."""
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file; --out is the bed's folder")
     with folder_lock(out, LOCK, "field run"):
-        return _run(bed, config, seed, out, keep_going, say)
+        return _run(bed, config, seed, out, keep_going, say, serial_time_scale)
+
+
+def _bot(folders: list[Path], config: EvalConfig, serial_time_scale: float | None):
+    """The simulated bot filming the bed's plants: direct, or through the serial backend."""
+    from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
+
+    bot_config = SimBotConfig(camera=config.scan.camera)
+    if serial_time_scale is None:
+        return SimBot(folders, bot_config)
+    from flowerpose.hardware.backends.serial_sim_bot import SimulatedSerialBot
+
+    return SimulatedSerialBot(folders, bot_config, time_scale=serial_time_scale)
 
 
 def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
-         say: Callable[[str], None]) -> dict:
+         say: Callable[[str], None], serial_time_scale: float | None) -> dict:
     from flowerpose.eval.scan_source import write_scan_truth
-    from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
     from flowerpose.hardware.flights.scan_flight import run_scan
-    from flowerpose.pipeline.frames import select_frames
 
     wall = Stopwatch()
     journal = Journal.open(out / JOURNAL, fingerprint(bed, config, seed),
@@ -197,7 +215,11 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                 f"found, {score['fp']} false positives, {result['points']} points "
                 f"({_done(record)} of {len(names)} plants done)")
 
-    bot = SimBot([sim_bed.folders[n] for n in names], SimBotConfig(camera=config.scan.camera))
+    # The bot waits for the computer between two plants' scans only: the frames are chosen
+    # in the worker, with the rest of a plant's work.
+    last_scan_end: float | None = None
+    bot_waiting = first_filmed = 0.0
+    bot = _bot([sim_bed.folders[n] for n in names], config, serial_time_scale)
     try:
         with bot, journal.session(bot):
             for order, (spot, scan_plan) in enumerate(zip(plan.plants, plan.scans,
@@ -212,14 +234,13 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                 say(f"[{order}/{len(names)}] {spot.name}: filming {len(scan_plan.waypoints)} "
                     f"waypoints ({scan_plan.duration_s / 60:.1f} min of bot time)")
                 watch = Stopwatch()
+                if last_scan_end is not None:
+                    bot_waiting += wall.elapsed() - last_scan_end
                 try:
                     run_scan(bot, scan_plan, folder / "scan", progress=False,
                              source={**bot.describe(), "plants": [str(folder.resolve())]})
                     write_scan_truth(folder / "scan", folder, sim_bed.first_instance[spot.name])
                     watch.lap("scan")
-                    select_frames(folder / "scan", folder / "frames", config.scan.frames,
-                                  progress=False, overwrite=True)
-                    watch.lap("frames")
                 except (InputError, OSError, RuntimeError) as error:
                     _fail(entry, "scan", error)
                     journal.save()
@@ -230,12 +251,16 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                 entry.update(stage="scanned", seconds=watch.report(digits=3, total=None))
                 journal.save()
                 submit(spot.name)
+                last_scan_end = wall.elapsed()
+                first_filmed = first_filmed or last_scan_end
                 collect(block=False)
             filmed = wall.elapsed()
             collect(block=True)
             _add_times(record, {"bed": wall.elapsed(), "filming": filmed,
                                 "after_filming": wall.elapsed() - filmed,
-                                "computer_idle_while_filming": filmed - busy.total(filmed)})
+                                "computer_idle_while_filming": filmed - busy.total(filmed),
+                                "bot_waiting": bot_waiting,
+                                "after_first_plant": wall.elapsed() - first_filmed})
     finally:
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
@@ -307,11 +332,15 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
                                        ("scan", "reconstruct", "detect"))] for r in rows])
     times = record["timing_s"]
     md = (out / "report.md").read_text()
+    waiting = times.get("bot_waiting", 0.0)
+    share = waiting / times["after_first_plant"] if times.get("after_first_plant") else 0.0
     timing = (f"Bed: {times['bed']:.0f} s of wall time, {times['filming']:.0f} s of it "
               f"filming (the computer idle {times['computer_idle_while_filming']:.0f} s of "
               f"those), {times['after_filming']:.0f} s after the last plant was filmed. The "
-              "bot never waits for the computer: each plant is reconstructed in a worker "
-              "while the next is filmed.")
+              f"bot waited for the computer {waiting:.1f} s between plants "
+              f"({100 * share:.1f} % of the bed's time after the first plant was filmed): "
+              "each plant's frames are chosen, reconstructed and its flowers found in a "
+              "worker while the next is filmed.")
     write_text(out / "report.md", md + "\n".join(["", "## The bed", "", table, "", timing, ""]))
     views = [_job(out / "plants" / n, n).view(config, out) for n in record["order"]
              if record["plants"][n]["stage"] == "detected"]

@@ -21,6 +21,7 @@ from flowerpose.cli.options import (
     starting_config,
 )
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends import SERIAL_SIM_TIME_SCALE
 from flowerpose.log import LOG
 from flowerpose.pipeline.methods import METHODS
 
@@ -225,7 +226,7 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
                    help="--sim: skip preview.mp4 (the gantry scanning, seen from outside)")
     p.add_argument("--via-farmduino", action="store_true",
                    help="with --sim: drive the simulated bot through the serial Farmduino "
-                   "backend and a virtual Farmduino (100 x real time)")
+                   f"backend and a virtual Farmduino ({SERIAL_SIM_TIME_SCALE:g} x real time)")
     add_config_options(p, profile=False, detector=False,
                         example="sim.viewpoints.azimuth_step_deg=30 (degrees; --sim reads "
                         "sim.viewpoints.* and scan.camera.*; --port and --cloud "
@@ -489,14 +490,19 @@ def cmd_field(args: argparse.Namespace) -> int:
                          "physical bot, scan each plant with flowerpose scan --port or --cloud")
     if args.seed < 0:
         raise InputError("--seed", f"must be 0 or more, got {args.seed}")
+    if args.time_scale is not None and not args.via_farmduino:
+        raise InputError("--time-scale", "is the virtual Farmduino's: add --via-farmduino")
+    args.time_scale = args.time_scale or SERIAL_SIM_TIME_SCALE
     bed = read_bed(args.bed)
     config = configure(eval_config(args.preset), args, command="field --sim")
     if args.dry_run:
         plan = plan_sim_bed(make_bed_plants(bed, config, args.seed, None))
         print("\n".join(plan.table()))
         return 0
+    scale = args.time_scale if args.via_farmduino else None
     with jobs_on(args):
-        report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going)
+        report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going,
+                             serial_time_scale=scale)
     summary = report["summary"]
     print(f"bed: {len(report['plants'])} of {len(bed.plants)} plants detected; "
           f"{summary['found_visible']} of {summary['visible']} visible flowers found, "
@@ -537,6 +543,12 @@ def add_field(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="print the bed's plan (order, waypoints, bot time), every scan checked "
                    "against the bot's reach and the neighbours, and stop")
+    p.add_argument("--via-farmduino", action="store_true",
+                   help="with --sim: drive the simulated bot through the physical bot's serial "
+                   "backend and a virtual Farmduino (its firmware's motion timing)")
+    p.add_argument("--time-scale", type=positive_number, default=None, metavar="K",
+                   help="with --via-farmduino: the virtual Farmduino runs K times faster than "
+                   f"real time (default: {SERIAL_SIM_TIME_SCALE:g}; 1 is the real bot's pace)")
     add_ray_option(p)
     add_config_options(p, detector=False,
                        example="scan.frames.count=120 (--sim reads every section)")

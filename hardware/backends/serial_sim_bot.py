@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowerpose.hardware.backends import SERIAL_SIM_TIME_SCALE
 from flowerpose.hardware.backends.farmduino import FarmduinoBot
 from flowerpose.hardware.backends.virtual_farmduino import FEEDBACK_PARAMETERS, VirtualFarmduino
 
@@ -83,7 +84,8 @@ class SimulatedSerialBot(FarmduinoBot):
     The bot is homed at once, as any Farmduino must be after its port opens.
     """
 
-    def __init__(self, plant_dirs: list[Path], config=None, time_scale: float = 100.0):
+    def __init__(self, plant_dirs: list[Path], config=None,
+                 time_scale: float = SERIAL_SIM_TIME_SCALE):
         from flowerpose.hardware.backends.sim_bot import SimBotConfig, sim_camera
 
         self.sim_config = config or SimBotConfig()

@@ -10,26 +10,10 @@ import time
 
 import numpy as np
 import pytest
+from beds import BED, SMALL
 
 from flowerpose.cli import main
 from flowerpose.cloudio import read_cloud
-
-BED = """[scan.path]
-cylinder_radius_m = 0.3
-
-[[plant]]
-name = "a"
-x = 1.0
-y = 0.75
-
-[[plant]]
-name = "b"
-x = 1.6
-y = 0.75
-"""
-SMALL = ["--preset", "easy", "--set", "scan.camera.width=480", "--set",
-         "scan.camera.height=270", "--set", "scan.camera.frame_rate_hz=0.04", "--set",
-         "scan.frames.count=60"]
 
 
 @pytest.fixture(scope="module")
