@@ -2,8 +2,9 @@
 
 A real plant is a folder:
 
-    labels.json        AWS SageMaker Ground Truth 3D cuboid labels (the authors'
-                       outputN.json) or a plant.json as the simulator writes it
+    labels.json        this project's label file (`labels.py`, what a labeller saves), AWS
+                       SageMaker Ground Truth 3D cuboid labels (the authors' outputN.json)
+                       or a plant.json as the simulator writes it
     cloud.ply          a whole plant's cloud: the whole pipeline runs
  or candidates/*.ply   points already taken out of grid views (a detector's crops, one file
                        a view): outlier removal, clustering and pose run on them merged
@@ -33,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from flowerpose.cloudio import Cloud, Units, read_cloud
 from flowerpose.errors import InputError
+from flowerpose.eval.labels import LabelFile, is_label_file, read_labels
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
 from flowerpose.eval.report import plant_entry
 from flowerpose.eval.truth import (
@@ -66,7 +68,7 @@ class RealPlant:
     folder: Path
     name: str
     labels: Path
-    label_format: Literal["sagemaker", "plant"]
+    label_format: Literal["flowerpose", "sagemaker", "plant"]
     stage: Start
     clouds: tuple[Path, ...]
     """cloud.ply, or the candidates/*.ply or crops/*.ply files, sorted."""
@@ -111,16 +113,20 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
                          "and cloud.ply, candidates/ or crops/)")
     labels = folder / "labels.json"
     if not labels.is_file():
-        raise InputError(folder, "no labels.json (SageMaker Ground Truth cuboids or a "
-                         "plant.json)")
+        raise InputError(folder, "no labels.json (a flowerpose label file, SageMaker "
+                         "Ground Truth cuboids or a plant.json)")
     data = read_json(labels)
-    if "flowers" in data:
-        label_format: Literal["sagemaker", "plant"] = "plant"
+    own: LabelFile | None = None
+    if is_label_file(data):
+        label_format: Literal["flowerpose", "sagemaker", "plant"] = "flowerpose"
+        own = read_labels(labels)
+    elif "flowers" in data:
+        label_format = "plant"
     elif is_sagemaker(data):
         label_format = "sagemaker"
     else:
-        raise InputError(labels, "neither SageMaker Ground Truth cuboid labels "
-                         '("boundingCuboids") nor a plant.json ("flowers")')
+        raise InputError(labels, "neither a flowerpose label file, SageMaker Ground Truth "
+                         'cuboid labels ("boundingCuboids") nor a plant.json ("flowers")')
     stage: Start | None = None
     clouds: tuple[Path, ...] = ()
     if (folder / "cloud.ply").is_file():
@@ -139,6 +145,8 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
         scale = _scale(truth_scale, "truth_scale")
     elif "truth_scale" in source:
         scale = _scale(source["truth_scale"], where)
+    elif own is not None:
+        scale = own.truth_scale
     else:
         scale = DEFAULT_TRUTH_SCALE if label_format == "sagemaker" else 1.0
     units = source.get("units", "auto")
@@ -150,6 +158,8 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     if not isinstance(note, str):
         raise InputError(where, '"note" must be text')
     unlabelled = vector_list(source.get("unlabelled", []), where, "unlabelled")
+    if own is not None:
+        unlabelled = np.r_[unlabelled.reshape(-1, 3), own.unlabelled()]
     return RealPlant(folder, folder.resolve().name, labels, label_format, stage, clouds,
                      scale, units, note, unlabelled)
 
@@ -169,8 +179,9 @@ def real_truth(plant: RealPlant, max_distance: float = MAX_MATCH_DISTANCE
     (as read, unperturbed) hold it: IN_CLOUD_MIN_POINTS points within `max_distance` (the
     match distance, the cloud's unit) of its centre; unlabelled flowers are never visible
     (a detection on one counts as extra)."""
-    if plant.label_format == "plant":
-        truth = read_plant_truth(plant.labels)
+    if plant.label_format in ("plant", "flowerpose"):
+        truth = (read_plant_truth(plant.labels) if plant.label_format == "plant"
+                 else read_labels(plant.labels).labelled())
         for flower in truth:
             flower.center = flower.center / plant.truth_scale
     else:

@@ -20,6 +20,7 @@ from flowerpose.cli.options import (
     configure,
     moved_under,
     owned,
+    positive_number,
     starting_config,
 )
 
@@ -335,3 +336,40 @@ def add_score(sub: argparse._SubParsersAction) -> None:
     add_config_options(p, profile=False, detector=False,
                         example="score.max_distance_m=0.01 (metres; score reads score.*)")
     p.set_defaults(func=cmd_score)
+
+
+def cmd_agree(args: argparse.Namespace) -> int:
+    from flowerpose.eval.agreement import agreement, agreement_lines, read_labelling
+    from flowerpose.jsonio import write_json
+
+    result = agreement(read_labelling(args.a, args.truth_scale),
+                       read_labelling(args.b, args.truth_scale), args.max_distance)
+    print("\n".join(agreement_lines(result)))
+    if args.json is not None:
+        write_json(args.json, result)
+    return 0
+
+
+def add_agree(sub: argparse._SubParsersAction) -> None:
+    """The `agree` subcommand's parser."""
+    from flowerpose.eval.match import MAX_MATCH_DISTANCE
+
+    p = sub.add_parser(
+        "agree", help="how far two labellings of one plant agree (label noise, measured)",
+        description="Compare two labellings of one plant (each a flowerpose label file, "
+        "SageMaker Ground Truth cuboids or a plant.json): their flowers matched one to one "
+        "by centre, the angle between their normals (mean with its 95 %% interval, median, "
+        "p90, share over 20 degrees), and the flowers only one of them holds or gave a "
+        "pose. The mean is the label noise that score.label_error_deg assumes.",
+        epilog="example:\n  flowerpose agree plant3/labels.json plant3/labels-second.json")
+    p.add_argument("a", type=Path, metavar="A.json", help="the first labelling")
+    p.add_argument("b", type=Path, metavar="B.json", help="the second labelling")
+    p.add_argument("--truth-scale", type=positive_number, default=None, metavar="K",
+                   help="the factor both were drawn at over the cloud's coordinates (default: "
+                   "a flowerpose file's own, 25 for SageMaker, 1 for a plant.json)")
+    p.add_argument("--max-distance", type=positive_number, default=MAX_MATCH_DISTANCE,
+                   metavar="D", help="farthest two centres of one flower lie apart, in the "
+                   "cloud's unit (default: %(default)g)")
+    p.add_argument("--json", type=Path, default=None, metavar="FILE",
+                   help="also write the comparison here as JSON (default: print only)")
+    p.set_defaults(func=cmd_agree)

@@ -120,7 +120,7 @@ def _bad(tmp_path, make):
     (lambda f: None, "no such folder"),
     (lambda f: f.mkdir(), "no labels.json"),
     (lambda f: (f.mkdir(), (f / "labels.json").write_text('{"answers": []}')),
-     "neither SageMaker"),
+     "SageMaker Ground Truth cuboid labels"),
     (lambda f: (f.mkdir(), (f / "labels.json").write_text(json.dumps(cuboids(CENTRES, NORMALS)))),
      "no cloud.ply, candidates"),
     (lambda f: (write_real_plant(f, "crops"), (f / "source.json").write_text('{"scale": 2}')),
