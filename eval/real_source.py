@@ -103,6 +103,18 @@ def _scale(value: Any, where: str | Path) -> float:
     return float(value)
 
 
+def folder_clouds(folder: Path) -> tuple[Start, tuple[Path, ...]]:
+    """Where a real plant folder's points are, and the stage they start at: cloud.ply, else
+    candidates/*.ply, else crops/*.ply (sorted); InputError naming the folder for none."""
+    if (folder / "cloud.ply").is_file():
+        return "cloud", (folder / "cloud.ply",)
+    for name in ("candidates", "crops"):
+        found = tuple(sorted((folder / name).glob("*.ply")))
+        if found:
+            return name, found  # type: ignore[return-value]
+    raise InputError(folder, "no cloud.ply, candidates/*.ply or crops/*.ply")
+
+
 def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> RealPlant:
     """Check a real plant folder and say what it holds; `truth_scale` overrides
     source.json's. Raises InputError naming the folder or file for a missing folder, no
@@ -127,18 +139,7 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     else:
         raise InputError(labels, "neither a flowerpose label file, SageMaker Ground Truth "
                          'cuboid labels ("boundingCuboids") nor a plant.json ("flowers")')
-    stage: Start | None = None
-    clouds: tuple[Path, ...] = ()
-    if (folder / "cloud.ply").is_file():
-        stage, clouds = "cloud", (folder / "cloud.ply",)
-    else:
-        for name in ("candidates", "crops"):
-            found = tuple(sorted((folder / name).glob("*.ply")))
-            if found:
-                stage, clouds = name, found  # type: ignore[assignment]
-                break
-    if stage is None:
-        raise InputError(folder, "no cloud.ply, candidates/*.ply or crops/*.ply")
+    stage, clouds = folder_clouds(folder)
     source = _source(folder)
     where = folder / "source.json"
     if truth_scale is not None:

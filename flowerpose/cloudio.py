@@ -54,6 +54,12 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
     a cloud whose extent says millimetres is converted to metres and a note is printed
     on stderr; an extent that fits neither unit is refused.
     """
+    return read_cloud_and_unit(path, units, allow_empty)[0]
+
+
+def read_cloud_and_unit(path: str | Path, units: Units = "auto", allow_empty: bool = False
+                        ) -> tuple[Cloud, float]:
+    """`read_cloud`, and the metres one of the file's units is (what `units` decided)."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "file not found")
@@ -80,7 +86,7 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
     points = np.zeros((0, 3)) if cloud is None else np.asarray(cloud.points, dtype=np.float64)
     if cloud is None or len(points) == 0:
         if allow_empty:
-            return Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+            return Cloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8)), 1.0
         raise InputError(path, "the cloud has no points (empty or unreadable file)")
     if not cloud.has_colors():
         raise InputError(path, "the cloud has no colours; the pipeline needs RGB per point")
@@ -95,7 +101,8 @@ def read_cloud(path: str | Path, units: Units = "auto", allow_empty: bool = Fals
     elif header is not None and header.wide_colours:
         colors = colors / 257.0  # 16-bit to 8-bit: 65535 is 255
     colors = np.clip(colors + 0.5, 0, 255).astype(np.uint8)
-    return Cloud(to_metres(points, units, path), colors)
+    scale = metres_per_unit(points, units, path)
+    return Cloud(points * scale if scale != 1.0 else points, colors), scale
 
 
 def _read_o3d(path: Path):
@@ -130,6 +137,12 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
     """Points in metres, deciding the file's unit from its extent when units="auto", or
     multiplied by `units` where it is a number (metres a unit); a unit the extent
     contradicts (a metre cloud said to be in millimetres) is refused."""
+    scale = metres_per_unit(points, units, source)
+    return points * scale if scale != 1.0 else points
+
+
+def metres_per_unit(points: np.ndarray, units: Units, source: str | Path) -> float:
+    """The metres one unit of `points` is (`to_metres`)."""
     extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
     if isinstance(units, int | float) and not isinstance(units, bool):
         if not (units > 0 and np.isfinite(units)):
@@ -137,23 +150,23 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
         if extent * units > MAX_METRIC_EXTENT_M:
             raise InputError(source, f"extent {extent:.3g} units is {extent * units:.3g} m at "
                              f"{units:g} m a unit: not a plant; is the unit right?")
-        return points * float(units)
+        return float(units)
     if units == "m":
         if extent > MM_EXTENT_RANGE[0]:
             raise InputError(source, f"extent {extent:.3g} units is {extent:.3g} m in metres: "
                              "not a plant; is it in millimetres (--units mm or auto)?")
-        return points
+        return 1.0
     if units == "mm":
         if len(points) > 1 and extent < MAX_METRIC_EXTENT_M:
             raise InputError(source, f"extent {extent:.3g} units is {extent:.3g} mm in "
                              "millimetres: not a plant; is it in metres (--units m or auto)?")
-        return points * 1e-3
+        return 1e-3
     if extent <= MAX_METRIC_EXTENT_M:
-        return points
+        return 1.0
     if MM_EXTENT_RANGE[0] <= extent <= MM_EXTENT_RANGE[1]:
         LOG.warning(f"note: {source}: extent {extent:.0f} units looks like millimetres; "
                     "converted to metres")
-        return points * 1e-3
+        return 1e-3
     raise InputError(source, f"extent {extent:.3g} units fits neither metres (<= "
                      f"{MAX_METRIC_EXTENT_M:g}) nor millimetres ({MM_EXTENT_RANGE[0]:g}-"
                      f"{MM_EXTENT_RANGE[1]:g}); rescale the cloud to metres")

@@ -32,6 +32,7 @@ COMMANDS = (
     stages.add_detect,
     stages.add_pose,
     stages.add_score,
+    stages.add_label,
     stages.add_agree,
     study.add_sweep,
     study.add_stress,

@@ -338,6 +338,55 @@ def add_score(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_score)
 
 
+def cmd_label(args: argparse.Namespace) -> int:
+    import getpass
+    import webbrowser
+
+    from flowerpose.eval.label_server import make_server, open_session
+
+    session = open_session(args.folder, args.labeller or getpass.getuser(), args.units)
+    server = make_server(session, args.port)
+    url = f"http://127.0.0.1:{server.server_address[1]}/"
+    print(f"label: {args.folder} ({len(session.cloud)} points, {len(session.start)} flowers "
+          f"from {session.started_from}) at {url}; Ctrl-C stops (save in the page first)",
+          flush=True)
+    if args.browser:
+        webbrowser.open(url)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("label: stopped", flush=True)
+    finally:
+        server.server_close()
+    return 0
+
+
+def add_label(sub: argparse._SubParsersAction) -> None:
+    """The `label` subcommand's parser."""
+    p = sub.add_parser(
+        "label", help="label a plant's flowers in a local web page (pre-filled with its "
+        "detections)",
+        description="Open a local web page (127.0.0.1, a free port; nothing loaded from the "
+        "internet) to label a plant folder's flowers: its cloud in 3D, pre-filled with its "
+        "labels.json, or its flowers.json's detections to accept, reject, turn, flip, snap "
+        "to the points under them, move or add. Saving writes the folder's labels.json "
+        "(DESIGN.md, 'A label file'; the earlier file kept as labels.json.N.bak) with the "
+        "time spent and the actions taken; flowerpose eval --source real reads it.",
+        epilog="examples:\n  flowerpose detect plant/cloud.ply --out plant   # detections "
+        "to start from\n  flowerpose label plant")
+    p.add_argument("folder", type=Path, metavar="DIR",
+                   help="a plant folder: cloud.ply (or candidates/, crops/), and labels.json "
+                   "or flowers.json to start from")
+    p.add_argument("--labeller", default=None, metavar="NAME",
+                   help="who labels, as the file records it (default: the login name)")
+    p.add_argument("--port", type=int, default=0, metavar="N",
+                   help="the port on 127.0.0.1 (default: a free one)")
+    p.add_argument("--no-browser", dest="browser", action="store_false",
+                   help="print the page's address only; open no browser")
+    add_units(p, "cloud")
+    p.set_defaults(func=cmd_label)
+
+
 def cmd_agree(args: argparse.Namespace) -> int:
     from flowerpose.eval.agreement import agreement, agreement_lines, read_labelling
     from flowerpose.jsonio import write_json

@@ -1,0 +1,143 @@
+"""`flowerpose label`: the page's server on a small real-plant folder (its detections as
+proposals, a snap to the points, a save that keeps the earlier file), and the page itself
+in headless Chromium."""
+
+import json
+import shutil
+import subprocess
+import threading
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+from realplants import CENTRES, NORMALS, write_real_plant
+
+from flowerpose.cli import main
+from flowerpose.eval import label_server
+from flowerpose.eval.labels import read_labels
+from flowerpose.eval.real_source import read_real_plant, real_truth
+from flowerpose.jsonio import write_json
+
+
+def _angle(a, b) -> float:
+    return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1, 1))))
+
+
+@pytest.fixture
+def served(tmp_path):
+    """A plant folder with a cloud and flowers.json detections (the four flowers, each
+    normal 20 degrees off), served on a free port."""
+    folder = write_real_plant(tmp_path / "plant", "cloud")
+    (folder / "labels.json").unlink()
+    tilted = NORMALS + 0.35 * np.cross(NORMALS, [0.0, 0.0, 1.0])
+    tilted /= np.linalg.norm(tilted, axis=1, keepdims=True)
+    write_json(folder / "flowers.json", {"units": "m", "flowers": [
+        {"id": k, "center": c.tolist(), "normals": {"plane": n.tolist()}}
+        for k, (c, n) in enumerate(zip(CENTRES, tilted, strict=True))]})
+    session = label_server.open_session(folder, "tester", "m")
+    server = label_server.make_server(session)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield folder, f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def _get(url: str):
+    with urllib.request.urlopen(url, timeout=30) as answer:
+        return answer.read()
+
+
+def _post(url: str, body: dict) -> tuple[int, dict]:
+    request = urllib.request.Request(url, json.dumps(body).encode(), method="POST",
+                                     headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=30) as answer:
+            return answer.status, json.loads(answer.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read())
+
+
+def test_the_page_loads_nothing_from_the_internet(served):
+    _, url = served
+    page = _get(url + "/").decode()
+    assert "Plotly" in page and "/*PLOTLY*/" not in page
+    assert 'src="http' not in page and "<link" not in page
+
+
+def test_the_detections_come_as_proposals_and_a_snap_finds_the_flowers_plane(served):
+    folder, url = served
+    state = json.loads(_get(url + "/state"))
+    assert state["points"] == state["shown"] == len(state["x"]) > 1000
+    assert [f["state"] for f in state["flowers"]] == ["proposed"] * 4
+    assert state["started_from"] == "flowers.json (detections)"
+    proposal = state["flowers"][1]
+    assert _angle(proposal["normal"], NORMALS[1]) > 15  # the detection is off
+    status, fit = _post(url + "/fit", {"center": proposal["center"],
+                                       "towards": proposal["normal"]})
+    assert status == 200 and fit["points"] >= label_server.MIN_FIT_POINTS
+    assert _angle(fit["normal"], NORMALS[1]) < 8  # snapped onto the corolla's plane
+
+
+def test_a_save_writes_labels_eval_reads_and_keeps_the_earlier_file(served):
+    folder, url = served
+    flowers = json.loads(_get(url + "/state"))["flowers"]
+    flowers[0].update(state="labelled", normal=NORMALS[0].tolist())
+    flowers[1].update(state="unlabelled")
+    flowers[2].update(state="rejected")  # flowers[3] stays a proposal nobody judged
+    status, saved = _post(url + "/save", {"flowers": flowers,
+                                          "session": {"seconds": 42, "actions": {"accept": 1}}})
+    assert status == 200 and saved["undecided"] == 1 and saved["backup"] is None
+    assert saved["counts"] == {"labelled": 1, "unlabelled": 1, "rejected": 1}
+    labels = read_labels(folder / "labels.json")
+    assert [f.state for f in labels.flowers] == ["labelled", "unlabelled", "rejected"]
+    assert labels.sessions[-1]["labeller"] == "tester" and labels.sessions[-1]["seconds"] == 42
+    truth = real_truth(read_real_plant(folder))
+    assert [t.id for t in truth if t.visible] == ["d0"]
+    status, again = _post(url + "/save", {"flowers": flowers})
+    assert status == 200 and again["backup"].endswith("labels.json.1.bak")
+    assert len(read_labels(folder / "labels.json").sessions) == 2
+
+
+def test_a_bad_save_is_refused_and_writes_nothing(served):
+    folder, url = served
+    status, answer = _post(url + "/save", {"flowers": [{"id": "x", "center": [0, 0, 0.3],
+                                                        "normal": None, "state": "labelled"}]})
+    assert status == 400 and "without a normal" in answer["error"]
+    status, answer = _post(url + "/save", {"flowers": "none"})
+    assert status == 400
+    assert not (folder / "labels.json").exists()
+
+
+def test_a_large_cloud_is_drawn_decimated(served, monkeypatch):
+    folder, _ = served
+    monkeypatch.setattr(label_server, "MAX_SHOWN_POINTS", 500)
+    session = label_server.open_session(folder, "tester", "m")
+    shown = label_server.shown_points(session)
+    assert len(shown) == 500 and len(np.unique(shown)) == 500
+    assert len(session.cloud) > 500  # what labels refer to stays whole
+
+
+def test_a_folder_without_points_is_one_line(tmp_path, capsys):
+    assert main(["label", str(tmp_path / "missing"), "--no-browser"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no such folder" in err and err.count("\n") == 0
+    (tmp_path / "empty").mkdir()
+    assert main(["label", str(tmp_path / "empty"), "--no-browser"]) == 2
+    assert "no cloud.ply" in capsys.readouterr().err
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Chromium is not installed")
+def test_the_page_lists_the_flowers_in_a_browser(served):
+    _, url = served
+    dom = subprocess.run([CHROMIUM, "--headless=new", "--no-sandbox",
+                          "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
+                          "--virtual-time-budget=8000", "--dump-dom", url + "/"],
+                         capture_output=True, text=True, timeout=120).stdout
+    assert dom.count('class="state-proposed"') == 4  # the script fetched /state and drew
+    assert "4 flowers to start from" in dom
