@@ -3,9 +3,9 @@
 The page (`assets/label/page.html`, with plotly's JavaScript from the installed package:
 nothing is loaded from the internet) shows the folder's cloud in 3D, decimated for display
 (`MAX_SHOWN_POINTS`; labels always refer to the full cloud), pre-filled with the folder's
-labels.json (any format a real plant folder takes) or, where there is none, its
-flowers.json detections as proposals. The server binds 127.0.0.1 on a free port and
-answers:
+labels.json (any format a real plant folder takes) or, where there is none, a
+flowers.json's detections (the folder's, or `--detections`) as proposals. The server binds
+127.0.0.1 on a free port and answers:
 
     GET  /               the page
     GET  /state          the cloud shown (positions in the cloud's unit, colours), the
@@ -87,9 +87,10 @@ def _read_folder_cloud(folder: Path, units: Units) -> tuple[Cloud, float]:
                   np.concatenate([c.colors for c in clouds])), scales[0])
 
 
-def _starting_flowers(folder: Path, metres_per_unit: float) -> tuple[list[dict], str]:
-    """labels.json's flowers (in the cloud's unit), else flowers.json's detections as
-    proposals, else none; and which it was."""
+def _starting_flowers(folder: Path, metres_per_unit: float, detections: Path
+                      ) -> tuple[list[dict], str]:
+    """labels.json's flowers (in the cloud's unit), else the detections' (a flowers.json)
+    as proposals, else none; and which it was."""
     labels = folder / "labels.json"
     if labels.is_file():
         scale = None
@@ -105,7 +106,6 @@ def _starting_flowers(folder: Path, metres_per_unit: float) -> tuple[list[dict],
                  "state": states.get(i, "labelled" if n is not None else "unlabelled")}
                 for i, c, n in zip(labelling.ids, labelling.centers, labelling.normals,
                                    strict=True)], f"{labels.name} ({labelling.format})"
-    detections = folder / "flowers.json"
     if detections.is_file():
         from flowerpose.pipeline.flowers import read_flowers
 
@@ -116,19 +116,24 @@ def _starting_flowers(folder: Path, metres_per_unit: float) -> tuple[list[dict],
                               "center": [float(v) / metres_per_unit for v in flower["center"]],
                               "normal": None if normal is None else [float(v) for v in normal],
                               "state": "proposed"})
-        return proposals, f"{detections.name} (detections)"
-    return [], "nothing (no labels.json or flowers.json)"
+        return proposals, f"{detections} (detections)"
+    return [], f"nothing (no labels.json, no {detections})"
 
 
-def open_session(folder: str | Path, labeller: str, units: Units = "auto") -> LabelSession:
-    """A folder to label: its cloud read and where labelling starts; InputError naming the
-    folder or file for a folder without points or an unreadable labels.json."""
+def open_session(folder: str | Path, labeller: str, units: Units = "auto",
+                 detections: str | Path | None = None) -> LabelSession:
+    """A folder to label: its cloud read and where labelling starts (its labels.json, else
+    `detections`, default folder/flowers.json); InputError naming the folder or file for a
+    folder without points, an unreadable labels.json, or detections given and not there."""
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(folder, "no such folder (a plant folder with cloud.ply, candidates/ "
                          "or crops/)")
+    if detections is not None and not Path(detections).is_file():
+        raise InputError(detections, "file not found (a flowers.json from flowerpose detect)")
     cloud, scale = _read_folder_cloud(folder, units)
-    start, started_from = _starting_flowers(folder, scale)
+    start, started_from = _starting_flowers(
+        folder, scale, Path(detections) if detections is not None else folder / "flowers.json")
     return LabelSession(folder, cloud, scale, start, started_from, labeller)
 
 

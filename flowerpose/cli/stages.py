@@ -344,7 +344,8 @@ def cmd_label(args: argparse.Namespace) -> int:
 
     from flowerpose.eval.label_server import make_server, open_session
 
-    session = open_session(args.folder, args.labeller or getpass.getuser(), args.units)
+    session = open_session(args.folder, args.labeller or getpass.getuser(), args.units,
+                           args.detections)
     server = make_server(session, args.port)
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     print(f"label: {args.folder} ({len(session.cloud)} points, {len(session.start)} flowers "
@@ -372,11 +373,14 @@ def add_label(sub: argparse._SubParsersAction) -> None:
         "to the points under them, move or add. Saving writes the folder's labels.json "
         "(DESIGN.md, 'A label file'; the earlier file kept as labels.json.N.bak) with the "
         "time spent and the actions taken; flowerpose eval --source real reads it.",
-        epilog="examples:\n  flowerpose detect plant/cloud.ply --out plant   # detections "
-        "to start from\n  flowerpose label plant")
+        epilog="examples:\n  flowerpose detect plant/cloud.ply --out plant/detect\n"
+        "  flowerpose label plant --detections plant/detect/flowers.json")
     p.add_argument("folder", type=Path, metavar="DIR",
-                   help="a plant folder: cloud.ply (or candidates/, crops/), and labels.json "
-                   "or flowers.json to start from")
+                   help="a plant folder: cloud.ply (or candidates/, crops/), and the "
+                   "labels.json to go on with, if any")
+    p.add_argument("--detections", type=Path, default=None, metavar="FLOWERS.json",
+                   help="detections to start from where the folder has no labels.json "
+                   "(default: DIR/flowers.json)")
     p.add_argument("--labeller", default=None, metavar="NAME",
                    help="who labels, as the file records it (default: the login name)")
     p.add_argument("--port", type=int, default=0, metavar="N",

@@ -71,7 +71,7 @@ def test_the_detections_come_as_proposals_and_a_snap_finds_the_flowers_plane(ser
     state = json.loads(_get(url + "/state"))
     assert state["points"] == state["shown"] == len(state["x"]) > 1000
     assert [f["state"] for f in state["flowers"]] == ["proposed"] * 4
-    assert state["started_from"] == "flowers.json (detections)"
+    assert state["started_from"] == f"{folder / 'flowers.json'} (detections)"
     proposal = state["flowers"][1]
     assert _angle(proposal["normal"], NORMALS[1]) > 15  # the detection is off
     status, fit = _post(url + "/fit", {"center": proposal["center"],
