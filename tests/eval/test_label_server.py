@@ -4,7 +4,6 @@ in headless Chromium."""
 
 import json
 import shutil
-import subprocess
 import threading
 import urllib.error
 import urllib.request
@@ -24,22 +23,26 @@ def _angle(a, b) -> float:
     return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1, 1))))
 
 
-@pytest.fixture
-def served(tmp_path):
-    """A plant folder with a cloud and flowers.json detections (the four flowers, each
-    normal 20 degrees off), served on a free port."""
+def _serve(tmp_path, detected: int):
+    """A plant folder with a cloud and flowers.json detections of its first `detected`
+    flowers (each normal 20 degrees off), served on a free port: (folder, url, server)."""
     folder = write_real_plant(tmp_path / "plant", "cloud")
     (folder / "labels.json").unlink()
     tilted = NORMALS + 0.35 * np.cross(NORMALS, [0.0, 0.0, 1.0])
     tilted /= np.linalg.norm(tilted, axis=1, keepdims=True)
     write_json(folder / "flowers.json", {"units": "m", "flowers": [
         {"id": k, "center": c.tolist(), "normals": {"plane": n.tolist()}}
-        for k, (c, n) in enumerate(zip(CENTRES, tilted, strict=True))]})
+        for k, (c, n) in enumerate(zip(CENTRES[:detected], tilted[:detected], strict=True))]})
     session = label_server.open_session(folder, "tester", "m")
     server = label_server.make_server(session)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield folder, f"http://127.0.0.1:{server.server_address[1]}"
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return folder, f"http://127.0.0.1:{server.server_address[1]}", server
+
+
+@pytest.fixture
+def served(tmp_path):
+    folder, url, server = _serve(tmp_path, detected=4)
+    yield folder, url
     server.shutdown()
     server.server_close()
 
@@ -133,11 +136,70 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="Chromium is not installed")
-def test_the_page_lists_the_flowers_in_a_browser(served):
-    _, url = served
-    dom = subprocess.run([CHROMIUM, "--headless=new", "--no-sandbox",
-                          "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
-                          "--virtual-time-budget=8000", "--dump-dom", url + "/"],
-                         capture_output=True, text=True, timeout=120).stdout
-    assert dom.count('class="state-proposed"') == 4  # the script fetched /state and drew
-    assert "4 flowers to start from" in dom
+def test_a_labeller_in_a_browser_accepts_moves_turns_adds_and_saves(tmp_path, capsys):
+    """The page in the system Chromium (Playwright, no browser download), no request
+    leaving 127.0.0.1: two detections accepted, one moved and turned, the flower the
+    pipeline missed added, saved; the file says so and eval scores it."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    folder, url, server = _serve(tmp_path, detected=3)
+    requests: list[str] = []
+    moved_to = (CENTRES[2] + [0.002, -0.001, 0.0]).tolist()
+    turned = NORMALS[2]
+    azimuth = round(float(np.degrees(np.arctan2(turned[1], turned[0]))))
+    elevation = round(float(np.degrees(np.arcsin(turned[2]))))
+    try:
+        with sync_api.sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM, args=[
+                "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader"])
+            page = browser.new_page()
+            page.on("request", lambda request: requests.append(request.url))
+            page.goto(url + "/")
+            page.wait_for_selector("#list tbody tr >> nth=2")
+            assert page.locator(".state-proposed").count() == 3
+            page.keyboard.press("a")  # the first row is selected: accept it
+            page.keyboard.press("a")  # then the next
+            page.locator("#list tbody tr").nth(2).click()
+            page.keyboard.press("m")  # move: the next click on the cloud is the centre
+            page.evaluate("at => document.getElementById('view').emit('plotly_click', "
+                          "{points: [{x: at[0], y: at[1], z: at[2], curveNumber: 0}]})",
+                          moved_to)
+            page.wait_for_function("() => document.getElementById('status').textContent"
+                                   ".includes('moved')")
+            page.evaluate("([a, e]) => { document.getElementById('azimuth').value = a; "
+                          "const el = document.getElementById('elevation'); el.value = e; "
+                          "el.dispatchEvent(new Event('change')); }", [azimuth, elevation])
+            page.keyboard.press("a")
+            page.keyboard.press("n")  # add: the flower the pipeline missed
+            page.evaluate("at => document.getElementById('view').emit('plotly_click', "
+                          "{points: [{x: at[0], y: at[1], z: at[2], curveNumber: 0}]})",
+                          CENTRES[3].tolist())
+            page.wait_for_function("() => document.getElementById('status').textContent"
+                                   ".includes('added')")
+            page.keyboard.press("Control+s")
+            page.wait_for_function("() => document.getElementById('status').textContent"
+                                   ".startsWith('saved')")
+            said = page.locator("#status").text_content()
+            browser.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert requests and all(u.startswith("http://127.0.0.1:") for u in requests), requests
+    assert "4 labelled" in said and "actions this session" in said
+    labels = read_labels(folder / "labels.json")
+    by_id = {f.id: f for f in labels.flowers}
+    assert [f.state for f in labels.flowers] == ["labelled"] * 4
+    assert np.allclose(by_id["d2"].center, moved_to)
+    expected = [np.cos(np.radians(elevation)) * np.cos(np.radians(azimuth)),
+                np.cos(np.radians(elevation)) * np.sin(np.radians(azimuth)),
+                np.sin(np.radians(elevation))]
+    assert _angle(by_id["d2"].normal, expected) < 0.01
+    added = next(f for f in labels.flowers if f.id.startswith("new"))
+    assert np.allclose(added.center, CENTRES[3]) and added.normal is not None
+    actions = labels.sessions[-1]["actions"]
+    assert actions["accept"] == 3 and actions["move"] == 1 and actions["add"] == 1
+    assert actions["turn"] == 1 and labels.sessions[-1]["seconds"] >= 0
+    assert main(["eval", "--source", "real", str(folder), "--out", str(tmp_path / "run"),
+                 "-q"]) == 0
+    capsys.readouterr()
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["plants"][0]["visible"] == 4 and report["plants"][0]["found_visible"] >= 3
