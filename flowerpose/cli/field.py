@@ -526,7 +526,7 @@ def add_field(sub: argparse._SubParsersAction) -> None:
         epilog="examples:\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --dry-run\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120\n"
-        "  flowerpose field --sim --bed bed.toml --out bed4 --ray   # reconstruct on a local Ray")
+        "  flowerpose field --sim --bed bed.toml --out bed4 --ray")
     p.add_argument("--bed", type=Path, required=True, metavar="FILE",
                    help="the bed file: where each plant stands (an example: "
                    "assets/beds/example-4.toml in the package)")

@@ -373,8 +373,9 @@ def add_label(sub: argparse._SubParsersAction) -> None:
         "to the points under them, move or add. Saving writes the folder's labels.json "
         "(DESIGN.md, 'A label file'; the earlier file kept as labels.json.N.bak) with the "
         "time spent and the actions taken; flowerpose eval --source real reads it.",
-        epilog="examples:\n  flowerpose detect plant/cloud.ply --out plant/detect\n"
-        "  flowerpose label plant --detections plant/detect/flowers.json")
+        epilog="examples:\n"
+        "  flowerpose label plant --detections plant/detect/flowers.json\n"
+        "  flowerpose label plant --labeller ana --no-browser")
     p.add_argument("folder", type=Path, metavar="DIR",
                    help="a plant folder: cloud.ply (or candidates/, crops/), and the "
                    "labels.json to go on with, if any")
