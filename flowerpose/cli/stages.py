@@ -369,7 +369,8 @@ def add_label(sub: argparse._SubParsersAction) -> None:
         "detections)",
         description="Open a local web page (127.0.0.1, a free port; nothing loaded from the "
         "internet) to label a plant folder's flowers: its cloud in 3D, pre-filled with its "
-        "labels.json, or its flowers.json's detections to accept, reject, turn, flip, snap "
+        "labels.json, or its detections (flowers.json, or --detections) to accept, reject, "
+        "turn, flip, snap "
         "to the points under them, move or add. Saving writes the folder's labels.json "
         "(DESIGN.md, 'A label file'; the earlier file kept as labels.json.N.bak) with the "
         "time spent and the actions taken; flowerpose eval --source real reads it.",
