@@ -70,7 +70,7 @@ def test_a_real_plant_folder_reads_the_label_file(tmp_path):
     assert not extra[0].visible  # a detection on it counts as extra
 
 
-def test_a_labelling_agrees_with_itself_and_a_turned_one_by_the_turn(tmp_path):
+def test_a_labelling_agrees_with_itself_and_a_turned_one_by_the_turn(tmp_path, capsys):
     write_labels(tmp_path / "a.json", _labels())
     # each normal turned by 10 degrees about an axis at right angles to it
     axes = np.cross(NORMALS, [[0.3, 0.5, 0.8]])
@@ -87,6 +87,9 @@ def test_a_labelling_agrees_with_itself_and_a_turned_one_by_the_turn(tmp_path):
     assert other["angle_deg"]["n"] == 3
     assert other["angle_deg"]["mean"] == pytest.approx(10.0, abs=1e-3)
     assert [(r["a"], r["b"]) for r in other["pose_in_one"]] == [("F3", "F3")]
+    assert main(["agree", str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    said = capsys.readouterr().out
+    assert "on 3 flowers: mean 10.0°" in said and "median 10.0°" in said
 
 
 def test_flowers_only_one_labelling_holds_are_named(tmp_path):
