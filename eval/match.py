@@ -162,6 +162,7 @@ def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant
                              "plant.json: add `truth_format` sagemaker")
     truth = (read_plant_truth(truth_path) if truth_format == "plant"
              else read_sagemaker_truth(truth_path, truth_scale))
+    _check_overlap(estimates, truth, max_distance, flowers_path, truth_path)
     watch = Stopwatch()
     score = score_plant(estimates, truth, max_distance)
     config = {"truth_format": truth_format, "truth_scale": truth_scale,
@@ -169,3 +170,24 @@ def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant
     seconds = round(watch.elapsed(), 6)
     return build_report(config, [plant_entry(flowers_path.parent.name or "plant", score)],
                         {"score": seconds, "total": seconds})
+
+
+def _check_overlap(estimates: Sequence[Estimate], truth: Sequence[TruthFlower],
+                   max_distance: float, flowers_path: Path, truth_path: Path) -> None:
+    """Refuse detections and truth that cannot be of one plant in one frame: their
+    extents, grown by the match distance, do not meet (another plant's truth, another
+    frame or another unit), so every detection would count as a false positive."""
+    if not estimates or not truth:
+        return
+    found = np.array([_center(e) for e in estimates]).reshape(-1, 3)
+    true = np.array([t.center for t in truth]).reshape(-1, 3)
+    apart = np.maximum(found.min(axis=0) - true.max(axis=0), true.min(axis=0) - found.max(axis=0))
+    if (apart > max_distance).any():
+
+        def span(points: np.ndarray) -> str:
+            return " x ".join(f"{lo:.3g}..{hi:.3g}" for lo, hi in zip(
+                points.min(axis=0), points.max(axis=0), strict=True))
+
+        raise InputError(flowers_path, f"its detections ({span(found)} m) and the truth in "
+                         f"{truth_path} ({span(true)} m) do not overlap: another plant's "
+                         "truth, another frame or another unit?")

@@ -32,7 +32,7 @@ from typing import Any, Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
-from flowerpose.cloudio import Cloud, Units, read_cloud
+from flowerpose.cloudio import Cloud, Units, read_cloud, require_hue
 from flowerpose.errors import InputError
 from flowerpose.eval.labels import LabelFile, is_label_file, read_labels
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, score_plant
@@ -195,7 +195,29 @@ def real_truth(plant: RealPlant, max_distance: float = MAX_MATCH_DISTANCE
     extra = [TruthFlower(id=f"unlabelled:{k}", center=c / plant.truth_scale,
                          normal=np.array([0.0, 0.0, 1.0]), visible=False)
              for k, c in enumerate(plant.unlabelled)]
+    if truth and extra:
+        distance, nearest = cKDTree([t.center for t in truth]).query([e.center for e in extra])
+        both = int(np.argmin(distance))
+        if distance[both] <= SAME_FLOWER_M * _metres_to_units(plant):
+            raise InputError(plant.folder / "source.json", f"unlabelled flower {both} lies "
+                             f"{distance[both]:.3g} from the labelled flower "
+                             f"{truth[nearest[both]].id!r}: a flower is labelled or unlabelled, "
+                             "not both; remove it from \"unlabelled\"")
     return truth + extra
+
+
+#: Two flower centres nearer than this are one flower, metres.
+SAME_FLOWER_M = 0.003
+
+
+def _metres_to_units(plant: RealPlant) -> float:
+    """Cloud units a metre is, as far as the folder says (1 where it does not)."""
+    units = plant.units
+    if units == "mm":
+        return 1000.0
+    if isinstance(units, int | float) and not isinstance(units, bool):
+        return 1.0 / float(units)
+    return 1.0
 
 
 def _check_scale(plant: RealPlant, truth: list[TruthFlower], points: np.ndarray,
@@ -230,8 +252,12 @@ def merged_candidates(paths: tuple[Path, ...], units: Units) -> Cloud:
 
 
 def read_plant_clouds(plant: RealPlant) -> list[Cloud]:
-    """The folder's clouds as read: cloud.ply, each candidates file, or each crop."""
-    return [read_cloud(p, units=plant.units) for p in plant.clouds]
+    """The folder's clouds as read: cloud.ply, each candidates file, or each crop; a whole
+    cloud without hue is refused (`require_hue`: a flower's crop may be white alone)."""
+    clouds = [read_cloud(p, units=plant.units) for p in plant.clouds]
+    if plant.stage == "cloud":
+        require_hue(clouds[0], plant.clouds[0])
+    return clouds
 
 
 def evaluate_real_plant(plant: RealPlant, config: PipelineConfig, out_dir: Path,

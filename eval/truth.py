@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -18,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, read_text, unit3, vector3
+from flowerpose.log import LOG
 
 EulerConvention = Literal["upstream", "sagemaker"]
 
@@ -179,6 +181,28 @@ def _cuboid_radius(cuboid: dict, scale: float) -> float | None:
     return 0.5 * max(across) / scale
 
 
+#: The SageMaker label a flower's cuboid carries (the authors' category).
+FLOWER_CATEGORY = "flower"
+
+
+def _flower_cuboids(cuboids: list, path: Path) -> list:
+    """The cuboids labelled as flowers (or with no label): others (buds, fruit) are left
+    out and named in one line; none at all is refused."""
+    def category(cuboid) -> str:
+        label = cuboid.get("label") if isinstance(cuboid, dict) else None
+        return FLOWER_CATEGORY if label is None else str(label)
+
+    kept = [c for c in cuboids if category(c).lower() == FLOWER_CATEGORY]
+    others = Counter(category(c) for c in cuboids if category(c).lower() != FLOWER_CATEGORY)
+    if not kept:
+        raise InputError(path, f"no cuboid is labelled Flower (labels: "
+                         f"{', '.join(f'{k} ({n})' for k, n in others.most_common())})")
+    if others:
+        LOG.warning(f"note: {path}: {len(kept)} Flower cuboids scored; left out "
+                    + ", ".join(f"{n} labelled {k}" for k, n in others.most_common()))
+    return kept
+
+
 def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
                          convention: EulerConvention = "upstream") -> list[TruthFlower]:
     """Flower poses from AWS SageMaker Ground Truth 3D point cloud cuboid labels.
@@ -200,6 +224,7 @@ def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
                for found in _cuboid_lists(document) for c in found]
     if not cuboids:
         raise InputError(path, 'no "boundingCuboids" labels found')
+    cuboids = _flower_cuboids(cuboids, path)
     truth = []
     for i, cuboid in enumerate(cuboids):
         name = cuboid.get("objectName", i) if isinstance(cuboid, dict) else i
@@ -209,6 +234,11 @@ def read_sagemaker_truth(path: str | Path, scale: float = 25.0,
                or not math.isfinite(value)]
         if bad:
             raise InputError(path, f"cuboid {name!r}: missing or non-finite {', '.join(bad)}")
+        turned = max(abs(v) for v in values[3:])
+        if turned > 2 * math.pi + 1e-6:
+            raise InputError(path, f"cuboid {name!r}: an angle of {turned:.4g} is beyond a "
+                             "rotation's range in radians (2 pi): degrees? SageMaker's roll, "
+                             "pitch and yaw are radians; convert them with math.radians")
         center = np.array(values[:3], dtype=np.float64) / scale
         truth.append(TruthFlower(id=name, center=center,
                                  normal=sagemaker_normal(*values[3:], convention=convention),

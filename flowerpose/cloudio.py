@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -77,7 +78,10 @@ def read_cloud_and_unit(path: str | Path, units: Units = "auto", allow_empty: bo
         if head[:3] != b"ply":
             raise InputError(path, "not a PLY file (no 'ply' header)")
         header = ply_header(path)
-    cloud = None if header is not None and header.vertices == 0 else _read_o3d(path)
+    if header is not None and header.vertices and header.colour_prefix:
+        cloud = _read_renamed_colours(path, header)
+    else:
+        cloud = None if header is not None and header.vertices == 0 else _read_o3d(path)
     if header is not None and header.ascii_rows is not None:
         held, declared = header.ascii_rows
         if held != declared:
@@ -102,6 +106,8 @@ def read_cloud_and_unit(path: str | Path, units: Units = "auto", allow_empty: bo
         colors = colors / 257.0  # 16-bit to 8-bit: 65535 is 255
     colors = np.clip(colors + 0.5, 0, 255).astype(np.uint8)
     scale = metres_per_unit(points, units, path)
+    if header is not None and header.coordinate_type in ("float", "float32"):
+        _check_precision(points, scale, path)
     return Cloud(points * scale if scale != 1.0 else points, colors), scale
 
 
@@ -139,6 +145,55 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
     contradicts (a metre cloud said to be in millimetres) is refused."""
     scale = metres_per_unit(points, units, source)
     return points * scale if scale != 1.0 else points
+
+
+#: Coarsest step 32-bit coordinates may come in where the cloud reaches, metres: a flower's
+#: corolla is 20-30 mm across, and the detect stage's grid pixel is 1 mm.
+FLOAT32_STEP_LIMIT_M = 0.001
+
+
+def _check_precision(points: np.ndarray, metres_per_unit: float, path: Path) -> None:
+    """Refuse 32-bit coordinates so far from the origin that their steps blur flowers (a
+    cloud at map coordinates: 500,000 m east, 4,000,000 m north, in steps of 0.25-0.5 m)."""
+    reach = float(np.abs(points).max()) if len(points) else 0.0
+    step = float(np.spacing(np.float32(reach))) * metres_per_unit
+    if step > FLOAT32_STEP_LIMIT_M:
+        raise InputError(path, f"its coordinates are 32-bit floats reaching {reach:.6g}, where "
+                         f"they come in steps of {step * 1000:.3g} mm: too coarse for flowers; "
+                         "save the cloud with doubles, or moved near the origin (its centre "
+                         "subtracted)")
+
+
+def _read_renamed_colours(path: Path, header: PlyHeader):
+    """Open3D's cloud of a PLY whose colours are named diffuse_red, ...: read through a copy
+    whose header calls them red, green, blue (the data is the same bytes), in the system's
+    temporary folder."""
+    import tempfile
+
+    with open(path, "rb") as handle:
+        head = re.sub(rf"\b{header.colour_prefix}(red|green|blue)\b", r"\1",
+                      handle.read(header.header_bytes).decode("ascii", "replace"))
+        with tempfile.NamedTemporaryFile(suffix=".ply") as copy:
+            copy.write(head.encode("ascii"))
+            shutil.copyfileobj(handle, copy)
+            copy.flush()
+            return _read_o3d(Path(copy.name))
+
+
+def require_hue(cloud: Cloud, source: str | Path) -> None:
+    """Refuse a cloud whose every point is grey (its red, green and blue within
+    GREY_TOLERANCE): the pipeline tells flowers from leaves by colour, so it would find
+    nothing and say nothing."""
+    if len(cloud) == 0:
+        return
+    colours = cloud.colors.astype(np.int16)
+    if int((colours.max(axis=1) - colours.min(axis=1)).max()) <= GREY_TOLERANCE:
+        raise InputError(source, "every point is grey (red, green and blue equal): flowers "
+                         "are told from leaves by colour; export the cloud with its colours")
+
+
+#: Channels (0-255) within this of each other count as grey.
+GREY_TOLERANCE = 3
 
 
 def metres_per_unit(points: np.ndarray, units: Units, source: str | Path) -> float:
@@ -192,6 +247,13 @@ class PlyHeader:
     """The vertex colours are 16-bit (ushort, 0-65535)."""
     ascii_rows: tuple[int, int] | None = None
     """An ASCII file's rows: (held by its body, declared by its header)."""
+    coordinate_type: str | None = None
+    """The type the x coordinate is stored as ("float", "double", ...)."""
+    colour_prefix: str = ""
+    """What the colour properties' names start with where they are not red, green, blue
+    ("diffuse_": diffuse_red, diffuse_green, diffuse_blue, as some tools write them)."""
+    header_bytes: int = 0
+    """The header's length, bytes."""
 
 
 def ply_header(path: Path) -> PlyHeader:
@@ -211,7 +273,7 @@ def ply_header(path: Path) -> PlyHeader:
     if not lines or lines[-1] != "end_header":
         raise InputError(path, "not a PLY file (its header never ends)")
     fmt, vertices, row_bytes, fixed, element = "ascii", 0, {}, True, None
-    colour_types = {}
+    colour_types, coordinate_type, names = {}, None, set()
     for words in (line.split() for line in lines):
         if words[:1] == ["format"] and len(words) > 1:
             fmt = words[1]
@@ -228,8 +290,12 @@ def ply_header(path: Path) -> PlyHeader:
                 fixed = False
                 continue
             row_bytes[element][1] += _PLY_SIZES[words[1]]
-            if element == "vertex" and words[-1] in ("red", "green", "blue"):
-                colour_types[words[-1]] = words[1]
+            if element == "vertex":
+                names.add(words[-1])
+                coordinate_type = words[1] if words[-1] == "x" else coordinate_type
+            colour = words[-1].removeprefix(COLOUR_ALIAS)
+            if element == "vertex" and colour in ("red", "green", "blue"):
+                colour_types[colour] = words[1]
     expected = None
     width = row_bytes.get("vertex", [0, 1])[1] or 1
     if fmt.startswith("binary") and fixed:
@@ -253,7 +319,14 @@ def ply_header(path: Path) -> PlyHeader:
         raise InputError(path, f"colour channels of different types ({', '.join(sorted(kinds))})")
     float_colours = any(t.startswith(("float", "double")) for t in colour_types.values())
     wide = any(t in ("ushort", "uint16") for t in colour_types.values())
-    return PlyHeader(fmt, vertices, float_colours, expected, wide, rows)
+    prefix = COLOUR_ALIAS if not names & {"red", "green", "blue"} and {
+        COLOUR_ALIAS + c for c in ("red", "green", "blue")} <= names else ""
+    return PlyHeader(fmt, vertices, float_colours, expected, wide, rows, coordinate_type,
+                     prefix, header_bytes)
+
+
+#: Another name some tools (MeshLab, Blender) give the colour properties: diffuse_red, ...
+COLOUR_ALIAS = "diffuse_"
 
 
 #: Colour property types a cloud may have: 8-bit, 16-bit and float (0-1).

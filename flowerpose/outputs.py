@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import tempfile
 import weakref
 from pathlib import Path
 
@@ -72,6 +73,7 @@ def check_output(folder: str | Path, stage: str, overwrite: bool = False,
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InputError(folder, "is a file, not a folder")
+    check_writable(folder)
     if not folder.is_dir():
         return
     entries = sorted(p.name for p in folder.iterdir() if p.name not in BOOKKEEPING)
@@ -83,6 +85,21 @@ def check_output(folder: str | Path, stage: str, overwrite: bool = False,
             else f"files flowerpose {stage} did not write ({', '.join(entries[:3])}"
             + (", ..." if len(entries) > 3 else "") + ")")
     raise InputError(folder, f"holds {what}; choose an empty or new folder, or add --overwrite")
+
+
+def check_writable(folder: Path) -> None:
+    """Refuse, before any work, a folder nothing can be written into: it, or where it is
+    not there yet the nearest folder above it, takes a file (tried, then removed)."""
+    target = folder
+    while not target.exists() and target != target.parent:
+        target = target.parent
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".flowerpose-write-test.", dir=target)
+    except OSError as error:
+        raise InputError(folder, f"cannot write into {target} ({error.strerror}); choose "
+                         "another folder") from None
+    os.close(handle)
+    os.unlink(probe)
 
 
 def _remove(path: Path) -> None:

@@ -19,6 +19,11 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
+from flowerpose.memory import require_fits
+
+#: Bytes a grid view's pixel takes while it is made: the float64 depth keys and their
+#: eroded copy, the int32 index, the RGB image, the float32 depth and a mask.
+GRID_BYTES_PER_PIXEL = 8 + 8 + 4 + 3 + 4 + 1
 
 
 @dataclass(frozen=True)
@@ -151,6 +156,9 @@ def project(cloud: Cloud, view: View, config: GridConfig) -> Projection:
     if max(height, width) > config.max_image_px:
         raise InputError("grid.pixel_size_m", f"{px:g} m gives a {width}x{height} image for "
                          f"this cloud; use a coarser pixel (max side {config.max_image_px})")
+    require_fits(height * width * GRID_BYTES_PER_PIXEL, "grid.pixel_size_m",
+                 f"a {width}x{height} grid view at {px:g} m a pixel",
+                 opencv_array=height * width * 8)
     # A z-buffer without a sort: each point's key is its depth, quantised, with its index
     # in the low bits, exact in a float64 (53 bits); the least key at each pixel, then a
     # min-filter of the key image over the splat disc, gives each pixel the nearest point

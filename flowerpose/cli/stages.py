@@ -191,7 +191,7 @@ def add_dataset(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    from flowerpose.cloudio import read_cloud, write_cloud
+    from flowerpose.cloudio import read_cloud, require_hue, write_cloud
     from flowerpose.jsonio import write_json
     from flowerpose.outputs import OutputFolder, check_output
     from flowerpose.pipeline.flowers import (
@@ -214,6 +214,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
               "report.html")
     check_output(out, "detect", args.overwrite, writes)
     cloud = read_cloud(args.cloud, units=args.units)
+    if not args.candidates:  # a detector's candidates may be white petals alone
+        require_hue(cloud, args.cloud)
     result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
     # An earlier detection's files (crops of flowers this one may not have) go first.
     output = OutputFolder(out, "detect", args.overwrite, writes)
