@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ from flowerpose.eval.report import markdown_table, run_record, summarise
 from flowerpose.eval.tune_space import Objective, Param, typed_settings
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
+from flowerpose.outputs import check_writable
 from flowerpose.stopwatch import Stopwatch
 
 #: With one objective, the chosen trial is the best validated among this many best trials.
@@ -126,17 +128,50 @@ def study_name(spec_space: tuple[Param, ...], train: tuple[PlantSet, ...],
     return f"flowerpose-tune-{digest}", identity
 
 
+#: Seconds between a running trial's heartbeats in an RDB storage; a trial silent for
+#: STALE_AFTER_S (its process killed) is marked failed when the study is next opened.
+HEARTBEAT_S = 10
+STALE_AFTER_S = 30
+#: Storage URL schemes on this machine's disk (file paths after "///").
+_FILE_SCHEMES = ("sqlite:///", "journal:///")
+
+
+def check_storage(url: str) -> None:
+    """Refuse, before any trial, a storage URL that cannot work: no scheme, or a file
+    storage whose folder is missing or takes no file; one line naming the URL."""
+    if "://" not in url:
+        raise InputError("--study", f"{url!r} is not a storage URL: give sqlite:///PATH, "
+                         "journal:///PATH or an RDB URL such as postgresql://HOST/DB")
+    for scheme in _FILE_SCHEMES:
+        if url.startswith(scheme):
+            path = Path(url.removeprefix(scheme.rstrip("/")))
+            if not path.parent.is_dir():
+                raise InputError("--study", f"{url}: the folder {path.parent} is not there; "
+                                 "make it first or give another path")
+            check_writable(path.parent)
+            if path.exists() and not os.access(path, os.W_OK):
+                raise InputError("--study", f"{url}: {path} is read-only")
+
+
 def _storage(url: str) -> Any:
-    """The Optuna storage of a URL: an RDB (sqlite waits for a lock instead of failing), or
-    a journal file (journal:///PATH)."""
+    """The Optuna storage of a URL: an RDB (sqlite waits for a lock instead of failing; a
+    heartbeat marks trials of killed processes failed), or a journal file (journal:///PATH,
+    no heartbeat). A storage that cannot be opened is one line naming the URL."""
     import optuna
 
+    check_storage(url)
     if url.startswith("journal:///"):
         from optuna.storages.journal import JournalFileBackend
 
         return optuna.storages.JournalStorage(JournalFileBackend(url.removeprefix("journal://")))
     kwargs = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else {}
-    return optuna.storages.RDBStorage(url, engine_kwargs=kwargs)
+    try:
+        return optuna.storages.RDBStorage(url, engine_kwargs=kwargs,
+                                          heartbeat_interval=HEARTBEAT_S,
+                                          grace_period=STALE_AFTER_S)
+    except Exception as error:  # noqa: BLE001 - SQLAlchemy's and the drivers' errors alike
+        raise InputError("--study", f"{url}: cannot open the storage: "
+                         f"{str(error).splitlines()[0]}") from None
 
 
 def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
@@ -261,6 +296,23 @@ def run_trials(spec: TuneSpec, trials: int) -> int:
     return trials
 
 
+def clear_dead_trials(study: Any, out_dir: Path) -> int:
+    """Mark the trials whose process died (no heartbeat for STALE_AFTER_S) failed, and
+    remove the scratch folders (out_dir/trials/trial-N-*) of every trial not running;
+    returns the trials marked. Run before a session's trials start."""
+    import optuna
+
+    before = {t.number for t in study.trials if t.state == optuna.trial.TrialState.RUNNING}
+    optuna.storages.fail_stale_trials(study)
+    trials = study.get_trials(deepcopy=False)
+    running = {t.number for t in trials if t.state == optuna.trial.TrialState.RUNNING}
+    for folder in (out_dir / "trials").glob("trial-*-*"):
+        number = folder.name.split("-")[1]
+        if number.isdigit() and int(number) not in running:
+            shutil.rmtree(folder, ignore_errors=True)
+    return len(before - running)
+
+
 def quiet_optuna() -> None:
     """Optuna's own log lines become the project's debug lines (`-v`): the project says
     what happened to each trial itself."""
@@ -327,6 +379,8 @@ def trial_rows(study: Any, spec: TuneSpec) -> list[dict]:
 
 def _failure(trial: Any) -> str | None:
     reason = trial.system_attrs.get("fail_reason")
+    if reason is None and trial.state.name == "FAIL" and "error" not in trial.user_attrs:
+        return "its process stopped (killed?) before the trial ended"
     return None if reason is None else str(reason).strip().splitlines()[-1]
 
 

@@ -107,6 +107,10 @@ def _param(key: str, entry: dict, current: Any, config: Any, where: str) -> Para
         raise InputError(where, f"low and high must be numbers, got {low!r} and {high!r}")
     if not low < high:
         raise InputError(where, f"the range {low}-{high} is empty (low must be below high)")
+    for flag in ("int", "log"):
+        if flag in entry and not isinstance(entry[flag], bool):
+            raise InputError(where, f"{flag} must be true or false (no quotes), got "
+                             f"{entry[flag]!r}")
     integer = bool(entry.get("int", False))
     if kind is int and not integer:
         raise InputError(where, "is a whole number: add int = true")

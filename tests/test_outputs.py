@@ -186,3 +186,18 @@ def test_a_junit_folder_that_refuses_files_is_found_before_the_run(tmp_path, cap
                  "--junit", "/proc/gates.xml", "--out", str(tmp_path / "out")]) == 2
     assert "cannot be written here" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_eval_rerun_into_its_folder_replaces_all_of_its_earlier_output(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    out = tmp_path / "run"
+    assert main(["eval", "-q", "--source", "oracle", "--plants", "2", "--out", str(out),
+                 "--cache", str(tmp_path / "cache")]) == 0
+    assert sorted(p.name for p in (out / "plants").iterdir()) == ["seed-0", "seed-1"]
+    (out / "notes.txt").write_text("mine")  # the user's own file stays
+    assert main(["eval", "-q", "--source", "oracle", "--plants", "1", "--out", str(out),
+                 "--cache", str(tmp_path / "cache"), "--overwrite"]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in (out / "plants").iterdir()) == ["seed-0"]
+    assert (out / "notes.txt").read_text() == "mine"

@@ -89,8 +89,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
                   assets=assets_record(None if args.source == "real" else args.preset,
                                        args.profile))
     writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
-    with owned(out, "eval", args.overwrite, writes), jobs_on(args):
+    with owned(out, "eval", args.overwrite, writes) as output, jobs_on(args):
         report = run_eval(config, run, out, workers=args.workers, cache=cache)
+        # All of it is this run's, so a rerun into the folder replaces all of it (plants this
+        # run made that the next does not make go too).
+        output.record(*(out / name for name in writes if (out / name).exists()))
     if cache is not None and args.source != "real":
         from flowerpose.cache import prune_to_limit
 

@@ -248,6 +248,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.eval.tune import (
         TUNE_FILES,
         TuneSpec,
+        check_storage,
+        clear_dead_trials,
         local_storage,
         open_study,
         report_study,
@@ -268,6 +270,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
         PlantSet(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
     validate = parse_sets(args.validate) if args.validate else validation_default(train)
     storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
+    if args.study:
+        check_storage(storage)  # the default's folder is made below
     if args.ray not in (None, "local", "auto") and local_storage(storage) and not any(
             host in args.ray for host in ("127.0.0.1", "localhost")):
         raise InputError("--study", f"{storage} is on this machine's disk, which a remote "
@@ -280,8 +284,13 @@ def cmd_tune(args: argparse.Namespace) -> int:
     watch = Stopwatch()
     with owned(args.out, "tune", args.overwrite, TUNE_FILES), jobs_on(args):
         args.out.mkdir(parents=True, exist_ok=True)
-        open_study(spec, identity, create=True)
+        study = open_study(spec, identity, create=True)
         from flowerpose.log import LOG
+
+        dead = clear_dead_trials(study, args.out)
+        if dead:
+            LOG.warning(f"tune: {dead} trial(s) left running by a process that stopped are "
+                        "marked failed")
 
         LOG.info(f"tune: study {spec.study_name}: scoring the settings without a trial's on "
                  f"{len(train)} training and {len(validate)} validation sets")

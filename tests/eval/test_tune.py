@@ -92,6 +92,7 @@ def test_a_trial_that_raises_is_recorded_as_failed_and_the_study_goes_on(tmp_pat
     ('"cluster.min_points" = { low = 5, high = 40 }\n', "int = true"),
     ('"cluster.crop" = { choices = ["near", "sideways"] }\n', "sideways"),
     ('"cluster.eps" = 0.01\n', "expected"),
+    ('"cluster.eps" = { low = 0.006, high = 0.01, log = "false" }\n', "true or false"),
     ("", "empty"),
 ])
 def test_a_bad_space_is_one_line_and_exit_2(tmp_path, plants, capsys, space, said):
@@ -104,3 +105,51 @@ def test_a_bad_space_is_one_line_and_exit_2(tmp_path, plants, capsys, space, sai
 def test_a_bad_objective_is_refused_before_any_trial(tmp_path, plants, capsys):
     assert _tune(tmp_path, plants, SPACE, 1, "--objective", "max:f2") == 2
     assert "not a number of the report's summary" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("study, said", [
+    ("study.db", "is not a storage URL"),
+    ("sqlite:///{tmp}/missing/study.db", "is not there"),
+    ("journal:///{tmp}/missing/study.log", "is not there"),
+])
+def test_a_storage_that_cannot_work_is_one_line_before_any_trial(tmp_path, plants, capsys,
+                                                                  study, said):
+    assert _tune(tmp_path, plants, SPACE, 1, "--study", study.format(tmp=tmp_path)) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1 and "--study" in err
+    assert not (tmp_path / "out" / "tune.json").exists()
+
+
+@pytest.mark.slow
+def test_a_trial_left_running_by_a_killed_tune_is_marked_failed_and_its_scratch_goes(
+        tmp_path, plants, capsys, monkeypatch):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "space.toml").write_text(SPACE)
+    command = [sys.executable, "-m", "flowerpose", "tune", "--space",
+               str(tmp_path / "space.toml"), "--trials", "50", "--train", str(plants[0]),
+               "--validate", str(plants[1]), "--sampler-seed", "3", "--out",
+               str(tmp_path / "out"), "-q"]
+    killed = subprocess.Popen(command, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    scratch = tmp_path / "out" / "trials"
+    while not list(scratch.glob("trial-*-*")):
+        assert killed.poll() is None, "tune ended before a trial started"
+        time.sleep(0.02)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert list(scratch.glob("trial-*-*"))  # a dead trial's scratch is left behind
+    monkeypatch.setattr(tune, "STALE_AFTER_S", 1)
+    time.sleep(1.5)
+    assert _tune(tmp_path, plants, SPACE, 1) == 0
+    assert "marked failed" in capsys.readouterr().err
+    report = json.loads((tmp_path / "out" / "tune.json").read_text())
+    stopped = [t for t in report["trials"] if t["state"] == "fail"]
+    assert stopped and "its process stopped" in stopped[-1]["error"]
+    assert report["counts"]["failed"] >= 1
+    assert not [t for t in report["trials"] if t["state"] == "running"]
+    assert not list(scratch.glob("trial-*-*"))
+
