@@ -138,13 +138,26 @@ def test_a_bed_killed_while_filming_its_second_plant_resumes_that_scan(bed_run, 
 
 @pytest.mark.slow
 def test_on_ray_the_bed_gives_the_pools_flowers(bed_run, tmp_path, capsys):
-    """The reconstructions as Ray tasks: the same frames, so the same flowers to the bit."""
+    """A bed stopped once both plants were filmed, resumed with its reconstructions as Ray
+    tasks: nothing is filmed again, and the same frames give the same flowers to the bit."""
+    import shutil
+
     pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowerpose[ray]')")
     bed, pool, _ = bed_run
-    out = tmp_path / "ray"
+    out = shutil.copytree(pool, tmp_path / "ray")
+    journal = json.loads((out / "bed.json").read_text())
+    for name, plant in journal["plants"].items():
+        journal["plants"][name] = {"stage": "scanned", "seconds": plant["seconds"]}
+        for done in ("frames", "reconstruction", "flowers.json"):
+            path = out / "plants" / name / done
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    (out / "bed.json").write_text(json.dumps(journal))
+    scans = {n: (out / "plants" / n / "scan" / "scan.json").read_text() for n in ("a", "b")}
     assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), "--ray", *SMALL,
                  "-q"]) == 0
     assert "2 of 2 plants detected" in capsys.readouterr().out
+    assert scans == {n: (out / "plants" / n / "scan" / "scan.json").read_text()
+                     for n in ("a", "b")}
     for name in ("a", "b"):
         before, after = _plane_normals(pool, name), _plane_normals(out, name)
         assert before.keys() == after.keys() and len(before) >= 1
