@@ -296,16 +296,22 @@ def run_trials(spec: TuneSpec, trials: int) -> int:
     return trials
 
 
-def clear_dead_trials(study: Any, out_dir: Path) -> int:
-    """Mark the trials whose process died (no heartbeat for STALE_AFTER_S) failed, and
-    remove the scratch folders (out_dir/trials/trial-N-*) of every trial not running;
-    returns the trials marked. Run before a session's trials start."""
+def clear_dead_trials(study: Any, out_dir: Path, owned: bool) -> int:
+    """Mark the trials whose process died failed, and remove the scratch folders
+    (out_dir/trials/trial-N-*) of every trial not running; returns the trials marked. Run
+    before a session's trials start. owned: this command holds the study alone (its own
+    storage in its locked out_dir), so every trial still running is a dead process's;
+    else those whose heartbeat stopped STALE_AFTER_S ago (an RDB storage)."""
     import optuna
 
-    before = {t.number for t in study.trials if t.state == optuna.trial.TrialState.RUNNING}
-    optuna.storages.fail_stale_trials(study)
-    trials = study.get_trials(deepcopy=False)
-    running = {t.number for t in trials if t.state == optuna.trial.TrialState.RUNNING}
+    running_state = optuna.trial.TrialState.RUNNING
+    before = {t.number for t in study.get_trials(deepcopy=False, states=(running_state,))}
+    if owned:
+        for number in before:
+            study.tell(number, state=optuna.trial.TrialState.FAIL)
+    else:
+        optuna.storages.fail_stale_trials(study)
+    running = {t.number for t in study.get_trials(deepcopy=False, states=(running_state,))}
     for folder in (out_dir / "trials").glob("trial-*-*"):
         number = folder.name.split("-")[1]
         if number.isdigit() and int(number) not in running:

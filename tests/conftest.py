@@ -12,10 +12,26 @@ from flowerpose.sim.bundle import PlantBundle, make_plant
 HARDWARE = Path(__file__).parent / "hardware"
 
 
+#: The test files that take longest (seconds of a 2-core run, 2026-12-05: the bed runs 190,
+#: pollination 90, the README 75, ...), run first: `make test` hands whole files to its
+#: workers in collection order, and the longest first makes them end together.
+LONGEST_FIRST = ("eval/test_bed_run.py", "eval/test_pollination.py", "test_readme.py",
+                 "eval/test_scan_source.py", "eval/test_bed_serial.py",
+                 "eval/test_html_report.py", "eval/test_ray.py", "hardware/test_cloud_broker.py",
+                 "hardware/test_interrupt.py", "hardware/test_sim_bot.py")
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if HARDWARE in Path(item.fspath).parents:
             item.add_marker(pytest.mark.hardware)
+    root = Path(__file__).parent
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+
+    def position(item: pytest.Item) -> int:
+        return rank.get(Path(item.fspath).relative_to(root).as_posix(), len(rank))
+
+    items.sort(key=position)  # stable: the rest keep their order
 
 
 @pytest.fixture(scope="session")

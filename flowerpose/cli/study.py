@@ -287,7 +287,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
         study = open_study(spec, identity, create=True)
         from flowerpose.log import LOG
 
-        dead = clear_dead_trials(study, args.out)
+        # The default storage lives in the locked --out: no other process runs its trials.
+        dead = clear_dead_trials(study, args.out, owned=args.study is None)
         if dead:
             LOG.warning(f"tune: {dead} trial(s) left running by a process that stopped are "
                         "marked failed")
