@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
@@ -41,8 +41,10 @@ from flowerpose.jsonio import write_json
 from flowerpose.log import Tally
 from flowerpose.outputs import OutputFolder
 from flowerpose.pipeline.flowers import grid_views
-from flowerpose.sim.bundle import PlantBundle, make_plant
 from flowerpose.sim.pieces import Part
+
+if TYPE_CHECKING:  # the plant's mesh needs trimesh, which the core install lacks
+    from flowerpose.sim.bundle import PlantBundle
 
 #: The parts of a flower its mask holds (`Part`): what a labeller outlines as the flower.
 MASK_PARTS = (Part.PETAL, Part.RECEPTACLE, Part.STAMEN)
@@ -165,6 +167,8 @@ def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: Data
     """Generate the plants of `seeds`, write their images and annotations into `out` in
     `dataset.format`, split by plant, with split.json and dataset.json; returns the
     manifest (dataset.json's content)."""
+    from flowerpose.sim.bundle import make_plant  # trimesh: the [sim] extra
+
     split = split_plants(seeds, dataset.val_fraction, dataset.split_seed)
     splits = [name for name in ("train", "val") if split[name]]
     of_seed = {s: name for name in splits for s in split[name]}

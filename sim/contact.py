@@ -15,12 +15,15 @@ The soil is left out (the planner keeps the tool above it). Metres, bed frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.sim.pieces import Part
-from flowerpose.sim.plant import Plant
+
+if TYPE_CHECKING:  # the plant's mesh needs trimesh, which the core install lacks
+    from flowerpose.sim.plant import Plant
 
 #: Pieces that bend out of a tool's way, and the part each is attached to.
 COMPLIANT = {Part.LEAF: Part.PETIOLE, Part.PETIOLE: Part.CROWN}

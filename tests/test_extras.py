@@ -60,3 +60,25 @@ def test_the_virtual_farmduino_serves_on_the_core_install():
     finally:
         board.kill()
         board.wait()
+
+
+def test_every_commands_help_works_on_the_core_install():
+    """`--help` of every command with every extra unimportable: exit 0, no traceback."""
+    script = "import sys\n" + "".join(f"sys.modules[{m!r}] = None\n" for m in EXTRAS) + (
+        "import contextlib, io\n"
+        "from flowerpose.cli import build_parser\n"
+        "parser = build_parser()\n"
+        "commands = next(a for a in parser._actions if a.dest == 'command').choices\n"
+        "for name in commands:\n"
+        "    code = None\n"
+        "    with contextlib.redirect_stdout(io.StringIO()):\n"
+        "        try:\n"
+        "            build_parser().parse_args([name, '--help'])\n"
+        "        except SystemExit as done:\n"
+        "            code = done.code\n"
+        "    print(name, code)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert "Traceback" not in done.stderr, done.stderr
+    codes = dict(line.split() for line in done.stdout.splitlines())
+    assert len(codes) >= 20 and set(codes.values()) == {"0"}, codes
