@@ -75,7 +75,7 @@ class PoseConfig:
     from the petals, so the petal surface alone flips normals of the authors' plant 3;
     the crop centroid and the petals' flip cupped flowers; sepals are often missing, and
     leaves near a flower are of their colour. Plane error, petal surface / crop / combined
-    (`flowerpose eval --source real ../shared/real/paper-plant-3 --set
+    (`flowerpose eval --source real paper-plant-3 --set
     pose.direction_reference=...`): 36.3 / 21.3 / 7.35 degrees (two and one flipped
     normals); hard oracle preset, 10 plants: 2.58 / 5.99 / 2.58; realistic: 1.93 all."""
     offset_clip: float | None = 0.15

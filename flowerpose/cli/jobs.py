@@ -213,7 +213,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
         "report.json, report.md and report.html to --out, and per plant its files.",
         epilog="examples:\n"
         "  flowerpose eval --source oracle --plants 2 --out runs/oracle\n"
-        "  flowerpose eval --source real ../shared/real/paper-plant-3 --compare upstream\n"
+        "  flowerpose eval --source real paper-plant-3 --compare upstream\n"
         "  flowerpose eval --suite oracle-10 --require 'recall_visible>=0.95'")
     p.add_argument("--source", choices=SOURCES, default=None,
                    help="where clouds come from: scan = the simulated bot films each plant "
@@ -305,7 +305,7 @@ def add_fidelity(sub: argparse._SubParsersAction) -> None:
         "error, at the real plant's density (denser clouds thinned to it), fall inside the "
         "real plant's 95 % intervals. Writes fidelity.json, fidelity.md and fidelity.png.",
         epilog="example:\n"
-        "  flowerpose fidelity ../shared/real/paper-plant-3 runs/oracle --out fidelity")
+        "  flowerpose fidelity paper-plant-3 runs/oracle --out fidelity")
     p.add_argument("real", type=Path, metavar="REAL_DIR",
                    help="a labelled real plant folder (cloud.ply or candidates/)")
     p.add_argument("synthetic", type=Path, nargs="+", metavar="SYNTH_DIR",

@@ -72,7 +72,7 @@ def add_sweep(sub: argparse._SubParsersAction) -> None:
         "--out sweep\n"
         "  flowerpose sweep --source scan --plants 3 --grid cluster.eps=0.006,0.008,0.01,0.012 "
         "--out sweep-scan\n"
-        "  flowerpose sweep --source real ../shared/real/paper-plant-3 --grid "
+        "  flowerpose sweep --source real paper-plant-3 --grid "
         "cluster.eps=0.008,0.01 --out sweep-real")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting's dotted key and its values; repeat for a grid over several")
@@ -184,7 +184,7 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
         "perturbation: recall and plane error against its strength) and report.html.",
         epilog="examples:\n"
         "  flowerpose stress --source oracle --plants 3 --out stress-oracle\n"
-        "  flowerpose stress --source real ../shared/real/paper-plant-3 --repeats 3 "
+        "  flowerpose stress --source real paper-plant-3 --repeats 3 "
         "--out stress-real")
     p.add_argument("--source", choices=SOURCES, default="oracle",
                    help="where the clouds come from, as for eval (default: %(default)s)")
@@ -334,7 +334,7 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
         epilog="examples:\n"
         "  flowerpose tune --space space.toml --trials 40 --out tune --plants 3\n"
         "  flowerpose tune --space space.toml --trials 100 --train oracle-10 --train "
-        "field-10 --validate ../shared/real/paper-plant-3 --workers 2 --out tune-field")
+        "field-10 --validate paper-plant-3 --workers 2 --out tune-field")
     p.add_argument("--space", type=Path, required=True, metavar="SPACE.toml",
                    help="the settings to search: \"KEY\" = { low = L, high = H [, log = true]"
                    " [, int = true] } or { choices = [...] }, one line per dotted key")
@@ -424,7 +424,7 @@ def add_guard(sub: argparse._SubParsersAction) -> None:
         "worse. The full loop's reconstructions come from the stage cache after the first "
         "run.",
         epilog="examples:\n"
-        "  flowerpose guard --real ../shared/real/paper-plant-3 --out guard\n"
+        "  flowerpose guard --real paper-plant-3 --out guard\n"
         "  flowerpose guard --only oracle-20 --only real3 --real paper-plant-3 --out guard\n"
         "  flowerpose guard --set cluster.eps=0.009 --real paper-plant-3 --out guard-eps\n"
         "  flowerpose guard --real paper-plant-3 --accept --out guard")
