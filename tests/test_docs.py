@@ -44,3 +44,8 @@ def test_the_site_builds_strictly(tmp_path):
             if not (page.parent / target).resolve().is_file():
                 broken.append(f"{page.relative_to(site)} -> {target}")
     assert not broken, broken[:10]
+    # and it loads nothing from the network (fonts, scripts, styles)
+    loads = [f"{page.name}: {url}" for page in site.rglob("*.html")
+             for url in re.findall(r'<(?:link|script)[^>]+(?:href|src)="(https?://[^"]+)',
+                                   page.read_text())]
+    assert not loads, loads[:5]
