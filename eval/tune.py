@@ -42,7 +42,7 @@ from flowerpose.eval.report import markdown_table, run_record, summarise
 from flowerpose.eval.tune_space import Objective, Param, typed_settings
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
-from flowerpose.outputs import check_writable
+from flowerpose.outputs import check_folder_writable
 from flowerpose.stopwatch import Stopwatch
 
 #: With one objective, the chosen trial is the best validated among this many best trials.
@@ -148,7 +148,7 @@ def check_storage(url: str) -> None:
             if not path.parent.is_dir():
                 raise InputError("--study", f"{url}: the folder {path.parent} is not there; "
                                  "make it first or give another path")
-            check_writable(path.parent)
+            check_folder_writable(path.parent)
             if path.exists() and not os.access(path, os.W_OK):
                 raise InputError("--study", f"{url}: {path} is read-only")
 

@@ -15,10 +15,10 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import tempfile
 import weakref
 from pathlib import Path
 
+from flowerpose.atomic import temporary_beside
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json, write_json
 
@@ -73,7 +73,7 @@ def check_output(folder: str | Path, stage: str, overwrite: bool = False,
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InputError(folder, "is a file, not a folder")
-    check_writable(folder)
+    check_folder_writable(folder)
     if not folder.is_dir():
         return
     entries = sorted(p.name for p in folder.iterdir() if p.name not in BOOKKEEPING)
@@ -87,19 +87,19 @@ def check_output(folder: str | Path, stage: str, overwrite: bool = False,
     raise InputError(folder, f"holds {what}; choose an empty or new folder, or add --overwrite")
 
 
-def check_writable(folder: Path) -> None:
+def check_folder_writable(folder: Path) -> None:
     """Refuse, before any work, a folder nothing can be written into: it, or where it is
-    not there yet the nearest folder above it, takes a file (tried, then removed)."""
+    not there yet the nearest folder above it, takes a file (made beside where the run's
+    files go, then removed: permissions alone miss root and read-only mounts).
+    `cli.options.check_writable` is the same for a file path."""
     target = folder
     while not target.exists() and target != target.parent:
         target = target.parent
     try:
-        handle, probe = tempfile.mkstemp(prefix=".flowerpose-write-test.", dir=target)
+        temporary_beside(target / "write-test", ".check").unlink()
     except OSError as error:
-        raise InputError(folder, f"cannot write into {target} ({error.strerror}); choose "
-                         "another folder") from None
-    os.close(handle)
-    os.unlink(probe)
+        raise InputError(folder, f"cannot write into {target} ({error.strerror or error}); "
+                         "choose another folder") from None
 
 
 def _remove(path: Path) -> None:

@@ -144,13 +144,13 @@ def test_a_grid_the_machine_cannot_hold_is_refused_before_it_is_made():
 
 def test_an_output_folder_that_takes_no_file_is_refused_before_any_work(tmp_path, capsys,
                                                                         monkeypatch):
-    import tempfile
+    from flowerpose import outputs
 
     cloud = write_cloud(tmp_path / "cloud.ply", Cloud(POINTS, COLOURS))
 
     def refuse(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    monkeypatch.setattr(outputs, "temporary_beside", refuse)
     assert main(["detect", str(cloud), "--out", str(tmp_path / "out")]) == 2
     _one_line(capsys, str(tmp_path / "out"), "cannot write into", "Permission denied")
