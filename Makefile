@@ -19,10 +19,12 @@ $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
 eval: setup
 	$(BIN)/flowerpose eval
 
-# One worker a core (at most 4), a test file's tests on one worker so its module fixtures are
-# made once.
+# A worker a core and one more (at most 4): many tests wait (a virtual board's clock, a
+# browser, Ray starting up), and the extra worker works meanwhile. A test file's tests run
+# on one worker, so its module fixtures are made once.
+WORKERS := $(shell python3 -c "import os; print(min(4, (os.cpu_count() or 1) + 1))")
 test: setup
-	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile
+	$(BIN)/python -m pytest -q -n $(WORKERS) --dist loadfile
 
 # The tests of under a second each, while working (the full suite is `make test`).
 test-fast: setup
