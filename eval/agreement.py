@@ -19,12 +19,10 @@ import numpy as np
 from flowerpose.errors import InputError
 from flowerpose.eval.labels import is_label_file, read_labels
 from flowerpose.eval.match import MAX_MATCH_DISTANCE, angle_error_deg, match_flowers
+from flowerpose.eval.real_source import DEFAULT_TRUTH_SCALE
 from flowerpose.eval.stats import error_summary
 from flowerpose.eval.truth import is_sagemaker, read_plant_truth, read_sagemaker_truth
 from flowerpose.jsonio import read_json
-
-#: SageMaker labels were drawn on clouds scaled by this (the authors' 25).
-SAGEMAKER_SCALE = 25.0
 
 
 @dataclass
@@ -55,7 +53,7 @@ def read_labelling(path: str | Path, truth_scale: float | None = None) -> Labell
     elif isinstance(data, dict) and "flowers" in data:
         scale, posed, unposed, kind = truth_scale or 1.0, read_plant_truth(path), [], "plant"
     elif is_sagemaker(data):
-        scale = truth_scale or SAGEMAKER_SCALE
+        scale = truth_scale or DEFAULT_TRUTH_SCALE
         posed, unposed, kind = read_sagemaker_truth(path, scale), [], "sagemaker"
         scale = 1.0  # the reader divided already
     else:
