@@ -38,6 +38,7 @@ from flowerpose.eval.config import EvalConfig
 from flowerpose.eval.runner import CAPTURE_CPUS, running_on_ray, spawn_pool, submit_job
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant, plan_bed
 from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
+from flowerpose.log import noted
 from flowerpose.stopwatch import Stopwatch
 
 JOURNAL = "bed.json"
@@ -108,7 +109,8 @@ def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: floa
     (folder/frames -> folder/reconstruction), its cloud
     cut to `crop_radius` metres round the plant's axis (plant_cloud.ply), measured against
     its mesh, then its flowers found and scored against the truth with the scan's
-    visibility. Runs in a worker: returns the report's plant entry, the reconstruction's
+    visibility. Runs in a worker: returns the report's plant entry (with the warnings said
+    on the way, its "notes"), the reconstruction's
     counts and quality, and seconds per step."""
     from flowerpose.cloudio import write_cloud
     from flowerpose.eval.quality import reconstruction_quality
@@ -117,22 +119,23 @@ def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: floa
     from flowerpose.sim.export import read_plant
 
     watch = Stopwatch()
-    select_frames(folder / "scan", folder / "frames", config.scan.frames, progress=False,
-                  overwrite=True)
-    watch.lap("frames")
-    built = reconstruct(folder / "frames", folder / "reconstruction", config.scan.reconstruct,
-                        progress=False, overwrite=True)
-    watch.lap("reconstruct")
-    plant = read_plant(folder)
-    points = built.cloud.points
-    keep = np.hypot(*(points[:, :2] - np.asarray(plant.center[:2])).T) <= crop_radius
-    write_cloud(folder / "reconstruction" / "plant_cloud.ply", built.cloud.subset(keep))
-    quality = reconstruction_quality(points[keep], plant.mesh, plant.face_part,
-                                     samples=100_000)
-    watch.lap("crop")
-    entry, timing = _job(folder, name).score(config, folder)
-    watch.lap("detect")
-    return {"entry": entry, "points": int(keep.sum()),
+    with noted() as notes:
+        select_frames(folder / "scan", folder / "frames", config.scan.frames, progress=False,
+                      overwrite=True)
+        watch.lap("frames")
+        built = reconstruct(folder / "frames", folder / "reconstruction",
+                            config.scan.reconstruct, progress=False, overwrite=True)
+        watch.lap("reconstruct")
+        plant = read_plant(folder)
+        points = built.cloud.points
+        keep = np.hypot(*(points[:, :2] - np.asarray(plant.center[:2])).T) <= crop_radius
+        write_cloud(folder / "reconstruction" / "plant_cloud.ply", built.cloud.subset(keep))
+        quality = reconstruction_quality(points[keep], plant.mesh, plant.face_part,
+                                         samples=100_000)
+        watch.lap("crop")
+        entry, timing = _job(folder, name).score(config, folder)
+        watch.lap("detect")
+    return {"entry": {**entry, "notes": notes}, "points": int(keep.sum()),
             "registered": built.report["images_registered"],
             "quality": quality, "seconds": watch.report(digits=3, total=None),
             "pipeline_s": {k: round(v, 3) for k, v in timing.items()}}

@@ -30,6 +30,7 @@ from flowerpose.eval.report import (
     TABLE_LEGEND,
     comparison_rows,
     interval_rows,
+    note_lines,
     summary_lines,
     table_rows,
 )
@@ -195,6 +196,10 @@ def _scores(report: dict) -> list[str]:
                   "<ul>" + "".join(f"<li>{_e(other)}: {_e(v)}</li>"
                                    for other, c in report["compare"].items()
                                    for v in c.get("paired", {}).get("verdicts", [])) + "</ul>"]
+    notes = note_lines(report)
+    if notes:
+        parts += ["<h2>What the run assumed</h2>",
+                  "<ul>" + "".join(f"<li>{_e(line)}</li>" for line in notes) + "</ul>"]
     curves = accuracy_series(report)
     if curves:
         parts.append(_figure_html(accuracy_figure(curves), "accuracy"))

@@ -40,8 +40,7 @@ from flowerpose.cloudio import Cloud, Units, read_cloud_and_unit
 from flowerpose.errors import InputError
 from flowerpose.eval.agreement import read_labelling
 from flowerpose.eval.labels import STATES, Label, LabelFile, read_labels, write_labels
-from flowerpose.eval.real_source import folder_clouds
-from flowerpose.jsonio import read_json
+from flowerpose.eval.real_source import folder_clouds, source_truth_scale
 from flowerpose.log import LOG
 
 #: Most cloud points the page draws (a seeded subsample above it): plotly stays responsive.
@@ -93,11 +92,7 @@ def _starting_flowers(folder: Path, metres_per_unit: float, detections: Path
     as proposals, else none; and which it was."""
     labels = folder / "labels.json"
     if labels.is_file():
-        scale = None
-        source = folder / "source.json"
-        if source.is_file():
-            scale = read_json(source).get("truth_scale")
-        labelling = read_labelling(labels, scale)
+        labelling = read_labelling(labels, source_truth_scale(folder))
         states = {}
         if labelling.format == "flowerpose":
             states = {f.id: f.state for f in read_labels(labels).flowers}

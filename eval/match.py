@@ -147,9 +147,28 @@ def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant
     if not (max_distance > 0 and math.isfinite(max_distance)):
         raise InputError("score.max_distance_m", f"must be positive, got {max_distance}")
     from flowerpose.eval.report import build_report, plant_entry
+    from flowerpose.log import noted
+    from flowerpose.pipeline.flowers import read_flower_notes
+    from flowerpose.stopwatch import Stopwatch
+
+    with noted() as notes:
+        estimates, truth = _read_scored(flowers_path, truth_path, truth_format, truth_scale)
+    _check_overlap(estimates, truth, max_distance, flowers_path, truth_path)
+    watch = Stopwatch()
+    score = score_plant(estimates, truth, max_distance)
+    config = {"truth_format": truth_format, "truth_scale": truth_scale,
+              "max_distance_m": max_distance}
+    seconds = round(watch.elapsed(), 6)
+    entry = {**plant_entry(flowers_path.parent.name or "plant", score),
+             "notes": [*read_flower_notes(flowers_path), *notes]}
+    return build_report(config, [entry], {"score": seconds, "total": seconds})
+
+
+def _read_scored(flowers_path: Path, truth_path: Path, truth_format: str, truth_scale: float
+                 ) -> tuple[list[dict], list]:
+    """The detections and the truth `score_files` scores."""
     from flowerpose.eval.truth import read_plant_truth, read_sagemaker_truth
     from flowerpose.pipeline.flowers import read_flowers
-    from flowerpose.stopwatch import Stopwatch
 
     estimates = read_flowers(flowers_path)
     if truth_format == "plant":
@@ -162,14 +181,7 @@ def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant
                              "plant.json: add `truth_format` sagemaker")
     truth = (read_plant_truth(truth_path) if truth_format == "plant"
              else read_sagemaker_truth(truth_path, truth_scale))
-    _check_overlap(estimates, truth, max_distance, flowers_path, truth_path)
-    watch = Stopwatch()
-    score = score_plant(estimates, truth, max_distance)
-    config = {"truth_format": truth_format, "truth_scale": truth_scale,
-              "max_distance_m": max_distance}
-    seconds = round(watch.elapsed(), 6)
-    return build_report(config, [plant_entry(flowers_path.parent.name or "plant", score)],
-                        {"score": seconds, "total": seconds})
+    return estimates, truth
 
 
 def _check_overlap(estimates: Sequence[Estimate], truth: Sequence[TruthFlower],

@@ -42,6 +42,7 @@ from flowerpose.eval.rgbd_source import capture_rgbd_clouds
 from flowerpose.eval.runner import run_jobs
 from flowerpose.eval.scan_source import capture_scan_clouds
 from flowerpose.eval.truth import as_labelled, read_plant_truth
+from flowerpose.log import noted
 from flowerpose.perturb import Perturbation, draw_cuts, perturb
 from flowerpose.pipeline.detect import ONNX_PREFIX
 from flowerpose.pipeline.flowers import (
@@ -256,8 +257,9 @@ class SyntheticJob:
             return self._score_perturbed(config, pipeline, folder, cache, perturbed)
 
         def detect() -> dict:
-            result = find_flowers(read_cloud(self.cloud), pipeline)
-            write_flowers(folder / "flowers.json", result, self.cloud)
+            with noted() as notes:
+                result = find_flowers(read_cloud(self.cloud), pipeline)
+            write_flowers(folder / "flowers.json", result, self.cloud, notes=notes)
             write_normals_ply(folder, result.flowers)
             return {"timing_s": result.timing_s}
 
@@ -385,8 +387,11 @@ PlantJob = SyntheticJob | RealJob
 def score_job(job: PlantJob, config: EvalConfig, folder: Path,
               cache: Path | None = None) -> tuple[dict, dict[str, float]]:
     """`job.score` as a worker calls it (a module-level function, so a process pool takes
-    it): the plant entry and stage timings."""
-    return job.score(config, folder, cache)
+    it): the plant entry, with the warnings said on the way (its "notes": what the run
+    assumed of the plant's files), and stage timings."""
+    with noted() as notes:
+        entry, timing = job.score(config, folder, cache)
+    return {**entry, "notes": notes}, timing
 
 
 def camera_path(plant_dir: Path, source: str) -> np.ndarray | None:

@@ -103,6 +103,14 @@ def _scale(value: Any, where: str | Path) -> float:
     return float(value)
 
 
+def source_truth_scale(folder: Path) -> float | None:
+    """The truth scale a real plant folder's source.json gives (labels' units per metre,
+    checked), or None where it gives none."""
+    source = _source(folder)
+    return _scale(source["truth_scale"], folder / "source.json") \
+        if "truth_scale" in source else None
+
+
 def folder_clouds(folder: Path) -> tuple[Start, tuple[Path, ...]]:
     """Where a real plant folder's points are, and the stage they start at: cloud.ply, else
     candidates/*.ply, else crops/*.ply (sorted); InputError naming the folder for none."""

@@ -276,6 +276,15 @@ def summary_lines(report: dict) -> list[str]:
     return lines
 
 
+def note_lines(report: dict) -> list[str]:
+    """The warnings the run said of its inputs (the run's own "notes", then each plant's,
+    named): what it assumed where an input was odd but usable."""
+    lines = list(report.get("notes", []))
+    for plant in report["plants"]:
+        lines += [f"{plant['plant']}: {note}" for note in plant.get("notes", [])]
+    return lines
+
+
 def _share(stats: dict, key: str) -> str:
     """A share of a fit's errors as a count of its flowers."""
     return f"{round(stats[key] * stats['n'])} of {stats['n']}"
@@ -341,6 +350,9 @@ def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
           "", "## Errors with 95 % intervals", "", interval_table(report), "", INTERVAL_LEGEND]
     if report.get("compare"):
         md += ["", "## Compared on the same plants", "", comparison_table(report)]
+    notes = note_lines(report)
+    if notes:
+        md += ["", "## What the run assumed", "", *[f"- {line}" for line in notes]]
     md += ["", "## Timing (seconds)", "", markdown_table(
         ["stage", "seconds"], [[k, f"{v:.3f}"] for k, v in report["timing_s"].items()])]
     md += ["", "## Configuration", "", "```json", json.dumps(report["config"], indent=1), "```", ""]

@@ -45,6 +45,7 @@ from pathlib import Path
 from flowerpose.atomic import write_file
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json, write_json
+from flowerpose.log import LOG, noted
 
 #: The packages whose source makes the code version.
 _PACKAGES = ("flowerpose", "flowerpose.pipeline", "flowerpose.eval", "flowerpose.sim",
@@ -257,9 +258,10 @@ class StageCache:
         """(result, whether it came from the cache, key) of a stage that writes `outputs`
         (files or folders, relative to `folder`; those it wrote are kept) and returns a
         JSON-able result: from the entry for its key, its files copied back into folder, or
-        computed and stored. `parents`: the keys of the earlier stages it reads the output
-        of; `code`: the modules the stage runs, when not the whole of flowerpose
-        (`stage_key`)."""
+        computed and stored; the warnings the stage said (what it assumed) are stored
+        with it and said again when it comes from the cache. `parents`: the keys of the
+        earlier stages it reads the output of; `code`: the modules the stage runs, when
+        not the whole of flowerpose (`stage_key`)."""
         key = stage_key(stage, settings, inputs, parents, code)
         entry = self.entry(stage, key)
         if entry is not None:
@@ -267,10 +269,13 @@ class StageCache:
                 about = self.about(entry)
                 self.restore(entry, {name: folder / name for name in about["files"]})
                 os.utime(entry / "entry.json")  # a use: pruned last
+                for note in about.get("notes", []):  # what the stage assumed, said again
+                    LOG.warning(note)
                 return about["result"], True, key
             except FileNotFoundError:
                 pass  # pruned by another process meanwhile: computed again below
-        result = compute()
+        with noted() as notes:
+            result = compute()
         files = {}
         for name in outputs:
             path = folder / name
@@ -278,7 +283,7 @@ class StageCache:
                 [path] if path.is_file() else [])
             files.update({p.relative_to(folder).as_posix(): p for p in found})
         self.store(stage, key, files, {"result": result, "settings": settings,
-                                       "files": sorted(files)})
+                                       "files": sorted(files), "notes": notes})
         return result, False, key
 
     def entries(self) -> list[Entry]:
@@ -331,8 +336,6 @@ class StageCache:
 def prune_to_limit(root: Path) -> list[Entry]:
     """After a run that filled the cache at `root`: its least recently used entries
     removed until the rest fit `max_cache_bytes()`, said in a line when any were."""
-    from flowerpose.log import LOG
-
     removed = StageCache(root).prune(max_cache_bytes())
     if removed:
         LOG.info(f"cache: removed {len(removed)} least recently used entries "

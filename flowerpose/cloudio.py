@@ -81,6 +81,11 @@ def read_cloud_and_unit(path: str | Path, units: Units = "auto", allow_empty: bo
     if header is not None and header.vertices and header.colour_prefix:
         cloud = _read_renamed_colours(path, header)
     else:
+        if header is None and _pcd_coordinate_bytes(path) == 8:
+            # Open3D reads a PCD's 64-bit coordinates as zeros, without a word.
+            raise InputError(path, "its coordinates are 64-bit, which the PCD reader "
+                             "(Open3D) reads as zeros; save the cloud as PLY (doubles keep "
+                             "their precision there) or with 32-bit coordinates near the origin")
         cloud = None if header is not None and header.vertices == 0 else _read_o3d(path)
     if header is not None and header.ascii_rows is not None:
         held, declared = header.ascii_rows
@@ -106,7 +111,9 @@ def read_cloud_and_unit(path: str | Path, units: Units = "auto", allow_empty: bo
         colors = colors / 257.0  # 16-bit to 8-bit: 65535 is 255
     colors = np.clip(colors + 0.5, 0, 255).astype(np.uint8)
     scale = metres_per_unit(points, units, path)
-    if header is not None and header.coordinate_type in ("float", "float32"):
+    single = (header.coordinate_type in ("float", "float32") if header is not None
+              else _pcd_coordinate_bytes(path) == 4)
+    if single:
         _check_precision(points, scale, path)
     return Cloud(points * scale if scale != 1.0 else points, colors), scale
 
@@ -150,6 +157,29 @@ def to_metres(points: np.ndarray, units: Units, source: str | Path) -> np.ndarra
 #: Coarsest step 32-bit coordinates may come in where the cloud reaches, metres: a flower's
 #: corolla is 20-30 mm across, and the detect stage's grid pixel is 1 mm.
 FLOAT32_STEP_LIMIT_M = 0.001
+
+
+def _pcd_coordinate_bytes(path: Path) -> int | None:
+    """Bytes of a PCD file's x coordinate (its header's SIZE for FIELDS x: 4 for float32,
+    8 for doubles); None where the header does not say."""
+    fields: list[str] = []
+    sizes: list[str] = []
+    try:
+        with open(path, "rb") as handle:
+            for _ in range(64):  # the header: a few lines, up to DATA
+                words = handle.readline().decode("ascii", "replace").split()
+                if not words or words[0] == "DATA":
+                    break
+                if words[0] == "FIELDS":
+                    fields = words[1:]
+                elif words[0] == "SIZE":
+                    sizes = words[1:]
+    except OSError:
+        return None
+    if "x" not in fields or len(sizes) != len(fields):
+        return None
+    size = sizes[fields.index("x")]
+    return int(size) if size.isdigit() else None
 
 
 def _check_precision(points: np.ndarray, metres_per_unit: float, path: Path) -> None:

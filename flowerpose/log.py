@@ -111,6 +111,31 @@ def third_party() -> Iterator[None]:
             root.removeHandler(_LIBRARY_HANDLER)
 
 
+class _Notes(logging.Handler):
+    """The warnings said while it is attached, as their lines."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.getMessage() not in self.lines:
+            self.lines.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def noted() -> Iterator[list[str]]:
+    """The warnings this process says meanwhile (whatever the verbosity shows), each once,
+    in order: what a run assumed about its inputs, for its report to state beside its
+    numbers (flowers.json's and report.json's "notes")."""
+    notes = _Notes()
+    LOG.addHandler(notes)
+    try:
+        yield notes.lines
+    finally:
+        LOG.removeHandler(notes)
+
+
 def open3d():
     """The open3d module, its own log kept to errors (which it raises as exceptions too),
     its warnings only with -v: where one matters (a file that cannot be read) the reader

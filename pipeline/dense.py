@@ -53,13 +53,18 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.log import LOG
+from flowerpose.memory import require_fits
 from flowerpose.pipeline.dense_config import DenseConfig
 from flowerpose.pipeline.dense_fusion import fuse_and_filter
 from flowerpose.pipeline.dense_pairs import depth_ranges, narrow_to_points, select_pairs
-from flowerpose.pipeline.dense_stereo import View, stereo_all
+from flowerpose.pipeline.dense_stereo import View, pair_bytes, stereo_all
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, is_rotation, read_frames
 from flowerpose.scanio import Intrinsics, read_intrinsics
 from flowerpose.stopwatch import Stopwatch
+
+#: Bytes a view's pixel holds through dense reconstruction: its grey and RGB images, its
+#: depth map and confidence, and its fused points' coordinates.
+VIEW_BYTES_PER_PIXEL = 1 + 3 + 4 + 4 + 12
 
 __all__ = ["DenseConfig", "reconstruct_dense", "select_pairs"]
 
@@ -159,6 +164,11 @@ def reconstruct_dense(frames_dir: str | Path, poses: Poses | None = None,
             max(16, round(intrinsics.height * config.image_scale)))
     k = _opencv_matrix(intrinsics.scaled(*size))
     threads = config.threads or os.cpu_count() or 1
+    pair_total, pair_array = pair_bytes(size, config)
+    require_fits(len(posed) * size[0] * size[1] * VIEW_BYTES_PER_PIXEL + threads * pair_total,
+                 "dense.image_scale (or dense.max_disparities, dense.sgbm_mode, dense.threads)",
+                 f"dense stereo of {len(posed)} frames at {size[0]}x{size[1]}",
+                 opencv_array=pair_array)
 
     with ThreadPoolExecutor(threads) as pool:
         loaded = list(pool.map(

@@ -129,6 +129,26 @@ def _matcher(config: DenseConfig, num_disparities: int):
         speckleRange=config.speckle_range, mode=SGBM_MODES[config.sgbm_mode])
 
 
+#: Widest rectified canvas of a pair, in image widths: a pair that needs more is skipped
+#: as degenerate (`_stereo_pair`).
+MAX_CANVAS_WIDTHS = 4
+
+
+def pair_bytes(size: tuple[int, int], config: DenseConfig) -> tuple[int, int]:
+    """(bytes one pair's matching may hold at most, its largest single OpenCV array) for
+    images of `size` (width, height) pixels: the rectified images and disparity maps of a
+    canvas up to `MAX_CANVAS_WIDTHS` wide, and SGM's cost buffers: the whole cost volume
+    (int16, twice) in the "hh" modes, a few rows of it in the others."""
+    width, height = size
+    canvas = MAX_CANVAS_WIDTHS * width * height
+    disparities = config.max_disparities
+    if config.sgbm_mode.startswith("hh"):
+        volume = 2 * canvas * disparities
+        return 2 * volume + 16 * canvas, volume
+    rows = 2 * MAX_CANVAS_WIDTHS * width * disparities * 16
+    return rows + 16 * canvas, max(rows, 2 * canvas)
+
+
 def _stereo_pair(view_i: View, view_j: View, k: np.ndarray, config: DenseConfig
                  ) -> tuple[np.ndarray, np.ndarray, float] | str:
     """Depth maps (on the two original image grids, NaN where unknown) of one pair, with the
@@ -155,7 +175,7 @@ def _stereo_pair(view_i: View, view_j: View, k: np.ndarray, config: DenseConfig
     out_w = int(np.ceil(max(cx_i + umax_i, cx_j + umax_j + num))) + 1
     cy = -rows[0]
     out_size = (out_w, int(np.ceil(rows[1] - rows[0])) + 1)
-    if out_w > 4 * width:
+    if out_w > MAX_CANVAS_WIDTHS * width:
         return "degenerate"
     left = cv2.remap(view_i.grey, *_rectify_maps(k, rect_i, focal, cx_i, cy, out_size),
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -320,18 +320,20 @@ Frame = Literal["bed", "cloud"]
 
 
 def write_flowers(path: Path, result: FlowerResult, source: str | Path | None = None,
-                  frame: Frame = "bed") -> Path:
+                  frame: Frame = "bed", notes: Sequence[str] = ()) -> Path:
     """Write `flowers.json` (DESIGN.md's format): the flowers, with the unit (metres), the
     frame their centres and normals are in ("bed": the bed frame, z up; "cloud": the
-    input cloud's own, e.g. a Polycam scan's) and the cloud they came from."""
-    return write_json(path, flowers_document(result.to_json(), source, frame))
+    input cloud's own, e.g. a Polycam scan's), the cloud they came from and the warnings
+    said while reading and detecting (`notes`: what the run assumed of the cloud)."""
+    return write_json(path, flowers_document(result.to_json(), source, frame, notes))
 
 
-def flowers_document(body: dict, source: str | Path | None, frame: Frame) -> dict:
+def flowers_document(body: dict, source: str | Path | None, frame: Frame,
+                     notes: Sequence[str] = ()) -> dict:
     """flowers.json's content: `body` ({"flowers": [...], "timing_s": {...}}) under the
-    unit, frame and source that every flowers.json states."""
+    unit, frame, source and notes that every flowers.json states."""
     return {"units": "m", "frame": frame, "source": None if source is None else str(source),
-            **body}
+            "notes": list(notes), **body}
 
 
 #: Colour of the estimated normals in the PLY exports (MeshLab and CloudCompare show it).
@@ -384,6 +386,14 @@ def _rotation_from_z(direction: np.ndarray) -> np.ndarray:
     k = axis / sine
     cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + sine * cross + (1 - cosine) * cross @ cross
+
+
+def read_flower_notes(path: Path) -> list[str]:
+    """What the detection that wrote a `flowers.json` assumed of its cloud (its "notes";
+    none in a file written before they were recorded, or by another tool)."""
+    document = read_json(path)
+    notes = document.get("notes", []) if isinstance(document, dict) else []
+    return [str(note) for note in notes] if isinstance(notes, list) else []
 
 
 def read_flowers(path: Path) -> list[dict]:

@@ -36,6 +36,11 @@ __all__ = ["CameraConfig", "Intrinsics", "intrinsics_from_config", "intrinsics_f
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
+#: Widest or tallest image rendered, pixels: the framebuffer size every OpenGL driver we
+#: render with takes (Mesa's GL_MAX_RENDERBUFFER_SIZE is 16384).
+MAX_RENDER_SIDE = 16384
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """The scan camera: Arducam 8MP IMX219 USB autofocus module recording 1280x720 video."""

@@ -40,9 +40,16 @@ import numpy as np  # noqa: E402
 import OpenGL.error  # noqa: E402
 import pyrender  # noqa: E402
 
+from flowerpose.errors import InputError  # noqa: E402
 from flowerpose.log import open3d  # noqa: E402
+from flowerpose.memory import require_fits  # noqa: E402
 from flowerpose.sim import plant_colours as colours  # noqa: E402
-from flowerpose.sim.camera import CameraConfig, Intrinsics, opencv_to_opengl  # noqa: E402
+from flowerpose.sim.camera import (  # noqa: E402
+    MAX_RENDER_SIDE,
+    CameraConfig,
+    Intrinsics,
+    opencv_to_opengl,
+)
 from flowerpose.sim.pieces import Part  # noqa: E402
 from flowerpose.sim.plant import Plant  # noqa: E402
 from flowerpose.sim.raycast import make_scene  # noqa: E402
@@ -93,8 +100,21 @@ class RenderOutput:
 _shared: pyrender.OffscreenRenderer | None = None
 
 
+#: Bytes a rendered pixel takes while a frame is made: the framebuffer's colour, depth and
+#: segmentation passes, the RGB, depth and instance images, and the sensor model's float
+#: copies of the image.
+RENDER_BYTES_PER_PIXEL = 4 + 4 + 4 + 3 + 4 + 4 + 3 * 12
+
+
 def _offscreen(width: int, height: int) -> pyrender.OffscreenRenderer:
-    """The process's one OffscreenRenderer, sized width x height."""
+    """The process's one OffscreenRenderer, sized width x height (checked first: a size
+    OpenGL or this machine cannot take is one line naming the camera's settings)."""
+    setting = "scan.camera.width and scan.camera.height"
+    if max(width, height) > MAX_RENDER_SIDE:
+        raise InputError(setting, f"a {width}x{height} image is larger than OpenGL renders "
+                         f"({MAX_RENDER_SIDE} pixels a side); use a smaller camera image")
+    require_fits(width * height * RENDER_BYTES_PER_PIXEL, setting,
+                 f"rendering a {width}x{height} image", opencv_array=width * height * 12)
     global _shared
     if _shared is None:
         _shared = pyrender.OffscreenRenderer(width, height)

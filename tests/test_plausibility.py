@@ -154,3 +154,99 @@ def test_an_output_folder_that_takes_no_file_is_refused_before_any_work(tmp_path
     monkeypatch.setattr(outputs, "temporary_beside", refuse)
     assert main(["detect", str(cloud), "--out", str(tmp_path / "out")]) == 2
     _one_line(capsys, str(tmp_path / "out"), "cannot write into", "Permission denied")
+
+
+@pytest.mark.parametrize("command", [
+    ["bench", "--points", "1000"], ["plant", "--seed", "1"], ["scan", "--sim", "--plant", "p"],
+    ["field", "--sim", "--bed", "bed.toml"], ["frames", "scan"], ["reconstruct", "frames"],
+    ["dataset", "--plants", "2"], ["sweep", "--grid", "grid.pixel_size_m=0.001,0.002"],
+    ["stress"], ["eval"], ["guard"]])
+def test_every_command_tries_its_output_folder_before_any_work(tmp_path, capsys, monkeypatch,
+                                                                command):
+    from flowerpose import outputs
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(outputs, "temporary_beside", refuse)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+    assert main([*command, "--out", str(out)]) == 2
+    _one_line(capsys, str(out), "cannot write into", "Permission denied")
+    assert not out.exists()
+
+
+def test_what_a_run_assumed_is_stated_in_its_reports(tmp_path, capsys):
+    """A warned assumption reaches the files: the cloud's unit in flowers.json's notes, the
+    labels left out in the score's report.json and report.md beside the detection's."""
+    millimetres = _ply(tmp_path / "mm.ply", POINTS * 1000.0, COLOURS, "double")
+    assert main(["detect", "-q", str(millimetres), "--out", str(tmp_path / "detect")]) == 0
+    notes = json.loads((tmp_path / "detect" / "flowers.json").read_text())["notes"]
+    assert any("millimetres" in note for note in notes), notes
+
+    flowers = tmp_path / "flowers.json"
+    flowers.write_text(json.dumps({"units": "m", "notes": ["detect: an assumption"],
+                                   "flowers": [{"id": 0, "center": [0.0, 0.0, 0.3],
+                                                "normals": {"plane": [0, 0, 1]}}]}))
+    labels = _sagemaker(tmp_path / "labels.json", [
+        _cuboid("Flower:1", "Flower"), _cuboid("Bud:1", "Bud", x=3.0)])
+    out = tmp_path / "score"
+    assert main(["score", "-q", str(flowers), str(labels), "--truth-format", "sagemaker",
+                 "--out", str(out)]) == 0
+    plant = json.loads((out / "report.json").read_text())["plants"][0]
+    assert plant["notes"][0] == "detect: an assumption"
+    assert "left out 1 labelled Bud" in plant["notes"][1]
+    markdown = (out / "report.md").read_text()
+    assert "## What the run assumed" in markdown and "left out 1 labelled Bud" in markdown
+
+
+def test_a_stage_from_the_cache_says_what_it_assumed_again(tmp_path, caplog):
+    from flowerpose.cache import StageCache
+    from flowerpose.log import LOG, noted
+
+    def compute() -> dict:
+        LOG.warning("note: assumed metres")
+        return {"value": 1}
+
+    cache = StageCache(tmp_path / "cache")
+    for fresh in (True, False):
+        with noted() as notes:
+            result, cached, _ = cache.run("stage", {}, [], tmp_path, (), compute)
+        assert result == {"value": 1} and cached is not fresh
+        assert notes == ["note: assumed metres"]
+
+
+def _pcd(path: Path, points: np.ndarray, colours: np.ndarray, size: int) -> Path:
+    """A binary PCD with coordinates of `size` bytes (4: float32, as Open3D and PCL write
+    them; 8: doubles) and packed RGB."""
+    kind = f"<f{size}"
+    rows = np.zeros(len(points), [("x", kind), ("y", kind), ("z", kind), ("rgb", "<u4")])
+    rows["x"], rows["y"], rows["z"] = points.T
+    rows["rgb"] = (colours[:, 0].astype(np.uint32) << 16 | colours[:, 1].astype(np.uint32) << 8
+                   | colours[:, 2].astype(np.uint32))
+    path.write_bytes(
+        b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE %d %d %d 4\nTYPE F F F U\n"
+        b"COUNT 1 1 1 1\nWIDTH %d\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS %d\n"
+        b"DATA binary\n" % (size, size, size, len(points), len(points)) + rows.tobytes())
+    return path
+
+
+def test_32_bit_pcd_coordinates_far_from_the_origin_are_refused(tmp_path, capsys):
+    far = POINTS + [500_000.0, 4_000_000.0, 0.0]
+    singles = _pcd(tmp_path / "singles.pcd", far, COLOURS, 4)
+    assert main(["detect", str(singles), "--out", str(tmp_path / "out"), "--units", "m"]) == 2
+    _one_line(capsys, str(singles), "32-bit", "steps of 250 mm", "doubles")
+    assert not (tmp_path / "out").exists()
+    near = read_cloud(_pcd(tmp_path / "near.pcd", POINTS, COLOURS, 4))
+    assert np.allclose(near.points, POINTS, atol=1e-7) and np.array_equal(near.colors, COLOURS)
+    # Open3D reads 64-bit PCD coordinates as zeros: refused, not read as one point
+    doubles = _pcd(tmp_path / "doubles.pcd", far, COLOURS, 8)
+    with pytest.raises(InputError, match="64-bit.*reads as zeros.*PLY"):
+        read_cloud(doubles, units="m")
+
+
+def test_a_camera_image_opengl_cannot_render_is_refused_before_any_work(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["eval", "--set", "scan.camera.width=20000", "--out", str(out)]) == 2
+    _one_line(capsys, "scan.camera.width", "at most 16384 pixels")
+    assert not out.exists()

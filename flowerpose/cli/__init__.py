@@ -10,6 +10,7 @@ import argparse
 import os
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from flowerpose.cli import data, field, jobs, stages, study
@@ -146,6 +147,11 @@ def main(argv: list[str] | None = None) -> int:
     configure_log(args.verbose - args.quiet)
     terminate_cleanly()
     try:
+        out = getattr(args, "out", None)
+        if isinstance(out, Path):  # every command's output folder, tried before any work
+            from flowerpose.outputs import check_folder_writable
+
+            check_folder_writable(out)
         with third_party():  # other libraries' warnings: debug lines (-v), not the user's
             return args.func(args)
     except InputError as err:

@@ -193,6 +193,7 @@ def add_dataset(sub: argparse._SubParsersAction) -> None:
 def cmd_detect(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud, require_hue, write_cloud
     from flowerpose.jsonio import write_json
+    from flowerpose.log import noted
     from flowerpose.outputs import OutputFolder, check_output
     from flowerpose.pipeline.flowers import (
         SECTIONS_FROM,
@@ -213,14 +214,16 @@ def cmd_detect(args: argparse.Namespace) -> int:
     writes = ("flowers.json", "flowers.ply", "normals.ply", "config.json", "views", "crops",
               "report.html")
     check_output(out, "detect", args.overwrite, writes)
-    cloud = read_cloud(args.cloud, units=args.units)
-    if not args.candidates:  # a detector's candidates may be white petals alone
-        require_hue(cloud, args.cloud)
-    result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud, config)
+    with noted() as notes:
+        cloud = read_cloud(args.cloud, units=args.units)
+        if not args.candidates:  # a detector's candidates may be white petals alone
+            require_hue(cloud, args.cloud)
+        result = (find_flowers_in_candidates if args.candidates else find_flowers)(cloud,
+                                                                                   config)
     # An earlier detection's files (crops of flowers this one may not have) go first.
     output = OutputFolder(out, "detect", args.overwrite, writes)
     output.record(write_flowers(out / "flowers.json", result, args.cloud,
-                                "cloud" if args.candidates else "bed"),
+                                "cloud" if args.candidates else "bed", notes),
                   *write_normals_ply(out, result.flowers),
                   write_json(out / "config.json", sections_run(
                       config, ["candidates" if args.candidates else "cloud"])))

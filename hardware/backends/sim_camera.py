@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.trajectory import SERVO_SPEED_RAD_S
+from flowerpose.sim.camera import MAX_RENDER_SIDE
 from flowerpose.sim.render_config import RenderConfig
 from flowerpose.sim.sensor import SensorConfig
 
@@ -52,6 +53,10 @@ class SimCameraConfig:
         if self.width < 16 or self.height < 16:
             raise InputError("width", "width and height must be at least 16 pixels, got "
                              f"{self.width} x {self.height}")
+        if max(self.width, self.height) > MAX_RENDER_SIDE:
+            raise InputError("width", f"width and height must be at most {MAX_RENDER_SIDE} "
+                             f"pixels (OpenGL renders no larger), got {self.width} x "
+                             f"{self.height}")
         if not (self.frame_rate_hz > 0 and math.isfinite(self.frame_rate_hz)):
             raise InputError("frame_rate_hz", f"must be positive, got {self.frame_rate_hz}")
         if self.workers is not None and self.workers < 1:

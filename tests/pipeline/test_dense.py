@@ -307,3 +307,16 @@ def test_bad_inputs(tmp_path):
     small = Intrinsics(160, 120, 150, 150, 80, 60)
     with pytest.raises(InputError, match="intrinsics are for 160x120"):
         reconstruct_dense(path, intrinsics=small, config=CONFIG)
+
+
+def test_stereo_sizes_are_checked_before_any_image_is_loaded(scene, monkeypatch):
+    from flowerpose import memory
+
+    # SGM's whole cost volume ("hh") at 4096 disparities: an array OpenCV cannot index
+    huge = DenseConfig(image_scale=1.0, sgbm_mode="hh", max_disparities=4096)
+    with pytest.raises(InputError, match=r"dense.image_scale.*more than OpenCV takes"):
+        reconstruct_dense(scene, config=huge)
+    # the default settings on a machine with 1 MB free: refused naming the settings
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1_000_000)
+    with pytest.raises(InputError, match=r"needs .* GB, more than this machine has free"):
+        reconstruct_dense(scene, config=CONFIG)
