@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup eval test test-fast lint bench docs results
+.PHONY: setup eval test test-fast lint bench docs results gallery
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
@@ -36,8 +36,13 @@ lint: setup
 bench: setup
 	$(BIN)/flowerpose bench
 
+# The results page from fresh runs of the current commit (a clean tree), then the gallery.
 results: setup
 	bash scripts/results.sh
+
+# The gallery's pictures and the sample outputs (docs/gallery.md, docs/what-you-get.md).
+gallery: setup
+	bash scripts/gallery.sh
 
 docs: setup
 	$(BIN)/python scripts/cli_reference.py

@@ -7,12 +7,11 @@ import json
 import math
 import shlex
 import sys
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tabulate import SEPARATING_LINE, tabulate
+from tabulate import tabulate
 
 from flowerpose.atomic import write_text
 from flowerpose.eval.stats import (
@@ -158,25 +157,18 @@ def _deg(value: float | None) -> str:
         else f"{value:.1f}°"
 
 
-def markdown_table(header: list[str], rows: list[list[str]],
-                   rules_before: Iterable[int] = ()) -> str:
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     """A Markdown table (GitHub's), columns padded, the cells as given (no number
-    parsing); a rule before each row index in `rules_before` (the paper's Table I separates
-    its totals)."""
-    rules = set(rules_before)
-    body: list = []
-    for k, row in enumerate(rows):
-        if k in rules:
-            body.append(SEPARATING_LINE)
-        body.append(row)
-    return tabulate(body, headers=header, tablefmt="github", disable_numparse=True)
+    parsing). Markdown has no rule inside a table's body (one would show as a row of
+    dashes), so rows that follow a rule elsewhere (Table I's totals) name themselves."""
+    return tabulate(rows, headers=header, tablefmt="github", disable_numparse=True)
 
 
 def table(report: dict) -> str:
-    """The paper's Table I for a report (Markdown): per plant, then total, mean, median,
-    std."""
-    header, rows, rule = table_rows(report)
-    return markdown_table(header, rows, rules_before=[rule])
+    """The paper's Table I for a report (Markdown): per plant, then all plants' total,
+    mean, median and std."""
+    header, rows, _ = table_rows(report)
+    return markdown_table(header, rows)
 
 
 def table_rows(report: dict) -> tuple[list[str], list[list[str]], int]:
@@ -325,8 +317,8 @@ TABLE_LEGEND = (
     "flower counts as visible). Found: flowers a detection lies within the match distance "
     "of (percent of GT). Extra: how many of those are hidden or carry no label: matched, "
     "not scored, not false. FP: detections near no flower. Angles: per plant, the mean "
-    "error of each fit's normal over its visible found flowers; the rows below the rule "
-    "take all plants' flowers together.")
+    "error of each fit's normal over its visible found flowers; the rows total, mean, "
+    "median and std dev take all plants' flowers together.")
 
 
 #: What the interval table's columns mean, under it in report.md.

@@ -334,7 +334,7 @@ def stress_table(report: dict) -> str:
               f"most over {GROSS_DEG:g}° in a repeat", "points a flower"]
     rows = [_cells(report["baseline"], report["baseline"])]
     rows += [_cells(row, report["baseline"]) for row in report["rows"]]
-    return markdown_table(header, rows, [1])
+    return markdown_table(header, rows)
 
 
 def compare_tables(report: dict) -> list[tuple[str, str]]:
@@ -360,7 +360,7 @@ def compare_tables(report: dict) -> list[tuple[str, str]]:
                          f"{row['flipped']} / {other['flipped']}",
                          "; ".join(v for v in paired["verdicts"]
                                    if v.startswith(("plane", "found", "false")))])
-        tables.append((name, markdown_table(header, rows, [1])))
+        tables.append((name, markdown_table(header, rows)))
     return tables
 
 

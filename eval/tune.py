@@ -473,7 +473,7 @@ def tune_markdown(report: dict) -> str:
              "Training: " + "; ".join(s["label"] for s in report["train"]) + ". Validation: "
              + ("; ".join(s["label"] for s in report["validate"]) if report["validate"]
                 else "**none: nothing was validated**, the choice is by training alone") + ".",
-             "", markdown_table(header, rows, [len(rows) - 1]), "", f"Rule: {CHOICE_RULE}."]
+             "", markdown_table(header, rows), "", f"Rule: {CHOICE_RULE}."]
     against = report.get("chosen_vs_defaults")
     if against is not None:
         lines += ["", "The chosen trial against the defaults on the validation plants, flower "

@@ -1,15 +1,22 @@
 #!/usr/bin/env bash
 # The runs behind docs/results.md and the README's results table, then the page itself
-# (`make results`). Each run writes under runs/ (ignored by git); the page cites each run's
-# command, code, date and machine. About 40 minutes on 2 cores.
+# and the gallery (`make results`). Each run writes under runs/ (ignored by git); the page
+# cites each run's command, code, date and machine. About 70 minutes on 2 cores. Runs only
+# from a clean tree: every number on the page is then the commit's it names.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [[ -n $(git status --porcelain --untracked-files=no) ]]; then
+    echo "make results: the tree has uncommitted changes; commit them first, so every run" \
+        "names the code it ran" >&2
+    exit 2
+fi
 flowerpose=.venv/bin/flowerpose
 real=${FLOWERPOSE_SHARED:-../shared}/real/paper-plant-3
 if [[ ! -d $real ]]; then
     real=runs/paper-plant-3
     [[ -d $real ]] || $flowerpose data fetch paper-plant-3 --to "$real"
 fi
+$flowerpose eval --suite scan-3 --out runs/scan-3 -q
 $flowerpose eval --suite oracle-10 --out runs/oracle-10 -q
 $flowerpose eval --suite field-10 --out runs/field-10 -q
 $flowerpose eval --source real "$real" --compare upstream --out runs/real3 -q
@@ -25,7 +32,7 @@ $flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
     --set 'pollination.curve_angles_deg=[0, 15, 30, 45, 55, 65, 75]' --out runs/pollinate-10 -q
 $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --seed 0 \
     --out runs/pollinate-field-10 -q
-$flowerpose results runs/oracle-10/report.json runs/field-10/report.json \
+$flowerpose results runs/scan-3/report.json runs/oracle-10/report.json runs/field-10/report.json \
     runs/real3/report.json runs/pollinate-10/report.json runs/pollinate-field-10/report.json \
     runs/stress-real3/stress.json runs/fidelity/fidelity.json runs/bench/bench.json \
     --figure docs/accuracy.png > docs/results.md.partial
@@ -44,4 +51,5 @@ start = text.index("\n", start) + 1
 end = text.index("<!-- results:end -->")
 readme.write_text(text[:start] + table + "\n" + text[end:], encoding="utf-8")
 PY
+bash scripts/gallery.sh
 echo "docs/results.md, README.md"

@@ -49,3 +49,41 @@ def test_the_site_builds_strictly(tmp_path):
              for url in re.findall(r'<(?:link|script)[^>]+(?:href|src)="(https?://[^"]+)',
                                    page.read_text())]
     assert not loads, loads[:5]
+
+
+def test_the_citation_file_is_valid_citation_file_format():
+    """CITATION.cff against the Citation File Format 1.2.0 schema (tests/data), offline."""
+    import json
+
+    jsonschema = pytest.importorskip("jsonschema")
+    yaml = pytest.importorskip("yaml")
+    schema = json.loads((ROOT / "tests" / "data" / "cff-1.2.0.schema.json").read_text())
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text(encoding="utf-8"))
+    jsonschema.validate(citation, schema)
+    assert citation["date-released"] and citation["version"]
+    assert citation["preferred-citation"]["year"]
+
+
+def test_the_example_files_the_guides_use_are_read_as_the_commands_read_them():
+    from flowerpose.config import load_suite
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.tune_space import read_space
+
+    examples = ROOT / "examples"
+    keys = [p.key for p in read_space(examples / "tuning" / "space.toml", EvalConfig())]
+    assert "cluster.eps" in keys and "grid.pixel_size_m" in keys
+    for suite in ("hard-train.toml", "field-validate.toml"):
+        assert load_suite(str(examples / "tuning" / suite))["eval"]["source"] == "oracle"
+    guides = "".join(p.read_text() for p in (ROOT / "docs" / "guides").glob("*.md"))
+    for path in examples.rglob("*.toml"):  # every example a guide names
+        assert str(path.relative_to(ROOT)) in guides, path
+
+
+def test_the_command_line_reference_fits_the_page():
+    """Every line of the reference's help is at most the width it is laid out at (the
+    site's code blocks show that many characters): long examples are continued."""
+    from flowerpose.cli.reference import COLUMNS
+
+    wide = [line for line in markdown().splitlines()
+            if len(line) > COLUMNS and not line.startswith("Generated from")]
+    assert not wide, wide[:3]

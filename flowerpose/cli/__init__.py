@@ -64,12 +64,27 @@ class _HelpFormatter(argparse.HelpFormatter):
         for paragraph in text.split("\n\n"):
             lines = paragraph.splitlines()
             if any(line.startswith(" ") for line in lines):
-                paragraphs.append("\n".join(indent + line for line in lines))
+                paragraphs.append("\n".join(indent + wrapped for line in lines
+                                            for wrapped in _shell_lines(line, width)))
             else:
                 paragraphs.append(textwrap.fill(" ".join(paragraph.split()), width,
                                                 initial_indent=indent,
                                                 subsequent_indent=indent))
         return "\n\n".join(paragraphs)
+
+
+def _shell_lines(line: str, width: int) -> list[str]:
+    """An example command as lines of at most `width` characters (where its words allow),
+    continued with a backslash as a shell reads them; a line with a comment stays whole."""
+    if len(line) <= width or "#" in line:
+        return [line]
+    import textwrap
+
+    margin = line[:len(line) - len(line.lstrip())]
+    parts = textwrap.wrap(line.strip(), width - len(margin) - 2, break_long_words=False,
+                          break_on_hyphens=False, subsequent_indent="    ")
+    return [margin + part + (" \\" if k < len(parts) - 1 else "")
+            for k, part in enumerate(parts)]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -93,8 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
         "them against exact synthetic truth or hand labels. Each command is a stage of the "
         "method or a job made of them; `flowerpose COMMAND --help` says more.",
         epilog="examples:\n"
-        "  flowerpose eval --source oracle --plants 2    # the pipeline on 2 synthetic plants\n"
-        "  flowerpose eval                               # the full loop: about 10 minutes")
+        "  flowerpose eval --source oracle --plants 2  # the pipeline alone\n"
+        "  flowerpose eval                             # the full loop, 10 min")
     from flowerpose import __version__
 
     parser.add_argument("--version", action="version", version=f"flowerpose {__version__}")

@@ -340,7 +340,7 @@ def cmd_cache(args: argparse.Namespace) -> int:
                  ""])
     print(f"cache: {root} (entries kept within {max_cache_bytes() / 1e9:g} GB after an eval "
           "or sweep; FLOWERPOSE_CACHE_MAX_GB sets it)")
-    print(markdown_table(["stage", "entries", "size", "last used"], rows, [len(rows) - 1]))
+    print(markdown_table(["stage", "entries", "size", "last used"], rows))
     return 0
 
 

@@ -8,8 +8,9 @@ import argparse
 import os
 from contextlib import contextmanager
 
-#: The width help is laid out at, whatever the terminal that makes the page.
-COLUMNS = 100
+#: The width help is laid out at, whatever the terminal that makes the page: what the
+#: site's code blocks show without scrolling.
+COLUMNS = 74
 
 
 @contextmanager

@@ -332,9 +332,9 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
         "Writes tune.json, tune.md, tune.html (Optuna's figures) and best.toml (the chosen "
         "settings, for --config).",
         epilog="examples:\n"
-        "  flowerpose tune --space space.toml --trials 40 --out tune --plants 3\n"
-        "  flowerpose tune --space space.toml --trials 100 --train oracle-10 --train "
-        "field-10 --validate paper-plant-3 --workers 2 --out tune-field")
+        "  flowerpose tune --space examples/tuning/space.toml --trials 40 --out tune --plants 3\n"
+        "  flowerpose tune --space examples/tuning/space.toml --trials 100 --train oracle-10 "
+        "--train field-10 --validate paper-plant-3 --workers 2 --out tune-field")
     p.add_argument("--space", type=Path, required=True, metavar="SPACE.toml",
                    help="the settings to search: \"KEY\" = { low = L, high = H [, log = true]"
                    " [, int = true] } or { choices = [...] }, one line per dotted key")
