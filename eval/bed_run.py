@@ -143,17 +143,19 @@ def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: floa
 
 def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool = False,
                 say: Callable[[str], None] = print,
-                serial_time_scale: float | None = None) -> dict:
+                serial_time_scale: float | None = None, pollinate: bool = False) -> dict:
     """The bed's field run in the simulator, resumable (the module's docstring). Returns
     report.json's content. InputError where the bed cannot be scanned (naming the plant) or
     the folder holds another run; a plant whose scan or reconstruction fails is marked
     failed with its error and, with `keep_going`, the bed goes on without it.
     serial_time_scale: None films with the simulated bot directly; K through the physical
-    bot's serial backend on a virtual Farmduino running at K times real time."""
+    bot's serial backend on a virtual Farmduino running at K times real time.
+    pollinate: then each detected plant's visits are planned from its flowers, flown and
+    scored against its truth (`eval --task pollinate`'s step), into its entry."""
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file; --out is the bed's folder")
     with folder_lock(out, LOCK, "field run"):
-        return _run(bed, config, seed, out, keep_going, say, serial_time_scale)
+        return _run(bed, config, seed, out, keep_going, say, serial_time_scale, pollinate)
 
 
 def _bot(folders: list[Path], config: EvalConfig, serial_time_scale: float | None):
@@ -169,7 +171,7 @@ def _bot(folders: list[Path], config: EvalConfig, serial_time_scale: float | Non
 
 
 def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
-         say: Callable[[str], None], serial_time_scale: float | None) -> dict:
+         say: Callable[[str], None], serial_time_scale: float | None, pollinate: bool) -> dict:
     from flowerpose.eval.scan_source import write_scan_truth
     from flowerpose.hardware.flights.scan_flight import run_scan
 
@@ -267,7 +269,31 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
     finally:
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
+    if pollinate:
+        _pollinate(out, record, config, say)
+        journal.save()
     return _report(out, record, sim_bed.bed, config)
+
+
+def _pollinate(out: Path, record: dict, config: EvalConfig, say: Callable[[str], None]) -> None:
+    """Each detected plant's visits planned from its flowers (its cut cloud as the
+    obstacles), flown on a simulated bot and scored against its truth, and the same from
+    its true poses (the planner's ceiling): into its entry, as `eval --task pollinate`
+    does; out/pollination.png draws the success against the pose error. Run again on a
+    resumed bed, it gives the same visits."""
+    from flowerpose.eval.pollination_task import pollinate_plants
+
+    names = [n for n in record["order"] if record["plants"][n]["stage"] == "detected"]
+    if not names:
+        return
+    watch = Stopwatch()
+    entries = [record["plants"][n]["entry"] for n in names]
+    pollinate_plants([_job(out / "plants" / n, n) for n in names], entries, config, out, None)
+    record["timing_s"]["pollinate"] = round(watch.elapsed(), 3)
+    for name, entry in zip(names, entries, strict=True):
+        done = entry["pollination"]
+        say(f"{name}: pollinated {done['successes']} of {len(done['flowers'])} flowers in "
+            f"{done['visits']} visits")
 
 
 def _add_times(record: dict, seconds: dict[str, float]) -> None:
@@ -317,7 +343,12 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
     row a plant, each plant's 3D view."""
     from flowerpose.atomic import write_text
     from flowerpose.eval.html_report import BedSection, BedSpot, write_html_report
-    from flowerpose.eval.report import build_report, markdown_table, write_report
+    from flowerpose.eval.report import (
+        build_report,
+        markdown_table,
+        pollination_lines,
+        write_report,
+    )
 
     spots: dict[str, BedPlant] = {p.name: p for p in bed.plants}
     entries = [record["plants"][n]["entry"] for n in record["order"]
@@ -326,11 +357,16 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
     report = build_report(to_dict(config), entries, record["timing_s"],
                           {"bed": {"order": record["order"], "plants": rows,
                                    "plan": record["plan"]}})
+    if entries and all("pollination" in e for e in entries):
+        from flowerpose.eval.pollination_task import pollination_summary
+
+        report["summary"].update(pollination_summary(entries))
     write_report(out, report, "flowerpose field --sim: the bed")
-    header = ["plant", "x m", "y m", "stage", "found (visible)", "FP", "points", "scan s",
-              "reconstruct s", "detect s"]
+    header = ["plant", "x m", "y m", "stage", "found (visible)", "FP", "pollinated", "points",
+              "scan s", "reconstruct s", "detect s"]
     table = markdown_table(header, [[r["plant"], f"{r['x']:.2f}", f"{r['y']:.2f}", r["stage"],
-                                     r["found"], _text(r["fp"]), _text(r["points"]),
+                                     r["found"], _text(r["fp"]), _text(r["pollinated"]),
+                                     _text(r["points"]),
                                      *(f"{r['seconds'].get(k, 0):.0f}" for k in
                                        ("scan", "reconstruct", "detect"))] for r in rows])
     times = record["timing_s"]
@@ -344,17 +380,19 @@ def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
               f"({100 * share:.1f} % of the bed's time after the first plant was filmed): "
               "each plant's frames are chosen, reconstructed and its flowers found in a "
               "worker while the next is filmed.")
-    write_text(out / "report.md", md + "\n".join(["", "## The bed", "", table, "", timing, ""]))
+    visits = [f"- {line}" for line in pollination_lines(report)]
+    write_text(out / "report.md", md + "\n".join(["", "## The bed", "", table, "", timing, "",
+                                                  *visits, ""]))
     views = [_job(out / "plants" / n, n).view(config, out) for n in record["order"]
              if record["plants"][n]["stage"] == "detected"]
     section = BedSection(
         [BedSpot(p.name, p.x, p.y, p.radius) for p in bed.plants],
         [*header, "error"],
         [[r["plant"], f"{r['x']:.2f}", f"{r['y']:.2f}", r["stage"], r["found"],
-          _text(r["fp"]), _text(r["points"]),
+          _text(r["fp"]), _text(r["pollinated"]), _text(r["points"]),
           *(f"{r['seconds'].get(k, 0):.0f}" for k in ("scan", "reconstruct", "detect")),
           r["error"] or ""] for r in rows],
-        [timing])
+        [timing, *pollination_lines(report)])
     write_html_report(out / "report.html", "flowerpose field --sim: the bed", report, views,
                       section)
     return report
@@ -376,7 +414,10 @@ def _text(value) -> str:
 def _bed_row(name: str, spot: BedPlant, entry: dict) -> dict:
     score = entry.get("entry")
     found = "-" if score is None else f"{score['found_visible']} of {score['visible']}"
+    done = None if score is None else score.get("pollination")
     return {"plant": name, "x": spot.x, "y": spot.y, "stage": entry["stage"],
             "error": entry.get("error"), "found": found,
             "fp": None if score is None else score["fp"], "points": entry.get("points"),
+            "pollinated": None if done is None else
+            f"{done['successes']} of {len(done['flowers'])}",
             "seconds": entry.get("seconds", {})}

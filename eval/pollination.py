@@ -231,9 +231,14 @@ def tally(outcomes: list[dict]) -> dict:
 
 
 def summarise_pollination(plants: list[dict]) -> dict:
-    """report.json's `summary.pollination` from the plants' sections."""
+    """report.json's `summary.pollination` from the plants' sections: visits, flowers,
+    successes, their rate with its Wilson interval, and the failures by cause."""
+    from flowerpose.eval.stats import wilson
+
     outcomes = [o for p in plants for o in p["flowers"]]
-    return {"visits": sum(p["visits"] for p in plants), **tally(outcomes)}
+    counted = tally(outcomes)
+    return {"visits": sum(p["visits"] for p in plants), "flowers": len(outcomes), **counted,
+            "success_rate_ci95": wilson(counted["successes"], len(outcomes))}
 
 
 def success_by_error(plants: list[dict], truth_errors: dict[tuple[str, int], float],

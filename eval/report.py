@@ -363,7 +363,9 @@ def pollination_lines(report: dict) -> list[str]:
             continue
         rate = part["success_rate"]
         failures = ", ".join(f"{cause} {n}" for cause, n in part["failures"].items() if n)
-        lines.append(f"pollination from {what}: {part['successes']} flowers "
-                     f"({'-' if rate is None else f'{100 * rate:.1f}%'}) in "
+        flowers = part.get("flowers", part["successes"] + sum(part["failures"].values()))
+        interval = interval_text(part.get("success_rate_ci95", {}), 2)
+        lines.append(f"pollination from {what}: {part['successes']} of {flowers} flowers "
+                     f"({'-' if rate is None else f'{rate:.3f} {interval}'.strip()}) in "
                      f"{part['visits']} visits; failures: {failures or 'none'}")
     return lines

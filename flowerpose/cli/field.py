@@ -483,6 +483,7 @@ def add_farmduino(sub: argparse._SubParsersAction) -> None:
 def cmd_field(args: argparse.Namespace) -> int:
     from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed, run_sim_bed
     from flowerpose.eval.config import eval_config
+    from flowerpose.eval.report import pollination_lines
     from flowerpose.hardware.flights.bed_plan import read_bed
 
     if not args.sim:
@@ -502,11 +503,13 @@ def cmd_field(args: argparse.Namespace) -> int:
     scale = args.time_scale if args.via_farmduino else None
     with jobs_on(args):
         report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going,
-                             serial_time_scale=scale)
+                             serial_time_scale=scale, pollinate=args.pollinate)
     summary = report["summary"]
     print(f"bed: {len(report['plants'])} of {len(bed.plants)} plants detected; "
           f"{summary['found_visible']} of {summary['visible']} visible flowers found, "
           f"{summary['fp']} false positives -> {args.out / 'report.md'}")
+    for line in pollination_lines(report):
+        print(line)
     return 0
 
 
@@ -526,6 +529,7 @@ def add_field(sub: argparse._SubParsersAction) -> None:
         epilog="examples:\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --dry-run\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120\n"
+        "  flowerpose field --sim --bed bed.toml --out bed4 --pollinate\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --ray")
     p.add_argument("--bed", type=Path, required=True, metavar="FILE",
                    help="the bed file: where each plant stands (an example: "
@@ -543,6 +547,10 @@ def add_field(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="print the bed's plan (order, waypoints, bot time), every scan checked "
                    "against the bot's reach and the neighbours, and stop")
+    p.add_argument("--pollinate", action="store_true",
+                   help="then plan each detected plant's visits from its flowers, fly them "
+                   "and (--sim) score each against the truth, with the visits from the true "
+                   "poses beside them (pollination.png)")
     p.add_argument("--via-farmduino", action="store_true",
                    help="with --sim: drive the simulated bot through the physical bot's serial "
                    "backend and a virtual Farmduino (its firmware's motion timing)")

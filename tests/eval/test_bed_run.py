@@ -165,6 +165,37 @@ def test_on_ray_the_bed_gives_the_pools_flowers(bed_run, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_with_pollinate_each_detected_plant_is_visited_and_scored(bed_run, tmp_path, capsys):
+    """The finished bed again with --pollinate: nothing is filmed again; each plant's visits
+    are planned from its flowers, flown and judged against its truth, beside the visits
+    from its true poses."""
+    import shutil
+
+    bed, done, _ = bed_run
+    out = shutil.copytree(done, tmp_path / "pollinated")
+    scans = {n: (out / "plants" / n / "scan" / "scan.json").read_text() for n in ("a", "b")}
+    assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), *SMALL,
+                 "--pollinate", "-q"]) == 0
+    said = capsys.readouterr().out
+    assert "pollination from estimated poses:" in said
+    report = json.loads((out / "report.json").read_text())
+    for entry in report["plants"]:
+        judged = entry["pollination"]["flowers"]
+        assert len(judged) == entry["gt"] and entry["pollination_ceiling"]["visits"] > 0
+        assert (out / "plants" / entry["plant"] / "flight.json").exists()
+    summary = report["summary"]["pollination"]
+    assert summary["flowers"] == sum(e["gt"] for e in report["plants"])
+    assert summary["successes"] == sum(e["pollination"]["successes"] for e in report["plants"])
+    assert summary["success_rate_ci95"]["low"] <= summary["success_rate"]
+    rows = {r["plant"]: r for r in report["bed"]["plants"]}
+    assert all(rows[n]["pollinated"].endswith(f"of {len(e['pollination']['flowers'])}")
+               for n, e in ((e["plant"], e) for e in report["plants"]))
+    assert (out / "pollination.png").exists() and "| pollinated" in (out / "report.md").read_text()
+    assert scans == {n: (out / "plants" / n / "scan" / "scan.json").read_text()
+                     for n in ("a", "b")}
+
+
+@pytest.mark.slow
 def test_a_dry_run_prints_the_beds_plan_in_row_order_and_writes_nothing(tmp_path, capsys):
     from importlib.resources import files
 

@@ -83,7 +83,8 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
                       tmp_path / "run", workers=1)
     summary = report["summary"]
     for key in ("pollination", "pollination_ceiling"):
-        assert set(summary[key]) == {"visits", "successes", "success_rate", "failures"}
+        assert set(summary[key]) == {"visits", "flowers", "successes", "success_rate",
+                                    "success_rate_ci95", "failures"}
     plant = report["plants"][0]
     assert len(plant["pollination"]["flowers"]) == plant["gt"]
     assert sum(r["flowers"] for r in report["pollination_by_error"]) > 0
