@@ -104,46 +104,100 @@ def plan_sim_bed(sim_bed: SimBed) -> BedPlan:
     return plan_bed(sim_bed.bed, surfaces=sim_bed.surfaces)
 
 
-def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: float) -> dict:
+def process_plant(folder: Path, name: str, config: EvalConfig, crop_radius: float,
+                  cache: Path | None = None) -> dict:
     """A filmed plant's frames chosen (folder/scan -> folder/frames), its reconstruction
     (folder/frames -> folder/reconstruction), its cloud
     cut to `crop_radius` metres round the plant's axis (plant_cloud.ply), measured against
     its mesh, then its flowers found and scored against the truth with the scan's
     visibility. Runs in a worker: returns the report's plant entry (with the warnings said
-    on the way, its "notes"), the reconstruction's
-    counts and quality, and seconds per step."""
-    from flowerpose.cloudio import write_cloud
-    from flowerpose.eval.quality import reconstruction_quality
-    from flowerpose.pipeline.frames import select_frames
-    from flowerpose.pipeline.reconstruct import reconstruct
-    from flowerpose.sim.export import read_plant
-
+    on the way, its "notes"), the reconstruction's counts and quality, and seconds per
+    step. cache: the stage cache's folder (None: none); the frame choice (keyed by the
+    recording), the reconstruction (by the frames) and the detection and score (by the cut
+    cloud) are taken from it where the same files, settings and code ran before, and put
+    into it; a step taken from it counts 0 seconds."""
     watch = Stopwatch()
     with noted() as notes:
+        registered, cached = _frames_and_cloud(folder, config, cache, watch)
+        points, quality = _cut_to_plant(folder, crop_radius)
+        watch.lap("crop")
+        entry, timing = _job(folder, name).score(config, folder, cache)
+        watch.lap("detect")
+    seconds = watch.report(digits=3, total=None)
+    seconds.update(dict.fromkeys(cached, 0.0))
+    return {"entry": {**entry, "notes": notes}, "points": points, "registered": registered,
+            "quality": quality, "seconds": seconds,
+            "pipeline_s": {k: round(v, 3) for k, v in timing.items()}}
+
+
+#: What the stage cache keeps of a bed plant's reconstruction: the cloud and its report.
+BED_RECONSTRUCTION_FILES = ("reconstruction/cloud.ply", "reconstruction/reconstruction.json")
+
+
+def _frames_and_cloud(folder: Path, config: EvalConfig, cache: Path | None,
+                      watch: Stopwatch) -> tuple[int, list[str]]:
+    """folder/frames chosen from folder/scan and reconstructed into folder/reconstruction,
+    each from the stage cache where it can be, `watch` lapped after each ("frames",
+    "reconstruct"); the images registered, and the steps taken from the cache."""
+    from flowerpose.cache import StageCache
+    from flowerpose.pipeline.frames import select_frames
+    from flowerpose.pipeline.reconstruct import reconstruct
+
+    def frames() -> dict:
         select_frames(folder / "scan", folder / "frames", config.scan.frames, progress=False,
                       overwrite=True)
-        watch.lap("frames")
+        return {}
+
+    def cloud() -> dict:
         built = reconstruct(folder / "frames", folder / "reconstruction",
                             config.scan.reconstruct, progress=False, overwrite=True)
+        return {"registered": built.report["images_registered"]}
+
+    if cache is None:
+        frames()
+        watch.lap("frames")
+        registered = cloud()["registered"]
         watch.lap("reconstruct")
-        plant = read_plant(folder)
-        points = built.cloud.points
-        keep = np.hypot(*(points[:, :2] - np.asarray(plant.center[:2])).T) <= crop_radius
-        write_cloud(folder / "reconstruction" / "plant_cloud.ply", built.cloud.subset(keep))
-        quality = reconstruction_quality(points[keep], plant.mesh, plant.face_part,
-                                         samples=100_000)
-        watch.lap("crop")
-        entry, timing = _job(folder, name).score(config, folder)
-        watch.lap("detect")
-    return {"entry": {**entry, "notes": notes}, "points": int(keep.sum()),
-            "registered": built.report["images_registered"],
-            "quality": quality, "seconds": watch.report(digits=3, total=None),
-            "pipeline_s": {k: round(v, 3) for k, v in timing.items()}}
+        return registered, []
+    stages = StageCache(cache)
+    recording = sorted(p for p in (folder / "scan").rglob("*") if p.is_file()
+                       and p.name not in ("plant.json", "visibility.json"))
+    _, frames_cached, key = stages.run("bed-frames", to_dict(config.scan.frames), recording,
+                                       folder, ("frames",), frames, code=BED_CODE)
+    watch.lap("frames")
+    built, built_cached, _ = stages.run("bed-reconstruct", to_dict(config.scan.reconstruct),
+                                        [], folder, BED_RECONSTRUCTION_FILES, cloud,
+                                        parents=[key], code=BED_CODE)
+    watch.lap("reconstruct")
+    return built["registered"], [step for step, hit in (("frames", frames_cached),
+                                                        ("reconstruct", built_cached)) if hit]
+
+
+#: The code a bed plant's frame choice and reconstruction run (the stage cache's code
+#: version): frame choice and photogrammetry, not the detection or the simulator.
+BED_CODE = ("flowerpose.pipeline.frames", "flowerpose.pipeline.reconstruct")
+
+
+def _cut_to_plant(folder: Path, crop_radius: float) -> tuple[int, dict]:
+    """folder/reconstruction/cloud.ply cut to `crop_radius` metres round the plant's axis
+    (plant_cloud.ply); the points kept and the cut cloud's quality against the mesh."""
+    from flowerpose.cloudio import read_cloud, write_cloud
+    from flowerpose.eval.quality import reconstruction_quality
+    from flowerpose.sim.export import read_plant
+
+    plant = read_plant(folder)
+    cloud = read_cloud(folder / "reconstruction" / "cloud.ply", units="m")
+    keep = np.hypot(*(cloud.points[:, :2] - np.asarray(plant.center[:2])).T) <= crop_radius
+    write_cloud(folder / "reconstruction" / "plant_cloud.ply", cloud.subset(keep))
+    quality = reconstruction_quality(cloud.points[keep], plant.mesh, plant.face_part,
+                                     samples=100_000)
+    return int(keep.sum()), quality
 
 
 def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool = False,
                 say: Callable[[str], None] = print,
-                serial_time_scale: float | None = None, pollinate: bool = False) -> dict:
+                serial_time_scale: float | None = None, pollinate: bool = False,
+                cache: Path | None = None) -> dict:
     """The bed's field run in the simulator, resumable (the module's docstring). Returns
     report.json's content. InputError where the bed cannot be scanned (naming the plant) or
     the folder holds another run; a plant whose scan or reconstruction fails is marked
@@ -151,11 +205,14 @@ def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: 
     serial_time_scale: None films with the simulated bot directly; K through the physical
     bot's serial backend on a virtual Farmduino running at K times real time.
     pollinate: then each detected plant's visits are planned from its flowers, flown and
-    scored against its truth (`eval --task pollinate`'s step), into its entry."""
+    scored against its truth (`eval --task pollinate`'s step), into its entry. cache: the
+    stage cache's folder for each plant's frames, reconstruction and detection (None:
+    none; `process_plant`)."""
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file; --out is the bed's folder")
     with folder_lock(out, LOCK, "field run"):
-        return _run(bed, config, seed, out, keep_going, say, serial_time_scale, pollinate)
+        return _run(bed, config, seed, out, keep_going, say, serial_time_scale, pollinate,
+                    cache)
 
 
 def _bot(folders: list[Path], config: EvalConfig, serial_time_scale: float | None):
@@ -171,7 +228,8 @@ def _bot(folders: list[Path], config: EvalConfig, serial_time_scale: float | Non
 
 
 def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
-         say: Callable[[str], None], serial_time_scale: float | None, pollinate: bool) -> dict:
+         say: Callable[[str], None], serial_time_scale: float | None, pollinate: bool,
+         cache: Path | None) -> dict:
     from flowerpose.eval.scan_source import write_scan_truth
     from flowerpose.hardware.flights.scan_flight import run_scan
 
@@ -197,7 +255,7 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
     def submit(name: str) -> None:
         busy.start()
         pending[name] = submit_job(pool, process_plant, (sim_bed.folders[name], name, config,
-                                                         reach[name]), cpus=CAPTURE_CPUS)
+                                                         reach[name], cache), cpus=CAPTURE_CPUS)
         pending[name].add_done_callback(lambda _: busy.stop())
 
     def collect(block: bool) -> None:

@@ -18,6 +18,7 @@ from flowerpose.cli.options import (
     owned,
     plant_xy,
     positive_number,
+    stage_cache,
     starting_config,
 )
 from flowerpose.errors import InputError
@@ -503,7 +504,8 @@ def cmd_field(args: argparse.Namespace) -> int:
     scale = args.time_scale if args.via_farmduino else None
     with jobs_on(args):
         report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going,
-                             serial_time_scale=scale, pollinate=args.pollinate)
+                             serial_time_scale=scale, pollinate=args.pollinate,
+                             cache=stage_cache(args))
     summary = report["summary"]
     print(f"bed: {len(report['plants'])} of {len(bed.plants)} plants detected; "
           f"{summary['found_visible']} of {summary['visible']} visible flowers found, "
@@ -515,7 +517,7 @@ def cmd_field(args: argparse.Namespace) -> int:
 
 def add_field(sub: argparse._SubParsersAction) -> None:
     """The `field` subcommand's parser."""
-    from flowerpose.cli.options import add_preset, add_ray_option
+    from flowerpose.cli.options import add_cache_options, add_preset, add_ray_option
 
     p = sub.add_parser(
         "field", help="a field run over a bed of plants: each filmed, reconstructed while the "
@@ -557,6 +559,7 @@ def add_field(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time-scale", type=positive_number, default=None, metavar="K",
                    help="with --via-farmduino: the virtual Farmduino runs K times faster than "
                    f"real time (default: {SERIAL_SIM_TIME_SCALE:g}; 1 is the real bot's pace)")
+    add_cache_options(p)
     add_ray_option(p)
     add_config_options(p, detector=False,
                        example="scan.frames.count=120 (--sim reads every section)")

@@ -22,9 +22,11 @@ def bed_run(tmp_path_factory):
     bed = folder / "bed.toml"
     bed.write_text(BED)
     out = folder / "run"
+    # The bed's own stage cache (this fixture runs before the tests' cache is set).
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "FLOWERPOSE_CACHE": str(folder / "cache")}
     done = subprocess.run([sys.executable, "-m", "flowerpose", "field", "--sim", "--bed",
                            str(bed), "--out", str(out), *SMALL, "-q"], capture_output=True,
-                          text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                          text=True, env=env)
     assert done.returncode == 0, done.stderr
     return bed, out, done.stdout
 
@@ -140,26 +142,53 @@ def test_a_bed_killed_while_filming_its_second_plant_resumes_that_scan(bed_run, 
 def test_on_ray_the_bed_gives_the_pools_flowers(bed_run, tmp_path, capsys):
     """A bed stopped once both plants were filmed, resumed with its reconstructions as Ray
     tasks: nothing is filmed again, and the same frames give the same flowers to the bit."""
-    import shutil
-
     pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowerpose[ray]')")
     bed, pool, _ = bed_run
-    out = shutil.copytree(pool, tmp_path / "ray")
-    journal = json.loads((out / "bed.json").read_text())
-    for name, plant in journal["plants"].items():
-        journal["plants"][name] = {"stage": "scanned", "seconds": plant["seconds"]}
-        for done in ("frames", "reconstruction", "flowers.json"):
-            path = out / "plants" / name / done
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-    (out / "bed.json").write_text(json.dumps(journal))
+    out = _filmed_only(pool, tmp_path / "ray")
     scans = {n: (out / "plants" / n / "scan" / "scan.json").read_text() for n in ("a", "b")}
-    assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), "--ray", *SMALL,
-                 "-q"]) == 0
+    assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), "--ray", "--no-cache",
+                 *SMALL, "-q"]) == 0
     assert "2 of 2 plants detected" in capsys.readouterr().out
     assert scans == {n: (out / "plants" / n / "scan" / "scan.json").read_text()
                      for n in ("a", "b")}
     for name in ("a", "b"):
         before, after = _plane_normals(pool, name), _plane_normals(out, name)
+        assert before.keys() == after.keys() and len(before) >= 1
+        assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+def _filmed_only(done, out):
+    """A copy of the finished bed at `out` as if stopped once both plants were filmed."""
+    import shutil
+
+    out = shutil.copytree(done, out)
+    journal = json.loads((out / "bed.json").read_text())
+    for name, plant in journal["plants"].items():
+        journal["plants"][name] = {"stage": "scanned", "seconds": plant["seconds"]}
+        for made in ("frames", "reconstruction", "flowers.json"):
+            path = out / "plants" / name / made
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    (out / "bed.json").write_text(json.dumps(journal))
+    return out
+
+
+@pytest.mark.slow
+def test_a_filmed_plants_work_comes_from_the_stage_cache_where_it_ran_before(bed_run,
+                                                                            tmp_path,
+                                                                            monkeypatch):
+    """The same recordings again: each plant's frames, reconstruction and detection are
+    taken from the bed's stage cache (0 seconds each) and give the first run's flowers."""
+    bed, done, _ = bed_run
+    out = _filmed_only(done, tmp_path / "again")
+    monkeypatch.setenv("FLOWERPOSE_CACHE", str(bed.parent / "cache"))
+    assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), *SMALL, "-q"]) == 0
+    journal = json.loads((out / "bed.json").read_text())
+    for name in ("a", "b"):
+        seconds = journal["plants"][name]["seconds"]
+        assert seconds["frames"] == seconds["reconstruct"] == 0.0, seconds
+        assert journal["plants"][name]["pipeline_s"]["total"] == 0.0
+        assert (out / "plants" / name / "reconstruction" / "plant_cloud.ply").exists()
+        before, after = _plane_normals(done, name), _plane_normals(out, name)
         assert before.keys() == after.keys() and len(before) >= 1
         assert all(np.array_equal(before[k], after[k]) for k in before)
 
