@@ -1,5 +1,6 @@
 """The serial client against FarmBot's own Farmduino firmware (6.6.26, as FarmBot OS 15.4.11
-flashes it), run in simavr with its UART on a pseudo-terminal (../shared/firmware). The
+flashes it), run in simavr with its UART on a pseudo-terminal (the firmware folder,
+FLOWERPOSE_SHARED's `firmware`, by default ../shared beside the repository). The
 firmware runs in real time, so these are few and short; the protocol's every path is tested
 against the virtual Farmduino (test_farmduino.py)."""
 
@@ -19,8 +20,10 @@ from flowerpose.hardware.backends.farmduino import FarmduinoBot
 from flowerpose.hardware.bot import SolidCamera
 from flowerpose.hardware.bot_errors import EmergencyStopError, HomingError, LockedError
 
-#: The firmware and its runner: ../shared/firmware beside the repository (CI has it).
-FIRMWARE = Path(__file__).resolve().parents[2].parent / "shared" / "firmware"
+#: The firmware and its runner: FLOWERPOSE_SHARED's `firmware` folder, by default
+#: ../shared/firmware beside the repository (CI has it).
+FIRMWARE = Path(os.environ.get("FLOWERPOSE_SHARED",
+                               Path(__file__).resolve().parents[2].parent / "shared")) / "firmware"
 CAMERA = functools.partial(SolidCamera, width=32, height=24, fps=2)
 
 #: Every test runs under the 20 s watchdog (conftest.py).
@@ -31,8 +34,8 @@ pytestmark = pytest.mark.usefixtures("watchdog")
 def runner(tmp_path_factory) -> Path:
     """The built runner's folder (build.sh installs simavr where it is missing)."""
     if not (FIRMWARE / "build.sh").is_file():
-        pytest.skip(f"the real Farmduino firmware is not here ({FIRMWARE}: CI has it beside "
-                    "the repository)")
+        pytest.skip(f"the real Farmduino firmware is not here ({FIRMWARE}; FLOWERPOSE_SHARED "
+                    "names the folder that holds it)")
     out = tmp_path_factory.mktemp("farmduino-sim")
     built = subprocess.run(["bash", str(FIRMWARE / "build.sh"), str(out)], capture_output=True,
                            text=True, timeout=600)
