@@ -485,17 +485,26 @@ def cmd_field(args: argparse.Namespace) -> int:
     from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed, run_sim_bed
     from flowerpose.eval.config import eval_config
     from flowerpose.eval.report import pollination_lines
-    from flowerpose.hardware.flights.bed_plan import read_bed
+    from flowerpose.hardware.flights.bed_plan import plan_bed, read_bed
 
+    if args.bed is None and not args.cloud:
+        raise InputError("--bed", "give the bed: --bed FILE (TOML or CSV), or --cloud for the "
+                         "plants of your FarmBot account's garden")
+    if args.token_file is not None and not args.cloud:
+        raise InputError("--token-file", "is the web app's login: add --cloud")
+    bed = read_bed(args.bed) if args.bed is not None else _account_bed(args)
     if not args.sim:
-        raise InputError("field", "a bed is run in the simulator only so far (--sim); with the "
-                         "physical bot, scan each plant with flowerpose scan --port or --cloud")
+        if not args.dry_run:
+            raise InputError("field", "a bed is filmed in the simulator only so far (--sim); "
+                             "--dry-run plans it for the physical bot, and flowerpose scan "
+                             "--port or --cloud films each plant")
+        print("\n".join(plan_bed(bed).table()))
+        return 0
     if args.seed < 0:
         raise InputError("--seed", f"must be 0 or more, got {args.seed}")
     if args.time_scale is not None and not args.via_farmduino:
         raise InputError("--time-scale", "is the virtual Farmduino's: add --via-farmduino")
     args.time_scale = args.time_scale or SERIAL_SIM_TIME_SCALE
-    bed = read_bed(args.bed)
     config = configure(eval_config(args.preset), args, command="field --sim")
     if args.dry_run:
         plan = plan_sim_bed(make_bed_plants(bed, config, args.seed, None))
@@ -515,6 +524,18 @@ def cmd_field(args: argparse.Namespace) -> int:
     return 0
 
 
+def _account_bed(args: argparse.Namespace):
+    """The bed of the plants in the FarmBot account's garden (--cloud: the web app's plant
+    list, read with the same login as scan --cloud)."""
+    from flowerpose.hardware.backends.cloud_bot import account_plants
+    from flowerpose.hardware.backends.cloud_credentials import CloudCredentials
+    from flowerpose.hardware.flights.bed_plan import bed_from_points
+
+    credentials = CloudCredentials.from_environment(token_file=args.token_file)
+    return bed_from_points(account_plants(credentials),
+                           source=f"the garden of {credentials.server}")
+
+
 def add_field(sub: argparse._SubParsersAction) -> None:
     """The `field` subcommand's parser."""
     from flowerpose.cli.options import add_cache_options, add_preset, add_ray_option
@@ -523,20 +544,32 @@ def add_field(sub: argparse._SubParsersAction) -> None:
         "field", help="a field run over a bed of plants: each filmed, reconstructed while the "
         "bot films the next, its flowers found (--sim: scored against the truth)",
         description="Run a whole bed: the plants of a bed file (TOML or CSV; DESIGN.md, 'A bed "
-        "file') planned and checked before anything moves, filmed one after another in the "
-        "order that keeps the travel short, each reconstructed and its flowers found in a "
-        "worker while the bot films the next. --sim generates a plant at each place, all in "
-        "one simulated world, and scores each against its exact truth. Rerunning the "
-        "command resumes the bed (bed.json): finished plants are left alone.",
+        "file') or of your FarmBot account's garden (--cloud) planned and checked before "
+        "anything moves, filmed one after another in the order that keeps the travel short, "
+        "each reconstructed and its flowers found in a worker while the bot films the next. "
+        "--sim generates a plant at each place, all in one simulated world, and scores each "
+        "against its exact truth; the physical bot's bed is planned and checked only "
+        "(--dry-run). Rerunning the command resumes the bed (bed.json): finished plants are "
+        "left alone.",
         epilog="examples:\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --dry-run\n"
+        "  flowerpose field --cloud --out bed --dry-run\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --pollinate\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --ray")
-    p.add_argument("--bed", type=Path, required=True, metavar="FILE",
+    p.add_argument("--bed", type=Path, metavar="FILE",
                    help="the bed file: where each plant stands (an example: "
                    "assets/beds/example-4.toml in the package)")
-    p.add_argument("--sim", action="store_true", help="the simulated bot and generated plants")
+    p.add_argument("--cloud", action="store_true",
+                   help="without --bed: the bed is the plants of your FarmBot account's garden "
+                   "(the web app's plant list); log in with FARMBOT_TOKEN, or FARMBOT_EMAIL "
+                   "and FARMBOT_PASSWORD (FARMBOT_SERVER for another server), or --token-file")
+    p.add_argument("--token-file", type=Path, metavar="FILE",
+                   help="--cloud: a file outside the repository, readable by its owner alone, "
+                   "holding a FarmBot token (its JSON or its JWT)")
+    p.add_argument("--sim", action="store_true",
+                   help="the simulated bot and generated plants (without it, only --dry-run: "
+                   "the bed planned for the physical bot)")
     p.add_argument("--seed", type=int, default=0, metavar="S",
                    help="--sim: the bed file's i-th plant is generated from seed S+i "
                    "(default: %(default)s)")

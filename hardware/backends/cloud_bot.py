@@ -122,6 +122,66 @@ def motion_from_status(mcu_params: Mapping[str, Any] | None) -> MotionProfile:
     return MotionProfile.from_firmware(values)
 
 
+def account_token(client: Any, credentials: CloudCredentials, link: str,
+                  secrets: list[str]) -> dict:
+    """The FarmBot token to use: the credentials' own, else the one FarmBot's server gives
+    `client` for their email and password (its encoded part then joins `secrets`, the
+    strings every message is scrubbed of). A refused password is an InputError; a server
+    that cannot be reached, a CloudLinkError naming `link`."""
+    token = credentials._token
+    if token is not None:
+        return token
+    client.state.error = None
+    try:
+        client.get_token(credentials._email, credentials._password, credentials.server)
+    except Exception as err:  # noqa: BLE001 - the client's own failures, scrubbed
+        raise CloudLinkError(link, _scrubbed(f"log in: {err}", secrets)) from None
+    token = getattr(client.state, "token", None)
+    if not token or client.state.error:
+        error = _scrubbed(str(client.state.error or "no token"), secrets)
+        if "password" in error.lower() or "422" in error:
+            raise InputError(f"{ENV_EMAIL} and {ENV_PASSWORD}", "FarmBot's server "
+                             "refused the login: wrong email or password") from None
+        raise CloudLinkError(link, f"log in: {error}")
+    token = parse_token(json.dumps(token), "FarmBot's login reply")
+    secrets.append(token["token"]["encoded"])
+    return token
+
+
+def _scrubbed(text: str, secrets: list[str]) -> str:
+    """`text` with every secret replaced by ***."""
+    for secret in secrets:
+        if secret:
+            text = text.replace(secret, "***")
+    return text
+
+
+def account_plants(credentials: CloudCredentials | None = None,
+                   client_factory: Callable[[], Any] | None = None) -> list[dict]:
+    """The plants of the FarmBot account's garden, as its web app's REST API gives them
+    (`/api/points` of pointer_type "Plant": name, x, y, z and radius in FarmBot's
+    millimetres): what `flowerpose field --cloud` makes a bed of. Logs in as
+    `FarmbotCloudBot` does; the bot need not be online. CloudLinkError (naming the server,
+    never a secret) where the server cannot be reached or answers with an error."""
+    credentials = credentials or CloudCredentials.from_environment()
+    link = f"FarmBot web app ({credentials.server})"
+    secrets = credentials.secrets()
+    client = (client_factory or farmbot_client)()
+    client.set_verbosity(0)  # the client would print every reply
+    client.set_token(account_token(client, credentials, link, secrets))
+    client.state.error = None
+    try:
+        points = client.api_get("points")
+    except Exception as err:  # noqa: BLE001 - the client's own failures, scrubbed
+        raise CloudLinkError(link, _scrubbed(f"reading the garden's points: {err}",
+                                             secrets)) from None
+    if client.state.error or not isinstance(points, list):
+        problem = client.state.error or f"an answer that is not a list of points: {points!r}"
+        raise CloudLinkError(link, _scrubbed(f"reading the garden's points: {problem}",
+                                             secrets)[:300])
+    return [p for p in points if isinstance(p, dict) and p.get("pointer_type") == "Plant"]
+
+
 class FarmbotCloudBot(Bot):
     """A FarmBot run through FarmBot's web app: see the module docstring.
 
@@ -196,24 +256,7 @@ class FarmbotCloudBot(Bot):
     # --- connection -------------------------------------------------------------------
 
     def _log_in(self) -> None:
-        token = self._credentials._token
-        if token is None:
-            client = self._client
-            client.state.error = None
-            try:
-                client.get_token(self._credentials._email, self._credentials._password,
-                                 self._credentials.server)
-            except Exception as err:  # noqa: BLE001 - the client's own failures, scrubbed
-                raise CloudLinkError(self._link, self._scrub(f"log in: {err}")) from None
-            token = getattr(client.state, "token", None)
-            if not token or client.state.error:
-                error = self._scrub(str(client.state.error or "no token"))
-                if "password" in error.lower() or "422" in error:
-                    raise InputError(f"{ENV_EMAIL} and {ENV_PASSWORD}", "FarmBot's server "
-                                     "refused the login: wrong email or password") from None
-                raise CloudLinkError(self._link, f"log in: {error}")
-            token = parse_token(json.dumps(token), "FarmBot's login reply")
-            self._secrets.append(token["token"]["encoded"])
+        token = account_token(self._client, self._credentials, self._link, self._secrets)
         self._client.set_token(token)
         self._estop_client.set_token(token)
         self._token_claims = token["token"]["unencoded"]
@@ -242,9 +285,7 @@ class FarmbotCloudBot(Bot):
                 "mcu_params": tree.get("mcu_params")}
 
     def _scrub(self, text: str) -> str:
-        for secret in self._secrets:
-            text = text.replace(secret, "***")
-        return text
+        return _scrubbed(text, self._secrets)
 
     # --- one command at a time ----------------------------------------------------------
 

@@ -125,6 +125,40 @@ def read_bed(path: Path) -> Bed:
     return Bed(plants, scan)
 
 
+def bed_from_points(points: list[dict], geometry: BotGeometry = PAPER_BOT,
+                    source: str = "the FarmBot web app's plants") -> Bed:
+    """A bed of a FarmBot account's plants (`cloud_bot.account_plants`: the web app's
+    points, FarmBot millimetres): each stands at its x, y converted to the bed frame
+    (`geometry.farmbot_mm_to_bed`), with the app's radius where it gives one above zero
+    (else `PLANT_RADIUS_M`) and the default height (the app keeps none). Each is named
+    from its name and database id ("strawberry-412"), so plants of one crop get folders of
+    their own. InputError naming `source` for no plant or a position that is not a
+    number."""
+    from flowerpose.hardware.geometry import farmbot_mm_to_bed
+
+    plants = []
+    for point in points:
+        label = str(point.get("name") or "plant")
+        name = f"{re.sub(r'[^A-Za-z0-9._-]+', '-', label).strip('-._').lower() or 'plant'}-" \
+               f"{point.get('id', len(plants) + 1)}"
+        try:
+            x_mm, y_mm = float(point["x"]), float(point["y"])
+            radius_mm = float(point.get("radius") or 0.0)
+        except (KeyError, TypeError, ValueError):
+            raise InputError(source, f"plant {label!r} (id {point.get('id')}) has no numeric "
+                             "x and y") from None
+        if not (math.isfinite(x_mm) and math.isfinite(y_mm) and math.isfinite(radius_mm)):
+            raise InputError(source, f"plant {label!r} (id {point.get('id')}) is not at a "
+                             "finite position")
+        x, y, _ = farmbot_mm_to_bed([x_mm, y_mm, 0.0], geometry)
+        radius = radius_mm / 1000.0 if radius_mm > 0 else PLANT_RADIUS_M
+        plants.append(BedPlant(name, float(x), float(y), radius=radius))
+    if not plants:
+        raise InputError(source, "no plant in the garden: add the bed's plants in the web "
+                         "app's Farm Designer, or give --bed FILE")
+    return Bed(plants)
+
+
 def _csv_rows(path: Path) -> list[dict]:
     try:
         with open(path, newline="", encoding="utf-8") as handle:

@@ -44,6 +44,8 @@ class FakeDevice:
         test waits for one to end)."""
         self.moving = threading.Event()
         self.logins = {(EMAIL, PASSWORD): make_token()}
+        self.points: list[dict] = []
+        """The account's garden as the web app's /api/points gives it."""
 
     def status(self) -> dict:
         return {"location_data": {"position": dict(zip("xyz", self.position, strict=True))},
@@ -79,6 +81,13 @@ class FakeFarmbot:
             return self.state.error
         self.state.token = token
         return token
+
+    def api_get(self, endpoint, database_id=None, payload=None):
+        self.device.calls.append(("api_get", endpoint))
+        if self.state.token is None:
+            self.state.error = "CLIENT ERROR 401: The user`s token has expired or is invalid."
+            return self.state.error
+        return [dict(point) for point in self.device.points] if endpoint == "points" else []
 
     def _reply(self, explanation: str | None = None) -> None:
         if self.device.silent:

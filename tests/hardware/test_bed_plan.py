@@ -105,3 +105,75 @@ def test_neighbours_the_scan_would_hit_are_refused_naming_both():
         plan_bed(Bed(plants))
     # A narrower cylinder keeps clear of them.
     assert [p.name for p in plan_bed(Bed(plants, NARROW)).plants] == ["a", "b"]
+
+
+#: The web app's points of a small garden: two plants of one crop, a weed, and a plant whose
+#: name is no folder's.
+GARDEN = [
+    {"id": 11, "pointer_type": "Plant", "name": "Strawberry", "x": 700.0, "y": 615.0, "z": 0,
+     "radius": 120.0},
+    {"id": 13, "pointer_type": "Weed", "name": "Dandelion", "x": 1000.0, "y": 615.0, "z": 0},
+    {"id": 12, "pointer_type": "Plant", "name": "Strawberry", "x": 2000.0, "y": 615.0, "z": 0,
+     "radius": 0},
+]
+
+
+def test_a_gardens_plants_from_the_web_app_make_a_bed_in_the_bed_frame():
+    from flowerpose.hardware.flights.bed_plan import (
+        PLANT_HEIGHT_M,
+        PLANT_RADIUS_M,
+        bed_from_points,
+    )
+    from flowerpose.hardware.geometry import PAPER_BOT, farmbot_mm_to_bed
+
+    plants = [p for p in GARDEN if p["pointer_type"] == "Plant"]
+    plants.append({"id": 14, "pointer_type": "Plant", "name": "Alpine strawberry!",
+                   "x": 1400.0, "y": 615.0, "radius": 90.0})
+    bed = bed_from_points(plants)
+    assert [p.name for p in bed.plants] == ["strawberry-11", "strawberry-12",
+                                            "alpine-strawberry-14"]
+    first = farmbot_mm_to_bed([700.0, 615.0, 0.0], PAPER_BOT)
+    assert (bed.plants[0].x, bed.plants[0].y) == pytest.approx((first[0], first[1]))
+    assert [p.radius for p in bed.plants] == pytest.approx([0.12, PLANT_RADIUS_M, 0.09])
+    assert all(p.height == PLANT_HEIGHT_M for p in bed.plants)
+    with pytest.raises(InputError, match="no plant in the garden"):
+        bed_from_points([])
+    with pytest.raises(InputError, match="'Strawberry' \\(id 11\\) has no numeric x and y"):
+        bed_from_points([{**plants[0], "x": None}])
+
+
+def test_field_cloud_plans_the_accounts_garden_and_moves_nothing(tmp_path, capsys,
+                                                                 monkeypatch):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from cloud_fakes import FakeDevice, fake_factory, make_token
+
+    from flowerpose.cli import main
+    from flowerpose.hardware.backends import cloud_bot
+
+    device = FakeDevice()
+    device.points = GARDEN
+    factory = fake_factory(device)
+    monkeypatch.setattr(cloud_bot, "farmbot_client", factory)
+    monkeypatch.setenv("FARMBOT_TOKEN", json.dumps(make_token()))
+    out = tmp_path / "bed"
+    assert main(["field", "--cloud", "--out", str(out), "--dry-run"]) == 0
+    shown = capsys.readouterr().out
+    assert "strawberry-11" in shown and "strawberry-12" in shown
+    assert "dandelion" not in shown.lower() and "2 plants" in shown
+    assert device.calls == [("api_get", "points")]  # read the garden; no move, no status
+    assert not out.exists()
+    # the physical bed itself is not filmed yet: one line saying what to do instead
+    assert main(["field", "--cloud", "--out", str(out)]) == 2
+    assert "--dry-run plans it" in capsys.readouterr().err
+    # an expired token: one line naming the server, never the token
+    device.points = []
+    monkeypatch.setattr(factory.clients[0].__class__, "api_get",
+                        lambda self, endpoint, *a: setattr(self.state, "error",
+                                                           "CLIENT ERROR 401: expired"))
+    assert main(["field", "--cloud", "--out", str(out), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "401" in err and err.count("\n") == 1 and "s3cr3t" not in err
