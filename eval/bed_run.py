@@ -38,7 +38,7 @@ from flowerpose.eval.config import EvalConfig
 from flowerpose.eval.runner import CAPTURE_CPUS, running_on_ray, spawn_pool, submit_job
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant, plan_bed
 from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
-from flowerpose.log import noted
+from flowerpose.log import eta, noted
 from flowerpose.stopwatch import Stopwatch
 
 JOURNAL = "bed.json"
@@ -276,12 +276,14 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
             score = result["entry"]
             say(f"{name}: {score['found_visible']} of {score['visible']} visible flowers "
                 f"found, {score['fp']} false positives, {result['points']} points "
-                f"({_done(record)} of {len(names)} plants done)")
+                f"({_done(record)} of {len(names)} plants done, the bed "
+                f"{wall.elapsed():.0f} s in)")
 
     # The bot waits for the computer between two plants' scans only: the frames are chosen
     # in the worker, with the rest of a plant's work.
     last_scan_end: float | None = None
     bot_waiting = first_filmed = 0.0
+    filmed_before = _filmed_s(plan, record)
     bot = _bot([sim_bed.folders[n] for n in names], config, serial_time_scale)
     try:
         with bot, journal.session(bot):
@@ -294,8 +296,12 @@ def _run(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool,
                     submit(spot.name)
                     continue
                 folder = sim_bed.folders[spot.name]
+                # The bed's time left, at this session's pace through the plan's bot time.
+                bed_time = eta(wall.elapsed(), _filmed_s(plan, record) - filmed_before,
+                               plan.duration_s - filmed_before)
                 say(f"[{order}/{len(names)}] {spot.name}: filming {len(scan_plan.waypoints)} "
-                    f"waypoints ({scan_plan.duration_s / 60:.1f} min of bot time)")
+                    f"waypoints ({scan_plan.duration_s / 60:.1f} min of bot time); the bed "
+                    f"{bed_time.strip('()')}")
                 watch = Stopwatch()
                 if last_scan_end is not None:
                     bot_waiting += wall.elapsed() - last_scan_end
@@ -352,6 +358,12 @@ def _pollinate(out: Path, record: dict, config: EvalConfig, say: Callable[[str],
         done = entry["pollination"]
         say(f"{name}: pollinated {done['successes']} of {len(done['flowers'])} flowers in "
             f"{done['visits']} visits")
+
+
+def _filmed_s(plan: BedPlan, record: dict) -> float:
+    """The plan's bot seconds of the plants filmed so far (or given up on)."""
+    return sum(scan.duration_s for scan, plant in zip(plan.scans, plan.plants, strict=True)
+               if record["plants"][plant.name]["stage"] != "planned")
 
 
 def _add_times(record: dict, seconds: dict[str, float]) -> None:
