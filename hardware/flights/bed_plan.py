@@ -129,8 +129,10 @@ def bed_from_points(points: list[dict], geometry: BotGeometry = PAPER_BOT,
                     source: str = "the FarmBot web app's plants") -> Bed:
     """A bed of a FarmBot account's plants (`cloud_bot.account_plants`: the web app's
     points, FarmBot millimetres): each stands at its x, y converted to the bed frame
-    (`geometry.farmbot_mm_to_bed`), with the app's radius where it gives one above zero
-    (else `PLANT_RADIUS_M`) and the default height (the app keeps none). Each is named
+    (`geometry.farmbot_mm_to_bed`), with the app's radius where it is larger than
+    `PLANT_RADIUS_M` (the app's radius is the spread drawn on its map, 25 mm unless set:
+    no grown plant's reach, and a smaller one would bring the head into the leaves) and
+    the default height (the app keeps none). Each is named
     from its name and database id ("strawberry-412"), so plants of one crop get folders of
     their own. InputError naming `source` for no plant or a position that is not a
     number."""
@@ -151,7 +153,7 @@ def bed_from_points(points: list[dict], geometry: BotGeometry = PAPER_BOT,
             raise InputError(source, f"plant {label!r} (id {point.get('id')}) is not at a "
                              "finite position")
         x, y, _ = farmbot_mm_to_bed([x_mm, y_mm, 0.0], geometry)
-        radius = radius_mm / 1000.0 if radius_mm > 0 else PLANT_RADIUS_M
+        radius = max(radius_mm / 1000.0, PLANT_RADIUS_M)
         plants.append(BedPlant(name, float(x), float(y), radius=radius))
     if not plants:
         raise InputError(source, "no plant in the garden: add the bed's plants in the web "

@@ -111,7 +111,7 @@ def test_neighbours_the_scan_would_hit_are_refused_naming_both():
 #: name is no folder's.
 GARDEN = [
     {"id": 11, "pointer_type": "Plant", "name": "Strawberry", "x": 700.0, "y": 615.0, "z": 0,
-     "radius": 120.0},
+     "radius": 180.0},
     {"id": 13, "pointer_type": "Weed", "name": "Dandelion", "x": 1000.0, "y": 615.0, "z": 0},
     {"id": 12, "pointer_type": "Plant", "name": "Strawberry", "x": 2000.0, "y": 615.0, "z": 0,
      "radius": 0},
@@ -128,13 +128,15 @@ def test_a_gardens_plants_from_the_web_app_make_a_bed_in_the_bed_frame():
 
     plants = [p for p in GARDEN if p["pointer_type"] == "Plant"]
     plants.append({"id": 14, "pointer_type": "Plant", "name": "Alpine strawberry!",
-                   "x": 1400.0, "y": 615.0, "radius": 90.0})
+                   "x": 1400.0, "y": 615.0, "radius": 25.0})  # the app's default spread
     bed = bed_from_points(plants)
     assert [p.name for p in bed.plants] == ["strawberry-11", "strawberry-12",
                                             "alpine-strawberry-14"]
     first = farmbot_mm_to_bed([700.0, 615.0, 0.0], PAPER_BOT)
     assert (bed.plants[0].x, bed.plants[0].y) == pytest.approx((first[0], first[1]))
-    assert [p.radius for p in bed.plants] == pytest.approx([0.12, PLANT_RADIUS_M, 0.09])
+    # the app's radius where it is more than a plant's default reach, never less
+    assert [p.radius for p in bed.plants] == pytest.approx([0.18, PLANT_RADIUS_M,
+                                                            PLANT_RADIUS_M])
     assert all(p.height == PLANT_HEIGHT_M for p in bed.plants)
     with pytest.raises(InputError, match="no plant in the garden"):
         bed_from_points([])
