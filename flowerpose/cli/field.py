@@ -48,13 +48,23 @@ def _scan_base():
                                                                 camera=SimCameraConfig()))
 
 
+#: How --cloud logs in to FarmBot's web app (scan, pollinate, field).
+WEB_APP_LOGIN = ("log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
+                 "(FARMBOT_SERVER for another server), or --token-file")
+
+
+def _add_token_file(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
+                   "the repository, readable by its owner alone, holding a FarmBot token (its "
+                   "JSON or its JWT)")
+
+
 def _add_field_bot_options(p: argparse.ArgumentParser) -> None:
     """--port / --cloud and their options: the physical bot (scan, pollinate)."""
     p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
                    "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
     p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
-                   "app; log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
-                   "(FARMBOT_SERVER for another server), or --token-file")
+                   f"app; {WEB_APP_LOGIN}")
     p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
                    "firmware settings as the FarmBot web app exports them (JSON); written to "
                    "the Farmduino at connect and read back, as FarmBot OS does (default: the "
@@ -62,9 +72,7 @@ def _add_field_bot_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
                    "home (put there by hand): take it as home instead of homing, for a bot "
                    "without endstops or encoders")
-    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
-                   "the repository, readable by its owner alone, holding a FarmBot token (its "
-                   "JSON or its JWT)")
+    _add_token_file(p)
     # The serial backend's errors advise its `settings`, which --firmware-params loads.
     p.set_defaults(**{PHRASES_ATTRIBUTE: {"settings": "--firmware-params"}})
 
@@ -562,11 +570,8 @@ def add_field(sub: argparse._SubParsersAction) -> None:
                    "assets/beds/example-4.toml in the package)")
     p.add_argument("--cloud", action="store_true",
                    help="without --bed: the bed is the plants of your FarmBot account's garden "
-                   "(the web app's plant list); log in with FARMBOT_TOKEN, or FARMBOT_EMAIL "
-                   "and FARMBOT_PASSWORD (FARMBOT_SERVER for another server), or --token-file")
-    p.add_argument("--token-file", type=Path, metavar="FILE",
-                   help="--cloud: a file outside the repository, readable by its owner alone, "
-                   "holding a FarmBot token (its JSON or its JWT)")
+                   f"(the web app's plant list); {WEB_APP_LOGIN}")
+    _add_token_file(p)
     p.add_argument("--sim", action="store_true",
                    help="the simulated bot and generated plants (without it, only --dry-run: "
                    "the bed planned for the physical bot)")
