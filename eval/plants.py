@@ -218,6 +218,31 @@ def _detector_files(pipeline: PipelineConfig) -> list[Path]:
     return [Path(detector.removeprefix(ONNX_PREFIX))] if detector.startswith(ONNX_PREFIX) else []
 
 
+def detect_cloud(cloud: Path, pipeline: PipelineConfig, folder: Path,
+                 cache: Path | None = None) -> tuple[dict[str, float], str | None]:
+    """The pipeline on a cloud, its flowers written into `folder` (`DETECT_FILES`, with the
+    warnings said on the way as flowers.json's notes). With `cache` (the stage cache's
+    folder), a detection made before from the same files, settings and code is taken from
+    it. Returns the stage timings, seconds (0 where taken from the cache), and the stage
+    cache's key of the detection (None where it did not go through the cache)."""
+
+    def detect() -> dict:
+        with noted() as notes:
+            result = find_flowers(read_cloud(cloud), pipeline)
+        write_flowers(folder / "flowers.json", result, cloud, notes=notes)
+        write_normals_ply(folder, result.flowers)
+        return {"timing_s": result.timing_s}
+
+    if cache is None or not _cacheable(pipeline):
+        return detect()["timing_s"], None
+    from flowerpose.cache import StageCache
+
+    detected, cached, key = StageCache(cache).run(
+        "detect", to_dict(pipeline), [cloud, *_detector_files(pipeline)], folder,
+        DETECT_FILES, detect)
+    return {stage: 0.0 if cached else t for stage, t in detected["timing_s"].items()}, key
+
+
 def scored_truth(truth_path: Path, config: EvalConfig, name: str) -> list:
     """A synthetic plant's truth as it is scored: tilted by the hand labels' error where
     `score.label_error_deg` says so (seeded by the plant's name)."""
@@ -256,13 +281,6 @@ class SyntheticJob:
         if perturbed is not None:
             return self._score_perturbed(config, pipeline, folder, cache, perturbed)
 
-        def detect() -> dict:
-            with noted() as notes:
-                result = find_flowers(read_cloud(self.cloud), pipeline)
-            write_flowers(folder / "flowers.json", result, self.cloud, notes=notes)
-            write_normals_ply(folder, result.flowers)
-            return {"timing_s": result.timing_s}
-
         def score() -> dict:
             watch = Stopwatch()
             entry = plant_entry(self.name, score_plant(
@@ -270,20 +288,15 @@ class SyntheticJob:
                 config.score.max_distance_m))
             return {"entry": entry, "seconds": watch.elapsed()}
 
-        if cache is None or not _cacheable(pipeline):
-            detected, scored = detect(), score()
-            return scored["entry"], {**detected["timing_s"], "score": scored["seconds"]}
+        timing, detect_key = detect_cloud(self.cloud, pipeline, folder, cache)
+        if detect_key is None:
+            scored = score()
+            return scored["entry"], {**timing, "score": scored["seconds"]}
         from flowerpose.cache import StageCache
 
-        stages = StageCache(cache)
-        detected, detect_cached, detect_key = stages.run(
-            "detect", to_dict(pipeline), [self.cloud, *_detector_files(pipeline)], folder,
-            DETECT_FILES, detect)
-        scored, score_cached, _ = stages.run(
+        scored, score_cached, _ = StageCache(cache).run(
             "score", {"score": to_dict(config.score), "plant": self.name}, [self.truth],
             folder, (), score, parents=[detect_key])
-        timing = {stage: 0.0 if detect_cached else t
-                  for stage, t in detected["timing_s"].items()}
         return scored["entry"], {**timing, "score": 0.0 if score_cached else scored["seconds"]}
 
     def _score_perturbed(self, config: EvalConfig, pipeline: PipelineConfig, folder: Path,

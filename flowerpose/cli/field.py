@@ -59,12 +59,13 @@ def _add_token_file(p: argparse.ArgumentParser) -> None:
                    "JSON or its JWT)")
 
 
-def _add_field_bot_options(p: argparse.ArgumentParser) -> None:
-    """--port / --cloud and their options: the physical bot (scan, pollinate)."""
+def _add_field_bot_options(p: argparse.ArgumentParser, cloud: str = "") -> None:
+    """--port / --cloud and their options: the physical bot (scan, pollinate, field);
+    `cloud`: what else --cloud means to the command."""
     p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
                    "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
     p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
-                   f"app; {WEB_APP_LOGIN}")
+                   f"app{cloud}; {WEB_APP_LOGIN}")
     p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
                    "firmware settings as the FarmBot web app exports them (JSON); written to "
                    "the Farmduino at connect and read back, as FarmBot OS does (default: the "
@@ -142,33 +143,13 @@ def _scan_field(args: argparse.Namespace) -> int:
     if args.dry_run:
         print("\n".join(plan_table(plan)))
         return 0
-    if args.camera is None:
-        raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
-                         "/dev/v4l/by-id/usb-...-video-index0")
-    if not Path(args.camera).exists():
-        raise InputError(args.camera, "no such camera device; list them with "
-                         "ls -l /dev/v4l/by-id/")
-    from flowerpose.hardware.backends.usb_camera import (
-        FrameChoice,
-        UsbCamera,
-        UsbCameraConfig,
-        check_disk_space,
-    )
-    from flowerpose.hardware.trajectory import TrajectoryRecorder
-    from flowerpose.scanio import read_intrinsics
+    from flowerpose.hardware.backends.usb_camera import check_disk_space
 
-    if args.calibration is not None:
-        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
-    choose = None if args.keep_all else FrameChoice(plan.duration_s)
-    camera = UsbCameraConfig(width=size.width, height=size.height, calibration=args.calibration,
-                             choose=choose)
+    camera, recorder, source_camera = _field_camera(args, size.width, size.height,
+                                                    plan.duration_s)
     check_disk_space(args.out, camera, plan.duration_s)
-    recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
     connect, source = _field_bot(args, camera=recorder.bind, observer=recorder.observe)
-    source["camera"] = {"device": args.camera, "width": size.width, "height": size.height,
-                        "intrinsics": str(args.calibration or "estimated from the field of view"),
-                        "frames": "every frame" if choose is None else
-                        f"the {choose.keep} sharpest of each of {choose.bins} bins of the path"}
+    source["camera"] = source_camera
     source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
     try:
         with connect() as bot:
@@ -202,17 +183,7 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plant", type=Path, metavar="DIR",
                    help="--sim: the plant folder from flowerpose plant")
     _add_field_bot_options(p)
-    p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
-                   "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
-                   "each of 200 bins of the path, chosen while recording")
-    p.set_defaults(**{PHRASES_ATTRIBUTE: {**p.get_default(PHRASES_ATTRIBUTE),
-                                          "choose": "leaving out --keep-all"}})
-    p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
-                   "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
-                   "--width x --height, 30 fps, exposure and focus locked")
-    p.add_argument("--calibration", type=Path, metavar="CAMERA.json", help="--port/--cloud: "
-                   "the camera's calibrated intrinsics at that size (default: estimated from "
-                   "a 62.2 degree horizontal field of view)")
+    _add_camera_options(p, "--width x --height")
     p.add_argument("--plant-at", type=plant_xy, metavar="X,Y", help="--port/--cloud: where "
                    "the plant's stem stands, metres in the bed frame: x along the bed from "
                    "FarmBot's home end, y across it, (0, 0) the soil corner at home")
@@ -241,6 +212,49 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
                         "sim.viewpoints.* and scan.camera.*; --port and --cloud "
                         "scan.camera.width and scan.camera.height)")
     p.set_defaults(func=cmd_scan)
+
+
+def _add_camera_options(p: argparse.ArgumentParser, size: str) -> None:
+    """--camera, --calibration and --keep-all: the head's USB camera (scan, field); `size`:
+    how the command sets the frame size."""
+    p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
+                   "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
+                   f"{size}, 30 fps, exposure and focus locked")
+    p.add_argument("--calibration", type=Path, metavar="CAMERA.json", help="--port/--cloud: "
+                   "the camera's calibrated intrinsics at that size (default: estimated from "
+                   "a 62.2 degree horizontal field of view)")
+    p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
+                   "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
+                   "each of 200 bins of the path, chosen while recording")
+    p.set_defaults(**{PHRASES_ATTRIBUTE: {**(p.get_default(PHRASES_ATTRIBUTE) or {}),
+                                          "choose": "leaving out --keep-all"}})
+
+
+def _field_camera(args: argparse.Namespace, width: int, height: int, duration_s: float):
+    """The USB camera of --camera, checked before the bot moves: its settings
+    (`UsbCameraConfig`; frames chosen over `duration_s` of bot time unless --keep-all), the
+    recorder the bot films with, and what scan.json records of it."""
+    if args.camera is None:
+        raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
+                         "/dev/v4l/by-id/usb-...-video-index0")
+    if not Path(args.camera).exists():
+        raise InputError(args.camera, "no such camera device; list them with "
+                         "ls -l /dev/v4l/by-id/")
+    from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
+    from flowerpose.hardware.trajectory import TrajectoryRecorder
+    from flowerpose.scanio import read_intrinsics
+
+    if args.calibration is not None:
+        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
+    choose = None if args.keep_all else FrameChoice(duration_s)
+    camera = UsbCameraConfig(width=width, height=height, calibration=args.calibration,
+                             choose=choose)
+    recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
+    described = {"device": args.camera, "width": width, "height": height,
+                 "intrinsics": str(args.calibration or "estimated from the field of view"),
+                 "frames": "every frame" if choose is None else
+                 f"the {choose.keep} sharpest of each of {choose.bins} bins of the path"}
+    return camera, recorder, described
 
 
 def _check_field_bot_flags(args: argparse.Namespace) -> None:
@@ -490,37 +504,116 @@ def add_farmduino(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_field(args: argparse.Namespace) -> int:
-    from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed, run_sim_bed
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.report import pollination_lines
     from flowerpose.hardware.flights.bed_plan import plan_bed, read_bed
 
     if args.bed is None and not args.cloud:
         raise InputError("--bed", "give the bed: --bed FILE (TOML or CSV), or --cloud for the "
                          "plants of your FarmBot account's garden")
+    if args.sim and args.port is not None:
+        raise InputError("field", "choose one bot: --sim (simulated) or --port PORT, not both")
+    if args.port is not None and args.cloud:
+        raise InputError("field", "choose one bot: --port PORT or --cloud, not both (--cloud "
+                         "without --bed also reads the bed from your account's garden)")
+    if not args.sim:
+        for flag, given in (("--seed", args.seed is not None),
+                            ("--preset", args.preset is not None),
+                            ("--via-farmduino", args.via_farmduino),
+                            ("--time-scale", args.time_scale is not None)):
+            if given:
+                raise InputError(flag, "is for the simulated bed: add --sim")
     if args.token_file is not None and not args.cloud:
         raise InputError("--token-file", "is the web app's login: add --cloud")
     bed = read_bed(args.bed) if args.bed is not None else _account_bed(args)
-    if not args.sim:
-        if not args.dry_run:
-            raise InputError("field", "a bed is filmed in the simulator only so far (--sim); "
-                             "--dry-run plans it for the physical bot, and flowerpose scan "
-                             "--port or --cloud films each plant")
+    if args.sim:
+        return _field_sim(args, bed)
+    if args.dry_run:
         print("\n".join(plan_bed(bed).table()))
         return 0
-    if args.seed < 0:
-        raise InputError("--seed", f"must be 0 or more, got {args.seed}")
+    if args.port is None and not args.cloud:
+        raise InputError("field", "choose the bot that films the bed: --port PORT (its "
+                         "Farmduino on serial), --cloud (through FarmBot's web app) or --sim "
+                         "(simulated); --dry-run plans it without one")
+    return _field_physical(args, bed)
+
+
+#: What a physical bed's run reads of the settings: the frame choice, photogrammetry,
+#: detection and pose, the visits, and the camera's frame size.
+FIELD_SETTINGS = ("scan.frames", "scan.reconstruct", "scan.camera.width",
+                  "scan.camera.height", "pollinate")
+
+
+def _field_physical(args: argparse.Namespace, bed) -> int:
+    """field --port / --cloud: the physical bot films the bed's plants with its USB camera,
+    each reconstructed and its flowers found while it films the next."""
+    import contextlib
+    import dataclasses
+
+    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.field_bed import FieldRig, run_field_bed
+    from flowerpose.hardware.flights.bed_plan import plan_bed
+    from flowerpose.pipeline.flowers import PipelineConfig
+
+    reads = FIELD_SETTINGS + tuple(f.name for f in dataclasses.fields(PipelineConfig))
+    config = configure(EvalConfig(), args, reads=reads, command="field --port/--cloud")
+    plan = plan_bed(bed)  # a plant out of reach is refused before the camera opens
+    print(f"bed: {len(plan.plants)} plants, {plan.duration_s / 60:.0f} min of bot time; "
+          "every scan checked against the bot's reach and the neighbours")
+    size = config.scan.camera
+    camera, recorder, described = _field_camera(args, size.width, size.height,
+                                                 max(s.duration_s for s in plan.scans))
+    connect, source = _field_bot(args, camera=recorder.bind, observer=recorder.observe)
+    source["camera"] = described
+
+    @contextlib.contextmanager
+    def session():
+        try:
+            with connect() as bot:
+                _home_field_bot(args, bot)
+                yield bot
+        finally:
+            recorder.close()
+
+    with jobs_on(args):
+        report = run_field_bed(bed, config, args.out, FieldRig(session, recorder, camera, source),
+                               args.keep_going, pollinate=args.pollinate,
+                               cache=stage_cache(args))
+    summary = report["summary"]
+    print(f"bed: {summary['detected']} of {summary['plants']} plants detected, "
+          f"{summary['flowers']} flowers found ({summary['with_normal']} with a normal) -> "
+          f"{args.out / 'report.md'}")
+    if "pollination" in summary:
+        done = summary["pollination"]
+        print(f"pollinated {done['done']} of {done['flowers']} flowers "
+              f"({done['planned']} visits planned)")
+    return 0
+
+
+def _field_sim(args: argparse.Namespace, bed) -> int:
+    """field --sim: the bed's plants generated and filmed in the simulator, scored."""
+    from flowerpose.config import DEFAULT_PRESET
+    from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed, run_sim_bed
+    from flowerpose.eval.config import eval_config
+    from flowerpose.eval.report import pollination_lines
+
+    seed = 0 if args.seed is None else args.seed
+    if seed < 0:
+        raise InputError("--seed", f"must be 0 or more, got {seed}")
     if args.time_scale is not None and not args.via_farmduino:
         raise InputError("--time-scale", "is the virtual Farmduino's: add --via-farmduino")
-    args.time_scale = args.time_scale or SERIAL_SIM_TIME_SCALE
-    config = configure(eval_config(args.preset), args, command="field --sim")
+    _check_field_bot_flags(args)
+    for flag in ("--camera", "--calibration", "--keep-all"):
+        if getattr(args, flag[2:].replace("-", "_")):
+            raise InputError(flag, "is the physical bot's camera: the simulated bed films "
+                             "with the simulated one")
+    time_scale = args.time_scale or SERIAL_SIM_TIME_SCALE
+    config = configure(eval_config(args.preset or DEFAULT_PRESET), args, command="field --sim")
     if args.dry_run:
-        plan = plan_sim_bed(make_bed_plants(bed, config, args.seed, None))
+        plan = plan_sim_bed(make_bed_plants(bed, config, seed, None))
         print("\n".join(plan.table()))
         return 0
-    scale = args.time_scale if args.via_farmduino else None
+    scale = time_scale if args.via_farmduino else None
     with jobs_on(args):
-        report = run_sim_bed(bed, config, args.seed, args.out, args.keep_going,
+        report = run_sim_bed(bed, config, seed, args.out, args.keep_going,
                              serial_time_scale=scale, pollinate=args.pollinate,
                              cache=stage_cache(args))
     summary = report["summary"]
@@ -547,50 +640,52 @@ def _account_bed(args: argparse.Namespace):
 def add_field(sub: argparse._SubParsersAction) -> None:
     """The `field` subcommand's parser."""
     from flowerpose.cli.options import add_cache_options, add_preset, add_ray_option
+    from flowerpose.config import DEFAULT_PRESET
 
     p = sub.add_parser(
         "field", help="a field run over a bed of plants: each filmed, reconstructed while the "
         "bot films the next, its flowers found (--sim: scored against the truth)",
         description="Run a whole bed: the plants of a bed file (TOML or CSV; DESIGN.md, 'A bed "
-        "file') or of your FarmBot account's garden (--cloud) planned and checked before "
-        "anything moves, filmed one after another in the order that keeps the travel short, "
-        "each reconstructed and its flowers found in a worker while the bot films the next. "
-        "--sim generates a plant at each place, all in one simulated world, and scores each "
-        "against its exact truth; the physical bot's bed is planned and checked only "
-        "(--dry-run). Rerunning the command resumes the bed (bed.json): finished plants are "
-        "left alone.",
+        "file') or of your FarmBot account's garden (--cloud without --bed) planned and "
+        "checked before anything moves, filmed one after another in the order that keeps "
+        "the travel short, each reconstructed and its flowers found in a worker while the "
+        "bot films the next; --pollinate then visits each plant's flowers. The physical bot "
+        "films with its USB camera (--port or --cloud, with --camera); --sim generates a "
+        "plant at each place, all in one simulated world, and scores each against its exact "
+        "truth. Rerunning the command resumes the bed (bed.json): finished plants are left "
+        "alone, a scan or a flight cut short resumes.",
         epilog="examples:\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --dry-run\n"
-        "  flowerpose field --cloud --out bed --dry-run\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --set scan.frames.count=120\n"
         "  flowerpose field --sim --bed bed.toml --out bed4 --pollinate\n"
-        "  flowerpose field --sim --bed bed.toml --out bed4 --ray")
+        "  flowerpose field --sim --bed bed.toml --out bed4 --ray\n"
+        "  flowerpose field --cloud --out bed --dry-run\n"
+        "  flowerpose field --port /dev/ttyACM0 --camera /dev/video0 --bed bed.toml --out bed")
     p.add_argument("--bed", type=Path, metavar="FILE",
                    help="the bed file: where each plant stands (an example: "
                    "assets/beds/example-4.toml in the package)")
-    p.add_argument("--cloud", action="store_true",
-                   help="without --bed: the bed is the plants of your FarmBot account's garden "
-                   f"(the web app's plant list); {WEB_APP_LOGIN}")
-    _add_token_file(p)
+    _add_field_bot_options(p, cloud=" (without --bed, the bed is the plants of your "
+                           "account's garden: the web app's plant list)")
+    _add_camera_options(p, "scan.camera.width x scan.camera.height (--set; 1280 x 720)")
     p.add_argument("--sim", action="store_true",
-                   help="the simulated bot and generated plants (without it, only --dry-run: "
-                   "the bed planned for the physical bot)")
-    p.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="the simulated bot and generated plants, scored against their truth")
+    p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="--sim: the bed file's i-th plant is generated from seed S+i "
-                   "(default: %(default)s)")
-    add_preset(p)
+                   "(default: 0)")
+    add_preset(p, default=None, shown=f"{DEFAULT_PRESET}; --sim only")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the bed's folder (resumes the run already there)")
     p.add_argument("--keep-going", action="store_true",
                    help="a plant that fails is marked so in bed.json and the bed goes on "
-                   "(default: the bed stops, the bot parked)")
+                   "(default: the bed stops, the recording stopped and the bot let go)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the bed's plan (order, waypoints, bot time), every scan checked "
-                   "against the bot's reach and the neighbours, and stop")
+                   "against the bot's reach and the neighbours, and stop: nothing connects "
+                   "or moves")
     p.add_argument("--pollinate", action="store_true",
-                   help="then plan each detected plant's visits from its flowers, fly them "
-                   "and (--sim) score each against the truth, with the visits from the true "
-                   "poses beside them (pollination.png)")
+                   help="then plan each detected plant's visits from its flowers and fly them "
+                   "(--sim: scored against the truth, with the visits from the true poses "
+                   "beside them, pollination.png)")
     p.add_argument("--via-farmduino", action="store_true",
                    help="with --sim: drive the simulated bot through the physical bot's serial "
                    "backend and a virtual Farmduino (its firmware's motion timing)")
@@ -600,5 +695,7 @@ def add_field(sub: argparse._SubParsersAction) -> None:
     add_cache_options(p)
     add_ray_option(p)
     add_config_options(p, detector=False,
-                       example="scan.frames.count=120 (--sim reads every section)")
+                       example="scan.frames.count=120 (--sim reads every section; --port and "
+                       "--cloud the pipeline's, scan.frames, scan.reconstruct, "
+                       "scan.camera.width and .height, and pollinate)")
     p.set_defaults(func=cmd_field)

@@ -347,6 +347,14 @@ class UsbCamera(RecordingCamera):
         image, t = self._wait_frame()
         return Frame(np.ascontiguousarray(image[:, :, ::-1]), t)
 
+    def choose_frames(self, choice: FrameChoice | None) -> None:
+        """How the next recordings choose their frames (a bed's plants each have their own
+        scan's duration); None: every frame is kept."""
+        if self._recording is not None:
+            raise CameraError(f"{self.device}: the frame choice cannot change while "
+                              f"recording to {self._recording.folder}")
+        self.config = replace(self.config, choose=choice)
+
     def start_recording(self, path: str | Path) -> None:
         if self._recording is not None:
             raise CameraError(f"{path}: already recording to {self._recording.folder}; stop "

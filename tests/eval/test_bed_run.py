@@ -227,6 +227,85 @@ def test_with_pollinate_each_detected_plant_is_visited_and_scored(bed_run, tmp_p
                      for n in ("a", "b")}
 
 
+def _small_config():
+    """The settings SMALL gives `field --sim` (the bed's cached work is keyed by them)."""
+    from flowerpose.eval.config import eval_config
+
+    sets = dict(item.split("=") for item in SMALL[3::2])
+    return eval_config("easy", [{k: float(v) if "." in v else int(v) for k, v in sets.items()}])
+
+
+@pytest.mark.slow
+def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(bed_run,
+                                                                              tmp_path,
+                                                                              monkeypatch):
+    """The simulated bed's recordings as a physical bed's (no truth beside them), processed
+    by the physical bed's worker and pollinated by the serial backend on a virtual
+    Farmduino: the same flowers as the simulated run (its reconstructions from the stage
+    cache), every plant's visits flown, and a report with no score."""
+    import contextlib
+    import shutil
+
+    from flowerpose.eval import bed_loop, field_bed
+    from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed
+    from flowerpose.hardware.backends.farmduino import FarmduinoBot
+    from flowerpose.hardware.flights.bed_plan import read_bed
+
+    virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
+    bed_file, done, _ = bed_run
+    config = _small_config()
+    # The plants' reach as the simulated run cut their clouds to, and its plan (a cylinder
+    # of that reach is more than the simulated path keeps clear of).
+    sim_bed = make_bed_plants(read_bed(bed_file), config, 0, done)
+    bed = sim_bed.bed
+    monkeypatch.setattr(field_bed, "plan_bed", lambda _: plan_sim_bed(sim_bed))
+    out = tmp_path / "field"
+    for spot in bed.plants:
+        shutil.copytree(done / "plants" / spot.name / "scan", out / "plants" / spot.name /
+                        "scan", ignore=shutil.ignore_patterns(*bed_loop.TRUTH_FILES))
+    journal = bed_loop.open_journal(out, bed, field_bed.fingerprint(bed, config), {})
+    for spot in bed.plants:  # filmed, as a bed stopped after its last scan would be
+        journal.record["plants"][spot.name] = {"stage": "scanned", "seconds": {"scan": 1.0}}
+    journal.save()
+
+    @contextlib.contextmanager
+    def serial_bot():
+        with virtual.VirtualFarmduino(time_scale=100.0, params=virtual.FEEDBACK_PARAMETERS
+                                      ) as device, FarmduinoBot(device.path) as bot:
+            bot.home()
+            yield bot
+
+    said = []
+    rig = field_bed.FieldRig(serial_bot, None, None, {"backend": "serial"})
+    report = field_bed.run_field_bed(bed, config, out, rig, pollinate=True, say=said.append,
+                                     cache=bed_file.parent / "cache")
+    assert not any("filming" in line for line in said), said
+    rows = {row["plant"]: row for row in report["bed"]["plants"]}
+    for spot in bed.plants:
+        row = rows[spot.name]
+        assert row["stage"] == "detected", row
+        assert row["seconds"]["frames"] == row["seconds"]["reconstruct"] == 0.0
+        found = _flowers(out, spot.name)
+        assert found == _flowers(done, spot.name) and row["flowers"] == len(found) >= 1
+        visits = row["pollination"]
+        assert visits["status"] == "complete" and visits["done"] == visits["planned"] > 0
+        flight = json.loads((out / "plants" / spot.name / "pollination" /
+                             "flight.json").read_text())
+        assert len(flight["done"]) == visits["done"]
+        assert flight["source"]["backend"] == "serial"
+    summary = report["summary"]
+    assert summary["detected"] == 2 and summary["flowers"] == sum(r["flowers"] for r in
+                                                                  rows.values())
+    assert "visible" not in summary and "pollinated" in (out / "report.md").read_text()
+    assert "no truth" in (out / "report.md").read_text() and (out / "report.html").is_file()
+
+
+def _flowers(out, name) -> list:
+    """Each flower's centre and plane normal in a bed plant's flowers.json."""
+    flowers = json.loads((out / "plants" / name / "flowers.json").read_text())["flowers"]
+    return [(f["center"], f["normals"]["plane"]) for f in flowers]
+
+
 @pytest.mark.slow
 def test_a_dry_run_prints_the_beds_plan_in_row_order_and_writes_nothing(tmp_path, capsys):
     from importlib.resources import files
