@@ -34,6 +34,7 @@ from flowerpose.outputs import check_output, publish, staging_folder
 from flowerpose.pipeline.dense import DenseConfig, reconstruct_dense
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.sfm import (
+    FULL_IMAGE_SIZE,
     MIN_IMAGE_POINTS,
     SfmConfig,
     SparseResult,
@@ -141,7 +142,8 @@ def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: Recons
     if method == "patch_match":
         cloud, dense_report = reconstruct_patch_match(frames_dir, work_dir / "sparse",
                                                       work_dir / "mvs",
-                                                      config.sfm.max_image_size)
+                                                      config.sfm.max_image_size
+                                                      or FULL_IMAGE_SIZE)
     else:
         poses = refined_poses(sparse) if config.dense_poses == "refined" else None
         cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
