@@ -168,9 +168,11 @@ def test_field_cloud_plans_the_accounts_garden_and_moves_nothing(tmp_path, capsy
     assert "dandelion" not in shown.lower() and "2 plants" in shown
     assert device.calls == [("api_get", "points")]  # read the garden; no move, no status
     assert not out.exists()
-    # the physical bed itself is not filmed yet: one line saying what to do instead
+    # filming the garden needs the head's camera: one line, before anything connects
+    calls = list(device.calls)
     assert main(["field", "--cloud", "--out", str(out)]) == 2
-    assert "--dry-run plans it" in capsys.readouterr().err
+    assert "--camera" in capsys.readouterr().err and not out.exists()
+    assert device.calls == calls + [("api_get", "points")]
     # an expired token: one line naming the server, never the token
     device.points = []
     monkeypatch.setattr(factory.clients[0].__class__, "api_get",
