@@ -184,6 +184,31 @@ def test_refined_poses_stay_in_the_bed_frame_when_recorded_positions_are_noisy(
     assert 0.0005 < result.report["alignment_rms_m"] < 0.005
 
 
+class _Extracted(Exception):
+    """Raised by a stand-in for pycolmap's feature extraction, carrying its options."""
+
+
+@pytest.mark.parametrize("camera, mode, size", [(True, "poses", 640),
+                                                (False, "incremental", 1280)])
+def test_sift_sees_the_frames_at_the_size_each_mode_needs(images, tmp_path, monkeypatch,
+                                                           camera, mode, size):
+    """Unset, SIFT's image size follows the mode: 640 px where the recorded poses guide
+    matching, the frames' 1280 where incremental mapping finds the poses from the
+    features; a size given is used in either."""
+    from flowerpose.pipeline import sfm
+
+    def extract(*args, extraction_options, **kwargs):
+        raise _Extracted(extraction_options.max_image_size)
+
+    monkeypatch.setattr(sfm.pycolmap, "extract_features", extract)
+    positions, rotations = ring_poses()
+    frames_dir = frames_folder(tmp_path / "scene", images, positions, rotations, camera=camera)
+    for config, expected in ((SfmConfig(), size), (SfmConfig(max_image_size=800), 800)):
+        with pytest.raises(_Extracted) as caught:
+            reconstruct_sparse(frames_dir, tmp_path / f"work-{expected}", config)
+        assert caught.value.args == (expected,), mode
+
+
 def test_too_few_images_is_a_clear_error(scene, tmp_path):
     frames_dir, _ = scene
     data = json.loads((frames_dir / "frames.json").read_text())
