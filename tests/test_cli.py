@@ -9,16 +9,11 @@ import sys
 
 import numpy as np
 import pytest
+from cli_run import run_cli
 
 from flowerpose import __version__
 from flowerpose.cli import build_parser, main
 from flowerpose.cloudio import Cloud, write_cloud
-
-
-def _run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _assert_one_line_error(code, err, *words):
@@ -36,7 +31,7 @@ def _assert_one_line_error(code, err, *words):
 def test_detect_pose_score_chain(plant0, tmp_path, capsys):
     _, plant_dir = plant0
     out = tmp_path / "det"
-    code, text, _ = _run(capsys, "detect", plant_dir / "cloud.ply", "--out", out)
+    code, text, _ = run_cli(capsys, "detect", plant_dir / "cloud.ply", "--out", out)
     assert code == 0 and "flowers" in text
     flowers = json.loads((out / "flowers.json").read_text())
     assert len(flowers["flowers"]) == 6
@@ -62,11 +57,11 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
         # each arrow runs from its flower's centre along its normal
         along = (tip - flower["center"]) @ np.array(flower["normals"]["plane"])
         assert along.min() > -1e-3 and along.max() == pytest.approx(max(flower["box"]["extent"]))
-    code, text, _ = _run(capsys, "pose", out / "crops" / "flower_00.ply")
+    code, text, _ = run_cli(capsys, "pose", out / "crops" / "flower_00.ply")
     entry = json.loads(text)
     assert code == 0 and entry["pistil_found"] and len(entry["normals"]["plane"]) == 3
     assert set(entry) == set(flowers["flowers"][0])
-    code, text, _ = _run(capsys, "score", out / "flowers.json", plant_dir / "plant.json",
+    code, text, _ = run_cli(capsys, "score", out / "flowers.json", plant_dir / "plant.json",
                          "--out", tmp_path / "score")
     report = json.loads((tmp_path / "score" / "report.json").read_text())
     assert code == 0 and "Plane" in text
@@ -77,13 +72,13 @@ def test_detect_pose_score_chain(plant0, tmp_path, capsys):
 @pytest.mark.slow
 def test_eval_writes_the_report_contract(tmp_path, capsys):
     out = tmp_path / "eval"
-    code, text, err = _run(capsys, "eval", "--source", "oracle", "--plants", 1, "--seed", 1,
+    code, text, err = run_cli(capsys, "eval", "--source", "oracle", "--plants", 1, "--seed", 1,
                            "--workers", 1,
                            "--out", out, "--set", "cluster.eps=0.01")
     assert code == 0
     # Progress: a line per plant with the time it took (the last: nothing left).
     assert re.search(r"^\[1/1\] seed-1 scored: .* \(\d+ s in\)$", err, re.MULTILINE), err
-    code, quiet_text, quiet_err = _run(capsys, "eval", "-q", "--source", "oracle", "--plants",
+    code, quiet_text, quiet_err = run_cli(capsys, "eval", "-q", "--source", "oracle", "--plants",
                                        1, "--seed", 1, "--workers", 1, "--out", out,
                                        "--set", "cluster.eps=0.01")
     def without_times(printed):
@@ -115,7 +110,7 @@ def test_eval_writes_the_report_contract(tmp_path, capsys):
 
 
 def test_plant_command(tmp_path, capsys):
-    code, text, _ = _run(capsys, "plant", "--seed", 4, "--points", 5000, "--preset", "easy",
+    code, text, _ = run_cli(capsys, "plant", "--seed", 4, "--points", 5000, "--preset", "easy",
                          "--out", tmp_path / "p")
     assert code == 0 and "5000 cloud points" in text
     truth = json.loads((tmp_path / "p" / "plant.json").read_text())
@@ -129,7 +124,7 @@ def test_a_cloud_without_flowers_gives_an_empty_result(tmp_path, capsys):
     leaves = Cloud(rng.random((3000, 3)) * [0.3, 0.3, 0.2] + [0, 0, 0.05],
                    np.tile([50, 120, 40], (3000, 1)).astype(np.uint8))
     path = write_cloud(tmp_path / "leaves.ply", leaves)
-    code, text, _ = _run(capsys, "detect", path, "--out", tmp_path / "out")
+    code, text, _ = run_cli(capsys, "detect", path, "--out", tmp_path / "out")
     assert code == 0 and text.startswith("0 flowers")
     assert json.loads((tmp_path / "out" / "flowers.json").read_text())["flowers"] == []
     import open3d as o3d
@@ -141,7 +136,7 @@ def test_a_cloud_without_flowers_gives_an_empty_result(tmp_path, capsys):
 def test_a_millimetre_cloud_is_converted_and_said(plant0, tmp_path, capsys):
     bundle, _ = plant0
     path = write_cloud(tmp_path / "mm.ply", Cloud(bundle.cloud.points * 1000, bundle.cloud.colors))
-    code, text, err = _run(capsys, "detect", path, "--out", tmp_path / "out")
+    code, text, err = run_cli(capsys, "detect", path, "--out", tmp_path / "out")
     assert code == 0 and "millimetres" in err and text.startswith("6 flowers")
 
 
@@ -214,7 +209,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
              "nan": tmp_path / "nan.ply", "empty": tmp_path / "empty.ply",
              "badjson": tmp_path / "bad.json"}
     try:
-        code, _, err = _run(capsys, *[a.format(**names) for a in argv])
+        code, _, err = run_cli(capsys, *[a.format(**names) for a in argv])
     except SystemExit as exit_:
         code, err = exit_.code, capsys.readouterr().err
     _assert_one_line_error(code, err, *words)

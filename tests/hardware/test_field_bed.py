@@ -5,9 +5,9 @@ refusals that come before anything moves."""
 import functools
 
 import pytest
+from cli_run import run_cli
 from cloud_fakes import FakeCapture
 
-from flowerpose.cli import main
 from flowerpose.hardware.backends import usb_camera
 from flowerpose.jsonio import read_json
 from flowerpose.scanio import frame_files, read_trajectory
@@ -40,14 +40,6 @@ radius = 0.08
 SMALL_CAMERA = ["--set", "scan.camera.width=64", "--set", "scan.camera.height=48"]
 
 
-def _run(capsys, *argv):
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exit_:
-        code = exit_.code
-    out, err = capsys.readouterr()
-    return code, out, err
-
 
 @pytest.fixture
 def field(tmp_path, monkeypatch):
@@ -69,7 +61,7 @@ def test_a_bed_is_filmed_plant_after_plant_through_the_serial_backend(field, cap
             *SMALL_CAMERA, "--keep-going"]
     with virtual.VirtualFarmduino(time_scale=100.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
-        code, said, err = _run(capsys, *argv, "--port", device.path)
+        code, said, err = run_cli(capsys, *argv, "--port", device.path)
     assert code == 0, err
     journal = read_json(out / "bed.json")
     first, second = journal["order"]
@@ -100,7 +92,7 @@ def test_a_bed_is_filmed_plant_after_plant_through_the_serial_backend(field, cap
     frames = {name: frame_files(out / "plants" / name / "scan") for name in ("near", "far")}
     with virtual.VirtualFarmduino(time_scale=100.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
-        code, said, err = _run(capsys, *argv, "--port", device.path)
+        code, said, err = run_cli(capsys, *argv, "--port", device.path)
     assert code == 0, err
     assert "filming" not in said
     assert {n: frame_files(out / "plants" / n / "scan") for n in frames} == frames
@@ -109,7 +101,7 @@ def test_a_bed_is_filmed_plant_after_plant_through_the_serial_backend(field, cap
 def test_the_physical_bed_is_planned_before_anything_opens(field, capsys):
     far = BED.replace("x = 1.6", "x = 9.0")
     (field / "far.toml").write_text(far)
-    code, _, err = _run(capsys, "field", "--bed", field / "far.toml", "--port", "/dev/none",
+    code, _, err = run_cli(capsys, "field", "--bed", field / "far.toml", "--port", "/dev/none",
                         "--camera", field / "video0", "--out", field / "bed")
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "far" in lines[0], err
@@ -129,7 +121,7 @@ def test_the_physical_bed_is_planned_before_anything_opens(field, capsys):
 ])
 def test_bad_input_is_one_line_and_exit_2(field, capsys, argv, words):
     argv = [a.replace("{tmp}", str(field)) for a in argv]
-    code, _, err = _run(capsys, "field", "--bed", field / "bed.toml", "--out", field / "bed",
+    code, _, err = run_cli(capsys, "field", "--bed", field / "bed.toml", "--out", field / "bed",
                         *argv)
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and lines[0].startswith("flowerpose: error: "), err

@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from cli_run import run_cli
 
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
@@ -115,13 +116,6 @@ def _flowers_file(tmp_path):
     return path
 
 
-def _run(capsys, *argv):
-    from flowerpose.cli import main
-
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
 
 @pytest.mark.slow
 def test_pollinate_flies_on_a_virtual_farmduino_after_homing(tmp_path, capsys):
@@ -129,11 +123,11 @@ def test_pollinate_flies_on_a_virtual_farmduino_after_homing(tmp_path, capsys):
     flowers = _flowers_file(tmp_path)
     argv = ["pollinate", flowers, "--plant-at", "1.5,0.75", "--plant-cloud",
             tmp_path / "plant.ply", "--out", tmp_path / "visits"]
-    code, out, err = _run(capsys, *argv, "--port", "/dev/no-such-port", "--dry-run")
+    code, out, err = run_cli(capsys, *argv, "--port", "/dev/no-such-port", "--dry-run")
     assert code == 0 and " dwell " in out and not (tmp_path / "visits" / FLIGHT_NAME).exists()
     with virtual.VirtualFarmduino(time_scale=100.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
-        code, out, err = _run(capsys, *argv, "--port", device.path)
+        code, out, err = run_cli(capsys, *argv, "--port", device.path)
         assert code == 0, err
         assert "homing" in err and "flight complete: 1/1 flowers pollinated" in out
         assert any(line.startswith("F11") for line in device.received)
@@ -148,7 +142,7 @@ def test_pollinate_flies_on_a_virtual_farmduino_after_homing(tmp_path, capsys):
 ])
 def test_pollinate_with_bad_bot_options_is_one_line_and_exit_2(tmp_path, capsys, extra, words):
     flowers = _flowers_file(tmp_path)
-    code, _, err = _run(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75", "--out",
+    code, _, err = run_cli(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75", "--out",
                         tmp_path / "visits", *extra)
     assert code == 2 and err.count("\n") == 1 and words in err
     assert not (tmp_path / "visits").exists()
@@ -156,7 +150,7 @@ def test_pollinate_with_bad_bot_options_is_one_line_and_exit_2(tmp_path, capsys,
 
 def test_flying_without_the_plants_cloud_is_refused_before_connecting(tmp_path, capsys):
     flowers = _flowers_file(tmp_path)
-    code, _, err = _run(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75", "--out",
+    code, _, err = run_cli(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75", "--out",
                         tmp_path / "visits", "--port", "/dev/no-such-port")
     assert code == 2 and "--plant-cloud: needed to fly" in err.splitlines()[-1]
     assert not (tmp_path / "visits").exists()
@@ -194,12 +188,12 @@ def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, 
     argv = ["pollinate", path, "--plant-at", "1.5,0.75", "--plant-cloud",
             tmp_path / "cloud" / "plant.ply", "--out", tmp_path / "visits", "--cloud"]
     monkeypatch.setattr(cloud_bot, "farmbot_client", factory)
-    code, _, err = _run(capsys, *argv)
+    code, _, err = run_cli(capsys, *argv)
     assert code == 130 and "interrupted" in err
     cut = read_json(tmp_path / "visits" / FLIGHT_NAME)
     assert cut["status"] == "interrupted" and len(cut["done"]) == 1
     monkeypatch.setattr(cloud_bot, "farmbot_client", lambda: fake_factory(device)())
-    code, out, err = _run(capsys, *argv)
+    code, out, err = run_cli(capsys, *argv)
     assert code == 0, err
     assert "resuming at visit 2 of 3" in err and "flight complete: 3/3" in out
     flight = read_json(tmp_path / "visits" / FLIGHT_NAME)
@@ -212,7 +206,7 @@ def test_flying_without_credentials_is_refused_before_the_plan_is_written(tmp_pa
     for name in ("FARMBOT_TOKEN", "FARMBOT_EMAIL", "FARMBOT_PASSWORD", "FARMBOT_SERVER"):
         monkeypatch.delenv(name, raising=False)
     flowers = _flowers_file(tmp_path)
-    code, _, err = _run(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75",
+    code, _, err = run_cli(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75",
                         "--plant-cloud", tmp_path / "plant.ply", "--out", tmp_path / "visits",
                         "--cloud")
     assert code == 2 and "FARMBOT_TOKEN" in err.splitlines()[-1]

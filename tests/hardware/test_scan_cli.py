@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import run_cli
 from cloud_fakes import FakeCapture, FakeDevice, fake_factory, make_token
 
-from flowerpose.cli import main
 from flowerpose.hardware.backends import cloud_bot, usb_camera
 from flowerpose.hardware.flights import scan_plan
 from flowerpose.jsonio import read_json
@@ -25,18 +25,10 @@ def no_credentials(monkeypatch):
         monkeypatch.delenv(name, raising=False)
 
 
-def _run(capsys, *argv):
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exit_:
-        code = exit_.code
-    out, err = capsys.readouterr()
-    return code, out, err
-
 
 @pytest.mark.parametrize("bot", [["--cloud"], ["--port", "/dev/no-such-port"]])
 def test_the_dry_run_prints_the_checked_moves_without_connecting(tmp_path, capsys, bot):
-    code, out, err = _run(capsys, "scan", *bot, "--plant-at", "1.5,0.75", "--out",
+    code, out, err = run_cli(capsys, "scan", *bot, "--plant-at", "1.5,0.75", "--out",
                           tmp_path / "scan", "--dry-run")
     lines = out.splitlines()
     assert code == 0 and err == ""
@@ -84,7 +76,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, words):
     (tmp_path / "video0").write_text("")
     (tmp_path / "bad.json").write_text(json.dumps({"encoder_enabled_x": 1, "speed": 3}))
     names = {"tmp": tmp_path, "repo": tmp_path / "repo", "device": tmp_path / "video0"}
-    code, _, err = _run(capsys, "scan", *[a.format(**names) for a in argv], "--out",
+    code, _, err = run_cli(capsys, "scan", *[a.format(**names) for a in argv], "--out",
                         tmp_path / "scan")
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1 and lines[0].startswith("flowerpose: error: "), err
@@ -130,7 +122,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
         return client
 
     monkeypatch.setattr(cloud_bot, "farmbot_client", factory)
-    code, _, err = _run(capsys, *argv)
+    code, _, err = run_cli(capsys, *argv)
     assert code == 130 and "interrupted" in err
     first = read_json(scan / "scan.json")
     # Two approach moves (up, then over waypoint 0), then waypoints 0-2; the 6th move stops.
@@ -140,7 +132,7 @@ def test_a_cloud_scan_interrupted_and_resumed_keeps_every_frame(tmp_path, capsys
     assert len(read_trajectory(scan / "trajectory.csv")) > 0 and len(recorded) > 0
 
     monkeypatch.setattr(cloud_bot, "farmbot_client", lambda: fake_factory(device)())
-    code, out, err = _run(capsys, *argv)
+    code, out, err = run_cli(capsys, *argv)
     assert code == 0, err
     manifest = read_json(scan / "scan.json")
     assert manifest["status"] == "complete" and len(manifest["sessions"]) == 2
@@ -162,7 +154,7 @@ def test_a_serial_scan_homes_first_and_records_on_a_virtual_farmduino(tmp_path, 
     scan, _ = _small_field_scan(monkeypatch, tmp_path, fps=100.0)
     with virtual.VirtualFarmduino(time_scale=100.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
-        code, out, err = _run(capsys, "scan", "--port", device.path, "--camera",
+        code, out, err = run_cli(capsys, "scan", "--port", device.path, "--camera",
                               tmp_path / "video0", "--width", 64, "--height", 48, "--plant-at",
                               "1.5,0.75", "--plant-height", 0.22, "--out", scan)
     assert code == 0, err
@@ -186,19 +178,19 @@ def test_a_board_on_its_defaults_scans_with_the_bots_settings_or_homed_by_hand(t
     argv = ["--camera", tmp_path / "video0", "--width", 64, "--height", 48, "--plant-at",
             "1.5,0.75", "--plant-height", 0.22]
     with virtual.VirtualFarmduino(time_scale=100.0) as device:
-        code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--out", scan)
+        code, out, err = run_cli(capsys, "scan", "--port", device.path, *argv, "--out", scan)
         assert code == 2 and "warning: no --firmware-params" in err
         refused = err.splitlines()[-1]
         assert "parameter 27 (movement_enable_endpoints_z)" in refused
         assert "(--firmware-params, as the FarmBot web app" in refused
         assert "(--home-here)" in refused
         assert not any(line.startswith(("F11", "F12", "F13", "G00")) for line in device.received)
-        code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--firmware-params",
+        code, out, err = run_cli(capsys, "scan", "--port", device.path, *argv, "--firmware-params",
                               tmp_path / "firmware.json", "--out", tmp_path / "with-settings")
         assert code == 0, err
         assert "scan complete: 6/6 waypoints" in out and device.parameter(101) == 1.0
     with virtual.VirtualFarmduino(time_scale=100.0) as device:
-        code, out, err = _run(capsys, "scan", "--port", device.path, *argv, "--home-here",
+        code, out, err = run_cli(capsys, "scan", "--port", device.path, *argv, "--home-here",
                               "--out", tmp_path / "by-hand")
         assert code == 0, err
         assert "--home-here" in err and "scan complete: 6/6 waypoints" in out
@@ -210,13 +202,13 @@ def test_the_simulated_scan_flies_the_path_its_settings_give(plant0, tmp_path, c
     flies is the one whose cameras decide the oracle's visibility."""
     _, plant_dir = plant0
     base = ["scan", "--sim", "--plant", plant_dir, "--out", tmp_path / "scan", "--dry-run"]
-    code, out, _ = _run(capsys, *base)
+    code, out, _ = run_cli(capsys, *base)
     default = sum(line.strip()[:1].isdigit() for line in out.splitlines())
-    code_wide, out, _ = _run(capsys, *base, "--set", "sim.viewpoints.azimuth_step_deg=60")
+    code_wide, out, _ = run_cli(capsys, *base, "--set", "sim.viewpoints.azimuth_step_deg=60")
     wide = sum(line.strip()[:1].isdigit() for line in out.splitlines())
     assert code == code_wide == 0 and 0 < wide < default
     for key, words in (("cluster.eps=0.1", "scan --sim reads sim.viewpoints.*"),
                        ("scan.camera.width=8", "--width: width and height must be at least 16")):
-        code, _, err = _run(capsys, *base, "--set", key)
+        code, _, err = run_cli(capsys, *base, "--set", key)
         assert code == 2 and words in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "scan").exists()
