@@ -27,7 +27,10 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 
+import numpy as np
+
 from flowerpose.config import to_dict
+from flowerpose.errors import InputError
 from flowerpose.eval.bed_loop import (
     LOCK,
     SCAN_FAILURES,
@@ -43,7 +46,7 @@ from flowerpose.eval.config import EvalConfig, pipeline_part
 from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCameraConfig
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlant, plan_bed
 from flowerpose.hardware.flights.flight_journal import folder_lock
-from flowerpose.log import noted
+from flowerpose.log import LOG, noted
 from flowerpose.stopwatch import Stopwatch
 
 CUT_MARGIN_M = 0.03
@@ -159,11 +162,29 @@ def _film(bot, rig: FieldRig, spot: BedPlant, scan_plan, scan_dir: Path) -> None
         camera = dataclasses.replace(camera, choose=FrameChoice(scan_plan.duration_s))
     rig.recorder.camera.choose_frames(camera.choose)
     check_disk_space(scan_dir, camera, scan_plan.duration_s)
-    approach_start(bot, scan_plan, scan_dir)
-    run_scan(bot, scan_plan, scan_dir, progress=False, source={
-        **rig.source, "bot": bot.info.name, "firmware": bot.info.firmware,
-        "plant": {"name": spot.name, "at": list(spot.at), "height": spot.height,
-                  "radius": spot.radius}})
+    try:
+        approach_start(bot, scan_plan, scan_dir)
+        run_scan(bot, scan_plan, scan_dir, progress=False, source={
+            **rig.source, "bot": bot.info.name, "firmware": bot.info.firmware,
+            "plant": {"name": spot.name, "at": list(spot.at), "height": spot.height,
+                      "radius": spot.radius}})
+    except SCAN_FAILURES:
+        _park(bot)
+        raise
+
+
+def _park(bot) -> None:
+    """After a failed scan: the head lifted to the top of Z where the gantry stands, clear
+    of the plants, where the bot still can move (after an emergency stop or a lost link it
+    cannot, and stands where the error left it: said in a warning)."""
+    try:
+        here = bot.position()
+        if not np.all(np.isfinite(here)):
+            raise InputError(bot.info.name, "its position is unknown")
+        bot.move_to([here[0], here[1], bot.info.travel_max[2]])
+    except SCAN_FAILURES as error:
+        LOG.warning(f"warning: {bot.info.name} not parked ({str(error).splitlines()[0]}): "
+                    "it stands where the scan stopped")
 
 
 def _pollinate(bot, rig: FieldRig, journal, folders: dict[str, Path],

@@ -98,6 +98,39 @@ def test_a_bed_is_filmed_plant_after_plant_through_the_serial_backend(field, cap
     assert {n: frame_files(out / "plants" / n / "scan") for n in frames} == frames
 
 
+@pytest.mark.slow
+def test_a_camera_that_goes_silent_fails_its_plant_parks_the_head_and_the_bed_goes_on(
+        field, capsys, monkeypatch):
+    """The camera stops delivering frames in the first plant's scan: that plant fails
+    with the camera's reason, the head is lifted to the top of Z where the gantry stands,
+    and with --keep-going the next plant is tried (and fails the same way, the camera
+    being gone); without it the bed stops at the first, exit 2."""
+    virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
+    monkeypatch.setattr(usb_camera, "open_v4l2", lambda path: FakeCapture(fps=100.0,
+                                                                          frames=150))
+    monkeypatch.setattr(usb_camera, "UsbCameraConfig", functools.partial(
+        usb_camera.UsbCameraConfig, settle_s=0.0, frame_timeout_s=0.3))
+    argv = ["field", "--bed", field / "bed.toml", "--camera", field / "video0",
+            *SMALL_CAMERA]
+    for extra, code_wanted in ((["--keep-going"], 0), ([], 2)):
+        out = field / f"bed{len(extra)}"
+        with virtual.VirtualFarmduino(time_scale=100.0,
+                                      params=virtual.FEEDBACK_PARAMETERS) as device:
+            code, said, err = run_cli(capsys, *argv, "--out", out, *extra, "--port",
+                                      device.path)
+            moves = [line for line in device.received if line.startswith("G00")]
+        assert code == code_wanted, err
+        journal = read_json(out / "bed.json")
+        first = journal["plants"][journal["order"][0]]
+        assert first["stage"] == "failed" and first["failed_at"] == "scan", first
+        assert "camera" in first["error"] or "frames" in first["error"], first["error"]
+        # Parked: the last move lifts the head to the top of Z (FarmBot's z = 0).
+        assert float(moves[-1].split("Z")[1].split()[0]) == 0.0, moves[-3:]
+        second = journal["plants"][journal["order"][1]]
+        assert second["stage"] == ("failed" if extra else "planned"), second
+    assert "Traceback" not in err and len(err.strip().splitlines()[-1:]) == 1
+
+
 def test_the_physical_bed_is_planned_before_anything_opens(field, capsys):
     far = BED.replace("x = 1.6", "x = 9.0")
     (field / "far.toml").write_text(far)
