@@ -106,10 +106,8 @@ def film_bed(journal: Journal, work: BedWork, bot: AbstractContextManager,
                 result = pending.pop(name).result()
             except Exception as error:  # a failed reconstruction or detection
                 fail(entry, "reconstruct", error)
-                journal.save()
-                say(f"{name}: failed ({entry['error']})")
-                if not keep_going:
-                    raise
+                recorded_failure(journal, say, f"{name}: failed ({entry['error']})",
+                                 keep_going)
                 continue
             seconds = {**entry.get("seconds", {}), **result.pop("seconds")}
             entry.update(stage="detected", **result, seconds=seconds)
@@ -146,10 +144,8 @@ def film_bed(journal: Journal, work: BedWork, bot: AbstractContextManager,
                     watch.lap("scan")
                 except SCAN_FAILURES as error:
                     fail(entry, "scan", error)
-                    journal.save()
-                    say(f"{spot.name}: failed ({entry['error']})")
-                    if not keep_going:
-                        raise
+                    recorded_failure(journal, say, f"{spot.name}: failed ({entry['error']})",
+                                     keep_going)
                     continue
                 entry.update(stage="scanned", seconds=watch.report(digits=3, total=None))
                 journal.save()
@@ -286,9 +282,24 @@ class _Busy:
         return sum(max(0.0, min(end, until) - begin) for begin, end in spans)
 
 
+def first_line(error: BaseException) -> str:
+    """An error's first line: what a journal keeps of it."""
+    return str(error).splitlines()[0]
+
+
 def fail(entry: dict, stage: str, error: BaseException) -> None:
     """Mark a plant's journal entry failed at `stage`, with the error's first line."""
-    entry.update(stage="failed", failed_at=stage, error=str(error).splitlines()[0])
+    entry.update(stage="failed", failed_at=stage, error=first_line(error))
+
+
+def recorded_failure(journal: Journal, say: Callable[[str], None], line: str,
+                     keep_going: bool) -> None:
+    """Called in an `except` block once the journal's entry holds the error: the journal
+    saved, `line` said, and the error raised again unless `keep_going`."""
+    journal.save()
+    say(line)
+    if not keep_going:
+        raise
 
 
 def detected(record: dict) -> int:

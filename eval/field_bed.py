@@ -37,14 +37,16 @@ from flowerpose.eval.bed_loop import (
     BedWork,
     cut_to_plant,
     film_bed,
+    first_line,
     frames_and_cloud,
     open_journal,
+    recorded_failure,
     text,
     timing_text,
 )
 from flowerpose.eval.config import EvalConfig, pipeline_part
 from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCameraConfig
-from flowerpose.hardware.flights.bed_plan import Bed, BedPlant, plan_bed
+from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant
 from flowerpose.hardware.flights.flight_journal import folder_lock
 from flowerpose.log import LOG, noted
 from flowerpose.stopwatch import Stopwatch
@@ -111,17 +113,16 @@ def process_field_plant(folder: Path, name: str, at: tuple[float, float], radius
             "pipeline_s": {k: round(v, 3) for k, v in timing.items()}}
 
 
-def run_field_bed(bed: Bed, config: EvalConfig, out: Path, rig: FieldRig,
+def run_field_bed(bed: Bed, plan: BedPlan, config: EvalConfig, out: Path, rig: FieldRig,
                   keep_going: bool = False, say: Callable[[str], None] = print,
                   pollinate: bool = False, cache: Path | None = None) -> dict:
     """The bed's field run with the physical bot, resumable (the module's docstring).
-    Returns report.json's content. The bed is planned and checked before the bot connects
-    (InputError naming the plant); a plant whose scan (the bot, its camera, the disk) or
-    processing fails is marked failed with its error and, with `keep_going`, the bed goes
-    on without it; else the error goes on, the recording stopped and the connection
-    dropped. pollinate: then each detected plant's flowers are visited (`pollinate`'s plan
-    and flight) before the bot is let go."""
-    plan = plan_bed(bed)
+    Returns report.json's content. plan: the bed's plan, checked (`bed_plan.plan_bed`)
+    before the camera opens or the bot connects. A plant whose scan (the bot, its camera,
+    the disk) or processing fails is marked failed with its error and, with `keep_going`,
+    the bed goes on without it; else the error goes on, the recording stopped and the
+    connection dropped. pollinate: then each detected plant's flowers are visited
+    (`pollinate`'s plan and flight) before the bot is let go."""
     with folder_lock(out, LOCK, "field run"):
         journal = open_journal(out, bed, fingerprint(bed, config), {"bot": rig.source})
         folders = {p.name: out / "plants" / p.name for p in bed.plants}
@@ -205,11 +206,9 @@ def _pollinate(bot, rig: FieldRig, journal, folders: dict[str, Path],
             done = _pollinate_plant(bot, rig, folders[name], spots[name], config)
         except SCAN_FAILURES as error:
             # The plant stays detected: its flowers are found, their visits are not flown.
-            entry["pollination"] = {"status": "failed", "error": str(error).splitlines()[0]}
-            journal.save()
-            say(f"{name}: pollination failed ({entry['pollination']['error']})")
-            if not keep_going:
-                raise
+            entry["pollination"] = {"status": "failed", "error": first_line(error)}
+            recorded_failure(journal, say, f"{name}: pollination failed "
+                             f"({entry['pollination']['error']})", keep_going)
             continue
         entry["pollination"] = done
         entry["seconds"]["pollinate"] = round(watch.elapsed(), 3)

@@ -574,9 +574,9 @@ def _field_physical(args: argparse.Namespace, bed) -> int:
             recorder.close()
 
     with jobs_on(args):
-        report = run_field_bed(bed, config, args.out, FieldRig(session, recorder, camera, source),
-                               args.keep_going, pollinate=args.pollinate,
-                               cache=stage_cache(args))
+        report = run_field_bed(bed, plan, config, args.out,
+                               FieldRig(session, recorder, camera, source), args.keep_going,
+                               pollinate=args.pollinate, cache=stage_cache(args))
     summary = report["summary"]
     print(f"bed: {summary['detected']} of {summary['plants']} plants detected, "
           f"{summary['flowers']} flowers found ({summary['with_normal']} with a normal) -> "

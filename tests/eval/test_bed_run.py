@@ -237,8 +237,7 @@ def _small_config():
 
 @pytest.mark.slow
 def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(bed_run,
-                                                                              tmp_path,
-                                                                              monkeypatch):
+                                                                              tmp_path):
     """The simulated bed's recordings as a physical bed's (no truth beside them), processed
     by the physical bed's worker and pollinated by the serial backend on a virtual
     Farmduino: the same flowers as the simulated run (its reconstructions from the stage
@@ -258,7 +257,6 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
     # of that reach is more than the simulated path keeps clear of).
     sim_bed = make_bed_plants(read_bed(bed_file), config, 0, done)
     bed = sim_bed.bed
-    monkeypatch.setattr(field_bed, "plan_bed", lambda _: plan_sim_bed(sim_bed))
     out = tmp_path / "field"
     for spot in bed.plants:
         shutil.copytree(done / "plants" / spot.name / "scan", out / "plants" / spot.name /
@@ -277,7 +275,8 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
 
     said = []
     rig = field_bed.FieldRig(serial_bot, None, None, {"backend": "serial"})
-    report = field_bed.run_field_bed(bed, config, out, rig, pollinate=True, say=said.append,
+    report = field_bed.run_field_bed(bed, plan_sim_bed(sim_bed), config, out, rig,
+                                     pollinate=True, say=said.append,
                                      cache=bed_file.parent / "cache")
     assert not any("filming" in line for line in said), said
     rows = {row["plant"]: row for row in report["bed"]["plants"]}
