@@ -142,6 +142,12 @@ def support_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
             & (hsv[..., 1] >= config.support_min_saturation))
 
 
+def sepal_mask(hsv: np.ndarray, config: ColourConfig) -> np.ndarray:
+    """(...,) bool: HSV colours (..., 3) in the support band and neither a petal's nor a
+    pistil's: a sepal, stem or leaf point, never part of a corolla."""
+    return support_mask(hsv, config) & ~petal_mask(hsv, config) & ~pistil_mask(hsv, config)
+
+
 def flower_coloured(rgb: np.ndarray, config: ColourConfig | None = None) -> np.ndarray:
     """(N,) bool: RGB colours (N, 3) uint8 of a cloud that are a petal's or a pistil's, its
     cast removed first as the detector removes it (`white_balanced`): a pollination

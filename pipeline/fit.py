@@ -124,7 +124,7 @@ def _least_median_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
-              robust_iterations: int = 0) -> np.ndarray | None:
+              robust_iterations: int = 0, min_scale: float = 0.0) -> np.ndarray | None:
     """Normal of the least-squares plane: the covariance eigenvector of least spread.
 
     With `robust_iterations`, the fit starts from the least-median plane
@@ -133,8 +133,9 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
     points off the corolla (a drooping rim, a leaf edge, a leaf's sheen above it, a stem
     below) stop pulling the plane: started from the least-squares plane, a quarter of the
     points 16 mm off tilted it past what the reweighting could undo. points: (N, 3)
-    float64, any unit. Returns a unit (3,) axis, or None for fewer than `min_points`
-    points or non-finite input.
+    float64, any unit. min_scale: the least cut-off of the reweighting, in the points'
+    unit: points nearer the plane always count, however tightly the rest hug it. Returns a
+    unit (3,) axis, or None for fewer than `min_points` points or non-finite input.
     """
     if not _usable(points, min_points):
         return None
@@ -147,7 +148,8 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
         normal = vectors[:, 2]
     for _ in range(robust_iterations):
         distance = (points - centroid) @ normal
-        scale = ROBUST_SCALE * 1.4826 * float(np.median(np.abs(distance - np.median(distance))))
+        spread = float(np.median(np.abs(distance - np.median(distance))))
+        scale = max(ROBUST_SCALE * 1.4826 * spread, min_scale)
         if not scale > 0:
             break
         weight = np.clip(1.0 - (distance / scale) ** 2, 0.0, None) ** 2

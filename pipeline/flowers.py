@@ -7,12 +7,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from flowerpose.cloudio import Cloud, empty_ply
 from flowerpose.config import to_dict
@@ -24,6 +25,7 @@ from flowerpose.pipeline.colour import (
     petal_mask,
     pistil_mask,
     rgb_to_hsv,
+    sepal_mask,
     white_balanced,
 )
 from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
@@ -223,9 +225,11 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     _, pose_cluster, density = for_cloud(config.outliers, config.cluster, grouping.scale,
                                          crops_spacing(crop_clouds, config))
     pose_config = pose_for_density(config.pose, density)
+    round_crop = _sepals_round(plant, config, grouping.typical_radius)
     for box, crop, crop_cloud in zip(boxes, crops, crop_clouds, strict=True):
+        sepals = None if round_crop is None else round_crop(crop)
         pose = estimate_pose(crop_cloud, pose_config, config.colour, pose_cluster,
-                             grouping.typical_radius, up)
+                             grouping.typical_radius, up, sepals)
         if not pose.pistil_found and config.cluster.require_pistil and (
                 density.factor >= config.cluster.pistil_optional_density
                 or all(normal is None for normal in pose.normals.values())):
@@ -237,6 +241,34 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     LOG.debug(f"detect: {len(candidates)} candidate points, {len(grouping.clusters)} clusters, "
               f"{len(flowers)} flowers")
     return flowers, grouping.typical_radius
+
+
+#: The cloud round a crop that its support vote may read reaches this many typical flower
+#: radii beyond the crop's farthest point from its centroid (`_sepals_round`): the vote's
+#: reach is a corolla radius across the flower's axis and `pose.support_reach` along it.
+SUPPORT_ROUND_RADII = 1.5
+
+
+def _sepals_round(plant: Cloud, config: PipelineConfig, radius: float | None
+                  ) -> Callable[[np.ndarray], np.ndarray] | None:
+    """A function from a crop (indices into `plant`) to the points of sepal and stem
+    colour (`colour.sepal_mask`) round it and not in it, for the pose's support vote
+    (`PoseConfig.support_from_cloud`); None where the vote cannot use them."""
+    if (not radius or not config.pose.support_from_cloud
+            or config.pose.direction_reference != "combined"):
+        return None
+    sepals = np.flatnonzero(sepal_mask(rgb_to_hsv(plant.colors), config.colour))
+    tree = cKDTree(plant.points[sepals])
+
+    def round_crop(crop: np.ndarray) -> np.ndarray:
+        points = plant.points[crop]
+        centre = points.mean(axis=0)
+        reach = (float(np.linalg.norm(points - centre, axis=1).max())
+                 + SUPPORT_ROUND_RADII * radius)
+        near = sepals[np.asarray(tree.query_ball_point(centre, reach), dtype=np.int64)]
+        return plant.points[np.setdiff1d(near, crop)]
+
+    return round_crop
 
 
 #: Limits rescaled by more than this factor either way are said at the info level: the

@@ -140,12 +140,31 @@ class PoseConfig:
     """"combined": sepal and stem points count within this many corolla radii of the
     pistil along the axis (and one across it): a leaf 15 mm above an upward flower of a
     photogrammetry plant is not its support."""
+    support_from_cloud: bool = True
+    """"combined": the support vote also takes the sepal and stem points of the cloud
+    round the flower that its crop left out (within the same reach; `estimate_pose`'s
+    `support_round`). A crop is the points within `cluster.crop_margin_m` of the flower's
+    cluster, and on a sparse cloud the cluster shrinks to the corolla and its crop leaves
+    out the sepals behind it: on the authors' plant 3 thinned to 7 %, one flower's crop held
+    no sepal point where the cloud round it held 19-26 (a quarter radius behind the
+    petals), and a two-point pistil below the petal surface flipped it (166 degrees). False:
+    the crop's points only (`pose_crops` has no cloud round its crops)."""
     plane_robust_iterations: int = 5
     """Reweighted refits of the plane (Tukey's biweight, from the least-median plane;
     `fit.fit_plane`); 0: the paper's plain least-squares plane. On two full-loop runs of
     `eval --suite scan-3` (6 reconstructions, 64 flowers) the least-median start took the
     plane mean from 7.17 to 2.95 degrees: three flowers whose crops held a leaf's sheen
     above or a stem below were 55-166 degrees off, none over 20 after."""
+    plane_min_scale: float = 0.35
+    """The robust plane's reweighting never drops petal points nearer the plane than this
+    many typical flower radii (`fit.fit_plane`'s `min_scale`): about the cut-off a clean
+    corolla's 1 mm surface noise gives anyway (4.7 x 1 mm of a 13 mm radius). The cut-off
+    otherwise follows the points' own spread about the plane, which on a sparse corolla
+    is a few points' and drops whole petals of a cupped flower: on the authors' plant 3
+    thinned to 5 %, one flower's plane was 18 degrees off where the plain plane was 4
+    (10 at 0.35). A leaf or stem a radius or more off still goes. At 0.5 the field preset
+    (`flowerpose guard`'s field-10) was worse by 0.3 degrees [0.1, 0.6] on 123 flowers;
+    at 0.35, +0.1 [-0.1, 0.3]. 0: the cut-off follows the spread alone."""
     min_fit_points: int = MIN_FIT_POINTS
     """Fewest petal points a fit accepts; with fewer it gives None."""
     max_fit_points: int = 400
@@ -205,6 +224,8 @@ class PoseConfig:
             require(getattr(self, name) >= 1, f"pose.{name}", "must be at least 1")
         require(self.base_radius_factor > 0, "pose.base_radius_factor", "must be positive")
         require(self.support_reach > 0, "pose.support_reach", "must be positive")
+        require(self.plane_min_scale >= 0, "pose.plane_min_scale",
+                "must be 0 or more (flower radii)")
         require(self.up_prior >= 0, "pose.up_prior", "must be 0 or more (corolla radii)")
         require(self.up_prior_power >= 0, "pose.up_prior_power", "must be 0 or more")
         require(self.crop_reach is None or self.crop_reach > 0, "pose.crop_reach",
@@ -319,7 +340,8 @@ class Orientation:
 
 def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
                  plane: np.ndarray | None, config: PoseConfig,
-                 colours: CropColours, up: np.ndarray | None) -> Orientation | None:
+                 colours: CropColours, up: np.ndarray | None,
+                 support_round: np.ndarray | None) -> Orientation | None:
     """What the normals must agree with (`Orientation`), or None if nothing is known.
 
     With a pistil it points from a reference to the pistil centroid: the pistil sits on the
@@ -342,7 +364,8 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
             return Orientation(_above_petal_surface(points[petal], pistil_centroid, plane),
                                None, found)
         if config.direction_reference == "combined" and plane is not None:
-            return Orientation(*_combined(crop, petal, pistil, plane, config, colours, up))
+            return Orientation(*_combined(crop, petal, pistil, plane, config, colours, up,
+                                          support_round))
         radius = np.percentile(np.linalg.norm(pistil_points - pistil_centroid, axis=1), 90)
         petal_points = points[petal]
         distance = np.linalg.norm(petal_points - pistil_centroid, axis=1)
@@ -357,17 +380,17 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
 
 
 def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndarray,
-              config: PoseConfig, colours: CropColours, up: np.ndarray | None
-              ) -> tuple[np.ndarray, float, int]:
+              config: PoseConfig, colours: CropColours, up: np.ndarray | None,
+              support_round: np.ndarray | None = None) -> tuple[np.ndarray, float, int]:
     """The plane axis signed by the sum of four offsets along it (the cloud's unit): the
     pistil (its core, `pistil_core`) above the petal surface extended to it, above the
     crop's centroid near it (`crop_reach`), above its own petals' centroid, and the petals
-    above the sepals and stems near the flower (support colours within `support_reach`
-    corolla radii of the pistil across the axis and along it; left out when fewer than
-    `support_min_points`), each clipped to `offset_clip` corolla radii; plus, with a known
-    `up`, the prior `up_prior` corolla radii times the axis's cosine with up to
-    `up_prior_power`. Also returns the sum's size in corolla radii (how clearly the votes
-    decided) and the pistil core's points.
+    above the sepals and stems near the flower (support colours of the crop and of
+    `support_round` within `support_reach` corolla radii of the pistil along the axis and
+    one across it; left out when fewer than `support_min_points`), each clipped to
+    `offset_clip` corolla radii; plus, with a known `up`, the prior `up_prior` corolla
+    radii times the axis's cosine with up to `up_prior_power`. Also returns the sum's
+    size in corolla radii (how clearly the votes decided) and the pistil core's points.
 
     The petals' own centroid (weighed by `petal_vote`) is the vote that holds on thinned
     and partly seen real flowers, where the surface's extrapolation and the sepals (a leaf
@@ -378,18 +401,25 @@ def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndar
         pistil = _pistil_core(points, pistil, petal_points, plane, config.pistil_core)
     pistil_centroid = points[pistil].mean(axis=0)
     offset = points - pistil_centroid
-    height = offset @ plane
-    across = np.linalg.norm(offset - np.outer(height, plane), axis=1)
     radius = float(np.percentile(np.linalg.norm(petal_points - pistil_centroid, axis=1), 90))
-    support = (colours.support & ~colours.petal & ~pistil
-               & (across <= radius) & (np.abs(height) <= config.support_reach * radius))
+
+    def within_reach(at: np.ndarray) -> np.ndarray:
+        """Which of the points `at` lie within the support vote's reach of the pistil."""
+        height = (at - pistil_centroid) @ plane
+        across = np.linalg.norm(at - pistil_centroid - np.outer(height, plane), axis=1)
+        return (across <= radius) & (np.abs(height) <= config.support_reach * radius)
+
+    support_points = points[colours.support & ~colours.petal & ~pistil & within_reach(points)]
+    if support_round is not None and len(support_round):
+        support_points = np.concatenate([support_points,
+                                         support_round[within_reach(support_round)]])
     near = (np.ones(len(points), bool) if config.crop_reach is None
             else np.linalg.norm(offset, axis=1) <= config.crop_reach * radius)
     offsets = [float(_above_petal_surface(petal_points, pistil_centroid, plane) @ plane),
                float((pistil_centroid - points[near].mean(axis=0)) @ plane)]
     petals_below = float((pistil_centroid - petal_points.mean(axis=0)) @ plane)
-    if support.sum() >= config.support_min_points:
-        offsets.append(float((petal_points.mean(axis=0) - points[support].mean(axis=0))
+    if len(support_points) >= config.support_min_points:
+        offsets.append(float((petal_points.mean(axis=0) - support_points.mean(axis=0))
                              @ plane))
     if config.offset_clip is not None:
         limit = config.offset_clip * radius
@@ -439,14 +469,18 @@ def _above_petal_surface(petal_points: np.ndarray, pistil_centroid: np.ndarray,
 def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
                   colour: ColourConfig | None = None, cluster: ClusterConfig | None = None,
                   flower_radius: float | None = None,
-                  up: np.ndarray | None = None) -> FlowerPose:
+                  up: np.ndarray | None = None,
+                  support_round: np.ndarray | None = None) -> FlowerPose:
     """Normals of one flower by the plane, superellipsoid and paraboloid fits.
 
     crop: the cloud points of one flower, points (N, 3) float64 in the cloud's frame and
     unit (metres, bed frame, in the pipeline), colors (N, 3) uint8. flower_radius: the
     typical flower radius of the cloud, same unit (`segment.typical_radius`); None: this
     crop's own corolla radius. up: the frame's unit up vector where the frame is a bed's
-    (z up) and so known, else None (`up_prior`). Normals come back in the same frame,
+    (z up) and so known, else None (`up_prior`). support_round: (K, 3) points of sepal and
+    stem colour (`colour.sepal_mask`) of the cloud round the crop and not in it, same frame
+    and unit, for the support vote (`support_from_cloud`); None: the crop's own only.
+    Normals come back in the same frame,
     each oriented by the pistil (or, without one, away from the sepals and peduncle), or
     None: for a failed fit, or for all three when nothing orients them (the fits are then
     skipped).
@@ -470,8 +504,11 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
         center = crop.points.mean(axis=0)
     petal_points = crop.points[petal]
     normals: dict[str, np.ndarray | None] = dict.fromkeys(METHODS)
-    plane = fit_plane(petal_points, config.min_fit_points, config.plane_robust_iterations)
-    orientation = _orientation(crop, petal, pistil, plane, config, colours, up)
+    plane = fit_plane(petal_points, config.min_fit_points, config.plane_robust_iterations,
+                      config.plane_min_scale * flower_radius)
+    if not config.support_from_cloud:
+        support_round = None
+    orientation = _orientation(crop, petal, pistil, plane, config, colours, up, support_round)
     if orientation is not None:
         axes = _fit_axes(petal_points, plane, center if found else None, config)
         reference = orientation.reference

@@ -96,5 +96,27 @@ def test_a_sheet_above_and_a_stem_below_do_not_tilt_the_robust_plane(seed):
     normal = rotation.apply([0.0, 0.0, 1.0])
     fitted = fit_plane(points, robust_iterations=5)
     assert np.degrees(np.arccos(abs(fitted @ normal))) < 3.0
+    # A floor on the cut-off of a third of the corolla's radius still drops them.
+    floored = fit_plane(points, robust_iterations=5, min_scale=0.35 * 0.012)
+    assert np.degrees(np.arccos(abs(floored @ normal))) < 3.0
     least_squares = fit_plane(points)
     assert np.degrees(np.arccos(abs(least_squares @ normal))) > 10.0
+
+
+def test_points_nearer_the_plane_than_the_floor_all_count():
+    # A sparse corolla (26 points, radius 12 mm): three fifths flat to 0.05 mm, the rest a
+    # petal curled up by up to 2.5 mm. Their tight spread makes the reweighting drop the
+    # curled petal; with a floor of 4.2 mm every point counts, as in least squares.
+    rng = np.random.default_rng(0)
+    r, angle = 0.012 * np.sqrt(rng.uniform(0.05, 1.0, 26)), rng.uniform(0, 2 * np.pi, 26)
+    x, y, z = r * np.cos(angle), r * np.sin(angle), rng.normal(0, 5e-5, 26)
+    edge = np.quantile(x, 0.6)
+    z = np.where(x > edge, z + 0.25 * (x - edge), z)
+    points = Rotation.random(random_state=0).apply(np.column_stack([x, y, z]))
+
+    def apart(a, b):
+        return np.degrees(np.arccos(min(1.0, abs(a @ b))))
+
+    least_squares = fit_plane(points)
+    assert apart(fit_plane(points, robust_iterations=5), least_squares) > 3.0
+    assert apart(fit_plane(points, robust_iterations=5, min_scale=0.0042), least_squares) < 0.2

@@ -282,3 +282,25 @@ def test_a_stalk_joined_to_the_pistil_does_not_flip_the_normal(seed):
     for core, facing in ((0.3, 1.0), (None, -1.0)):
         pose = estimate_pose(crop, dataclasses.replace(PoseConfig(), pistil_core=core))
         assert pose.normals["plane"] @ normal == pytest.approx(facing, abs=0.01)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sepals_the_crop_left_out_sign_a_sparse_flower(seed):
+    # A sparse flat flower (30 petal points) whose two-point receptacle lies a little below
+    # its petals, as thinning leaves one: every vote of its own crop points the wrong way.
+    rotation = Rotation.random(random_state=seed)
+    crop, normal = flower(seed, rim=0.0, petals=30, dome=2, dome_side=-0.3, sepals=0,
+                          rotation=rotation)
+    two_points = ClusterConfig(pistil_min_points=2)
+    assert angle_deg(estimate_pose(crop, cluster=two_points).normals["plane"], normal) > 90
+    # The cloud round it holds its sepals, 4 mm behind: they sign it.
+    rng = np.random.default_rng(seed)
+    r, theta = rng.uniform(0.001, 0.008, 20), rng.uniform(0.0, 2.0 * np.pi, 20)
+    sepals = rotation.apply(np.column_stack([r * np.cos(theta), r * np.sin(theta),
+                                             np.full(20, -0.004)])) + CENTRE
+    pose = estimate_pose(crop, cluster=two_points, support_round=sepals)
+    assert angle_deg(pose.normals["plane"], normal) < 5
+    # Unless told to read the crop alone.
+    alone = estimate_pose(crop, PoseConfig(support_from_cloud=False), cluster=two_points,
+                          support_round=sepals)
+    assert angle_deg(alone.normals["plane"], normal) > 90
