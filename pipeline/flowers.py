@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -48,6 +48,7 @@ from flowerpose.pipeline.segment import (
     cluster_flowers,
     corolla,
     crop_flowers,
+    near_voxels,
     typical_radius,
 )
 from flowerpose.srgb import relight
@@ -225,9 +226,9 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     _, pose_cluster, density = for_cloud(config.outliers, config.cluster, grouping.scale,
                                          crops_spacing(crop_clouds, config))
     pose_config = pose_for_density(config.pose, density)
-    round_crop = _sepals_round(plant, config, grouping.typical_radius)
-    for box, crop, crop_cloud in zip(boxes, crops, crop_clouds, strict=True):
-        sepals = None if round_crop is None else round_crop(crop)
+    sepals_round = _sepals_round(plant, crops, config, grouping.typical_radius)
+    for box, crop, crop_cloud, sepals in zip(boxes, crops, crop_clouds, sepals_round,
+                                             strict=True):
         pose = estimate_pose(crop_cloud, pose_config, config.colour, pose_cluster,
                              grouping.typical_radius, up, sepals)
         if not pose.pistil_found and config.cluster.require_pistil and (
@@ -243,32 +244,33 @@ def _flowers_among(plant: Cloud, candidates: np.ndarray, original: np.ndarray,
     return flowers, grouping.typical_radius
 
 
-#: The cloud round a crop that its support vote may read reaches this many typical flower
-#: radii beyond the crop's farthest point from its centroid (`_sepals_round`): the vote's
-#: reach is a corolla radius across the flower's axis and `pose.support_reach` along it.
+#: The cloud round a crop that its support vote may read: within this many typical flower
+#: radii of the crop's points (the vote reaches a corolla radius across the flower's axis
+#: and `pose.support_reach` along it from the pistil: 1.25 radii).
 SUPPORT_ROUND_RADII = 1.5
 
 
-def _sepals_round(plant: Cloud, config: PipelineConfig, radius: float | None
-                  ) -> Callable[[np.ndarray], np.ndarray] | None:
-    """A function from a crop (indices into `plant`) to the points of sepal and stem
-    colour (`colour.sepal_mask`) round it and not in it, for the pose's support vote
-    (`PoseConfig.support_from_cloud`); None where the vote cannot use them."""
-    if (not radius or not config.pose.support_from_cloud
+def _sepals_round(plant: Cloud, crops: list[np.ndarray], config: PipelineConfig,
+                  radius: float | None) -> list[np.ndarray | None]:
+    """For each crop (indices into `plant`), the points of sepal and stem colour
+    (`colour.sepal_mask`) round it and not in it, for the pose's support vote
+    (`PoseConfig.support_from_cloud`); None where the vote cannot use them. Only the cloud
+    near the crops is looked at: a whole plant's leaves are most of its points."""
+    if (not radius or not crops or not config.pose.support_from_cloud
             or config.pose.direction_reference != "combined"):
-        return None
-    sepals = np.flatnonzero(sepal_mask(rgb_to_hsv(plant.colors), config.colour))
-    tree = cKDTree(plant.points[sepals])
-
-    def round_crop(crop: np.ndarray) -> np.ndarray:
+        return [None] * len(crops)
+    reach = SUPPORT_ROUND_RADII * radius
+    near = near_voxels(plant.points, plant.points[np.concatenate(crops)], reach)
+    near = near[sepal_mask(rgb_to_hsv(plant.colors[near]), config.colour)]
+    tree = cKDTree(plant.points[near], balanced_tree=False, compact_nodes=False)
+    found = []
+    for crop in crops:
         points = plant.points[crop]
         centre = points.mean(axis=0)
-        reach = (float(np.linalg.norm(points - centre, axis=1).max())
-                 + SUPPORT_ROUND_RADII * radius)
-        near = sepals[np.asarray(tree.query_ball_point(centre, reach), dtype=np.int64)]
-        return plant.points[np.setdiff1d(near, crop)]
-
-    return round_crop
+        extent = float(np.linalg.norm(points - centre, axis=1).max())
+        ball = near[np.asarray(tree.query_ball_point(centre, extent + reach), dtype=np.int64)]
+        found.append(plant.points[np.setdiff1d(ball, crop)])
+    return found
 
 
 #: Limits rescaled by more than this factor either way are said at the info level: the

@@ -630,7 +630,11 @@ def split_by_centres(points: np.ndarray, centres: list[np.ndarray], min_separati
     return labels
 
 
-def _near_voxels(points: np.ndarray, around: np.ndarray, margin: float) -> np.ndarray:
+#: Most voxels `near_voxels` looks up in a table (a byte each) rather than by sorting.
+LOOKUP_VOXELS = 1 << 24
+
+
+def near_voxels(points: np.ndarray, around: np.ndarray, margin: float) -> np.ndarray:
     """Indices of `points` (N, 3) in a voxel of edge `margin` next to (or holding) a voxel
     of `around` (M, 3): every point within `margin` of one of them, and a few more, found
     without a distance per point."""
@@ -642,11 +646,16 @@ def _near_voxels(points: np.ndarray, around: np.ndarray, margin: float) -> np.nd
     def keys(cells: np.ndarray) -> np.ndarray:
         return (cells[:, 0] * shape[1] + cells[:, 1]) * shape[2] + cells[:, 2]
 
-    cells = np.unique(np.floor((around - low) / margin).astype(np.int64), axis=0)
-    steps = np.array(np.meshgrid(*[(-1, 0, 1)] * 3, indexing="ij")).reshape(3, -1).T
-    occupied = np.unique(keys((cells[:, None, :] + steps[None]).reshape(-1, 3)))
-    found = np.floor((points[inside] - low) / margin).astype(np.int64)
-    return inside[np.isin(keys(found), occupied, assume_unique=False)]
+    # A key is linear in the cell, so a neighbour's key is the cell's plus the step's.
+    cells = np.unique(keys(np.floor((around - low) / margin).astype(np.int64)))
+    steps = keys(np.array(np.meshgrid(*[(-1, 0, 1)] * 3, indexing="ij")).reshape(3, -1).T)
+    occupied = np.unique((cells[:, None] + steps[None]).ravel())
+    found = keys(np.floor((points[inside] - low) / margin).astype(np.int64))
+    if np.prod(shape) > LOOKUP_VOXELS:
+        return inside[np.isin(found, occupied)]
+    table = np.zeros(int(np.prod(shape)), bool)
+    table[occupied] = True
+    return inside[table[found]]
 
 
 def crop_flowers(cloud: Cloud, clusters: list[np.ndarray],
@@ -665,7 +674,7 @@ def crop_flowers(cloud: Cloud, clusters: list[np.ndarray],
     margin = config.crop_margin_m
     members = np.concatenate(clusters)
     labels = np.repeat(np.arange(len(clusters)), [len(c) for c in clusters])
-    near = _near_voxels(cloud.points, cloud.points[members], margin)
+    near = near_voxels(cloud.points, cloud.points[members], margin)
     distance, nearest = cKDTree(cloud.points[members]).query(
         cloud.points[near], distance_upper_bound=margin)
     hit = np.isfinite(distance)

@@ -19,10 +19,10 @@ def test_the_cloud_round_a_crop_gives_its_sepals_and_nothing_else():
                        [0.0, -0.001, 0.0]])  # the crop's own sepal
     colours = np.array([WHITE, WHITE, WHITE, GREEN, GREEN, GREEN, WHITE, YELLOW, GREEN],
                        np.uint8)
-    round_crop = _sepals_round(Cloud(points, colours), PipelineConfig(), radius=0.012)
-    found = round_crop(np.array([0, 1, 2, 8]))
+    crop = np.array([0, 1, 2, 8])
+    [found] = _sepals_round(Cloud(points, colours), [crop], PipelineConfig(), radius=0.012)
     assert sorted(map(tuple, found)) == sorted(map(tuple, points[[3, 4]]))
     # Where the pose reads its crop alone, or has no flower size, there is nothing to read.
     alone = replace(PipelineConfig(), pose=replace(PoseConfig(), support_from_cloud=False))
-    assert _sepals_round(Cloud(points, colours), alone, radius=0.012) is None
-    assert _sepals_round(Cloud(points, colours), PipelineConfig(), radius=None) is None
+    assert _sepals_round(Cloud(points, colours), [crop], alone, radius=0.012) == [None]
+    assert _sepals_round(Cloud(points, colours), [crop], PipelineConfig(), radius=None) == [None]
