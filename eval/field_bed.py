@@ -184,7 +184,7 @@ def _park(bot) -> None:
             raise InputError(bot.info.name, "its position is unknown")
         bot.move_to([here[0], here[1], bot.info.travel_max[2]])
     except SCAN_FAILURES as error:
-        LOG.warning(f"warning: {bot.info.name} not parked ({str(error).splitlines()[0]}): "
+        LOG.warning(f"warning: {bot.info.name} not parked ({first_line(error)}): "
                     "it stands where the scan stopped")
 
 

@@ -381,7 +381,7 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
 
 def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndarray,
               config: PoseConfig, colours: CropColours, up: np.ndarray | None,
-              support_round: np.ndarray | None = None) -> tuple[np.ndarray, float, int]:
+              support_round: np.ndarray | None) -> tuple[np.ndarray, float, int]:
     """The plane axis signed by the sum of four offsets along it (the cloud's unit): the
     pistil (its core, `pistil_core`) above the petal surface extended to it, above the
     crop's centroid near it (`crop_reach`), above its own petals' centroid, and the petals
