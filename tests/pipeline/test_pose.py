@@ -304,3 +304,54 @@ def test_sepals_the_crop_left_out_sign_a_sparse_flower(seed):
     alone = estimate_pose(crop, PoseConfig(support_from_cloud=False), cluster=two_points,
                           support_round=sepals)
     assert angle_deg(alone.normals["plane"], normal) > 90
+
+
+def _with(crop: Cloud, points: np.ndarray, colour: tuple[int, int, int]) -> Cloud:
+    return Cloud(np.vstack([crop.points, points]),
+                 np.vstack([crop.colors, np.tile(np.array(colour, np.uint8), (len(points), 1))]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_pistil_far_behind_the_petals_is_not_the_flower_s(seed):
+    # A sparse flower without a receptacle whose one pistil-coloured cluster is a
+    # yellowed sepal 12 mm (0.8 corolla radii) behind its petals.
+    crop, normal = flower(seed, rim=0.0, petals=60, dome=0)
+    fleck = CENTRE - 0.012 * normal + np.random.default_rng(seed).normal(0.0, 5e-4, (8, 3))
+    flecked = _with(crop, fleck, STEM_YELLOW)
+    taken = estimate_pose(flecked, PoseConfig(pistil_max_height=None))
+    assert taken.pistil_found and angle_deg(taken.normals["plane"], normal) > 90
+    pose = estimate_pose(flecked)
+    assert not pose.pistil_found and pose.uncertain
+    assert angle_deg(pose.normals["plane"], normal) < 5.0
+    np.testing.assert_allclose(pose.center, crop.points[:60].mean(axis=0))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_receptacle_in_a_deep_cup_stays_the_pistil(seed):
+    # The rim rises 0.8 radii, so the petals' centroid lies about 0.4 radii above the
+    # receptacle: it is still within the corolla, and the flower's centre.
+    crop, _ = flower(seed, rim=0.012)
+    pose = estimate_pose(crop)
+    assert pose.pistil_found
+    assert np.linalg.norm(pose.center - CENTRE) < 0.0015
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_without_a_pistil_the_sepals_round_the_crop_orient_the_normals(seed):
+    crop, normal = flower(seed, dome=0, sepals=0)
+    rng = np.random.default_rng(seed)
+    r, theta = rng.uniform(0.001, 0.008, 20), rng.uniform(0.0, 2.0 * np.pi, 20)
+    disc = np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros(20)])
+    rotation = Rotation.align_vectors([normal], [[0.0, 0.0, 1.0]])[0]
+
+    def behind(depth: float) -> np.ndarray:
+        return rotation.apply(disc - [0.0, 0.0, depth]) + CENTRE
+
+    pose = estimate_pose(crop, support_round=behind(0.004))
+    assert not pose.pistil_found and pose.uncertain
+    assert all(angle_deg(pose.normals[m], normal) < 5.0 for m in METHODS)
+    alone = estimate_pose(crop, PoseConfig(support_from_cloud=False),
+                          support_round=behind(0.004))
+    assert all(n is None for n in alone.normals.values())
+    # A leaf 3 cm behind is beyond the support vote's reach (0.75 corolla radii).
+    assert all(n is None for n in estimate_pose(crop, support_round=behind(0.03)).normals.values())
