@@ -132,8 +132,10 @@ class PoseConfig:
     thinned to 50-3 % and cut by a quarter and a half, 5 repeats, 390): every pistil of a
     rightly signed flower lay between 0.09 radii below and 0.43 above its petals'
     centroid, and the one pistil beyond 0.45, two dark yellow-green points 0.61 radii
-    behind the petals of a flower thinned to 3 %, flipped its normal (155 degrees). None:
-    any pistil is taken (upstream)."""
+    behind the petals of a flower thinned to 3 %, flipped its normal (155 degrees; 24.5
+    without that pistil, as the published method). On plant 3 thinned to 10-3 %, 15
+    flowers whose one pistil-coloured cluster lay off the corolla, dropped before for
+    want of a normal, are found now. None: any pistil is taken (upstream)."""
     base_radius_factor: float = 1.5
     """Petal points within this many pistil radii of the pistil centroid form the petal
     base ("petal_base" reference, and "petal_surface" where too few petals are left); the
