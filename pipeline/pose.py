@@ -133,9 +133,8 @@ class PoseConfig:
     rightly signed flower lay between 0.09 radii below and 0.43 above its petals'
     centroid, and the one pistil beyond 0.45, two dark yellow-green points 0.61 radii
     behind the petals of a flower thinned to 3 %, flipped its normal (155 degrees; 24.5
-    without that pistil, as the published method). On plant 3 thinned to 10-3 %, 15
-    flowers whose one pistil-coloured cluster lay off the corolla, dropped before for
-    want of a normal, are found now. None: any pistil is taken (upstream)."""
+    without that pistil, as the published method). No other flower of the 981 moved.
+    None: any pistil is taken (upstream)."""
     base_radius_factor: float = 1.5
     """Petal points within this many pistil radii of the pistil centroid form the petal
     base ("petal_base" reference, and "petal_surface" where too few petals are left); the
@@ -163,8 +162,10 @@ class PoseConfig:
     no sepal point where the cloud round it held 19-26 (a quarter radius behind the
     petals), and a two-point pistil below the petal surface flipped it (166 degrees). A
     flower without a pistil reads them too (within the same reach of its petals'
-    centroid). False: the crop's points only (`pose_crops` has no cloud round its
-    crops)."""
+    centroid): on plant 3 thinned to 10-3 % (5 repeats), 15 such flowers whose crops held
+    too few sepal points had no normal and were dropped; they are found now, their
+    normals flagged uncertain, none flipped. False: the crop's points only (`pose_crops`
+    has no cloud round its crops)."""
     plane_robust_iterations: int = 5
     """Reweighted refits of the plane (Tukey's biweight, from the least-median plane;
     `fit.fit_plane`); 0: the paper's plain least-squares plane. On two full-loop runs of
