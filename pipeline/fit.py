@@ -134,8 +134,10 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
     below) stop pulling the plane: started from the least-squares plane, a quarter of the
     points 16 mm off tilted it past what the reweighting could undo. points: (N, 3)
     float64, any unit. min_scale: the least cut-off of the reweighting, in the points'
-    unit: points nearer the plane always count, however tightly the rest hug it. Returns a
-    unit (3,) axis, or None for fewer than `min_points` points or non-finite input.
+    unit: points nearer the plane always count, however tightly the rest hug it. Where
+    fewer points than a fit needs lie within the cut-off of the least-median plane, it is
+    no start, and the plane is the least-squares one. Returns a unit (3,) axis, or None
+    for fewer than `min_points` points or non-finite input.
     """
     if not _usable(points, min_points):
         return None
@@ -146,7 +148,7 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
         if not np.isfinite(values).all():
             return None
         normal = vectors[:, 2]
-    for _ in range(robust_iterations):
+    for iteration in range(robust_iterations):
         distance = (points - centroid) @ normal
         spread = float(np.median(np.abs(distance - np.median(distance))))
         scale = max(ROBUST_SCALE * 1.4826 * spread, min_scale)
@@ -154,6 +156,11 @@ def fit_plane(points: np.ndarray, min_points: int = MIN_FIT_POINTS,
             break
         weight = np.clip(1.0 - (distance / scale) ** 2, 0.0, None) ** 2
         if np.count_nonzero(weight) < max(min_points, MIN_FIT_POINTS):
+            if iteration == 0:
+                # Fewer points near the least-median plane than a fit needs (under 20
+                # points in all): its half can be a few petal points in a row, which a
+                # plane standing across the corolla holds as thinly as the corolla's.
+                normal = principal_axes(points)[2][:, 2]
             break
         centroid = weight @ points / weight.sum()
         centred = points - centroid
