@@ -53,6 +53,12 @@ def flower(seed: int, rim: float = 0.003, petals: int = 300, dome: int = 60, sep
     return cloud, rotation.apply([0.0, 0.0, 1.0])
 
 
+def with_points(crop: Cloud, points: np.ndarray, colour: tuple[int, int, int]) -> Cloud:
+    """The crop with `points` of one `colour` added."""
+    return Cloud(np.vstack([crop.points, points]),
+                 np.vstack([crop.colors, np.tile(np.array(colour, np.uint8), (len(points), 1))]))
+
+
 def angle_deg(a, b):
     return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
 
@@ -225,8 +231,7 @@ def test_a_yellowed_sepal_behind_a_curled_corolla_is_not_its_pistil(seed):
     # would turn the normal over.
     crop, normal = flower(seed, rim=-0.006)
     fleck = CENTRE - 0.006 * normal + np.random.default_rng(seed).normal(0.0, 7e-4, (8, 3))
-    flecked = Cloud(np.vstack([crop.points, fleck]),
-                    np.vstack([crop.colors, np.tile(np.array(STEM_YELLOW, np.uint8), (8, 1))]))
+    flecked = with_points(crop, fleck, STEM_YELLOW)
     pose = estimate_pose(flecked)
     assert angle_deg(pose.normals["plane"], normal) < 5.0
     assert np.linalg.norm(pose.center - CENTRE) < 0.002
@@ -306,18 +311,13 @@ def test_sepals_the_crop_left_out_sign_a_sparse_flower(seed):
     assert angle_deg(alone.normals["plane"], normal) > 90
 
 
-def _with(crop: Cloud, points: np.ndarray, colour: tuple[int, int, int]) -> Cloud:
-    return Cloud(np.vstack([crop.points, points]),
-                 np.vstack([crop.colors, np.tile(np.array(colour, np.uint8), (len(points), 1))]))
-
-
 @pytest.mark.parametrize("seed", range(4))
 def test_a_pistil_far_behind_the_petals_is_not_the_flower_s(seed):
     # A sparse flower without a receptacle whose one pistil-coloured cluster is a
     # yellowed sepal 12 mm (0.8 corolla radii) behind its petals.
     crop, normal = flower(seed, rim=0.0, petals=60, dome=0)
     fleck = CENTRE - 0.012 * normal + np.random.default_rng(seed).normal(0.0, 5e-4, (8, 3))
-    flecked = _with(crop, fleck, STEM_YELLOW)
+    flecked = with_points(crop, fleck, STEM_YELLOW)
     taken = estimate_pose(flecked, PoseConfig(pistil_max_height=None))
     assert taken.pistil_found and angle_deg(taken.normals["plane"], normal) > 90
     pose = estimate_pose(flecked)
