@@ -6,7 +6,7 @@ toward (away from the peduncle), in the crop's frame (the bed frame: metres, z u
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -115,26 +115,28 @@ class PoseConfig:
     prior cut off beyond 25 degrees of vertical, 2 at power 3; the hard preset (151
     flowers, many facing down) and oracle-10 unchanged. 1: the plain cosine."""
     pistil_core: float | None = 0.3
-    """"combined": the pistil's position is that of its core, the pistil points within
-    this many corolla radii (about a receptacle's radius) across the petals' axis of the
-    pistil point nearest that axis, so a yellowish stalk joined to the receptacle in one
-    pistil cluster does not drag it behind the petals. On the authors' plant 3 thinned to
-    20 %, one flower's pistil cluster ran 22 mm out and 10 mm back along its stalk and
-    flipped its normal (170 degrees); with the core, 10.3. The oracle, hard and field
-    presets score the same either way. None: the whole pistil cluster."""
+    """"combined" and `pistil_max_height`: the pistil's position is that of its core, the
+    pistil points within this many corolla radii (about a receptacle's radius) across the
+    petals' axis of the pistil point nearest that axis, so a yellowish stalk joined to the
+    receptacle in one pistil cluster does not drag it behind the petals. On the authors'
+    plant 3 thinned to 20 %, one flower's pistil cluster ran 22 mm out and 10 mm back
+    along its stalk and flipped its normal (170 degrees); with the core, 10.3. The oracle,
+    hard and field presets score the same either way. None: the whole pistil cluster."""
     pistil_max_height: float | None = 0.5
     """The pistil (its core, `pistil_core`) lies within this many corolla radii of its
     petals' centroid along their plane's axis, either way: the receptacle sits in the
     corolla. A pistil-coloured cluster farther off is a yellowed sepal or stem behind the
-    flower or something in front of it, and the flower is posed as one without a pistil
-    (its centre the petals', its sign the sepals'). Measured on 981 flowers (the guard
-    battery's scan, oracle, field and hard entries, 591; the authors' plant 3 as it is,
-    thinned to 50-3 % and cut by a quarter and a half, 5 repeats, 390): every pistil of a
-    rightly signed flower lay between 0.09 radii below and 0.43 above its petals'
-    centroid, and the one pistil beyond 0.45, two dark yellow-green points 0.61 radii
-    behind the petals of a flower thinned to 3 %, flipped its normal (155 degrees; 24.5
-    without that pistil, as the published method). No other flower of the 981 moved.
-    None: any pistil is taken (upstream)."""
+    flower or something in front of it, neither its pistil nor its support: the flower is
+    posed as one without a pistil (its centre the petals', its sign the sepals'), which on a
+    cloud dense enough to need a pistil (`cluster.require_pistil`) is no flower. The radii
+    are the 90th percentile distance of the petals from the pistil, as "combined" measures
+    them. Measured on 981 flowers (the guard battery's scan, oracle, field and hard entries,
+    591; the authors' plant 3 as it is, thinned to 50-3 % and cut by a quarter and a half, 5
+    repeats, 390): every pistil of a rightly signed flower lay between 0.09 radii below and
+    0.43 above its petals' centroid, and the one pistil beyond 0.45, two dark yellow-green
+    points 0.61 radii behind the petals of a flower thinned to 3 %, flipped its normal (155
+    degrees; 24.5 without that pistil, as the published method). No other flower of the 981
+    moved. None: any pistil is taken (upstream)."""
     base_radius_factor: float = 1.5
     """Petal points within this many pistil radii of the pistil centroid form the petal
     base ("petal_base" reference, and "petal_surface" where too few petals are left); the
@@ -154,18 +156,18 @@ class PoseConfig:
     pistil along the axis (and one across it): a leaf 15 mm above an upward flower of a
     photogrammetry plant is not its support."""
     support_from_cloud: bool = True
-    """"combined": the support vote also takes the sepal and stem points of the cloud
-    round the flower that its crop left out (within the same reach; `estimate_pose`'s
-    `support_round`). A crop is the points within `cluster.crop_margin_m` of the flower's
-    cluster, and on a sparse cloud the cluster shrinks to the corolla and its crop leaves
-    out the sepals behind it: on the authors' plant 3 thinned to 7 %, one flower's crop held
-    no sepal point where the cloud round it held 19-26 (a quarter radius behind the
-    petals), and a two-point pistil below the petal surface flipped it (166 degrees). A
-    flower without a pistil reads them too (within the same reach of its petals'
-    centroid): on plant 3 thinned to 10-3 % (5 repeats), 15 such flowers whose crops held
-    too few sepal points had no normal and were dropped; they are found now, their
-    normals flagged uncertain, none flipped. False: the crop's points only (`pose_crops`
-    has no cloud round its crops)."""
+    """The support vote ("combined"'s, and a flower's without a pistil) also takes the sepal
+    and stem points of the cloud round the flower that its crop left out (within the same
+    reach; `estimate_pose`'s `support_round`). A crop is the points within
+    `cluster.crop_margin_m` of the flower's cluster, and on a sparse cloud the cluster
+    shrinks to the corolla and its crop leaves out the sepals behind it: on the authors'
+    plant 3 thinned to 7 %, one flower's crop held no sepal point where the cloud round it
+    held 19-26 (a quarter radius behind the petals), and a two-point pistil below the petal
+    surface flipped it (166 degrees). A flower without a pistil reads them too (within the
+    same reach of its petals' centroid): on plant 3 thinned to 10-3 % (5 repeats), 15 such
+    flowers whose crops held too few sepal points had no normal and were dropped; they are
+    found now, their normals flagged uncertain, none flipped. False: the crop's points only
+    (`pose_crops` has no cloud round its crops)."""
     plane_robust_iterations: int = 5
     """Reweighted refits of the plane (Tukey's biweight, from the least-median plane;
     `fit.fit_plane`); 0: the paper's plain least-squares plane. On two full-loop runs of
@@ -525,14 +527,21 @@ def estimate_pose(crop: Cloud, config: PoseConfig | None = None,
     if len(crop) == 0:
         raise InputError("flower crop", "the crop has no points")
     colours = CropColours.of(crop, colour)
-    petal, pistil = _split(crop.points, colours, cluster)
+    _, pistil = _split(crop.points, colours, cluster)
     found = bool(pistil.any())
-    if flower_radius is None:
-        flower_radius = corolla(crop.points, petal, colours.pistil, cluster).radius
+    own_radius = flower_radius is None
+    if own_radius:
+        flower_radius = corolla(crop.points, colours.petal, colours.pistil, cluster).radius
     petal, plane = _petals_and_plane(crop.points, colours.petal, pistil, config, flower_radius)
     if found and plane is not None and not _pistil_in_corolla(crop.points, pistil,
                                                               crop.points[petal], plane, config):
+        # The refused cluster is neither pistil nor support: in front of the flower it
+        # would sign the normal backwards.
+        colours = replace(colours, pistil=colours.pistil & ~pistil,
+                          support=colours.support & ~pistil)
         found, pistil = False, np.zeros_like(pistil)
+        if own_radius:
+            flower_radius = corolla(crop.points, colours.petal, colours.pistil, cluster).radius
         petal, plane = _petals_and_plane(crop.points, colours.petal, pistil, config,
                                          flower_radius)
     if found:
