@@ -401,12 +401,18 @@ def _orientation(crop: Cloud, petal: np.ndarray, pistil: np.ndarray,
     support_points = points[~petal & colours.support]
     if support_round is not None and len(support_round) and plane is not None:
         centroid = petal_points.mean(axis=0)
-        radius = float(np.percentile(np.linalg.norm(petal_points - centroid, axis=1), 90))
+        radius = _corolla_radius(petal_points, centroid)
         nearby = _within_reach(support_round, centroid, plane, radius, config.support_reach)
         support_points = np.concatenate([support_points, support_round[nearby]])
     if len(support_points) < config.support_min_points:
         return None
     return Orientation(petal_points.mean(axis=0) - support_points.mean(axis=0), None, 0)
+
+
+def _corolla_radius(petal_points: np.ndarray, centre: np.ndarray) -> float:
+    """The corolla radius the orientation votes count in: the 90th percentile distance of
+    the petal points (K, 3) from `centre` (3,), their unit."""
+    return float(np.percentile(np.linalg.norm(petal_points - centre, axis=1), 90))
 
 
 def _within_reach(at: np.ndarray, centre: np.ndarray, axis: np.ndarray, radius: float,
@@ -440,7 +446,7 @@ def _combined(crop: Cloud, petal: np.ndarray, pistil: np.ndarray, plane: np.ndar
         pistil = _pistil_core(points, pistil, petal_points, plane, config.pistil_core)
     pistil_centroid = points[pistil].mean(axis=0)
     offset = points - pistil_centroid
-    radius = float(np.percentile(np.linalg.norm(petal_points - pistil_centroid, axis=1), 90))
+    radius = _corolla_radius(petal_points, pistil_centroid)
 
     def within_reach(at: np.ndarray) -> np.ndarray:
         return _within_reach(at, pistil_centroid, plane, radius, config.support_reach)
@@ -587,7 +593,7 @@ def _pistil_in_corolla(points: np.ndarray, pistil: np.ndarray, petal_points: np.
     if config.pistil_core is not None:
         pistil = _pistil_core(points, pistil, petal_points, axis, config.pistil_core)
     centre = points[pistil].mean(axis=0)
-    radius = float(np.percentile(np.linalg.norm(petal_points - centre, axis=1), 90))
+    radius = _corolla_radius(petal_points, centre)
     height = abs(float((centre - petal_points.mean(axis=0)) @ axis))
     return height <= config.pistil_max_height * radius
 
