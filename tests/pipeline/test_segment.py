@@ -1,8 +1,12 @@
 import numpy as np
+from candidate_flowers import PETAL, candidate_flowers, plane_axes
 
 from flowerpose.cloudio import Cloud
+from flowerpose.pipeline import segment
+from flowerpose.pipeline.flowers import PipelineConfig
 from flowerpose.pipeline.segment import (
     ClusterConfig,
+    cluster_flowers,
     crop_flowers,
     oriented_box,
     split_by_centres,
@@ -61,3 +65,59 @@ def test_crops_of_overlapping_boxes_do_not_share_points():
     # Upstream's box crops overlap where the boxes do.
     _, crops = crop_flowers(cloud, clusters, ClusterConfig(crop="box"))
     assert set(crops[0]) & set(crops[1])
+
+
+
+def _split_corolla(gap: float) -> tuple[Cloud, np.ndarray, np.ndarray]:
+    """Six seeded candidate flowers (`candidate_flowers`) with a band `gap` metres wide
+    taken out across the first one's petals, 6 mm beside its centre: the petals beyond the
+    band are a piece without a pistil. Returns the cloud, the first flower's centre and
+    the piece's indices."""
+    cloud, centres, normals = candidate_flowers(800, seed=2)
+    u, _ = plane_axes(normals[0])
+    across = (cloud.points - centres[0]) @ u
+    first = np.linalg.norm(cloud.points - centres[0], axis=1) < 0.03
+    kept = ~(first & (np.abs(across - 0.006 - gap / 2) < gap / 2))
+    petal = (cloud.colors == PETAL).all(axis=1)
+    cloud = cloud.subset(np.flatnonzero(kept))
+    piece = np.flatnonzero(first[kept] & (across[kept] >= 0.006 + gap) & petal[kept])
+    return cloud, centres[0], piece
+
+
+def _first_crop(cloud: Cloud, centre: np.ndarray) -> np.ndarray:
+    """The crop (indices into `cloud`) of the flower whose cluster lies nearest `centre`."""
+    config = PipelineConfig()
+    grouping = cluster_flowers(cloud, np.arange(len(cloud)), config.outliers,
+                               config.cluster, config.colour)
+    assert len(grouping.clusters) == 6
+    _, crops = crop_flowers(cloud, grouping.clusters, grouping.config)
+    return min(crops, key=lambda c: np.linalg.norm(cloud.points[c].mean(axis=0) - centre))
+
+
+def test_a_corolla_cut_in_two_by_a_gap_wider_than_dbscan_keeps_both_pieces(monkeypatch):
+    """A gap across a corolla wider than DBSCAN's radius leaves the piece without the
+    pistil too small to be a flower; it joins the flower whose centre it lies within reach
+    of, so the crop holds the whole corolla."""
+    cloud, centre, piece = _split_corolla(gap=0.012)
+    assert len(piece) >= 20
+    assert np.isin(piece, _first_crop(cloud, centre)).mean() > 0.9
+    # Without the join the piece is lost: the gap does cut the corolla.
+    monkeypatch.setattr(segment, "_with_fragments", lambda points, flowers, *_: flowers)
+    assert np.isin(piece, _first_crop(cloud, centre)).mean() < 0.1
+
+
+def test_a_speck_of_petal_colour_beyond_a_flowers_reach_joins_no_flower():
+    """A piece without a pistil joins a flower only within reach of its centre: a speck of
+    petal colour between two flowers, 4 cm from each, stays out of both crops."""
+    cloud, centres, _ = candidate_flowers(800, seed=2)
+    rng = np.random.default_rng(0)
+    speck = (centres[0] + centres[1]) / 2 + np.c_[rng.uniform(-0.004, 0.004, (40, 2)),
+                                                   rng.normal(0, 3e-4, 40)]
+    cloud = Cloud(np.vstack([cloud.points, speck]),
+                  np.vstack([cloud.colors, np.tile(PETAL, (40, 1))]).astype(np.uint8))
+    config = PipelineConfig()
+    grouping = cluster_flowers(cloud, np.arange(len(cloud)), config.outliers,
+                               config.cluster, config.colour)
+    _, crops = crop_flowers(cloud, grouping.clusters, grouping.config)
+    assert len(crops) == 6
+    assert not np.isin(np.arange(len(cloud) - 40, len(cloud)), np.concatenate(crops)).any()
