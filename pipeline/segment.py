@@ -481,9 +481,11 @@ def cluster_flowers(plant: Cloud, candidates: np.ndarray, outliers: OutlierConfi
         key = (sized_outliers, sized)
         if key not in parts_at:
             parts_at[key] = _parts(plant, candidates, white, centre, sized_outliers, sized)
-        clusters, typical, size = _group(plant, parts_at[key], white, centre, sized, area)
+        clusters, typical, size, joined = _group(plant, parts_at[key], white, centre, sized,
+                                                 area)
+        # The flowers' spacing sizes the next pass without the pieces joined to them.
         members = np.concatenate([np.zeros(0, np.int64), *clusters])
-        return ((clusters, typical, sized, density), size,
+        return ((joined, typical, sized, density), size,
                 cloud_spacing(plant.points[members[flower[members]]], sized))
 
     sizing, (clusters, typical, applied, density), size = sized_to_cloud(
@@ -554,13 +556,14 @@ def _parts(plant: Cloud, candidates: np.ndarray, white: np.ndarray, centre: np.n
 
 def _group(plant: Cloud, parts: list[np.ndarray], white: np.ndarray, centre: np.ndarray,
            config: ClusterConfig, cloud_area: float | None
-           ) -> tuple[list[np.ndarray], float | None, float | None]:
+           ) -> tuple[list[np.ndarray], float | None, float | None, list[np.ndarray]]:
     """The flowers among one grouping's parts (`_parts`): their typical radius
-    (`typical_radius`), and their size: the median radius of the flowers kept, each
-    counted by its points, so that a cloud's small fragments, which shrink with the limits,
-    do not decide how big its flowers are."""
+    (`typical_radius`), their size: the median radius of the flowers kept, each counted by
+    its points, so that a cloud's small fragments, which shrink with the limits, do not
+    decide how big its flowers are; and the flowers each joined by the pieces of its
+    corolla a gap cut off (`_with_fragments`)."""
     if not parts:
-        return [], None, None
+        return [], None, None, []
 
     def analyse(part: np.ndarray) -> Corolla:
         return corolla(plant.points[part], white[part], centre[part], config, cloud_area)
@@ -569,7 +572,7 @@ def _group(plant: Cloud, parts: list[np.ndarray], white: np.ndarray, centre: np.
     counts = [len(part) for part in parts]
     typical = typical_radius(corollas, config, counts)
     if typical is None:
-        return [], None, None
+        return [], None, None, []
     flowers, radii, centres, fragments = [], [], [], []
     for part, shape in zip(parts, corollas, strict=True):
         if shape.coverage < config.min_coverage and shape.has_pistil:
@@ -586,10 +589,9 @@ def _group(plant: Cloud, parts: list[np.ndarray], white: np.ndarray, centre: np.
             centres.append(shape.centre)
         elif not shape.has_pistil:
             fragments.append(part)
-    sizes = [len(f) for f in flowers]
-    flowers = _with_fragments(plant.points, flowers, centres, fragments,
-                              config.reach_ratio * typical)
-    return flowers, typical, _weighted_median(radii, sizes)
+    return (flowers, typical, _weighted_median(radii, [len(f) for f in flowers]),
+            _with_fragments(plant.points, flowers, centres, fragments,
+                            config.reach_ratio * typical))
 
 
 def _with_fragments(points: np.ndarray, flowers: list[np.ndarray], centres: list[np.ndarray],
