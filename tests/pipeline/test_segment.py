@@ -6,6 +6,7 @@ from flowerpose.pipeline import segment
 from flowerpose.pipeline.flowers import PipelineConfig
 from flowerpose.pipeline.segment import (
     ClusterConfig,
+    Grouping,
     cluster_flowers,
     crop_flowers,
     oriented_box,
@@ -68,15 +69,16 @@ def test_crops_of_overlapping_boxes_do_not_share_points():
 
 
 
-def _split_corolla(gap: float) -> tuple[Cloud, np.ndarray, np.ndarray]:
-    """Six seeded candidate flowers (`candidate_flowers`) with a band `gap` metres wide
-    taken out across the first one's petals, 6 mm beside its centre: the petals beyond the
-    band are a piece without a pistil. Returns the cloud, the first flower's centre and
-    the piece's indices."""
-    cloud, centres, normals = candidate_flowers(800, seed=2)
+def _split_corolla(gap: float, radius: float = 0.022, points: int = 800
+                   ) -> tuple[Cloud, np.ndarray, np.ndarray]:
+    """Six seeded candidate flowers (`candidate_flowers`, `points` a flower of `radius`
+    metres) with a band `gap` metres wide taken out across the first one's petals, 6 mm
+    beside its centre: the petals beyond the band are a piece without a pistil. Returns the
+    cloud, the first flower's centre and the piece's indices."""
+    cloud, centres, normals = candidate_flowers(points, seed=2, radius=radius)
     u, _ = plane_axes(normals[0])
     across = (cloud.points - centres[0]) @ u
-    first = np.linalg.norm(cloud.points - centres[0], axis=1) < 0.03
+    first = np.linalg.norm(cloud.points - centres[0], axis=1) < 1.4 * radius
     kept = ~(first & (np.abs(across - 0.006 - gap / 2) < gap / 2))
     petal = (cloud.colors == PETAL).all(axis=1)
     cloud = cloud.subset(np.flatnonzero(kept))
@@ -104,6 +106,29 @@ def test_a_corolla_cut_in_two_by_a_gap_wider_than_dbscan_keeps_both_pieces(monke
     # Without the join the piece is lost: the gap does cut the corolla.
     monkeypatch.setattr(segment, "_with_fragments", lambda points, flowers, *_: flowers)
     assert np.isin(piece, _first_crop(cloud, centre)).mean() < 0.1
+
+
+def test_the_pieces_joined_to_a_flower_do_not_size_the_next_grouping(monkeypatch):
+    """Flowers larger than the size band are grouped again with limits sized to them; the
+    spacing that sizes that pass is the flowers' own, without the pieces joined to them,
+    so joining a piece changes a crop and not the limits the cloud is grouped with."""
+    cloud, _, piece = _split_corolla(gap=0.016, radius=0.045, points=400)
+    config = PipelineConfig()
+
+    def grouped() -> Grouping:
+        return cluster_flowers(cloud, np.arange(len(cloud)), config.outliers,
+                               config.cluster, config.colour)
+
+    joined = grouped()
+    assert joined.scale > 1
+    monkeypatch.setattr(segment, "_with_fragments", lambda points, flowers, *_: flowers)
+    alone = grouped()
+    # The join took pieces of the cut corolla into a flower ...
+    joined_piece = np.isin(piece, np.concatenate(joined.clusters)).sum()
+    assert joined_piece > np.isin(piece, np.concatenate(alone.clusters)).sum()
+    # ... and left the limits as they were.
+    assert (alone.config, alone.density, alone.scale) == (joined.config, joined.density,
+                                                          joined.scale)
 
 
 def test_a_speck_of_petal_colour_beyond_a_flowers_reach_joins_no_flower():
