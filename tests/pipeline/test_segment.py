@@ -68,6 +68,12 @@ def test_crops_of_overlapping_boxes_do_not_share_points():
     assert set(crops[0]) & set(crops[1])
 
 
+def _grouped(cloud: Cloud) -> Grouping:
+    """The grouping of every point of `cloud` under the default settings."""
+    config = PipelineConfig()
+    return cluster_flowers(cloud, np.arange(len(cloud)), config.outliers, config.cluster,
+                           config.colour)
+
 
 def _split_corolla(gap: float, radius: float = 0.022, points: int = 800
                    ) -> tuple[Cloud, np.ndarray, np.ndarray]:
@@ -88,9 +94,7 @@ def _split_corolla(gap: float, radius: float = 0.022, points: int = 800
 
 def _first_crop(cloud: Cloud, centre: np.ndarray) -> np.ndarray:
     """The crop (indices into `cloud`) of the flower whose cluster lies nearest `centre`."""
-    config = PipelineConfig()
-    grouping = cluster_flowers(cloud, np.arange(len(cloud)), config.outliers,
-                               config.cluster, config.colour)
+    grouping = _grouped(cloud)
     assert len(grouping.clusters) == 6
     _, crops = crop_flowers(cloud, grouping.clusters, grouping.config)
     return min(crops, key=lambda c: np.linalg.norm(cloud.points[c].mean(axis=0) - centre))
@@ -113,16 +117,10 @@ def test_the_pieces_joined_to_a_flower_do_not_size_the_next_grouping(monkeypatch
     spacing that sizes that pass is the flowers' own, without the pieces joined to them,
     so joining a piece changes a crop and not the limits the cloud is grouped with."""
     cloud, _, piece = _split_corolla(gap=0.016, radius=0.045, points=400)
-    config = PipelineConfig()
-
-    def grouped() -> Grouping:
-        return cluster_flowers(cloud, np.arange(len(cloud)), config.outliers,
-                               config.cluster, config.colour)
-
-    joined = grouped()
+    joined = _grouped(cloud)
     assert joined.scale > 1
     monkeypatch.setattr(segment, "_with_fragments", lambda points, flowers, *_: flowers)
-    alone = grouped()
+    alone = _grouped(cloud)
     # The join took pieces of the cut corolla into a flower ...
     joined_piece = np.isin(piece, np.concatenate(joined.clusters)).sum()
     assert joined_piece > np.isin(piece, np.concatenate(alone.clusters)).sum()
@@ -140,9 +138,7 @@ def test_a_speck_of_petal_colour_beyond_a_flowers_reach_joins_no_flower():
                                                    rng.normal(0, 3e-4, 40)]
     cloud = Cloud(np.vstack([cloud.points, speck]),
                   np.vstack([cloud.colors, np.tile(PETAL, (40, 1))]).astype(np.uint8))
-    config = PipelineConfig()
-    grouping = cluster_flowers(cloud, np.arange(len(cloud)), config.outliers,
-                               config.cluster, config.colour)
+    grouping = _grouped(cloud)
     _, crops = crop_flowers(cloud, grouping.clusters, grouping.config)
     assert len(crops) == 6
     assert not np.isin(np.arange(len(cloud) - 40, len(cloud)), np.concatenate(crops)).any()
