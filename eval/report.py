@@ -17,10 +17,12 @@ from flowerpose.atomic import write_text
 from flowerpose.eval.stats import (
     NO_INTERVAL,
     accuracy_curve,
+    accuracy_scores,
     error_summary,
     interval_text,
     wilson,
 )
+from flowerpose.eval.units import flower_groups, share_weight
 from flowerpose.jsonio import write_json
 from flowerpose.pipeline.methods import METHODS
 
@@ -46,9 +48,11 @@ def plant_entry(name: str, score: Any) -> dict:
 
 def summarise(plants: list[dict], intervals: bool = True) -> dict:
     """The report's summary over plant entries: totals, recalls with their Wilson
-    intervals, each fit's error statistics with bootstrap intervals over plants then
-    flowers, and each fit's accuracy curve (`eval/stats.py`). `intervals=False` leaves the
-    intervals out (None), for a caller that only ranks point values many times over."""
+    intervals, each fit's error statistics with bootstrap intervals, and each fit's
+    accuracy curve (`eval/stats.py`), the units resampled as `eval/units.py` says (a
+    perturbed plant's repeats nested in its flowers, each flower counted once in a
+    share's interval). `intervals=False` leaves the intervals out (None), for a caller that
+    only ranks point values many times over."""
     total = {key: sum(p[key] for p in plants)
              for key in ("gt", "visible", "detections", "found", "found_visible", "extra", "fp")}
     recall = total["found_visible"] / total["visible"] if total["visible"] else None
@@ -56,11 +60,17 @@ def summarise(plants: list[dict], intervals: bool = True) -> dict:
     f1 = (2 * recall * precision / (recall + precision)
           if recall is not None and precision is not None and recall + precision > 0 else
           0.0 if recall is not None else None)
+    weight = share_weight(plants)
 
     def share(successes: int, trials: int) -> dict:
-        return wilson(successes, trials) if intervals else dict(NO_INTERVAL)
+        return wilson(successes * weight, trials * weight) if intervals else dict(NO_INTERVAL)
 
-    groups = {m: [p["error_deg"][m] for p in plants] for m in METHODS}
+    def errors(fit: str) -> list[list[float]]:
+        return flower_groups(plants, lambda m: m["error_deg"].get(fit))
+
+    def scores(fit: str) -> list[list[float]]:
+        return flower_groups(plants, lambda m: _score(m["error_deg"].get(fit)), missed=0.0)
+
     return {**total,
             "recall": round(total["found"] / total["gt"], 4) if total["gt"] else None,
             "recall_visible": None if recall is None else round(recall, 4),
@@ -69,10 +79,16 @@ def summarise(plants: list[dict], intervals: bool = True) -> dict:
             "precision": None if precision is None else round(precision, 4),
             "precision_ci95": share(total["detections"] - total["fp"], total["detections"]),
             "f1": None if f1 is None else round(f1, 4),
-            "error_deg": {m: error_summary(groups[m], intervals) for m in METHODS},
-            "accuracy": {m: accuracy_curve(groups[m], [p["visible"] for p in plants], intervals)
-                         for m in METHODS},
+            "error_deg": {m: error_summary(errors(m), intervals, weight) for m in METHODS},
+            "accuracy": {m: accuracy_curve([p["error_deg"][m] for p in plants],
+                                           [p["visible"] for p in plants], intervals,
+                                           scores(m)) for m in METHODS},
             "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}
+
+
+def _score(error: float | None) -> float:
+    """A flower's share of the accuracy curve's area (`stats.accuracy_scores`)."""
+    return 0.0 if error is None else float(accuracy_scores([error], 1)[0])
 
 
 def git_commit() -> str | None:

@@ -37,8 +37,10 @@ from flowerpose.config import (
 )
 from flowerpose.errors import InputError
 from flowerpose.eval.config import EvalConfig, eval_config
+from flowerpose.eval.paired import flower_errors
 from flowerpose.eval.plants import Plants, PlantSet, world_digest
 from flowerpose.eval.report import markdown_table, run_record, summarise
+from flowerpose.eval.stats import FLIP_DEG, GROSS_DEG
 from flowerpose.eval.tune_space import Objective, Param, typed_settings
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
@@ -55,7 +57,8 @@ TUNE_FILES = ("tune.json", "tune.md", "tune.html", "best.toml", "study.db", "pla
 RECORDED = ("f1", "recall_visible", "precision", "fp", "found_visible", "visible",
             "error_deg.plane.mean", "error_deg.plane.median", "recall_visible_ci95.low",
             "precision_ci95.low", "error_deg.plane.mean_ci95.low",
-            "error_deg.plane.mean_ci95.high")
+            "error_deg.plane.mean_ci95.high", "error_deg.plane.p90",
+            "error_deg.plane.p90_ci95.high", "error_deg.plane.over_90")
 
 
 @dataclass(frozen=True)
@@ -180,7 +183,7 @@ def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
     import optuna
 
     quiet_optuna()
-    sampler = optuna.samplers.TPESampler(seed=spec.sampler_seed)
+    sampler = optuna.samplers.TPESampler(seed=spec.sampler_seed, constraints_func=_adds_flips)
     pruner = (optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
               if len(spec.objectives) == 1 else optuna.pruners.NopPruner())
     storage = _storage(spec.storage)
@@ -201,6 +204,16 @@ def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
             raise InputError("--study-name", f"{spec.study_name}: that study was made with "
                              f"another {differs}; give another --study-name")
     return study
+
+
+#: The study's record of the flowers the defaults flip on the training plants.
+DEFAULTS_FLIPPED = "defaults_flipped_train"
+
+
+def _adds_flips(trial: Any) -> tuple[float]:
+    """The sampler's constraint: a trial that flips a normal the defaults did not on the
+    training plants is infeasible (positive), whatever its objectives."""
+    return (float(trial.user_attrs.get("new_flipped", 0)),)
 
 
 def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], layers: tuple[dict, ...],
@@ -227,6 +240,10 @@ def _recorded(entries: list[dict] | None) -> dict | None:
         return None
     summary = summarise(entries)
     recorded = {k: summary_value(summary, k) for k in RECORDED}
+    recorded["flipped_flowers"] = sorted(f"{plant}: flower {truth}" for (plant, truth), error
+                                         in flower_errors(entries, "plane").items()
+                                         if error > FLIP_DEG)
+    recorded["over_20"] = sum(e > GROSS_DEG for p in entries for e in p["error_deg"]["plane"])
     recall, precision = recorded["recall_visible_ci95.low"], recorded["precision_ci95.low"]
     recorded["f1_low"] = (None if recall is None or precision is None else 0.0
                           if recall + precision == 0 else
@@ -261,7 +278,11 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
                 trial.set_user_attr("error", f"{type(err).__name__}: {err}"
                                     if not isinstance(err, InputError) else str(err))
                 raise
-            trial.set_user_attr("train", _recorded(train_entries))
+            recorded = _recorded(train_entries)
+            trial.set_user_attr("train", recorded)
+            trial.set_user_attr("new_flipped", len(
+                set(recorded["flipped_flowers"])
+                - set(trial.study.user_attrs.get(DEFAULTS_FLIPPED, []))))
             trial.set_user_attr("validate", _recorded(
                 _entries(scorer, spec.validate, layers, folder / "validate")))
         finally:
@@ -391,22 +412,36 @@ def _failure(trial: Any) -> str | None:
 
 
 def front(study: Any, spec: TuneSpec) -> list[Any]:
-    """The training front: the Pareto front (several objectives) or the best CHOSEN_FROM
-    trials (one)."""
+    """The training front among the trials that flip no normal the defaults did not: the
+    Pareto front (several objectives) or the best CHOSEN_FROM trials (one)."""
     import optuna
 
-    complete = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
+    complete = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE
+                and not t.user_attrs.get("new_flipped", 0)]
     if not complete:
         return []
     if len(spec.objectives) > 1:
-        return sorted(study.best_trials, key=lambda t: t.number)
+        signs = [1.0 if o.direction == "minimize" else -1.0 for o in spec.objectives]
+        costs = [[s * v for s, v in zip(signs, t.values, strict=True)] for t in complete]
+
+        def dominated(k: int) -> bool:
+            return any(all(a <= b for a, b in zip(other, costs[k], strict=True))
+                       and other != costs[k] for other in costs)
+        return [t for k, t in sorted(enumerate(complete), key=lambda kt: kt[1].number)
+                if not dominated(k)]
     sign = -1.0 if spec.objectives[0].direction == "maximize" else 1.0
     return sorted(complete, key=lambda t: sign * t.values[0])[:CHOSEN_FROM]
 
 
-def choose(candidates: list[Any], validated: bool) -> Any | None:
+def choose(candidates: list[Any], validated: bool, defaults_flipped: list[str] = ()
+           ) -> Any | None:
     """The chosen trial (CHOICE_RULE), by the validation scores' 95 % bounds, not their
-    point values (or, without validation, the front's first)."""
+    point values (or, without validation, the front's first); never one that flips a
+    normal on the validation plants that the defaults (`defaults_flipped`) did not."""
+    if validated:
+        candidates = [t for t in candidates if not set(
+            (t.user_attrs.get("validate") or {}).get("flipped_flowers", []))
+            - set(defaults_flipped)]
     if not candidates:
         return None
     if not validated:
@@ -421,10 +456,11 @@ def choose(candidates: list[Any], validated: bool) -> Any | None:
     return min(candidates, key=key)
 
 
-CHOICE_RULE = ("the chosen trial: among the training front, the highest lower bound of the "
-               "validation F1 (the F1 of the 95 % lower bounds of the recall of visible "
-               "flowers and of the precision), ties broken by the lower upper bound of the "
-               "validation plane error's mean")
+CHOICE_RULE = ("the chosen trial: among the training front (trials that flip no normal the "
+               "defaults did not), none that flips one on the validation plants; the "
+               "highest lower bound of the validation F1 (the F1 of the 95 % lower bounds of "
+               "the recall of visible flowers and of the precision), ties broken by the "
+               "lower upper bound of the validation plane error's mean")
 
 
 def best_toml(settings: dict) -> str:
@@ -548,7 +584,8 @@ def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
     study = open_study(spec, {}, create=False)
     rows = trial_rows(study, spec)
     candidates = front(study, spec)
-    chosen_trial = choose(candidates, bool(spec.validate))
+    chosen_trial = choose(candidates, bool(spec.validate),
+                          (defaults.get("validate") or {}).get("flipped_flowers", []))
     by_number = {r["number"]: r for r in rows}
     chosen = None if chosen_trial is None else by_number[chosen_trial.number]
     against = (None if chosen is None or not spec.validate

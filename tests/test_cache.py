@@ -150,7 +150,7 @@ def test_prune_removes_the_least_recently_used_entries_and_nothing_else(tmp_path
     source.write_bytes(b"x" * 1000)
     for key in ("old", "middle", "new"):
         cache.store("scan", key, {"cloud.ply": source}, {"result": {}})
-    stamp = 1_700_000_000
+    stamp = 946_684_800  # 2000-01-01, long ago
     for age, key in enumerate(("new", "middle", "old")):
         os.utime(tmp_path / "cache" / "scan" / key / "entry.json", (stamp - age, stamp - age))
     foreign = tmp_path / "cache" / "notes.txt"  # not the cache's: never removed
@@ -179,10 +179,10 @@ def test_a_cache_hit_is_a_use(tmp_path):
     (plant / "out.txt").write_text("made")
     cache.run("plant", {}, [plant / "plant.json"], plant, ["out.txt"], lambda: {})
     about = next((tmp_path / "cache" / "plant").iterdir()) / "entry.json"
-    os.utime(about, (1_700_000_000, 1_700_000_000))
+    os.utime(about, (946_684_800, 946_684_800))  # 2000-01-01
     _, cached, _ = cache.run("plant", {}, [plant / "plant.json"], plant, ["out.txt"],
                              lambda: pytest.fail("computed again"))
-    assert cached and about.stat().st_mtime > 1_700_000_000
+    assert cached and about.stat().st_mtime > 946_684_800
 
 
 def test_no_cache_and_a_cache_folder_contradict_before_any_work(tmp_path, capsys):

@@ -37,6 +37,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
     config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
+    if args.source != "real":
+        from flowerpose.eval.fresh_seeds import refuse_fresh
+
+        refuse_fresh(args.seed, args.plants)
     grid = parse_grid(args.grid, config)
     cache = stage_cache(args)
     writes = sweep_outputs(grid, args.source, args.folders)
@@ -244,8 +248,10 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
 def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.config import parse_set_options
     from flowerpose.eval.config import eval_config
+    from flowerpose.eval.fresh_seeds import refuse_fresh
     from flowerpose.eval.plants import PlantSet, parse_sets
     from flowerpose.eval.tune import (
+        DEFAULTS_FLIPPED,
         TUNE_FILES,
         TuneSpec,
         check_storage,
@@ -269,6 +275,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
     train = parse_sets(args.train) if args.train else [
         PlantSet(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
     validate = parse_sets(args.validate) if args.validate else validation_default(train)
+    for plant_set in (*train, *validate):
+        if not plant_set.real:
+            refuse_fresh(plant_set.seed, plant_set.plants, "--train/--validate/--seed")
     storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
     if args.study:
         check_storage(storage)  # the default's folder is made below
@@ -297,6 +306,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
                  f"{len(train)} training and {len(validate)} validation sets")
         timer = Stopwatch()
         defaults = score_defaults(spec)
+        study.set_user_attr(DEFAULTS_FLIPPED, (defaults["train"] or {}).get("flipped_flowers", []))
         each = timer.elapsed()
         workers = 1 if args.ray is not None else (args.workers or 1)
         LOG.info(f"tune: one trial takes about {each:.0f} s here: {args.trials} trials, about "
@@ -381,70 +391,106 @@ def cmd_guard(args: argparse.Namespace) -> int:
     from flowerpose.eval.guard import (
         ACCEPTED,
         GUARD_FILES,
-        guard_rows,
+        GuardRun,
         load_battery,
-        read_accepted,
+        real_folder,
         run_guard,
     )
+    from flowerpose.eval.guard_report import guard_rows
     from flowerpose.eval.report import markdown_table
     from flowerpose.eval.tune import user_overrides
+    from flowerpose.log import LOG
 
+    if args.accept_loss is not None and not args.accept:
+        raise InputError("--accept-loss", "records a loss when accepting: give --accept too")
     battery = load_battery(args.battery)
-    entries = battery.select(args.only)
+    entries = battery.select(args.only, args.quick)
+    for entry in entries:
+        if entry.real:
+            real_folder(entry, args.real)
     overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
     accepted = args.accepted or Path(str(ACCEPTED))
+    if args.accepted is not None and not args.accepted.is_file() and not args.accept:
+        if args.base is None:
+            raise InputError(args.accepted, "no such accepted file (--accepted), so no base "
+                             "to compare with: give --base REV (the first --accept makes "
+                             "the file)")
+        LOG.warning(f"guard: no accepted decisions at {args.accepted}: no drift reported")
     if args.accept:
         check_writable(accepted, "--accepted")
-    previous = read_accepted(accepted, battery)
-    cache = stage_cache(args)
+    setting_arguments = [*(["--profile", args.profile] if args.profile else []),
+                         *(["--config", str(args.config.resolve())] if args.config else []),
+                         *(item for text in args.set for item in ("--set", text))]
+    run = GuardRun(entries, tuple(args.real), accepted, args.base, args.seed,
+                   tuple(setting_arguments), overrides, args.workers, stage_cache(args),
+                   args.trend, args.accept, args.accept_loss)
     with owned(args.out, "guard", args.overwrite,
-               (*GUARD_FILES, *(e.name for e in entries))), jobs_on(args):
-        report = run_guard(battery, entries, args.out, args.real, accepted, args.workers,
-                           cache, args.accept, overrides)
-    print(markdown_table(*guard_rows(report, previous)))
-    worse = [name for name, row in report["entries"].items() if row["verdict"] == "worse"]
-    print(f"guard: {'worse on ' + ', '.join(worse) if worse else 'no entry is worse'}; "
-          f"{args.out / 'guard.json'}, {args.out / 'guard.md'}"
-          + (f"; accepted values written to {accepted}" if args.accept else ""))
-    return 1 if worse else 0
+               (*GUARD_FILES, *(e.name for e in entries))):
+        report = run_guard(battery, run, args.out)
+    print(markdown_table(*guard_rows(report)))
+    for name, row in report["entries"].items():
+        for reason in row["reasons"]:
+            print(f"{name}: {reason}")
+    failed = [name for name, row in report["entries"].items() if row["verdict"] == "fail"]
+    print(f"guard: {'failed on ' + ', '.join(failed) if failed else 'passed'}; run seed "
+          f"{report['run_seed']}; {args.out / 'guard.json'}, {args.out / 'guard.md'}"
+          + (f"; recorded in {accepted}" if args.accept else ""))
+    return 1 if failed and not args.accept else 0
 
 
 def add_guard(sub: argparse._SubParsersAction) -> None:
     """The `guard` subcommand's parser."""
     p = sub.add_parser(
-        "guard", help="the guard battery: a pipeline change checked on plants nobody tuned on",
-        description="Run the guard battery (the full simulated loop, the oracle, the field "
-        "and hard presets on seeds outside the ones settings were chosen on, and a real "
-        "plant as it is, thinned and cut) and compare each entry with its last accepted "
-        "values flower by flower: an entry is worse where its recall, plane error or false "
-        "positives are worse beyond their 95 % intervals. Settings given (--set, --config, "
-        "--profile) apply over each entry's preset: a change of settings is guarded as a "
-        "change of code is. Prints one table, writes "
-        "guard.json and guard.md and each entry's run; exit status 1 where an entry is "
-        "worse. The full loop's reconstructions come from the stage cache after the first "
-        "run.",
+        "guard", help="a change against its base on fresh plants, within stated margins",
+        description="Run the guard battery's entries (the full simulated loop, the oracle, "
+        "the field and hard presets, pollination visits, and a real plant as it is, "
+        "thinned and cut) on plants drawn afresh for this run from seeds nothing else "
+        "uses, twice: with the base revision's code and with the working tree's. Each "
+        "entry is judged flower by flower: it fails where a measure is not shown within its "
+        "margin (the plane error's mean, the recall of visible flowers, false positives, "
+        "the share pollinated) or where the change flips a normal, sends a flower over "
+        "20 degrees or collides where the base did not. Settings given (--set, --config, "
+        "--profile) apply over the working tree's side: a change of settings is guarded as "
+        "a change of code is. Prints one table, writes guard.json and guard.md and each "
+        "entry's runs; exit status 1 where an entry failed.",
         epilog="examples:\n"
-        "  flowerpose guard --real paper-plant-3 --out guard\n"
-        "  flowerpose guard --only oracle-20 --only real3 --real paper-plant-3 --out guard\n"
+        "  flowerpose guard --quick --real paper-plant-3 --out guard\n"
+        "  flowerpose guard --real paper-plant-3 --base main --out guard\n"
+        "  flowerpose guard --only oracle-20 --seed 1234 --out guard\n"
         "  flowerpose guard --set cluster.eps=0.009 --real paper-plant-3 --out guard-eps\n"
-        "  flowerpose guard --real paper-plant-3 --accept --out guard")
+        "  flowerpose guard --real paper-plant-3 --trend --accept --out guard")
     p.add_argument("--real", type=Path, nargs="+", default=[], metavar="DIR",
                    help="the real plant folders the battery's real entries name, found by "
                    "their folder's name (default: none)")
     p.add_argument("--only", action="append", default=[], metavar="ENTRY",
                    help="run this entry only; repeatable (default: every entry)")
+    p.add_argument("--quick", action="store_true",
+                   help="the quick entries only (CI's: the oracle, field and hard presets and "
+                   "the real plant as it is and thinned) (default: every entry)")
+    p.add_argument("--base", metavar="REV",
+                   help="the git revision to compare with (default: the commit of each "
+                   "entry's newest accepted record)")
+    p.add_argument("--seed", type=SEED, default=None, metavar="N",
+                   help="the run seed the plants are drawn from: the same plants again "
+                   "(default: drawn, and printed)")
+    p.add_argument("--trend", action="store_true",
+                   help="also run the working tree on the battery's fixed seeds: a trend "
+                   "record beside the verdict, never part of it (default: no)")
     p.add_argument("--battery", type=Path, metavar="FILE",
                    help="another battery file (default: the shipped "
                    "assets/guard/battery.toml)")
     p.add_argument("--accepted", type=Path, metavar="FILE",
-                   help="the accepted values compared with (default: the shipped "
+                   help="the accepted decisions (default: the shipped "
                    "assets/guard/accepted.json)")
     p.add_argument("--accept", action="store_true",
-                   help="write this run's values as the accepted ones (a change meant to "
-                   "move them commits the file with it) (default: compare only)")
+                   help="append this run's records to the accepted decisions: the base "
+                   "of the next run; refused for a failed run without --accept-loss and for "
+                   "uncommitted changes (default: compare only)")
+    p.add_argument("--accept-loss", metavar="REASON",
+                   help="with --accept: accept a failed run's loss as a decision, recorded "
+                   "with this reason")
     add_workers(p)
-    add_output(p, "folder for guard.json, guard.md and each entry's run")
+    add_output(p, "folder for guard.json, guard.md and each entry's runs")
     add_cache_options(p)
-    add_ray_option(p)
     add_config_options(p, detector=False)
     p.set_defaults(func=cmd_guard)
