@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup eval test test-fast lint bench docs results gallery
+.PHONY: setup eval test test-fast lint bench guard guard-quick docs results gallery
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml scripts/setup-system.sh
@@ -29,6 +29,23 @@ test: setup
 # The tests of under a second each, while working (the full suite is `make test`).
 test-fast: setup
 	$(BIN)/python -m pytest -q -m "not slow"
+
+# The guard: the working tree against the base its accepted decisions name, both on the
+# same fresh plants (flowerpose guard). guard-quick is CI's (the oracle, field and hard
+# presets and the real plant as it is and thinned); guard is the whole battery, the full
+# loop and pollination included, with the trend on the fixed seeds: run it before a change
+# to pipeline/ or sim/ is called done. The real plant is the developers' copy beside the
+# checkout (FLOWERPOSE_SHARED), else `flowerpose data fetch paper-plant-3`'s.
+SHARED ?= $(or $(FLOWERPOSE_SHARED),../shared)
+REAL ?= $(firstword $(wildcard $(SHARED)/real/paper-plant-3) runs/paper-plant-3)
+guard-quick: setup $(REAL)
+	$(BIN)/flowerpose guard --quick --real $(REAL) --out runs/guard-quick --overwrite
+
+guard: setup $(REAL)
+	$(BIN)/flowerpose guard --trend --real $(REAL) --out runs/guard --overwrite
+
+runs/paper-plant-3: | setup
+	$(BIN)/flowerpose data fetch paper-plant-3 --to $@
 
 lint: setup
 	$(BIN)/ruff check .

@@ -39,7 +39,7 @@ from flowerpose.errors import InputError
 from flowerpose.eval import accepted as history_file
 from flowerpose.eval.fresh_seeds import FRESH_SEEDS, entry_draw
 from flowerpose.eval.guard_verdict import Margins, decide, judge_entry, tails
-from flowerpose.eval.report import run_record, summarise
+from flowerpose.eval.report import git_commit, run_record, summarise
 from flowerpose.eval.revision import Revision, dirty, head, materialise, repository, resolve
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG
@@ -351,7 +351,7 @@ def run_guard(battery: Battery, run: GuardRun, out_dir: Path) -> dict:
     LOG.info(f"guard: run seed {run_seed} (--seed {run_seed} draws the same plants)")
     revisions = {commit: materialise(repo, commit, out_dir / "revisions")
                  for commit in sorted(set(bases.values()))}
-    working = Revision("working tree", head(repo))
+    working = Revision("working tree", git_commit() or head(repo))
     rows: dict[str, dict] = {}
     for entry in run.entries:
         plants = fresh_plants(entry, run_seed)

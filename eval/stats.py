@@ -219,23 +219,33 @@ def _padded_quantile(q: float, values: np.ndarray) -> np.ndarray:
     return low + (high - low) * (position - below)
 
 
-def bootstrap_interval(groups: Groups, statistic: str = "mean",
-                       seed: int = SEED) -> dict[str, float | None]:
+#: The range an angle error takes, degrees: a mean's interval is kept inside it.
+ANGLE_RANGE = (0.0, 180.0)
+
+
+def bootstrap_interval(groups: Groups, statistic: str = "mean", seed: int = SEED,
+                       within: tuple[float, float] | None = None) -> dict[str, float | None]:
     """The 95 % interval of `statistic` ("mean", "median", "p90") of the values of all
     `groups` together (module docstring). Groups without values are left out; None bounds
-    with fewer than two values."""
-    return bootstrap_intervals(groups, (statistic,), seed)[statistic]
+    with fewer than two values. `within`: the range the values take (angle errors 0-180°),
+    which a mean's symmetric interval is cut to."""
+    return bootstrap_intervals(groups, (statistic,), seed, within)[statistic]
 
 
-def bootstrap_intervals(groups: Groups, statistics: tuple[str, ...],
-                        seed: int = SEED) -> dict[str, dict[str, float | None]]:
+def bootstrap_intervals(groups: Groups, statistics: tuple[str, ...], seed: int = SEED,
+                        within: tuple[float, float] | None = None
+                        ) -> dict[str, dict[str, float | None]]:
     """`bootstrap_interval` of several statistics at once."""
     units = _units(groups)
     if sum(len(u) for u in units) < 2 or len(units) < 2:
         return {name: dict(NO_INTERVAL) for name in statistics}
     found = {}
     if "mean" in statistics:
-        found["mean"] = studentized(groups, seed).interval()
+        interval = studentized(groups, seed).interval()
+        if within is not None:  # the mean cannot leave the values' range
+            interval = _rounded(max(interval["low"], within[0]),
+                                min(interval["high"], within[1]))
+        found["mean"] = interval
     quantiles = [name for name in statistics if name != "mean"]
     if quantiles:
         estimates: dict[str, list[np.ndarray]] = {name: [] for name in quantiles}
@@ -265,7 +275,8 @@ def error_summary(groups: Groups, intervals: bool = True, weight: float = 1.0
                 "over_20": None, "over_20_ci95": dict(NO_INTERVAL),
                 "over_90": None, "over_90_ci95": dict(NO_INTERVAL)}
     over = {threshold: int((values > threshold).sum()) for threshold in (GROSS_DEG, FLIP_DEG)}
-    found = (bootstrap_intervals(groups, ("mean", "median", "p90")) if intervals
+    found = (bootstrap_intervals(groups, ("mean", "median", "p90"), within=ANGLE_RANGE)
+             if intervals
              else {name: dict(NO_INTERVAL) for name in ("mean", "median", "p90")})
 
     def share_interval(count: int) -> dict[str, float | None]:
@@ -310,7 +321,7 @@ def accuracy_curve(groups: Groups, flowers: Sequence[int],
         scores = [accuracy_scores(g, n) for g, n in zip(groups, flowers, strict=True)]
     return {"thresholds_deg": list(ACCURACY_THRESHOLDS_DEG), "share": share, "n": total,
             "auc": round(float(np.concatenate([np.asarray(s, float) for s in scores]).mean()), 4),
-            "auc_ci95": (bootstrap_interval(scores, "mean") if intervals
+            "auc_ci95": (bootstrap_interval(scores, "mean", within=(0.0, 1.0)) if intervals
                          else dict(NO_INTERVAL))}
 
 

@@ -45,19 +45,7 @@ $flowerpose results runs/scan-3/report.json runs/oracle-10/report.json runs/fiel
     runs/stress-real3/stress.json runs/fidelity/fidelity.json runs/bench/bench.json \
     --figure docs/accuracy.png > docs/results.md.partial
 mv docs/results.md.partial docs/results.md
-# The README's table is the page's accuracy table, without the footnote marks.
-.venv/bin/python - <<'PY'
-import re
-from pathlib import Path
-
-page = Path("docs/results.md").read_text(encoding="utf-8")
-table = re.sub(r" \[\d+\]", "", page.split("## Accuracy\n\n", 1)[1].split("\n\n", 1)[0])
-readme = Path("README.md")
-text = readme.read_text(encoding="utf-8")
-start = text.index("<!-- results:start")
-start = text.index("\n", start) + 1
-end = text.index("<!-- results:end -->")
-readme.write_text(text[:start] + table + "\n" + text[end:], encoding="utf-8")
-PY
+# The docs' result blocks (the README's table among them) from these runs.
+.venv/bin/python scripts/result_blocks.py runs
 bash scripts/gallery.sh
-echo "docs/results.md, README.md"
+echo "docs/results.md, and the result blocks of README.md, DESIGN.md and the guides"

@@ -1,7 +1,9 @@
-"""The documentation: the command-line reference is the parsers' own help, and the site
-builds with no warning (links, anchors, included files)."""
+"""The documentation: the command-line reference is the parsers' own help, the site builds
+with no warning (links, anchors, included files), and every result it quotes lives in a
+block `make results` writes."""
 
 import importlib.util
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -87,3 +89,57 @@ def test_the_command_line_reference_fits_the_page():
     wide = [line for line in markdown().splitlines()
             if len(line) > COLUMNS and not line.startswith("Generated from")]
     assert not wide, wide[:3]
+
+
+def _result_blocks():
+    spec = importlib.util.spec_from_file_location("result_blocks",
+                                                  ROOT / "scripts" / "result_blocks.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: What a result number looks like in prose: degrees to a decimal, an interval of decimals,
+#: a count of flowers found, a recall or precision to decimals.
+RESULT_NUMBERS = re.compile(
+    r"\d+\.\d+°|\[-?\d+\.\d+, -?\d+\.\d+\]|\d+ of \d+ (?:labelled |visible )?flowers"
+    r"|(?:recall|precision) (?:of \w+ flowers )?[01]\.\d+")
+#: Decimal degrees that are settings or specifications, not results.
+STATED = {"0.5°": "the paired ties' margin (stats.TIE_DEG)",
+          "62.2°": "the IMX219 camera's field of view"}
+#: Pages made whole by `make results` or `make gallery`, and pages that include another.
+GENERATED = {"docs/results.md", "docs/gallery.md", "docs/what-you-get.md",
+             "docs/changelog.md", "docs/design.md", "docs/reference/cli.md"}
+
+
+def test_result_numbers_in_the_docs_live_only_in_generated_blocks():
+    blocks = _result_blocks()
+    pages = [ROOT / "README.md", ROOT / "DESIGN.md",
+             *sorted((ROOT / "docs").rglob("*.md"))]
+    found = []
+    for page in pages:
+        name = page.relative_to(ROOT).as_posix()
+        if name in GENERATED or name.startswith("docs/samples/"):
+            continue
+        text = page.read_text(encoding="utf-8")
+        prose = blocks.outside_blocks(text)
+        for number in RESULT_NUMBERS.findall(prose):
+            if number not in STATED:
+                found.append(f"{name}: {number}")
+        if page.relative_to(ROOT).as_posix() not in blocks.PAGES:
+            assert not blocks.blocks(text), f"{name} has result blocks but is not in PAGES"
+    assert not found, "result numbers outside a results block: " + ", ".join(found)
+
+
+def test_every_result_block_is_one_make_results_fills():
+    blocks = _result_blocks()
+    for page in blocks.PAGES:
+        text = (ROOT / page).read_text(encoding="utf-8")
+        names = blocks.blocks(text)
+        assert names, page
+        assert set(names) <= set(blocks.BLOCKS), page
+        opened = re.findall(r"<!-- results:([a-z0-9-]+) -->", text)
+        assert opened == names, f"{page}: a block opened and not closed"
+    # A result number written into prose is found; the same inside its block is not.
+    probe = "It was 7.35° [6.1, 8.6].\n<!-- results:x -->\n7.35°\n<!-- /results:x -->\n"
+    assert RESULT_NUMBERS.findall(blocks.outside_blocks(probe)) == ["7.35°", "[6.1, 8.6]"]
