@@ -35,7 +35,8 @@ def _json(path: Path) -> dict:
 def accuracy_table(runs: Path) -> str:
     """The README's table: the results page's accuracy table, without its footnote marks."""
     page = (REPO / "docs" / "results.md").read_text(encoding="utf-8")
-    return re.sub(r" \[\d+\]", "", page.split("## Accuracy\n\n", 1)[1].split("\n\n", 1)[0])
+    table = page.split("## Accuracy\n\n", 1)[1].split("\n\n", 1)[0]
+    return re.sub(r" \[\d+\]", "", table) + "\n"
 
 
 def _real3(runs: Path) -> tuple[dict, list[dict], list[dict]]:
