@@ -86,3 +86,15 @@ def test_a_sweep_over_real_plant_folders(tmp_path):
     assert [s["setting"]["cluster.eps"] for s in best["settings"]] == [0.008, 0.01]
     assert all(s["plants"][0]["plant"] == "plant" for s in best["settings"])
     assert best["source"] == "real" and "sim" not in best["best"]["config"]
+
+
+def test_the_best_setting_never_adds_a_flipped_normal():
+    from flowerpose.eval.sweep import best_row
+
+    row = {"recall_visible_low": 0.9, "precision_low": 0.9, "plane_mean_high_deg": 3.0,
+           "new_flipped": 0}
+    better_but_flips = {**row, "recall_visible_low": 0.99, "plane_mean_high_deg": 2.0,
+                        "new_flipped": 1}
+    assert best_row([better_but_flips, row]) is row
+    assert best_row([better_but_flips, {**row, "recall_visible_low": 0.95}])[
+        "recall_visible_low"] == 0.95

@@ -151,3 +151,28 @@ def test_a_trial_left_running_by_a_killed_tune_is_marked_failed_and_its_scratch_
     assert not [t for t in report["trials"] if t["state"] == "running"]
     assert not list(scratch.glob("trial-*-*"))
 
+
+
+class _Trial:
+    def __init__(self, number, values, new_flipped=0, validate_flipped=()):
+        self.number, self.values = number, values
+        self.user_attrs = {"new_flipped": new_flipped,
+                           "validate": {"f1_low": values[0], "flipped_flowers":
+                                        list(validate_flipped),
+                                        "error_deg.plane.mean_ci95.high": 2.0}}
+
+
+def test_a_trial_that_adds_a_flip_is_infeasible_and_never_chosen():
+    import optuna
+
+    from flowerpose.eval.tune import _adds_flips, choose
+
+    assert _adds_flips(_Trial(0, [0.9], new_flipped=2)) == (2.0,)
+    assert _adds_flips(_Trial(0, [0.9])) == (0.0,)
+    flips = _Trial(1, [0.95], validate_flipped=["val: seed-10 flower 3"])
+    clean = _Trial(2, [0.90], validate_flipped=["val: seed-11 flower 1"])
+    # A flip the defaults made too is no new one; one they did not make rules a trial out.
+    assert choose([flips, clean], True, ["val: seed-11 flower 1"]) is clean
+    assert choose([flips], True, []) is None
+    assert choose([flips, clean], False) is flips
+    assert optuna.samplers.TPESampler(constraints_func=_adds_flips) is not None
