@@ -183,7 +183,7 @@ def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
     import optuna
 
     quiet_optuna()
-    sampler = optuna.samplers.TPESampler(seed=spec.sampler_seed, constraints_func=_adds_flips)
+    sampler = optuna.samplers.TPESampler(seed=spec.sampler_seed)
     pruner = (optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
               if len(spec.objectives) == 1 else optuna.pruners.NopPruner())
     storage = _storage(spec.storage)
@@ -206,14 +206,9 @@ def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
     return study
 
 
-#: The study's record of the flowers the defaults flip on the training plants.
+#: The study's record of the flowers the defaults flip on the training plants: a trial that
+#: flips another is infeasible (its constraint `new_flipped` above 0).
 DEFAULTS_FLIPPED = "defaults_flipped_train"
-
-
-def _adds_flips(trial: Any) -> tuple[float]:
-    """The sampler's constraint: a trial that flips a normal the defaults did not on the
-    training plants is infeasible (positive), whatever its objectives."""
-    return (float(trial.user_attrs.get("new_flipped", 0)),)
 
 
 def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], layers: tuple[dict, ...],
@@ -280,9 +275,11 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
                 raise
             recorded = _recorded(train_entries)
             trial.set_user_attr("train", recorded)
-            trial.set_user_attr("new_flipped", len(
-                set(recorded["flipped_flowers"])
-                - set(trial.study.user_attrs.get(DEFAULTS_FLIPPED, []))))
+            added = len(set(recorded["flipped_flowers"])
+                        - set(trial.study.user_attrs.get(DEFAULTS_FLIPPED, [])))
+            trial.set_user_attr("new_flipped", added)
+            # Infeasible to the sampler (a constraint above 0), whatever its objectives.
+            trial.set_constraint("new_flipped", added)
             trial.set_user_attr("validate", _recorded(
                 _entries(scorer, spec.validate, layers, folder / "validate")))
         finally:

@@ -65,8 +65,9 @@ def test_an_entry_draw_is_reproducible_and_inside_the_range():
 
 
 @pytest.mark.parametrize("command", [
-    ["sweep", "--grid", "cluster.eps=0.01", "--plants", "2", "--seed", "1500000000"],
-    ["tune", "--space", "SPACE", "--trials", "1", "--seed", "1499999999"],
+    ["sweep", "--grid", "cluster.eps=0.01", "--plants", "2", "--seed",
+     str(FRESH_SEEDS.start + len(FRESH_SEEDS) // 2)],
+    ["tune", "--space", "SPACE", "--trials", "1", "--seed", str(FRESH_SEEDS.stop - 1)],
     ["tune", "--space", "SPACE", "--trials", "1", "--seed", str(FRESH_SEEDS.start - 2)],
 ])
 def test_sweep_and_tune_refuse_the_guards_seeds(tmp_path, capsys, command):

@@ -163,16 +163,11 @@ class _Trial:
 
 
 def test_a_trial_that_adds_a_flip_is_infeasible_and_never_chosen():
-    import optuna
+    from flowerpose.eval.tune import choose
 
-    from flowerpose.eval.tune import _adds_flips, choose
-
-    assert _adds_flips(_Trial(0, [0.9], new_flipped=2)) == (2.0,)
-    assert _adds_flips(_Trial(0, [0.9])) == (0.0,)
     flips = _Trial(1, [0.95], validate_flipped=["val: seed-10 flower 3"])
     clean = _Trial(2, [0.90], validate_flipped=["val: seed-11 flower 1"])
     # A flip the defaults made too is no new one; one they did not make rules a trial out.
     assert choose([flips, clean], True, ["val: seed-11 flower 1"]) is clean
     assert choose([flips], True, []) is None
     assert choose([flips, clean], False) is flips
-    assert optuna.samplers.TPESampler(constraints_func=_adds_flips) is not None
