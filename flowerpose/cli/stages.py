@@ -17,12 +17,14 @@ from flowerpose.cli.options import (
     add_output,
     add_preset,
     add_units,
+    at_least,
     configure,
     moved_under,
     owned,
     positive_number,
     starting_config,
 )
+from flowerpose.errors import InputError
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
@@ -351,7 +353,12 @@ def cmd_label(args: argparse.Namespace) -> int:
 
     session = open_session(args.folder, args.labeller or getpass.getuser(), args.units,
                            args.detections)
-    server = make_server(session, args.port)
+    try:
+        server = make_server(session, args.port)
+    except OSError as error:  # the port taken, or not ours to bind
+        raise InputError("--port", f"{args.port}: cannot serve there "
+                         f"({error.strerror or error}); give another, or 0 for a free one"
+                         ) from None
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     print(f"label: {args.folder} ({len(session.cloud)} points, {len(session.start)} flowers "
           f"from {session.started_from}) at {url}; Ctrl-C stops (save in the page first)",
@@ -390,8 +397,8 @@ def add_label(sub: argparse._SubParsersAction) -> None:
                    "(default: DIR/flowers.json)")
     p.add_argument("--labeller", default=None, metavar="NAME",
                    help="who labels, as the file records it (default: the login name)")
-    p.add_argument("--port", type=int, default=0, metavar="N",
-                   help="the port on 127.0.0.1 (default: a free one)")
+    p.add_argument("--port", type=at_least(0, 65535, "a TCP port"), default=0, metavar="N",
+                   help="the port on 127.0.0.1, 1-65535 (default: 0, a free one)")
     p.add_argument("--no-browser", dest="browser", action="store_false",
                    help="print the page's address only; open no browser")
     add_units(p, "cloud")
