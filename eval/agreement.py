@@ -38,15 +38,21 @@ class Labelling:
     """Each flower's unit normal, None for a flower marked as there without a pose."""
 
 
-def read_labelling(path: str | Path, truth_scale: float | None = None) -> Labelling:
+def read_labelling(path: str | Path, truth_scale: float | None = None,
+                   folder: bool = False) -> Labelling:
     """A label file of any format a real plant folder takes (this project's, SageMaker
-    cuboids, a plant.json), its coordinates divided by its truth scale: `truth_scale`
-    where given, else the file's own (this project's), 25 (SageMaker) or 1 (plant.json)."""
+    cuboids, a plant.json), its coordinates divided by its truth scale: this project's
+    file states its own, which is never applied twice (`truth_scale`, given, must agree
+    with it, unless it is a folder's source.json's, `folder`, which describes labels that
+    state none); else `truth_scale` where given, 25 (SageMaker) or 1 (plant.json)."""
     path = Path(path)
     data = read_json(path)
     if is_label_file(data):
         labels = read_labels(path)
-        scale = truth_scale or labels.truth_scale
+        scale = labels.truth_scale
+        if truth_scale is not None and not folder and truth_scale != scale:
+            raise InputError(path, f"states truth_scale {scale:g}; the scale given, "
+                             f"{truth_scale:g}, contradicts it (a label file's scale is its own)")
         posed = labels.labelled()
         unposed = [(f.id, f.center) for f in labels.flowers if f.state == "unlabelled"]
         kind = "flowerpose"

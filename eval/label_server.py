@@ -102,7 +102,7 @@ def _starting_flowers(folder: Path, metres_per_unit: float, detections: Path
     as proposals, else none; and which it was."""
     labels = folder / "labels.json"
     if labels.is_file():
-        labelling = read_labelling(labels, source_truth_scale(folder))
+        labelling = read_labelling(labels, source_truth_scale(folder), folder=True)
         states = {}
         if labelling.format == "flowerpose":
             states = {f.id: f.state for f in read_labels(labels).flowers}
@@ -186,10 +186,17 @@ def save_labels(session: LabelSession, body: dict[str, Any]) -> dict[str, Any]:
         if state not in STATES:
             raise InputError("save", f"flower {k}: unknown state {state!r}")
         normal = flower.get("normal")
+        name = str(flower.get("id", k))
+        if state == "labelled" and normal is not None:
+            normal = np.asarray(normal, float)
+            if normal.shape != (3,) or not np.isfinite(normal).all() \
+                    or np.linalg.norm(normal) < 1e-9:
+                raise InputError("save", f"flower {name}: its normal {normal.tolist()} is no "
+                                 "direction (three finite numbers, not all 0)")
+            normal = normal / np.linalg.norm(normal)
         labels.append(Label(
-            id=str(flower.get("id", k)), center=np.asarray(flower["center"], float),
-            normal=None if state != "labelled" or normal is None
-            else np.asarray(normal, float) / np.linalg.norm(normal),
+            id=name, center=np.asarray(flower["center"], float),
+            normal=None if state != "labelled" or normal is None else normal,
             state=state, labeller=str(flower.get("labeller") or session.labeller),
             time=str(flower.get("time") or now)))
     missing = [f.id for f in labels if f.state == "labelled" and f.normal is None]

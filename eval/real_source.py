@@ -150,12 +150,16 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     stage, clouds = folder_clouds(folder)
     source = _source(folder)
     where = folder / "source.json"
-    if truth_scale is not None:
+    if own is not None:  # the file states its own scale: applied once, never another's
+        scale = own.truth_scale
+        if truth_scale is not None and _scale(truth_scale, "truth_scale") != scale:
+            raise InputError(labels, f"states truth_scale {scale:g}; --truth-scale "
+                             f"{truth_scale:g} contradicts it (a label file's scale is its "
+                             "own; source.json's is for labels that state none)")
+    elif truth_scale is not None:
         scale = _scale(truth_scale, "truth_scale")
     elif "truth_scale" in source:
         scale = _scale(source["truth_scale"], where)
-    elif own is not None:
-        scale = own.truth_scale
     else:
         scale = DEFAULT_TRUTH_SCALE if label_format == "sagemaker" else 1.0
     units = source.get("units", "auto")

@@ -15,6 +15,7 @@ import pytest
 from realplants import CENTRES, NORMALS, write_real_plant
 
 from flowerpose.cli import main
+from flowerpose.errors import InputError
 from flowerpose.eval import label_server
 from flowerpose.eval.labels import read_labels
 from flowerpose.eval.real_source import read_real_plant, real_truth
@@ -279,3 +280,40 @@ def test_a_port_out_of_range_or_taken_is_one_line(tmp_path, capsys):
         port = taken.getsockname()[1]
         assert main(["label", str(folder), "--port", str(port), "--no-browser"]) == 2
     assert "cannot serve there" in capsys.readouterr().err
+
+
+def test_labels_saved_from_a_sagemaker_folder_read_back_the_same(tmp_path):
+    """The authors' folders carry SageMaker labels at x25 with "truth_scale": 25 in their
+    source.json; a save writes this project's file (its own scale 1), and opening it again
+    or scoring it applies that scale once, not source.json's on top."""
+    folder = write_real_plant(tmp_path / "plant", "cloud", source={"truth_scale": 25})
+    before = real_truth(read_real_plant(folder))
+    session = label_server.open_session(folder, "tester", "m")
+    flowers = [{**f, "state": "labelled"} for f in session.start]
+    label_server.save_labels(session, {"flowers": flowers})
+    again = label_server.open_session(folder, "tester", "m")
+    assert np.allclose([f["center"] for f in again.start],
+                       [f["center"] for f in session.start])
+    after = real_truth(read_real_plant(folder))
+    assert np.allclose([t.center for t in after], [t.center for t in before])
+    assert sum(t.visible for t in after) == sum(t.visible for t in before) == len(CENTRES)
+    with pytest.raises(InputError, match="contradicts"):
+        read_real_plant(folder, truth_scale=25)
+
+
+def test_a_save_that_would_not_read_back_is_refused_and_writes_nothing(served):
+    folder, url = served
+    flowers = json.loads(_get(url + "/state"))["flowers"]
+    twice = [{**flowers[0], "state": "labelled", "normal": [0, 0, 1]},
+             {**flowers[0], "state": "labelled", "normal": [0, 0, 1]}]
+    status, answer = _post(url + "/save", {"flowers": twice})
+    assert status == 400 and "given 2 times" in answer["error"]
+    zero = [{**flowers[0], "state": "labelled", "normal": [0, 0, 0]}]
+    status, answer = _post(url + "/save", {"flowers": zero})
+    assert status == 400 and "flower d0" in answer["error"] and "normal" in answer["error"]
+    assert not (folder / "labels.json").exists() and not list(folder.glob("*.bak"))
+    # A hand-written "units" is refused, not read as metres without a word.
+    (folder / "labels.json").write_text(json.dumps({
+        "format": "flowerpose-labels", "version": 1, "units": "mm", "flowers": []}))
+    with pytest.raises(InputError, match="unknown key 'units'"):
+        read_labels(folder / "labels.json")
