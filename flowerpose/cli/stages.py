@@ -406,11 +406,17 @@ def add_label(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_agree(args: argparse.Namespace) -> int:
-    from flowerpose.eval.agreement import agreement, agreement_lines, read_labelling
+    from flowerpose.eval.agreement import (
+        agreement,
+        agreement_lines,
+        labelling_unit,
+        read_labelling,
+    )
     from flowerpose.jsonio import write_json
 
-    result = agreement(read_labelling(args.a, args.truth_scale),
-                       read_labelling(args.b, args.truth_scale), args.max_distance)
+    a, b = read_labelling(args.a, args.truth_scale), read_labelling(args.b, args.truth_scale)
+    metres, _ = labelling_unit(args.a, args.units)
+    result = agreement(a, b, args.max_distance, metres)
     print("\n".join(agreement_lines(result)))
     if args.json is not None:
         write_json(args.json, result)
@@ -435,8 +441,9 @@ def add_agree(sub: argparse._SubParsersAction) -> None:
                    help="the factor both were drawn at over the cloud's coordinates (default: "
                    "a flowerpose file's own, 25 for SageMaker, 1 for a plant.json)")
     p.add_argument("--max-distance", type=positive_number, default=MAX_MATCH_DISTANCE,
-                   metavar="D", help="farthest two centres of one flower lie apart, in the "
-                   "cloud's unit (default: %(default)g)")
+                   metavar="M", help="farthest two centres of one flower lie apart, metres, "
+                   "whatever the cloud's unit (default: %(default)g)")
+    add_units(p, "labels' cloud (auto: A's folder's source.json, else its cloud)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE",
                    help="also write the comparison here as JSON (default: print only)")
     p.set_defaults(func=cmd_agree)
