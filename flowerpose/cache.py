@@ -133,14 +133,23 @@ def _package_folders() -> dict[str, Path]:
     return {name: Path(importlib.import_module(name).__file__).parent for name in _PACKAGES}
 
 
+@functools.lru_cache(maxsize=1)
 def _source_files() -> list[tuple[str, Path]]:
-    """Every flowerpose source file (.py, .toml, .xml) as (package/relative path, path)."""
-    files = []
-    for name, folder in _package_folders().items():
-        files += [(f"{name}/{p.relative_to(folder).as_posix()}", p)
-                  for p in sorted(folder.rglob("*"))
-                  if p.suffix in (".py", ".toml", ".xml") and "__pycache__" not in p.parts]
-    return files
+    """Every flowerpose source file (.py, .toml, .xml) once, as (its package/the path in
+    it, path), named by the innermost package holding it: the same names whether the
+    packages are installed from their own folders (pipeline/ as flowerpose.pipeline) or
+    laid out one inside another (another revision's tree, `eval/revision.py`), so the same
+    code has the same version either way."""
+    folders = _package_folders()
+    found: dict[Path, tuple[str, Path]] = {}
+    for folder in folders.values():
+        for path in sorted(folder.rglob("*")):
+            if path.suffix not in (".py", ".toml", ".xml") or "__pycache__" in path.parts:
+                continue
+            owner = max((n for n, f in folders.items() if path.is_relative_to(f)),
+                        key=lambda n: len(folders[n].parts))
+            found[path] = (f"{owner}/{path.relative_to(folders[owner]).as_posix()}", path)
+    return sorted(found.values())
 
 
 def _module_file(module: str) -> Path | None:
