@@ -23,6 +23,7 @@ from flowerpose.eval.real_source import DEFAULT_TRUTH_SCALE
 from flowerpose.eval.stats import error_summary
 from flowerpose.eval.truth import is_sagemaker, read_plant_truth, read_sagemaker_truth
 from flowerpose.jsonio import read_json
+from flowerpose.log import LOG
 
 
 @dataclass
@@ -38,15 +39,21 @@ class Labelling:
     """Each flower's unit normal, None for a flower marked as there without a pose."""
 
 
-def read_labelling(path: str | Path, truth_scale: float | None = None) -> Labelling:
+def read_labelling(path: str | Path, truth_scale: float | None = None,
+                   folder: bool = False) -> Labelling:
     """A label file of any format a real plant folder takes (this project's, SageMaker
-    cuboids, a plant.json), its coordinates divided by its truth scale: `truth_scale`
-    where given, else the file's own (this project's), 25 (SageMaker) or 1 (plant.json)."""
+    cuboids, a plant.json), its coordinates divided by its truth scale: this project's
+    file states its own, which is never applied twice (`truth_scale`, given, must agree
+    with it, unless it is a folder's source.json's, `folder`, which describes labels that
+    state none); else `truth_scale` where given, 25 (SageMaker) or 1 (plant.json)."""
     path = Path(path)
     data = read_json(path)
     if is_label_file(data):
         labels = read_labels(path)
-        scale = truth_scale or labels.truth_scale
+        scale = labels.truth_scale
+        if truth_scale is not None and not folder and truth_scale != scale:
+            raise InputError(path, f"states truth_scale {scale:g}; the scale given, "
+                             f"{truth_scale:g}, contradicts it (a label file's scale is its own)")
         posed = labels.labelled()
         unposed = [(f.id, f.center) for f in labels.flowers if f.state == "unlabelled"]
         kind = "flowerpose"
@@ -65,11 +72,35 @@ def read_labelling(path: str | Path, truth_scale: float | None = None) -> Labell
                      [f.normal for f in posed] + [None] * len(unposed))
 
 
-def agreement(a: Labelling, b: Labelling,
-              max_distance: float = MAX_MATCH_DISTANCE) -> dict[str, Any]:
-    """The two labellings compared (the module's docstring); max_distance in the clouds'
-    unit."""
-    pairs = match_flowers(a.centers, b.centers, max_distance)
+def labelling_unit(path: str | Path, units: Any = "auto") -> tuple[float, str]:
+    """The metres one unit of a labelling's coordinates is (the cloud's unit), and how it
+    was told: `units` where given (m, mm, metres a unit); else its folder's source.json
+    "units"; else the folder's cloud read as the pipeline reads it (its extent); else,
+    with no cloud beside it, metres, said as a warning."""
+    from flowerpose.cloudio import read_cloud_and_unit
+    from flowerpose.eval.real_source import folder_clouds, source_units
+
+    if units != "auto":
+        return (1.0 if units == "m" else 0.001 if units == "mm" else float(units)), "given"
+    folder = Path(path).parent
+    stated = source_units(folder)
+    if stated not in (None, "auto"):
+        return (1.0 if stated == "m" else 0.001 if stated == "mm" else float(stated),
+                f"{folder / 'source.json'}")
+    try:
+        _, clouds = folder_clouds(folder)
+    except InputError:
+        LOG.warning(f"{path}: no cloud beside it tells its unit: its coordinates are taken as "
+                    "metres (--units says otherwise)")
+        return 1.0, "assumed"
+    return read_cloud_and_unit(clouds[0])[1], f"{clouds[0]}"
+
+
+def agreement(a: Labelling, b: Labelling, max_distance: float = MAX_MATCH_DISTANCE,
+              metres_per_unit: float = 1.0) -> dict[str, Any]:
+    """The two labellings compared (the module's docstring); `max_distance` in metres,
+    `metres_per_unit` the labellings' unit (their cloud's)."""
+    pairs = match_flowers(a.centers, b.centers, max_distance / metres_per_unit)
     rows, angles, pose_in_one = [], [], []
     for i, j in pairs:
         row: dict[str, Any] = {"a": a.ids[i], "b": b.ids[j],
@@ -87,7 +118,8 @@ def agreement(a: Labelling, b: Labelling,
                   "posed": sum(n is not None for n in a.normals)},
             "b": {"file": str(b.path), "format": b.format, "flowers": len(b.ids),
                   "posed": sum(n is not None for n in b.normals)},
-            "max_distance": max_distance, "matched": len(pairs),
+            "max_distance_m": max_distance, "metres_per_unit": metres_per_unit,
+            "matched": len(pairs),
             "angle_deg": error_summary([angles]),
             "pairs": rows,
             "pose_in_one": pose_in_one,
@@ -104,7 +136,7 @@ def agreement_lines(result: dict[str, Any]) -> list[str]:
              f"{result['a']['posed']} with a pose)",
              f"B: {result['b']['file']} ({result['b']['flowers']} flowers, "
              f"{result['b']['posed']} with a pose)",
-             f"matched within {result['max_distance']:g}: {result['matched']}"]
+             f"matched within {1000 * result['max_distance_m']:g} mm: {result['matched']}"]
     if angle["n"]:
         lines.append(f"angle between their normals on {angle['n']} flowers: mean "
                      f"{angle['mean']:.1f}° {interval_text(angle['mean_ci95'], unit='°')}, "

@@ -351,7 +351,8 @@ def run_guard(battery: Battery, run: GuardRun, out_dir: Path) -> dict:
     LOG.info(f"guard: run seed {run_seed} (--seed {run_seed} draws the same plants)")
     revisions = {commit: materialise(repo, commit, out_dir / "revisions")
                  for commit in sorted(set(bases.values()))}
-    working = Revision("working tree", git_commit() or head(repo))
+    # An accept runs on a clean tree (its accepted file aside): the commit is the code.
+    working = Revision("working tree", head(repo) if run.accept else git_commit() or head(repo))
     rows: dict[str, dict] = {}
     for entry in run.entries:
         plants = fresh_plants(entry, run_seed)

@@ -19,11 +19,21 @@ flowers.json's detections (the folder's, or `--detections`) as proposals. The se
 
 Every coordinate the page and the files see is the cloud's own (its unit, its frame);
 `truth_scale` 1.
+
+The server answers its own page only. Any web page the labeller has open can send a
+request to 127.0.0.1, and a name that resolves to it (DNS rebinding) can read the answer,
+so every request must name the server itself as its `Host` (127.0.0.1 or localhost, with
+its port) and, where a browser says where it comes from, its `Origin` too; every POST must
+be JSON (`Content-Type: application/json`, which a page of another origin cannot send
+without asking first) and carry the session's token (`X-Flowerpose-Token`), a random
+string written into the page this server gave out and nowhere else. Anything else is
+refused with 403 and changes nothing.
 """
 
 from __future__ import annotations
 
 import json
+import secrets
 import threading
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -92,7 +102,7 @@ def _starting_flowers(folder: Path, metres_per_unit: float, detections: Path
     as proposals, else none; and which it was."""
     labels = folder / "labels.json"
     if labels.is_file():
-        labelling = read_labelling(labels, source_truth_scale(folder))
+        labelling = read_labelling(labels, source_truth_scale(folder), folder=True)
         states = {}
         if labelling.format == "flowerpose":
             states = {f.id: f.state for f in read_labels(labels).flowers}
@@ -176,10 +186,17 @@ def save_labels(session: LabelSession, body: dict[str, Any]) -> dict[str, Any]:
         if state not in STATES:
             raise InputError("save", f"flower {k}: unknown state {state!r}")
         normal = flower.get("normal")
+        name = str(flower.get("id", k))
+        if state == "labelled" and normal is not None:
+            normal = np.asarray(normal, float)
+            if normal.shape != (3,) or not np.isfinite(normal).all() \
+                    or np.linalg.norm(normal) < 1e-9:
+                raise InputError("save", f"flower {name}: its normal {normal.tolist()} is no "
+                                 "direction (three finite numbers, not all 0)")
+            normal = normal / np.linalg.norm(normal)
         labels.append(Label(
-            id=str(flower.get("id", k)), center=np.asarray(flower["center"], float),
-            normal=None if state != "labelled" or normal is None
-            else np.asarray(normal, float) / np.linalg.norm(normal),
+            id=name, center=np.asarray(flower["center"], float),
+            normal=None if state != "labelled" or normal is None else normal,
             state=state, labeller=str(flower.get("labeller") or session.labeller),
             time=str(flower.get("time") or now)))
     missing = [f.id for f in labels if f.state == "labelled" and f.normal is None]
@@ -197,11 +214,37 @@ def save_labels(session: LabelSession, body: dict[str, Any]) -> dict[str, Any]:
             "counts": counts, "undecided": undecided, "session": record}
 
 
-def _page() -> bytes:
+#: The header every POST carries the session's token in.
+TOKEN_HEADER = "X-Flowerpose-Token"
+#: The names the server answers to (with its port).
+LOCAL_NAMES = ("127.0.0.1", "localhost")
+
+
+def _page(token: str) -> bytes:
     from plotly.offline import get_plotlyjs
 
     template = (files("flowerpose.assets") / "label" / "page.html").read_text(encoding="utf-8")
-    return template.replace("/*PLOTLY*/", get_plotlyjs()).encode("utf-8")
+    return (template.replace("/*PLOTLY*/", get_plotlyjs())
+            .replace("/*TOKEN*/", json.dumps(token)).encode("utf-8"))
+
+
+def refusal(headers: Any, port: int, method: str, token: str) -> str | None:
+    """Why a request may not be answered (module docstring), None where it may: a `Host`
+    other than this server, an `Origin` other than its page's, a POST that is not JSON or
+    lacks the session's token."""
+    allowed = {f"{name}:{port}" for name in LOCAL_NAMES}
+    if headers.get("Host") not in allowed:
+        return f"Host {headers.get('Host')!r} is not this server"
+    origin = headers.get("Origin")
+    if origin is not None and origin not in {f"http://{name}" for name in allowed}:
+        return f"Origin {origin!r} is not this server's page"
+    if method == "POST":
+        kind = (headers.get("Content-Type") or "").split(";")[0].strip().lower()
+        if kind != "application/json":
+            return "a POST must be JSON (Content-Type: application/json)"
+        if not secrets.compare_digest(headers.get(TOKEN_HEADER) or "", token):
+            return f"a POST must carry this session's token ({TOKEN_HEADER})"
+    return None
 
 
 def _state(session: LabelSession) -> dict[str, Any]:
@@ -216,9 +259,12 @@ def _state(session: LabelSession) -> dict[str, Any]:
             "flowers": session.start, "fit_radius": FIT_RADIUS_M / session.metres_per_unit}
 
 
-def make_server(session: LabelSession, port: int = 0) -> ThreadingHTTPServer:
-    """The page's server on 127.0.0.1 (`port` 0: a free one); not yet serving."""
-    page = _page()
+def make_server(session: LabelSession, port: int = 0, token: str | None = None
+                ) -> ThreadingHTTPServer:
+    """The page's server on 127.0.0.1 (`port` 0: a free one); not yet serving. `token`: the
+    session's (default: a fresh random one, in the page it serves)."""
+    token = token or secrets.token_urlsafe(32)
+    page = _page(token)
 
     class Handler(BaseHTTPRequestHandler):
         def log_message(self, format: str, *args: Any) -> None:  # noqa: A002
@@ -235,7 +281,16 @@ def make_server(session: LabelSession, port: int = 0) -> ThreadingHTTPServer:
         def _json(self, status: int, data: Any) -> None:
             self._send(status, json.dumps(data).encode("utf-8"))
 
+        def _refused(self, method: str) -> bool:
+            why = refusal(self.headers, self.server.server_address[1], method, token)
+            if why is not None:
+                LOG.warning(f"label: refused {method} {self.path}: {why}")
+                self._json(HTTPStatus.FORBIDDEN, {"error": why})
+            return why is not None
+
         def do_GET(self) -> None:  # noqa: N802
+            if self._refused("GET"):
+                return
             if self.path == "/":
                 self._send(HTTPStatus.OK, page, "text/html; charset=utf-8")
             elif self.path == "/state":
@@ -244,9 +299,13 @@ def make_server(session: LabelSession, port: int = 0) -> ThreadingHTTPServer:
                 self._json(HTTPStatus.NOT_FOUND, {"error": f"no {self.path}"})
 
         def do_POST(self) -> None:  # noqa: N802
+            if self._refused("POST"):
+                return
             try:
                 length = int(self.headers.get("Content-Length", 0))
                 body = json.loads(self.rfile.read(length) or b"{}")
+                if not isinstance(body, dict):
+                    raise ValueError("the body must be a JSON object")
                 if self.path == "/fit":
                     towards = body.get("towards")
                     normal, used = fit_normal(session, np.asarray(body["center"], float),
@@ -261,4 +320,6 @@ def make_server(session: LabelSession, port: int = 0) -> ThreadingHTTPServer:
             except (InputError, OSError, KeyError, TypeError, ValueError) as error:
                 self._json(HTTPStatus.BAD_REQUEST, {"error": str(error)})
 
-    return ThreadingHTTPServer(("127.0.0.1", port), Handler)
+    server = ThreadingHTTPServer(("127.0.0.1", port), Handler)
+    server.token = token
+    return server

@@ -73,16 +73,32 @@ def is_label_file(data: Any) -> bool:
     return isinstance(data, dict) and data.get("format") == LABEL_FORMAT
 
 
+#: The keys a label file and each of its flowers may have: another (a "units" written by
+#: hand, say) is refused, never silently ignored.
+FILE_KEYS = {"format", "version", "truth_scale", "flowers", "sessions"}
+FLOWER_KEYS = {"id", "center", "normal", "state", "labeller", "time"}
+
+
 def read_labels(path: str | Path) -> LabelFile:
-    """A label file, checked; InputError naming the file and the flower for anything
-    malformed (a labelled flower without a normal, an unknown state, ids given twice)."""
+    """A label file, checked (`parse_labels`)."""
     path = Path(path)
-    data = read_json(path)
+    return parse_labels(read_json(path), path)
+
+
+def parse_labels(data: Any, path: Path) -> LabelFile:
+    """A label file's parsed JSON, checked; InputError naming the file and the flower for
+    anything malformed (a key the format has not, a labelled flower without a normal, an
+    unknown state, ids given twice)."""
     if not is_label_file(data):
         raise InputError(path, f'not a flowerpose label file ("format": "{LABEL_FORMAT}")')
     if data.get("version") != 1:
         raise InputError(path, f"label file version {data.get('version')!r}: this flowerpose "
                          "reads version 1")
+    unknown = sorted(set(data) - FILE_KEYS)
+    if unknown:
+        raise InputError(path, f"unknown key {unknown[0]!r} (a label file has "
+                         f"{', '.join(sorted(FILE_KEYS))}; coordinates are the cloud's own, "
+                         "in its unit, times truth_scale)")
     scale = data.get("truth_scale", 1.0)
     if (isinstance(scale, bool) or not isinstance(scale, int | float)
             or not math.isfinite(scale) or scale <= 0):
@@ -90,6 +106,10 @@ def read_labels(path: str | Path) -> LabelFile:
     flowers = []
     for k, entry in enumerate(object_list(data, "flowers", path, "flower")):
         where = f"flower {k}"
+        unknown = sorted(set(entry) - FLOWER_KEYS)
+        if unknown:
+            raise InputError(path, f"{where}: unknown key {unknown[0]!r} (a flower has "
+                             f"{', '.join(sorted(FLOWER_KEYS))})")
         state = entry.get("state", "labelled")
         if state not in STATES:
             raise InputError(path, f'{where}: "state" must be one of {", ".join(STATES)}, '
@@ -127,13 +147,16 @@ def labels_document(labels: LabelFile) -> dict[str, Any]:
 def write_labels(path: str | Path, labels: LabelFile) -> Path | None:
     """Write a label file atomically; an earlier file there is first copied whole to
     PATH.N.bak (the first N free), so no save loses one. Returns that backup's path (None
-    where there was no earlier file)."""
+    where there was no earlier file). What would not read back (ids given twice, a zero
+    normal) is refused before anything is written: InputError."""
     path = Path(path)
+    document = labels_document(labels)
+    parse_labels(document, path)
     backup = None
     if path.exists():
         n = 1
         while path.with_name(f"{path.name}.{n}.bak").exists():
             n += 1
         backup = write_bytes(path.with_name(f"{path.name}.{n}.bak"), path.read_bytes())
-    write_json(path, labels_document(labels))
+    write_json(path, document)
     return backup

@@ -18,6 +18,7 @@ from scipy.optimize import linear_sum_assignment
 
 from flowerpose.errors import InputError
 from flowerpose.eval.truth import TruthFlower
+from flowerpose.log import LOG
 from flowerpose.pipeline.methods import METHODS
 from flowerpose.pipeline.pose import FlowerPose
 
@@ -156,12 +157,29 @@ def score_files(flowers_path: Path, truth_path: Path, truth_format: str = "plant
     _check_overlap(estimates, truth, max_distance, flowers_path, truth_path)
     watch = Stopwatch()
     score = score_plant(estimates, truth, max_distance)
+    doubt = barely_matched(score)
+    if doubt is not None:
+        LOG.warning(f"{flowers_path}: {doubt}")
+        notes.append(f"warning: {doubt}")
     config = {"truth_format": truth_format, "truth_scale": truth_scale,
               "max_distance_m": max_distance}
     seconds = round(watch.elapsed(), 6)
     entry = {**plant_entry(flowers_path.parent.name or "plant", score),
              "notes": [*read_flower_notes(flowers_path), *notes]}
     return build_report(config, [entry], {"score": seconds, "total": seconds})
+
+
+def barely_matched(score: Any) -> str | None:
+    """Why detections and truth that overlap may still not be of one plant: most
+    detections match no flower and most visible flowers are missed (None where they
+    match)."""
+    if score.detections < 2 or score.visible < 2:
+        return None
+    if 2 * score.fp > score.detections and 2 * score.found_visible < score.visible:
+        return (f"{score.fp} of {score.detections} detections match no flower and "
+                f"{score.visible - score.found_visible} of {score.visible} visible flowers "
+                "are missed: is this the right plant's truth, in the right unit and scale?")
+    return None
 
 
 def _read_scored(flowers_path: Path, truth_path: Path, truth_format: str, truth_scale: float

@@ -103,6 +103,17 @@ def _scale(value: Any, where: str | Path) -> float:
     return float(value)
 
 
+def source_units(folder: Path) -> Any:
+    """The cloud unit a real plant folder's source.json gives ("m", "mm", "auto" or the
+    metres one unit is), checked; "auto" where it gives none."""
+    units = _source(folder).get("units", "auto")
+    numeric = isinstance(units, int | float) and not isinstance(units, bool)
+    if not (units in ("auto", "m", "mm") or (numeric and math.isfinite(units) and units > 0)):
+        raise InputError(folder / "source.json", f'"units" must be "m", "mm", "auto" or the '
+                         f"metres one unit is (a positive number), got {units!r}")
+    return units
+
+
 def source_truth_scale(folder: Path) -> float | None:
     """The truth scale a real plant folder's source.json gives (labels' units per metre,
     checked), or None where it gives none."""
@@ -150,19 +161,19 @@ def read_real_plant(folder: str | Path, truth_scale: float | None = None) -> Rea
     stage, clouds = folder_clouds(folder)
     source = _source(folder)
     where = folder / "source.json"
-    if truth_scale is not None:
+    if own is not None:  # the file states its own scale: applied once, never another's
+        scale = own.truth_scale
+        if truth_scale is not None and _scale(truth_scale, "truth_scale") != scale:
+            raise InputError(labels, f"states truth_scale {scale:g}; --truth-scale "
+                             f"{truth_scale:g} contradicts it (a label file's scale is its "
+                             "own; source.json's is for labels that state none)")
+    elif truth_scale is not None:
         scale = _scale(truth_scale, "truth_scale")
     elif "truth_scale" in source:
         scale = _scale(source["truth_scale"], where)
-    elif own is not None:
-        scale = own.truth_scale
     else:
         scale = DEFAULT_TRUTH_SCALE if label_format == "sagemaker" else 1.0
-    units = source.get("units", "auto")
-    numeric = isinstance(units, int | float) and not isinstance(units, bool)
-    if not (units in ("auto", "m", "mm") or (numeric and math.isfinite(units) and units > 0)):
-        raise InputError(where, f'"units" must be "m", "mm", "auto" or the metres one unit '
-                         f"is (a positive number), got {units!r}")
+    units = source_units(folder)
     note = source.get("note", "")
     if not isinstance(note, str):
         raise InputError(where, '"note" must be text')

@@ -22,9 +22,14 @@ fill one key, the first rename wins and the other's copy is dropped. Entries are
 changed once made; `restore` copies their files out (atomically, like every result file).
 
 The cache is bounded: `prune` removes the least recently used entries (a hit counts as a
-use) until the entries fit a size, by default DEFAULT_MAX_BYTES or $FLOWERPOSE_CACHE_MAX_GB.
-It removes nothing but entries (a folder STAGE/KEY holding entry.json) and the private
-folders of fills killed more than a day ago: whatever else is in the folder stays.
+use) until the entries fit a size, by default DEFAULT_MAX_BYTES or
+$FLOWERPOSE_CACHE_MAX_GB. It deletes only what it can prove it wrote: its root carries the
+cache's own `CACHEDIR.TAG` (the Cache Directory Tagging Specification's, which backup
+tools skip), an entry is a folder STAGE/KEY whose entry.json names that very stage and key
+(a SHA-256), a fill's private folder (.KEY.partial-...) carries the cache's marker file
+from its start, and a folder renamed away for deletion is named after an entry's key
+(.KEY.pruned-...). A folder that is no cache (neither tagged nor holding an entry) is
+refused whole: nothing in it is deleted. Whatever else is in the cache's folder stays.
 """
 
 from __future__ import annotations
@@ -36,13 +41,14 @@ import importlib
 import json
 import os
 import shutil
+import sys
 import time
 import uuid
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from flowerpose.atomic import write_file
+from flowerpose.atomic import write_file, write_text
 from flowerpose.errors import InputError
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG, noted
@@ -56,6 +62,32 @@ _CHUNK = 1 << 20
 DEFAULT_MAX_BYTES = 20 * 10**9
 #: A private folder of a fill older than this was left by a killed process.
 _STALE_FILL_S = 24 * 3600
+#: The cache's tag at its root (the Cache Directory Tagging Specification's signature line,
+#: then what made it).
+CACHE_TAG = "CACHEDIR.TAG"
+_TAG_TEXT = ("Signature: 8a477f597d28d172789f06886806bc55\n"
+             "# This folder is flowerpose's stage cache (flowerpose cache says what it holds).\n")
+#: The file a fill's private folder carries from its start: the cache made it.
+_FILL_MARK = ".flowerpose-fill"
+_KEY_CHARS = frozenset("0123456789abcdef")
+
+
+def _is_key(name: str) -> bool:
+    """Whether `name` is a stage key: a SHA-256 in hex."""
+    return len(name) == 64 and set(name) <= _KEY_CHARS
+
+
+def is_entry(folder: Path) -> bool:
+    """Whether `folder` is one of the cache's entries: STAGE/KEY whose entry.json names
+    that very stage and key."""
+    if not _is_key(folder.name):
+        return False
+    try:
+        about = read_json(folder / "entry.json")
+    except (InputError, OSError):
+        return False
+    return (isinstance(about, dict) and about.get("key") == folder.name
+            and about.get("stage") == folder.parent.name)
 
 
 def max_cache_bytes() -> int:
@@ -70,7 +102,12 @@ def max_cache_bytes() -> int:
     if not gigabytes >= 0:
         raise InputError("FLOWERPOSE_CACHE_MAX_GB", f"must be a size in GB, 0 or more, got "
                          f"{text!r}")
-    return int(gigabytes * 10**9)
+    return gigabytes_to_bytes(gigabytes)
+
+
+def gigabytes_to_bytes(gigabytes: float) -> int:
+    """A size in GB as bytes; any size past what a disk holds is "no limit" (sys.maxsize)."""
+    return int(min(gigabytes * 1e9, sys.maxsize))
 
 
 def default_cache_dir() -> Path:
@@ -96,14 +133,23 @@ def _package_folders() -> dict[str, Path]:
     return {name: Path(importlib.import_module(name).__file__).parent for name in _PACKAGES}
 
 
+@functools.lru_cache(maxsize=1)
 def _source_files() -> list[tuple[str, Path]]:
-    """Every flowerpose source file (.py, .toml, .xml) as (package/relative path, path)."""
-    files = []
-    for name, folder in _package_folders().items():
-        files += [(f"{name}/{p.relative_to(folder).as_posix()}", p)
-                  for p in sorted(folder.rglob("*"))
-                  if p.suffix in (".py", ".toml", ".xml") and "__pycache__" not in p.parts]
-    return files
+    """Every flowerpose source file (.py, .toml, .xml) once, as (its package/the path in
+    it, path), named by the innermost package holding it: the same names whether the
+    packages are installed from their own folders (pipeline/ as flowerpose.pipeline) or
+    laid out one inside another (another revision's tree, `eval/revision.py`), so the same
+    code has the same version either way."""
+    folders = _package_folders()
+    found: dict[Path, tuple[str, Path]] = {}
+    for folder in folders.values():
+        for path in sorted(folder.rglob("*")):
+            if path.suffix not in (".py", ".toml", ".xml") or "__pycache__" in path.parts:
+                continue
+            owner = max((n for n, f in folders.items() if path.is_relative_to(f)),
+                        key=lambda n: len(folders[n].parts))
+            found[path] = (f"{owner}/{path.relative_to(folders[owner]).as_posix()}", path)
+    return sorted(found.values())
 
 
 def _module_file(module: str) -> Path | None:
@@ -213,6 +259,23 @@ class StageCache:
     def __init__(self, root: Path | None = None):
         self.root = Path(root) if root is not None else default_cache_dir()
 
+    def is_cache(self) -> bool:
+        """Whether the root is the cache's: tagged by it, or (a cache from before the tag)
+        holding an entry."""
+        tag = self.root / CACHE_TAG
+        if tag.is_file():
+            try:
+                return tag.read_text(encoding="utf-8").startswith(_TAG_TEXT.splitlines()[0])
+            except (OSError, UnicodeDecodeError):
+                return False
+        return any(is_entry(about.parent) for about in self.root.glob("*/*/entry.json"))
+
+    def _tag(self) -> None:
+        """Tag the root as the cache's (once)."""
+        tag = self.root / CACHE_TAG
+        if not tag.exists():
+            write_text(tag, _TAG_TEXT)
+
     def entry(self, stage: str, key: str) -> Path | None:
         """The whole entry for (stage, key), or None."""
         folder = self.root / stage / key
@@ -224,7 +287,9 @@ class StageCache:
         final = self.root / stage / key
         private = final.parent / f".{key}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         private.mkdir(parents=True)
+        self._tag()
         try:
+            (private / _FILL_MARK).write_text("", encoding="utf-8")
             for name, source in files.items():
                 target = private / name
                 target.parent.mkdir(parents=True, exist_ok=True)
@@ -293,7 +358,7 @@ class StageCache:
             return found
         for about in self.root.glob("*/*/entry.json"):
             folder = about.parent
-            if folder.name.startswith("."):
+            if not is_entry(folder):  # someone else's entry.json: not the cache's
                 continue
             try:
                 size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
@@ -306,7 +371,13 @@ class StageCache:
         """Remove the least recently used entries until the rest take at most `max_bytes`,
         and the private folders of fills killed more than a day ago; returns the entries
         removed. An entry is renamed away before it is deleted, so no run reads half of
-        one."""
+        one. InputError, and nothing removed, for a root that is not the cache's."""
+        if not self.root.exists():
+            return []
+        if not self.is_cache():
+            raise InputError(self.root, "is not a flowerpose stage cache (no CACHEDIR.TAG of "
+                             "its own and no entry it made): nothing in it is deleted")
+        self._tag()
         entries = self.entries()
         total = sum(e.size for e in entries)
         removed = []
@@ -323,13 +394,18 @@ class StageCache:
             removed.append(entry)
         stale = time.time() - _STALE_FILL_S
         for private in self.root.glob("*/.*.partial-*"):
+            if not (_is_key(private.name[1:].split(".partial-")[0])
+                    and (private / _FILL_MARK).is_file()):
+                continue  # not a fill of the cache's
             try:
                 if private.stat().st_mtime < stale:
                     shutil.rmtree(private, ignore_errors=True)
             except FileNotFoundError:
                 continue
         for doomed in self.root.glob("*/.*.pruned-*"):  # a prune killed while deleting
-            shutil.rmtree(doomed, ignore_errors=True)
+            key, _, tail = doomed.name[1:].partition(".pruned-")
+            if _is_key(key) and len(tail) == 8 and set(tail) <= _KEY_CHARS:
+                shutil.rmtree(doomed, ignore_errors=True)
         return removed
 
 

@@ -30,9 +30,15 @@ def read_text(path: str | Path) -> str:
 
 
 def read_json(path: str | Path) -> dict:
-    """A JSON object from a file; errors name the file."""
+    """A JSON object from a file; errors name the file. NaN and Infinity are refused:
+    they are not JSON (strict readers reject them, and `write_json` never writes them), and
+    a number that is none would print as "nan" in a report."""
+    def refuse(constant: str) -> None:
+        raise InputError(path, f"holds {constant}, which is not a JSON number: every number "
+                         "must be finite")
+
     try:
-        data = json.loads(read_text(path))
+        data = json.loads(read_text(path), parse_constant=refuse)
     except json.JSONDecodeError as err:
         raise InputError(path, f"not valid JSON ({err.msg} at line {err.lineno})") from None
     if not isinstance(data, dict):

@@ -3,11 +3,15 @@
 A command's output folder holds a marker, `.flowerpose-output.json`, naming the stage that
 wrote it, the files it recorded and the top-level entries it declared it writes. A folder
 that does not exist or is empty becomes the stage's; one with the same stage's marker is
-its own earlier output, whose recorded files are removed (stale) before the new ones are
-written; anything else (another stage's output, or files flowerpose did not write) is
-refused with one line, unless the user says `--overwrite`, and even then nothing of it is
-deleted or written over: a stage names the top-level entries it writes (`writes`), and one
-of them already there that is not its own earlier output is refused, --overwrite or not.
+its own earlier output, whose recorded files are set aside (moved into
+`.flowerpose-previous/` in the folder) while the new ones are written and deleted only
+when the new output is whole: a run that fails puts them back, and a run killed before it
+finished has them put back by the next one before it starts, so a finished output is never
+lost to an unfinished one. Anything else (another stage's output, or files flowerpose did
+not write) is refused with one line, unless the user says `--overwrite`, and even then
+nothing of it is deleted or written over: a stage names the top-level entries it writes
+(`writes`), and one of them already there that is not its own earlier output is refused,
+--overwrite or not.
 """
 
 from __future__ import annotations
@@ -26,8 +30,10 @@ MARKER = ".flowerpose-output.json"
 #: The lock a command holds on its output folder while it runs: a second command into the
 #: same folder is refused (the operating system releases it when the process ends).
 LOCK = ".flowerpose-output.lock"
+#: Where a run sets its stage's earlier output aside until its own is whole.
+PREVIOUS = ".flowerpose-previous"
 #: The folder's own bookkeeping, never counted as its contents.
-BOOKKEEPING = (MARKER, LOCK)
+BOOKKEEPING = (MARKER, LOCK, PREVIOUS)
 
 
 def _previous(folder: Path) -> dict | None:
@@ -128,13 +134,11 @@ class OutputFolder:
         self._lock = _lock(self.folder, stage)
         # A command that fails without finishing still lets go of the folder.
         self._unlock = weakref.finalize(self, os.close, self._lock)
+        _put_back(self.folder)  # a run killed before it finished: the earlier output again
         previous = _previous(self.folder)
         own = _own_earlier(self.folder, stage)
         if previous is not None and previous["stage"] == stage:
-            for name in previous["files"]:
-                stale = (self.folder / name).resolve()
-                if self.folder.resolve() in stale.parents:  # never outside the folder
-                    _remove(stale)
+            _set_aside(self.folder, previous)
         self._foreign = {p.name for p in self.folder.iterdir()
                          if p.name not in BOOKKEEPING} - own
         self.files: list[str] = []
@@ -157,8 +161,9 @@ class OutputFolder:
         self._write(complete=False)
 
     def finish(self) -> None:
-        """The stage's output is whole."""
+        """The stage's output is whole: the earlier one set aside goes."""
         self._write(complete=True)
+        _remove(self.folder / PREVIOUS)
         self.release()
 
     def release(self) -> None:
@@ -166,8 +171,10 @@ class OutputFolder:
         self._unlock()
 
     def abandon(self) -> None:
-        """The command ended without output: a folder it made and left holding only its
-        bookkeeping is removed, so a refused command leaves nothing behind."""
+        """The command ended without output: the earlier output it set aside goes back,
+        and a folder it made and left holding only its bookkeeping is removed, so a refused
+        command leaves nothing behind."""
+        _put_back(self.folder)
         self.release()
         if self.created and self.folder.is_dir() and all(
                 p.name in BOOKKEEPING for p in self.folder.iterdir()):
@@ -176,6 +183,54 @@ class OutputFolder:
                     (self.folder / name).unlink()
             with contextlib.suppress(OSError):
                 self.folder.rmdir()
+
+
+def _set_aside(folder: Path, previous: dict) -> None:
+    """Move a stage's earlier recorded output, and its marker, into folder/PREVIOUS."""
+    aside = folder / PREVIOUS
+    _remove(aside)
+    aside.mkdir()
+    for name in previous["files"]:
+        source = (folder / name).resolve()
+        if folder.resolve() not in source.parents or not source.exists():
+            continue  # never outside the folder
+        target = aside / "files" / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(source, target)
+    write_json(aside / "marker.json", previous)
+
+
+def _put_back(folder: Path) -> None:
+    """Where an earlier output is set aside (a run that did not finish), put it back: what
+    the unfinished run wrote at its names goes, its files return, and its marker."""
+    aside = folder / PREVIOUS
+    if not (aside / "marker.json").is_file():
+        _remove(aside)  # set aside and not yet marked: nothing was moved
+        return
+    previous = read_json(aside / "marker.json")
+    unfinished = _previous(folder)
+    if unfinished is not None and unfinished.get("stage") == previous.get("stage"):
+        for name in unfinished["files"]:
+            partial = (folder / name).resolve()
+            if folder.resolve() in partial.parents:
+                _remove(partial)
+    kept = aside / "files"
+    if kept.is_dir():
+        for entry in kept.iterdir():
+            _merge_back(entry, folder / entry.name)
+    write_json(folder / MARKER, previous)
+    _remove(aside)
+
+
+def _merge_back(source: Path, target: Path) -> None:
+    """Move `source` (a file or folder set aside) back to `target`, into what is there."""
+    if source.is_dir() and target.is_dir():
+        for entry in source.iterdir():
+            _merge_back(entry, target / entry.name)
+        return
+    _remove(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(source, target)
 
 
 def _lock(folder: Path, stage: str) -> int:

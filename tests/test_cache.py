@@ -2,6 +2,7 @@
 change; entries made whole or not at all; a scan capture run once for the same plant."""
 
 import dataclasses
+import hashlib
 import json
 import os
 
@@ -144,33 +145,71 @@ def test_other_reconstruction_settings_reuse_the_scan_and_the_frames(tmp_path, m
         "reconstruction/cloud.ply of reconstruction 1"
 
 
+def _key(name: str) -> str:
+    """A stage key as the cache makes them: a SHA-256 in hex."""
+    return hashlib.sha256(name.encode()).hexdigest()
+
+
 def test_prune_removes_the_least_recently_used_entries_and_nothing_else(tmp_path):
     cache = StageCache(tmp_path / "cache")
     source = tmp_path / "payload"
     source.write_bytes(b"x" * 1000)
-    for key in ("old", "middle", "new"):
+    keys = {name: _key(name) for name in ("old", "middle", "new")}
+    for key in keys.values():
         cache.store("scan", key, {"cloud.ply": source}, {"result": {}})
     stamp = 946_684_800  # 2000-01-01, long ago
-    for age, key in enumerate(("new", "middle", "old")):
-        os.utime(tmp_path / "cache" / "scan" / key / "entry.json", (stamp - age, stamp - age))
+    for age, name in enumerate(("new", "middle", "old")):
+        os.utime(tmp_path / "cache" / "scan" / keys[name] / "entry.json",
+                 (stamp - age, stamp - age))
     foreign = tmp_path / "cache" / "notes.txt"  # not the cache's: never removed
     foreign.write_text("mine")
     (tmp_path / "cache" / "scan" / "nokey").mkdir()  # no entry.json: not an entry
-    live = tmp_path / "cache" / "scan" / ".new.partial-1-live"  # a fill still running
+    live = tmp_path / "cache" / "scan" / f".{keys['new']}.partial-1-0000live"  # running
     live.mkdir()
+    (live / ".flowerpose-fill").write_text("")
     sizes = {e.folder.name: e.size for e in cache.entries()}
-    assert [e.folder.name for e in cache.entries()] == ["old", "middle", "new"]
-    assert cache.prune(sizes["new"] + sizes["middle"]) and \
-        [e.folder.name for e in cache.entries()] == ["middle", "new"]
+    names = {key: name for name, key in keys.items()}
+    assert [names[e.folder.name] for e in cache.entries()] == ["old", "middle", "new"]
+    assert cache.prune(sizes[keys["new"]] + sizes[keys["middle"]]) and \
+        [names[e.folder.name] for e in cache.entries()] == ["middle", "new"]
     # A hit is a use: the restored entry is kept over one used earlier.
-    os.utime(tmp_path / "cache" / "scan" / "middle" / "entry.json", (stamp + 5, stamp + 5))
-    assert [e.folder.name for e in cache.prune(sizes["middle"])] == ["new"]
-    assert [e.folder.name for e in cache.prune(0)] == ["middle"]
+    os.utime(tmp_path / "cache" / "scan" / keys["middle"] / "entry.json",
+             (stamp + 5, stamp + 5))
+    assert [names[e.folder.name] for e in cache.prune(sizes[keys["middle"]])] == ["new"]
+    assert [names[e.folder.name] for e in cache.prune(0)] == ["middle"]
     assert foreign.read_text() == "mine" and (tmp_path / "cache" / "scan" / "nokey").is_dir()
     assert live.is_dir()
     os.utime(live, (stamp, stamp))  # a day old: its fill was killed
     cache.prune(0)
     assert not live.exists()
+
+
+def test_a_folder_the_cache_did_not_make_is_never_pruned(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    mine = tmp_path / "mydata"
+    (mine / "survey" / "plot-7").mkdir(parents=True)
+    (mine / "survey" / "plot-7" / "entry.json").write_text('{"plot": 7}')
+    (mine / "survey" / ".old.pruned-1").mkdir()
+    (mine / "survey" / ".old.pruned-1" / "keep.txt").write_text("mine")
+    before = sorted(p.relative_to(mine).as_posix() for p in mine.rglob("*"))
+    assert main(["cache", "--cache", str(mine), "--clear"]) == 2
+    assert "not a flowerpose stage cache" in capsys.readouterr().err
+    assert sorted(p.relative_to(mine).as_posix() for p in mine.rglob("*")) == before
+    # Inside the cache, a user's entry.json that names no stage and key of its own is not
+    # an entry, and a pruned-looking folder not named after a key is not the cache's.
+    cache = StageCache(tmp_path / "cache")
+    payload = tmp_path / "payload"
+    payload.write_bytes(b"x")
+    cache.store("scan", _key("a"), {"cloud.ply": payload}, {"result": {}})
+    assert (tmp_path / "cache" / "CACHEDIR.TAG").read_text().startswith(
+        "Signature: 8a477f597d28d172789f06886806bc55")
+    (tmp_path / "cache" / "scan" / "notes").mkdir()
+    (tmp_path / "cache" / "scan" / "notes" / "entry.json").write_text('{"stage": "scan"}')
+    (tmp_path / "cache" / "scan" / ".mine.pruned-2").mkdir()
+    assert [e.folder.name for e in cache.prune(0)] == [_key("a")]
+    assert (tmp_path / "cache" / "scan" / "notes" / "entry.json").is_file()
+    assert (tmp_path / "cache" / "scan" / ".mine.pruned-2").is_dir()
 
 
 def test_a_cache_hit_is_a_use(tmp_path):
@@ -208,7 +247,7 @@ def test_the_cache_command_says_what_is_held_and_prunes_only_entries(tmp_path, c
     payload = tmp_path / "payload"
     payload.write_bytes(b"x" * 2_000_000)
     for stage, key in (("scan", "a"), ("scan", "b"), ("reconstruct", "c")):
-        cache.store(stage, key, {"cloud.ply": payload}, {"result": {}})
+        cache.store(stage, _key(key), {"cloud.ply": payload}, {"result": {}})
     (tmp_path / "cache" / "notes.txt").write_text("mine")
     assert main(["cache", "--cache", str(tmp_path / "cache")]) == 0
     shown = capsys.readouterr().out
@@ -247,3 +286,17 @@ def test_an_eval_again_takes_its_plants_detections_and_scores_from_the_cache(tmp
     assert other["timing_s"]["plant"] == 0.0 and other["timing_s"]["cluster"] > 0
     assert len(list((root / "detect").iterdir())) == 2
     assert len(list((root / "plant").iterdir())) == 1
+
+
+def test_a_size_past_any_disk_is_no_limit_and_a_data_folder_is_no_cache(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    assert main(["cache", "--cache", str(tmp_path / "cache"), "--max-size", "1e300"]) == 0
+    capsys.readouterr()
+    mine = tmp_path / "mydata"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    assert main(["eval", "--source", "oracle", "--cache", str(mine), "--out",
+                 str(tmp_path / "out")]) == 2
+    assert "not a flowerpose stage cache" in capsys.readouterr().err
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]

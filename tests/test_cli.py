@@ -416,3 +416,13 @@ def test_every_set_example_names_a_setting_its_command_reads():
             assert apply_overrides(base, parse_set_options([setting])) != base, (name, setting)
             checked.append(name)
     assert {"eval", "detect", "pollinate", "sweep"} <= set(checked)
+
+
+def test_a_report_holding_nan_is_one_line_not_a_nan_in_a_table(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    report = tmp_path / "report.json"
+    report.write_text('{"run": {}, "summary": {"recall_visible": NaN}, "plants": []}')
+    assert main(["results", str(report)]) == 2
+    err = capsys.readouterr().err
+    assert "report.json" in err and "NaN" in err and err.count("\n") == 1

@@ -1,5 +1,5 @@
 """Output folders: a command deletes only what it wrote, refuses other folders unless told,
-and a failed reconstruction leaves the earlier one."""
+and a rerun that fails or is killed leaves the earlier finished output."""
 
 import json
 from pathlib import Path
@@ -201,3 +201,50 @@ def test_an_eval_rerun_into_its_folder_replaces_all_of_its_earlier_output(tmp_pa
     capsys.readouterr()
     assert sorted(p.name for p in (out / "plants").iterdir()) == ["seed-0"]
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def _report(out: Path, text: str) -> OutputFolder:
+    run = OutputFolder(out, "eval")
+    (out / "report.json").write_text(text)
+    run.record(out / "report.json")
+    return run
+
+
+def test_an_unfinished_rerun_never_costs_the_finished_output(tmp_path):
+    out = tmp_path / "out"
+    _report(out, "finished").finish()
+    killed = _report(out, "half")  # killed before it finished: neither finish nor abandon
+    killed.release()
+    assert (out / ".flowerpose-previous" / "files" / "report.json").read_text() == "finished"
+    failed = OutputFolder(out, "eval")  # the next run puts the finished one back first
+    (out / "report.json").write_text("broken")
+    failed.record(out / "report.json")
+    failed.abandon()  # a run that fails puts it back too
+    assert (out / "report.json").read_text() == "finished"
+    assert not (out / ".flowerpose-previous").exists()
+    assert json.loads((out / MARKER).read_text())["complete"] is True
+    _report(out, "new").finish()
+    assert (out / "report.json").read_text() == "new"
+    assert not (out / ".flowerpose-previous").exists()
+
+
+def test_an_eval_rerun_that_is_interrupted_keeps_the_finished_report(tmp_path, monkeypatch):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent / "eval"))
+    from realplants import write_real_plant
+
+    from flowerpose.eval import harness
+
+    folder = write_real_plant(tmp_path / "plant", "candidates")
+    out = tmp_path / "out"
+    assert main(["eval", "--source", "real", str(folder), "--out", str(out), "-q"]) == 0
+    finished = (out / "report.json").read_bytes()
+
+    def interrupted(*args, **kwargs):
+        (out / "report.json").write_text("{}")  # the new run got this far
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(harness, "run_eval", interrupted)
+    assert main(["eval", "--source", "real", str(folder), "--out", str(out), "-q"]) == 130
+    assert (out / "report.json").read_bytes() == finished

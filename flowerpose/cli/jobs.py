@@ -319,7 +319,12 @@ def add_fidelity(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_cache(args: argparse.Namespace) -> int:
-    from flowerpose.cache import StageCache, default_cache_dir, max_cache_bytes
+    from flowerpose.cache import (
+        StageCache,
+        default_cache_dir,
+        gigabytes_to_bytes,
+        max_cache_bytes,
+    )
     from flowerpose.eval.report import markdown_table
 
     root = args.cache or default_cache_dir()
@@ -328,7 +333,7 @@ def cmd_cache(args: argparse.Namespace) -> int:
     cache = StageCache(root)
     limit = 0 if args.clear else args.max_size
     if limit is not None:
-        removed = cache.prune(int(limit * 1e9))
+        removed = cache.prune(gigabytes_to_bytes(limit))
         print(f"removed {len(removed)} entries ({sum(e.size for e in removed) / 1e6:.1f} MB)")
     entries = cache.entries()
     rows = []

@@ -109,7 +109,7 @@ def jobs_on(args: argparse.Namespace) -> contextlib.AbstractContextManager:
 
 def stage_cache(args: argparse.Namespace) -> Path | None:
     """The stage cache's folder the command's --cache / --no-cache choose."""
-    from flowerpose.cache import default_cache_dir, max_cache_bytes
+    from flowerpose.cache import StageCache, default_cache_dir, max_cache_bytes
 
     if args.no_cache and args.cache is not None:
         raise InputError("--no-cache", "and --cache contradict each other: choose one")
@@ -123,6 +123,10 @@ def stage_cache(args: argparse.Namespace) -> Path | None:
     if folder.is_dir() and not os.access(folder, os.W_OK):
         raise InputError(folder, f"the stage cache ({source}) cannot be written "
                          "(permission denied)")
+    if folder.is_dir() and any(folder.iterdir()) and not StageCache(folder).is_cache():
+        raise InputError(folder, f"the stage cache ({source}) is a folder of other files, not "
+                         "a flowerpose stage cache: give an empty or new folder (the cache "
+                         "tags its own with CACHEDIR.TAG)")
     return folder
 
 

@@ -17,12 +17,14 @@ from flowerpose.cli.options import (
     add_output,
     add_preset,
     add_units,
+    at_least,
     configure,
     moved_under,
     owned,
     positive_number,
     starting_config,
 )
+from flowerpose.errors import InputError
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
@@ -351,7 +353,12 @@ def cmd_label(args: argparse.Namespace) -> int:
 
     session = open_session(args.folder, args.labeller or getpass.getuser(), args.units,
                            args.detections)
-    server = make_server(session, args.port)
+    try:
+        server = make_server(session, args.port)
+    except OSError as error:  # the port taken, or not ours to bind
+        raise InputError("--port", f"{args.port}: cannot serve there "
+                         f"({error.strerror or error}); give another, or 0 for a free one"
+                         ) from None
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     print(f"label: {args.folder} ({len(session.cloud)} points, {len(session.start)} flowers "
           f"from {session.started_from}) at {url}; Ctrl-C stops (save in the page first)",
@@ -390,8 +397,8 @@ def add_label(sub: argparse._SubParsersAction) -> None:
                    "(default: DIR/flowers.json)")
     p.add_argument("--labeller", default=None, metavar="NAME",
                    help="who labels, as the file records it (default: the login name)")
-    p.add_argument("--port", type=int, default=0, metavar="N",
-                   help="the port on 127.0.0.1 (default: a free one)")
+    p.add_argument("--port", type=at_least(0, 65535, "a TCP port"), default=0, metavar="N",
+                   help="the port on 127.0.0.1, 1-65535 (default: 0, a free one)")
     p.add_argument("--no-browser", dest="browser", action="store_false",
                    help="print the page's address only; open no browser")
     add_units(p, "cloud")
@@ -399,11 +406,17 @@ def add_label(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_agree(args: argparse.Namespace) -> int:
-    from flowerpose.eval.agreement import agreement, agreement_lines, read_labelling
+    from flowerpose.eval.agreement import (
+        agreement,
+        agreement_lines,
+        labelling_unit,
+        read_labelling,
+    )
     from flowerpose.jsonio import write_json
 
-    result = agreement(read_labelling(args.a, args.truth_scale),
-                       read_labelling(args.b, args.truth_scale), args.max_distance)
+    a, b = read_labelling(args.a, args.truth_scale), read_labelling(args.b, args.truth_scale)
+    metres, _ = labelling_unit(args.a, args.units)
+    result = agreement(a, b, args.max_distance, metres)
     print("\n".join(agreement_lines(result)))
     if args.json is not None:
         write_json(args.json, result)
@@ -428,8 +441,9 @@ def add_agree(sub: argparse._SubParsersAction) -> None:
                    help="the factor both were drawn at over the cloud's coordinates (default: "
                    "a flowerpose file's own, 25 for SageMaker, 1 for a plant.json)")
     p.add_argument("--max-distance", type=positive_number, default=MAX_MATCH_DISTANCE,
-                   metavar="D", help="farthest two centres of one flower lie apart, in the "
-                   "cloud's unit (default: %(default)g)")
+                   metavar="M", help="farthest two centres of one flower lie apart, metres, "
+                   "whatever the cloud's unit (default: %(default)g)")
+    add_units(p, "labels' cloud (auto: A's folder's source.json, else its cloud)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE",
                    help="also write the comparison here as JSON (default: print only)")
     p.set_defaults(func=cmd_agree)

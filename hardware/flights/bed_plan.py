@@ -49,6 +49,12 @@ PLANT_RADIUS_M = 0.15
 """A plant's radius where its bed file gives none, metres."""
 
 _KEYS = ("name", "x", "y", "height", "radius")
+MAX_PLANTS = 500
+"""Most plants a bed holds: a FarmBot Genesis XL's 3 x 6 m at strawberry spacing (25-30 cm)
+is about 250; more is a file's mistake, refused before anything is planned."""
+MAX_RADIUS_M = 1.0
+"""A plant wider than this (metres, stem to the edge of its reach) is no strawberry plant: a
+number in millimetres, most likely."""
 EXACT_TOUR_UP_TO = 8
 """Beds of up to this many plants are ordered by trying every order (8! = 40,320)."""
 _TIE_S_PER_M = 0.5
@@ -116,13 +122,53 @@ def read_bed(path: Path) -> Bed:
         raise InputError(path, "a bed file is .toml or .csv")
     if not rows:
         raise InputError(path, "no plant in the bed")
+    if len(rows) > MAX_PLANTS:
+        raise InputError(path, f"{len(rows):,} plants: a bed holds at most {MAX_PLANTS}; "
+                         "split it into beds")
     plants = [_plant(path, number, row) for number, row in enumerate(rows, start=1)]
     seen: set[str] = set()
     for plant in plants:
         if plant.name in seen:
             raise InputError(path, f"plant {plant.name!r} is named twice")
         seen.add(plant.name)
-    return Bed(plants, scan)
+    bed = Bed(plants, scan)
+    check_bed(bed, path)
+    return bed
+
+
+def check_bed(bed: Bed, source: str | Path = "bed",
+              geometry: BotGeometry = PAPER_BOT) -> None:
+    """Check a bed as a whole before anything is planned, for the simulated and the
+    physical bot alike: each plant's size plausible in metres (a height above 0 and within
+    the gantry's Z travel, a radius above 0 and at most MAX_RADIUS_M: larger is most likely
+    millimetres), and no two plants overlapping (their stems nearer than their radii and
+    the head's clearance between them: each plant's cut cloud would hold its neighbour's
+    flowers). InputError naming `source`, the plants and the numbers."""
+    clearance = bed.scan.head_clearance_m
+    for plant in bed.plants:
+        if not plant.height > 0 or plant.height > geometry.travel_m[2]:
+            raise InputError(source, f"plant {plant.name!r}: height {plant.height:g} m is not "
+                             f"between 0 and the gantry's Z travel, {geometry.travel_m[2]:g} "
+                             "m (bed files are in metres: millimetres?)")
+        if not plant.radius > 0 or plant.radius > MAX_RADIUS_M:
+            raise InputError(source, f"plant {plant.name!r}: radius {plant.radius:g} m is not "
+                             f"between 0 and {MAX_RADIUS_M:g} m (bed files are in metres: "
+                             "millimetres?)")
+    if len(bed.plants) < 2:
+        return
+    at = np.array([plant.at for plant in bed.plants])
+    radius = np.array([plant.radius for plant in bed.plants])
+    apart = np.linalg.norm(at[:, None] - at[None], axis=-1)
+    needed = radius[:, None] + radius[None] + clearance
+    close = np.argwhere(np.triu(apart < needed, k=1))
+    if len(close):
+        i, j = close[0]
+        a, b = bed.plants[i], bed.plants[j]
+        raise InputError(source, f"plants {a.name!r} and {b.name!r} overlap: their stems are "
+                         f"{apart[i, j]:.3g} m apart, and with radii {a.radius:g} and "
+                         f"{b.radius:g} m and the head's clearance {clearance:g} m they need "
+                         f"{needed[i, j]:.3g} m (each plant's cloud would hold the other's "
+                         "flowers): move them apart or give smaller radii")
 
 
 def bed_from_points(points: list[dict], geometry: BotGeometry = PAPER_BOT,
@@ -158,7 +204,11 @@ def bed_from_points(points: list[dict], geometry: BotGeometry = PAPER_BOT,
     if not plants:
         raise InputError(source, "no plant in the garden: add the bed's plants in the web "
                          "app's Farm Designer, or give --bed FILE")
-    return Bed(plants)
+    if len(plants) > MAX_PLANTS:
+        raise InputError(source, f"{len(plants):,} plants: a bed holds at most {MAX_PLANTS}")
+    bed = Bed(plants)
+    check_bed(bed, source, geometry)
+    return bed
 
 
 def _csv_rows(path: Path) -> list[dict]:

@@ -4,7 +4,9 @@ an identical run and a shift within the margin; accepting is a decision on recor
 for a failed run without a reason; another revision's code runs from its own tree."""
 
 import json
+import os
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -351,3 +353,27 @@ def test_the_guard_is_on_the_command_line_with_its_decisions(capsys):
     text = capsys.readouterr().out
     for flag in ("--base", "--seed", "--quick", "--accept-loss", "--trend"):
         assert flag in text
+
+
+def test_the_same_code_laid_out_as_another_revision_has_the_same_code_version(tmp_path):
+    """The guard's two sides share the stage cache: a revision laid out as one tree names its
+    files as the installed packages do."""
+    from flowerpose.cache import _module_file, code_version, module_closure
+
+    try:
+        repo = repository()
+    except InputError:
+        pytest.skip("flowerpose runs from an installed copy, not a git checkout")
+    roots = ("flowerpose.eval.scan_source",)
+    files = [str(_module_file(m).relative_to(repo)) for m in module_closure(roots)
+             if _module_file(m).is_relative_to(repo)]
+    if subprocess.run(["git", "-C", str(repo), "diff", "--quiet", "HEAD", "--", *files]
+                      ).returncode != 0:
+        pytest.skip("the capture's code has uncommitted changes")
+    revision = materialise(repo, resolve(repo, "HEAD"), tmp_path)
+    probe = ("from flowerpose.cache import code_version; "
+             f"print(code_version({roots!r}))")
+    laid_out = subprocess.run([sys.executable, "-P", "-c", probe], cwd=revision.tree,
+                              env={**os.environ, "PYTHONPATH": str(revision.tree)},
+                              capture_output=True, text=True, check=True).stdout.strip()
+    assert laid_out == code_version(roots)

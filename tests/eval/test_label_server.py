@@ -1,7 +1,9 @@
 """`flowerpose label`: the page's server on a small real-plant folder (its detections as
-proposals, a snap to the points, a save that keeps the earlier file), and the page itself
-in headless Chromium."""
+proposals, a snap to the points, a save that keeps the earlier file), the page itself in
+headless Chromium, and every request not from the page refused: another origin, another
+host name (DNS rebinding), a POST without the session's token or not JSON."""
 
+import http.client
 import json
 import shutil
 import threading
@@ -13,6 +15,7 @@ import pytest
 from realplants import CENTRES, NORMALS, write_real_plant
 
 from flowerpose.cli import main
+from flowerpose.errors import InputError
 from flowerpose.eval import label_server
 from flowerpose.eval.labels import read_labels
 from flowerpose.eval.real_source import read_real_plant, real_truth
@@ -36,7 +39,13 @@ def _serve(tmp_path, detected: int):
     session = label_server.open_session(folder, "tester", "m")
     server = label_server.make_server(session)
     threading.Thread(target=server.serve_forever, daemon=True).start()
-    return folder, f"http://127.0.0.1:{server.server_address[1]}", server
+    url = f"http://127.0.0.1:{server.server_address[1]}"
+    TOKENS[url] = server.token
+    return folder, url, server
+
+
+#: Each served page's token, by its address: what the page's own requests carry.
+TOKENS: dict[str, str] = {}
 
 
 @pytest.fixture
@@ -53,8 +62,11 @@ def _get(url: str):
 
 
 def _post(url: str, body: dict) -> tuple[int, dict]:
+    """A POST as the page sends it: JSON, with its session's token."""
+    base = url.rsplit("/", 1)[0]
     request = urllib.request.Request(url, json.dumps(body).encode(), method="POST",
-                                     headers={"Content-Type": "application/json"})
+                                     headers={"Content-Type": "application/json",
+                                              label_server.TOKEN_HEADER: TOKENS[base]})
     try:
         with urllib.request.urlopen(request, timeout=30) as answer:
             return answer.status, json.loads(answer.read())
@@ -111,6 +123,55 @@ def test_a_bad_save_is_refused_and_writes_nothing(served):
     status, answer = _post(url + "/save", {"flowers": "none"})
     assert status == 400
     assert not (folder / "labels.json").exists()
+
+
+def _raw(url: str, method: str, path: str, body: bytes = b"", **headers) -> tuple[int, dict]:
+    """A request with the headers given as they are (`Host` too): what another page, or a
+    name rebound to 127.0.0.1, would send."""
+    port = int(url.rsplit(":", 1)[1])
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    connection.putrequest(method, path, skip_host="Host" in headers)
+    for name, value in {**headers, "Content-Length": str(len(body))}.items():
+        connection.putheader(name.replace("_", "-"), value)
+    connection.endheaders(body)
+    answer = connection.getresponse()
+    status, data = answer.status, answer.read()
+    connection.close()
+    return status, json.loads(data) if data.startswith(b"{") else {}
+
+
+def test_requests_from_anything_but_the_page_are_refused_and_change_nothing(served):
+    folder, url = served
+    status, _ = _post(url + "/save", {"flowers": [], "session": {}})
+    assert status == 200
+    saved = (folder / "labels.json").read_bytes()
+    token = TOKENS[url]
+    empty = json.dumps({"flowers": [], "session": {"who": "evil"}}).encode()
+    host = url.removeprefix("http://")
+    for headers in (
+            # Any web page may send this without asking: another origin, plain text.
+            {"Origin": "http://evil.example", "Content-Type": "text/plain"},
+            # Not even with the token: still another origin.
+            {"Origin": "http://evil.example", "Content-Type": "application/json",
+             "X_Flowerpose_Token": token},
+            # From the page's origin, but plain text, or without the token.
+            {"Origin": f"http://{host}", "Content-Type": "text/plain",
+             "X_Flowerpose_Token": token},
+            {"Origin": f"http://{host}", "Content-Type": "application/json"},
+            # A name rebound to 127.0.0.1.
+            {"Host": f"evil.example:{host.split(':')[1]}", "Content-Type": "application/json",
+             "X_Flowerpose_Token": token}):
+        status, data = _raw(url, "POST", "/save", empty, **headers)
+        assert status == 403 and data["error"], headers
+    assert (folder / "labels.json").read_bytes() == saved
+    assert not list(folder.glob("labels.json.*"))  # no backup of a refused save
+    # DNS rebinding cannot read the cloud; the server's own names can.
+    assert _raw(url, "GET", "/state", Host=f"evil.example:{host.split(':')[1]}")[0] == 403
+    assert _raw(url, "GET", "/state", Host=f"localhost:{host.split(':')[1]}")[0] == 200
+    # The page carries the token that opens its POSTs.
+    assert json.dumps(token).encode() in _get(url + "/")
+    assert _raw(url, "POST", "/save", b"[]", Content_Type="application/json",
+                X_Flowerpose_Token=token)[0] == 400
 
 
 def test_a_large_cloud_is_drawn_decimated(served, monkeypatch):
@@ -203,3 +264,56 @@ def test_a_labeller_in_a_browser_accepts_moves_turns_adds_and_saves(tmp_path, ca
     capsys.readouterr()
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["plants"][0]["visible"] == 4 and report["plants"][0]["found_visible"] >= 3
+
+
+def test_a_port_out_of_range_or_taken_is_one_line(tmp_path, capsys):
+    folder = write_real_plant(tmp_path / "plant", "cloud")
+    with pytest.raises(SystemExit) as refused:
+        main(["label", str(folder), "--port", "70000", "--no-browser"])
+    assert refused.value.code == 2
+    assert "at most 65,535 (a TCP port)" in capsys.readouterr().err
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["label", str(folder), "--port", str(port), "--no-browser"]) == 2
+    assert "cannot serve there" in capsys.readouterr().err
+
+
+def test_labels_saved_from_a_sagemaker_folder_read_back_the_same(tmp_path):
+    """The authors' folders carry SageMaker labels at x25 with "truth_scale": 25 in their
+    source.json; a save writes this project's file (its own scale 1), and opening it again
+    or scoring it applies that scale once, not source.json's on top."""
+    folder = write_real_plant(tmp_path / "plant", "cloud", source={"truth_scale": 25})
+    before = real_truth(read_real_plant(folder))
+    session = label_server.open_session(folder, "tester", "m")
+    flowers = [{**f, "state": "labelled"} for f in session.start]
+    label_server.save_labels(session, {"flowers": flowers})
+    again = label_server.open_session(folder, "tester", "m")
+    assert np.allclose([f["center"] for f in again.start],
+                       [f["center"] for f in session.start])
+    after = real_truth(read_real_plant(folder))
+    assert np.allclose([t.center for t in after], [t.center for t in before])
+    assert sum(t.visible for t in after) == sum(t.visible for t in before) == len(CENTRES)
+    with pytest.raises(InputError, match="contradicts"):
+        read_real_plant(folder, truth_scale=25)
+
+
+def test_a_save_that_would_not_read_back_is_refused_and_writes_nothing(served):
+    folder, url = served
+    flowers = json.loads(_get(url + "/state"))["flowers"]
+    twice = [{**flowers[0], "state": "labelled", "normal": [0, 0, 1]},
+             {**flowers[0], "state": "labelled", "normal": [0, 0, 1]}]
+    status, answer = _post(url + "/save", {"flowers": twice})
+    assert status == 400 and "given 2 times" in answer["error"]
+    zero = [{**flowers[0], "state": "labelled", "normal": [0, 0, 0]}]
+    status, answer = _post(url + "/save", {"flowers": zero})
+    assert status == 400 and "flower d0" in answer["error"] and "normal" in answer["error"]
+    assert not (folder / "labels.json").exists() and not list(folder.glob("*.bak"))
+    # A hand-written "units" is refused, not read as metres without a word.
+    (folder / "labels.json").write_text(json.dumps({
+        "format": "flowerpose-labels", "version": 1, "units": "mm", "flowers": []}))
+    with pytest.raises(InputError, match="unknown key 'units'"):
+        read_labels(folder / "labels.json")

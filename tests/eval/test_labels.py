@@ -107,7 +107,7 @@ def test_agree_compares_sagemaker_cuboids_with_a_label_file(tmp_path, capsys):
     assert main(["agree", str(folder / "labels.json"), str(tmp_path / "mine.json"),
                  "--json", str(tmp_path / "agree.json")]) == 0
     said = capsys.readouterr().out
-    assert "matched within 0.02: 4" in said and "on 4 flowers: mean 0.0°" in said
+    assert "matched within 20 mm: 4" in said and "on 4 flowers: mean 0.0°" in said
     assert json.loads((tmp_path / "agree.json").read_text())["angle_deg"]["n"] == 4
 
 
@@ -118,3 +118,23 @@ def test_agree_refuses_what_is_not_a_labelling_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert str(tmp_path / "x.json") in err and "not a label file" in err
     assert err.count("\n") == 0
+
+
+def test_agree_matches_within_metres_whatever_the_clouds_unit(tmp_path, capsys):
+    """Two labellings of a millimetre cloud 1 mm apart match within the default 2 cm."""
+    folder = write_real_plant(tmp_path / "plant", "cloud", source={"units": "mm"})
+    (folder / "labels.json").unlink()
+    millimetres = _labels()
+    for flower in millimetres.flowers:
+        flower.center = flower.center * 1000
+    write_labels(folder / "labels.json", millimetres)
+    moved = _labels()
+    for flower in moved.flowers:
+        flower.center = flower.center * 1000 + [1.0, 0.0, 0.0]
+    write_labels(folder / "second.json", moved)
+    assert main(["agree", str(folder / "labels.json"), str(folder / "second.json")]) == 0
+    assert "matched within 20 mm: 4" in capsys.readouterr().out
+    # The unit given, or told by the folder's cloud, says the same.
+    assert main(["agree", str(folder / "labels.json"), str(folder / "second.json"),
+                 "--units", "mm"]) == 0
+    assert "matched within 20 mm: 4" in capsys.readouterr().out

@@ -94,3 +94,30 @@ def test_a_report_says_what_made_it():
     # Run from this checkout: its commit (40 hex digits, "+dirty" with local changes).
     commit = report["run"]["commit"]
     assert commit is None or len(commit.removesuffix("+dirty")) == 40
+
+
+def test_scoring_against_another_plants_truth_at_the_same_place_warns(tmp_path, caplog):
+    import json
+
+    from flowerpose.eval.match import score_files
+
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(-0.1, 0.1, (18, 3)) + [0, 0, 0.3]
+    elsewhere = truth + rng.choice([-1, 1], (18, 3)) * 0.03  # another plant's flowers
+    normal = [0.0, 0.0, 1.0]
+    (tmp_path / "plant.json").write_text(json.dumps({"flowers": [
+        {"id": k, "center": c.tolist(), "normal": normal, "visible": True}
+        for k, c in enumerate(truth)]}))
+    (tmp_path / "flowers.json").write_text(json.dumps({"units": "m", "flowers": [
+        {"id": k, "center": c.tolist(), "normals": {"plane": normal}}
+        for k, c in enumerate(elsewhere)]}))
+    report = score_files(tmp_path / "flowers.json", tmp_path / "plant.json")
+    notes = report["plants"][0]["notes"]
+    assert any("is this the right plant's truth" in note for note in notes)
+    assert "is this the right plant's truth" in caplog.text
+    # The same plant: no word.
+    (tmp_path / "flowers.json").write_text(json.dumps({"units": "m", "flowers": [
+        {"id": k, "center": c.tolist(), "normals": {"plane": normal}}
+        for k, c in enumerate(truth)]}))
+    assert not any("right plant" in n for n in score_files(
+        tmp_path / "flowers.json", tmp_path / "plant.json")["plants"][0]["notes"])

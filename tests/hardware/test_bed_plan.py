@@ -181,3 +181,44 @@ def test_field_cloud_plans_the_accounts_garden_and_moves_nothing(tmp_path, capsy
     assert main(["field", "--cloud", "--out", str(out), "--dry-run"]) == 2
     err = capsys.readouterr().err
     assert "401" in err and err.count("\n") == 1 and "s3cr3t" not in err
+
+
+_PLANT = 'name = "{name}"\nx = {x}\ny = 0.75\nheight = {height}\nradius = {radius}\n'
+
+
+def _bed(tmp_path, *plants: dict):
+    return _toml(tmp_path, "".join("[[plant]]\n" + _PLANT.format(**{
+        "height": 0.2, "radius": 0.12, **plant}) for plant in plants))
+
+
+@pytest.mark.parametrize("plants,words", [
+    # Two plants at one spot, or 3 cm apart with 12 cm radii: each cloud holds the other's.
+    ([{"name": "a", "x": 1.0}, {"name": "b", "x": 1.0}], ["'a' and 'b' overlap", "0 m apart"]),
+    ([{"name": "a", "x": 1.0}, {"name": "b", "x": 1.03}], ["overlap", "need 0.28 m"]),
+    ([{"name": "a", "x": 1.0, "height": -0.2}], ["height -0.2 m", "millimetres?"]),
+    ([{"name": "a", "x": 1.0, "radius": -0.1}], ["radius -0.1 m"]),
+    ([{"name": "a", "x": 1.0, "radius": 120}], ["radius 120 m", "millimetres?"]),
+    ([{"name": "a", "x": 1.0, "height": 250}], ["height 250 m"]),
+])
+def test_a_bed_is_checked_as_a_whole_before_any_plan(tmp_path, plants, words):
+    with pytest.raises(InputError) as refused:
+        read_bed(_bed(tmp_path, *plants))
+    for word in words:
+        assert word in str(refused.value), str(refused.value)
+
+
+def test_a_bed_of_too_many_plants_is_refused_before_reading_them_all(tmp_path):
+    rows = "name,x,y\n" + "".join(f"p{k},{k * 0.001},0.5\n" for k in range(10_000))
+    path = tmp_path / "bed.csv"
+    path.write_text(rows)
+    with pytest.raises(InputError, match="10,000 plants: a bed holds at most 500"):
+        read_bed(path)
+
+
+def test_the_simulated_and_the_physical_bed_refuse_the_same_bed(tmp_path, capsys):
+    from flowerpose.cli import main
+
+    path = _bed(tmp_path, {"name": "a", "x": 1.0, "radius": -0.1})
+    for bot in (["--sim", "--dry-run"], ["--dry-run"]):
+        assert main(["field", "--bed", str(path), *bot, "--out", str(tmp_path / "out")]) == 2
+        assert "radius -0.1 m" in capsys.readouterr().err
