@@ -372,8 +372,8 @@ class StageCache:
         and the private folders of fills killed more than a day ago; returns the entries
         removed. An entry is renamed away before it is deleted, so no run reads half of
         one. InputError, and nothing removed, for a root that is not the cache's."""
-        if not self.root.exists():
-            return []
+        if not self.root.is_dir() or not any(self.root.iterdir()):
+            return []  # nothing made yet, nothing to remove
         if not self.is_cache():
             raise InputError(self.root, "is not a flowerpose stage cache (no CACHEDIR.TAG of "
                              "its own and no entry it made): nothing in it is deleted")

@@ -164,7 +164,7 @@ def _grey_cloud(path):
     (["score", "{badjson}", "{badjson}", "--max-distance", "nan"], ["--max-distance"]),
     (["score", "{flowers_string}", "{badjson}"], ["flower 0: normals.plane"]),
     (["score", "{flowers_zero}", "{badjson}"], ["zero vector"]),
-    (["score", "{flowers_nan}", "{badjson}"], ["flower 0: center"]),
+    (["score", "{flowers_nan}", "{badjson}"], ["flowers_nan", "NaN"]),
     (["score", "{flowers_bool}", "{badjson}"], ["normals.plane"]),
     (["score", "{flowers_nonormals}", "{badjson}"], ["'normals'"]),
     (["eval", "--source", "photos", "--out", "{tmp}/e"], ["--source"]),

@@ -14,6 +14,7 @@ from realplants import CENTRES, NORMALS, write_real_plant  # noqa: E402
 
 from flowerpose.cloudio import read_cloud  # noqa: E402
 from flowerpose.eval import accepted  # noqa: E402
+from flowerpose.eval.fresh_seeds import FRESH_SEEDS  # noqa: E402
 from flowerpose.eval.labels import Label, LabelFile, read_labels, write_labels  # noqa: E402
 from flowerpose.eval.report import build_report, write_report  # noqa: E402
 from flowerpose.pipeline.flowers import find_flowers, read_flowers, write_flowers  # noqa: E402
@@ -61,7 +62,7 @@ def test_the_accepted_decisions_read_back_as_appended(tmp_path):
               "date": "2026-12-06T10:00:00+00:00", "command": "flowerpose guard --accept",
               "settings": [{"cluster.eps": 0.009}], "run_seed": 7, "decision": "loss",
               "reason": "a trade", "measures": {"plane": {"loss": 0.2, "se": 0.1}},
-              "plants": {"seeds": [1_000_000_001, 1_000_000_020]}}
+              "plants": {"seeds": [FRESH_SEEDS.start + 1, FRESH_SEEDS.start + 20]}}
     accepted.append(tmp_path / "accepted.json", [], [record])
     assert accepted.read_history(tmp_path / "accepted.json") == [record]
 

@@ -142,7 +142,7 @@ def test_frames_json_is_read_once_with_every_check(tmp_path):
     fails(lambda f: f.update(index="1"), 'needs an integer "index"')
     fails(lambda f: f.update(file="frames/none.jpg"), "image listed in frames.json not found")
     fails(lambda f: f["pose"].update(rotation=np.diag([1, 1, -1]).tolist()), "proper rotation")
-    fails(lambda f: f["pose"].update(position=[0, float("nan")]), "finite position")
+    fails(lambda f: f["pose"].update(position=[0, float("nan")]), "holds NaN")
     fails(lambda f: f.pop("pose"), '"pose" with "position"')
     data = json.loads(json.dumps(good))
     data["frames"][1].pop("pose")
