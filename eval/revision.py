@@ -88,8 +88,10 @@ class Revision:
         log.parent.mkdir(parents=True, exist_ok=True)
         command = [sys.executable, "-P", "-m", "flowerpose", *arguments]
         with open(log, "w", encoding="utf-8") as output:
+            # From the caller's folder, so that relative paths in `arguments` mean what
+            # they meant to the caller; PYTHONPATH (not the folder, -P) picks the code.
             finished = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT,
-                                      cwd=self.tree or None, env=environment)
+                                      env=environment)
         if finished.returncode != 0:
             lines = [line for line in log.read_text(encoding="utf-8").splitlines() if line]
             raise InputError(self.name, f"`flowerpose {' '.join(arguments)}` failed (exit "

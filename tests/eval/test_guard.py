@@ -291,7 +291,7 @@ def _git(folder, *arguments):
     subprocess.run(["git", "-C", str(folder), *arguments], check=True, capture_output=True)
 
 
-def test_a_revision_runs_its_own_code_from_its_own_layout(tmp_path):
+def test_a_revision_runs_its_own_code_from_its_own_layout(tmp_path, monkeypatch):
     repo = tmp_path / "repo"
     (repo / "core").mkdir(parents=True)
     (repo / "stages").mkdir()
@@ -300,7 +300,8 @@ def test_a_revision_runs_its_own_code_from_its_own_layout(tmp_path):
         '"flowerpose.pipeline" = "stages" }\npackages = ["flowerpose", "flowerpose.pipeline"]\n')
     (repo / "core" / "__init__.py").write_text("")
     (repo / "core" / "__main__.py").write_text(
-        "import sys, flowerpose.pipeline as p\nprint(p.WHO, sys.argv[1:])\n")
+        "import sys, pathlib, flowerpose.pipeline as p\n"
+        "print(p.WHO, sys.argv[1:], pathlib.Path(sys.argv[1]).is_file())\n")
     (repo / "stages" / "__init__.py").write_text("WHO = 'the first revision'\n")
     _git(repo, "init", "-q")
     _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qam", "one",
@@ -311,8 +312,11 @@ def test_a_revision_runs_its_own_code_from_its_own_layout(tmp_path):
     assert dirty(repo) == ["stages/__init__.py"]
     commit = resolve(repo, "HEAD")
     revision = materialise(repo, commit, tmp_path / "revisions")
-    revision.run(["hello"], tmp_path / "run.log")
-    assert (tmp_path / "run.log").read_text().strip() == "the first revision ['hello']"
+    # Relative paths mean what they mean to the caller (CI passes `--out runs/...`).
+    monkeypatch.chdir(tmp_path)
+    Path("hello.txt").write_text("")
+    revision.run(["hello.txt"], Path("run.log"))
+    assert (tmp_path / "run.log").read_text().strip() == "the first revision ['hello.txt'] True"
     assert materialise(repo, commit, tmp_path / "revisions").tree == revision.tree  # reused
     with pytest.raises(InputError, match="names no commit"):
         resolve(repo, "no-such-revision")
