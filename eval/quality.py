@@ -45,6 +45,20 @@ def _scores(distance_cloud: np.ndarray, distance_truth: np.ndarray) -> dict:
     return out
 
 
+def cloud_agreement(a: np.ndarray, b: np.ndarray, threshold_m: float) -> dict:
+    """How well two clouds of one scene agree (both metres, one frame): precision (share
+    of a's points within threshold_m of b), completeness (b's within it of a) and their
+    harmonic mean, the F-score."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if len(a) == 0 or len(b) == 0:
+        return {"precision": 0.0, "completeness": 0.0, "fscore": 0.0}
+    precision = float(np.mean(cKDTree(b).query(a)[0] <= threshold_m))
+    completeness = float(np.mean(cKDTree(a).query(b)[0] <= threshold_m))
+    total = precision + completeness
+    return {"precision": precision, "completeness": completeness,
+            "fscore": 2 * precision * completeness / total if total else 0.0}
+
+
 def reconstruction_quality(points: np.ndarray, mesh: trimesh.Trimesh, face_part: np.ndarray,
                            samples: int = 200_000, seed: int = 0) -> dict:
     """Quality of a reconstructed cloud against the plant's truth mesh.

@@ -158,3 +158,30 @@ def _verified(published: PublishedPlant, folder: Path,
                              f"{digest[:12]}..., expected {item.sha256[:12]}...); {after}")
         found.append((path, path.stat().st_size, digest))
     return found
+
+
+#: The ROMI scanner logs its gimbal's pan with 0 pointing the camera along -y; the rough
+#: poses' heading (`pipeline.photos.read_pose_table`) is measured from +x: 90 degrees on.
+ROMI_PAN_TO_HEADING_DEG = 90.0
+
+
+def romi_rough_poses(metadata_dir: Path, out_csv: Path) -> Path:
+    """The ROMI scanner's own log of a scan (metadata/NNNNN_rgb.json: "approximate_pose"
+    x, y, z in millimetres, pan and tilt in degrees) as a rough-poses CSV for
+    `flowerpose frames --images ... --poses CSV --pose-units mm`. Only the logged pose is
+    used, not the calibration the files also hold."""
+    from flowerpose.atomic import write_text
+    from flowerpose.jsonio import read_json
+
+    rows = ["file,x,y,z,pan,tilt"]
+    files = sorted(Path(metadata_dir).glob("*.json"))
+    if not files:
+        raise InputError(metadata_dir, "no ROMI metadata (NNNNN_rgb.json) in the folder")
+    for path in files:
+        pose = read_json(path).get("approximate_pose")
+        if not isinstance(pose, list) or len(pose) != 5:
+            raise InputError(path, '"approximate_pose" needs x, y, z, pan, tilt')
+        x, y, z, pan, tilt = (float(v) for v in pose)
+        heading = (pan + ROMI_PAN_TO_HEADING_DEG) % 360
+        rows.append(f"{path.stem}.jpg,{x!r},{y!r},{z!r},{heading!r},{tilt!r}")
+    return write_text(out_csv, "\n".join(rows) + "\n")
