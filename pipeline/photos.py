@@ -272,27 +272,27 @@ def _undistorter(camera: pycolmap.Camera | None, width: int, height: int, max_si
                  ) -> tuple[Intrinsics, object]:
     """The pinhole camera the frames folder gets, and a function RGB -> RGB that makes an
     image of `camera` one of it (undistorted, then downscaled to `max_size`)."""
+    from flowerpose.pipeline.undistort import Undistorter
+
     if camera is not None and (camera.width, camera.height) != (width, height):
         camera = pycolmap.Camera(camera.todict())  # a copy, at the photos' size
         camera.rescale(width, height)
-    pinhole = camera
-    if camera is not None and not camera.is_undistorted():
-        pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), camera)
-    if pinhole is None:
-        intrinsics = Intrinsics(width, height, 1.0, 1.0, width / 2, height / 2)
+    undistort = Undistorter(camera) if camera is not None and not camera.is_undistorted() \
+        else None
+    if undistort is not None:
+        intrinsics = undistort.intrinsics
+    elif camera is not None:
+        intrinsics = Intrinsics(width, height, camera.focal_length_x, camera.focal_length_y,
+                                camera.principal_point_x, camera.principal_point_y)
     else:
-        fx, fy = pinhole.focal_length_x, pinhole.focal_length_y
-        intrinsics = Intrinsics(pinhole.width, pinhole.height, fx, fy,
-                                pinhole.principal_point_x, pinhole.principal_point_y)
+        intrinsics = Intrinsics(width, height, 1.0, 1.0, width / 2, height / 2)
     scale = 1.0 if not max_size else min(1.0, max_size / max(intrinsics.width,
                                                              intrinsics.height))
     target = (round(intrinsics.width * scale), round(intrinsics.height * scale))
 
     def convert(rgb: np.ndarray) -> np.ndarray:
-        if pinhole is not camera:
-            bitmap, _ = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(),
-                                                 pycolmap.Bitmap.from_array(rgb), camera)
-            rgb = bitmap.to_array()
+        if undistort is not None:
+            rgb = undistort(rgb)
         if scale < 1.0:
             rgb = cv2.resize(rgb, target, interpolation=cv2.INTER_AREA)
         return rgb

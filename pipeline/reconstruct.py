@@ -27,11 +27,6 @@ from typing import Literal
 
 import numpy as np
 
-try:
-    import pycolmap
-except ImportError:  # the [recon] extra is not installed: the settings still load
-    pycolmap = None
-
 from flowerpose.atomic import write_image
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
@@ -106,20 +101,17 @@ def undistorted_frames(sparse: SparseResult, frames_dir: Path, out_dir: Path
     """The registered frames of a sparse model whose camera the mapping estimated (with a
     distortion), undistorted to a pinhole for dense stereo: out_dir/frames/ with
     frames.json (the same "file" names) and camera.json. Returns out_dir and the pinhole."""
-    options = pycolmap.UndistortCameraOptions()
-    camera = next(iter(sparse.reconstruction.cameras.values()))
-    pinhole = pycolmap.undistort_camera(options, camera)
+    from flowerpose.pipeline.undistort import Undistorter
+
+    undistort = Undistorter(next(iter(sparse.reconstruction.cameras.values())))
     poses = refined_poses(sparse)
     entries = []
     for k, name in enumerate(sorted(poses)):
         rgb = cv2.cvtColor(cv2.imread(str(frames_dir / name), cv2.IMREAD_COLOR),
                            cv2.COLOR_BGR2RGB)
-        bitmap, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(rgb), camera)
-        write_image(out_dir / name, bitmap.to_array(), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        write_image(out_dir / name, undistort(rgb), [cv2.IMWRITE_JPEG_QUALITY, 95])
         entries.append({"index": k, "file": name})
-    intrinsics = Intrinsics(pinhole.width, pinhole.height, pinhole.focal_length_x,
-                            pinhole.focal_length_y, pinhole.principal_point_x,
-                            pinhole.principal_point_y)
+    intrinsics = undistort.intrinsics
     write_json(out_dir / "camera.json", intrinsics.to_json())
     write_json(out_dir / "frames.json", {"poses": "none", "frames": entries})
     return out_dir, intrinsics
