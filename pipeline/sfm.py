@@ -33,7 +33,7 @@ import os
 import shutil
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -55,6 +55,7 @@ from flowerpose.pipeline.align import (
     residuals,
     robust_similarity,
 )
+from flowerpose.pipeline.board import MIN_VIEWS, BoardSpec, board_similarity, find_corners
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, pose_kind, read_frames
 from flowerpose.processes import reclaim_sigterm
 from flowerpose.scanio import Intrinsics, read_intrinsics
@@ -149,6 +150,12 @@ class SfmConfig:
     """Fewest registered images accepted."""
     min_registered_fraction: float = 0.5
     """Smallest fraction of the images (at distinct poses) that must register."""
+    board: Literal["auto", "required", "off"] = "auto"
+    """Frames without poses: look for a printed ChArUco board (`flowerpose marker`) in the
+    registered photos, and where it is seen take the scale and up from it ("auto"), or
+    fail when it is not ("required"); "off" never looks."""
+    board_spec: BoardSpec = field(default_factory=BoardSpec)
+    """The board looked for (the one `flowerpose marker` prints by default)."""
     camera_distance_m: float | None = None
     """Frames without poses: the cameras' median distance from the plant's centre, metres,
     as the user measured it; it sets the cloud's scale. None: assumed
@@ -651,6 +658,58 @@ def _pairs(frames: list[ChosenFrame], kind: str, config: SfmConfig) -> list[tupl
                                      config.max_view_angle_deg))
 
 
+def _board_observations(reconstruction: pycolmap.Reconstruction, frames_dir: Path,
+                        config: SfmConfig) -> tuple[dict, int]:
+    """The board's corners in the registered photos: per corner id, (normalised image
+    point, cam_from_world (3, 4)) per view that saw it; and how many views saw it."""
+    observations: dict[int, list] = {}
+    views = 0
+    for image in reconstruction.images.values():
+        if not image.has_pose:
+            continue
+        grey = cv2.imread(str(frames_dir / image.name), cv2.IMREAD_GRAYSCALE)
+        ids, pixels = find_corners(grey, config.board_spec)
+        if len(ids) == 0:
+            continue
+        views += 1
+        camera = reconstruction.cameras[image.camera_id]
+        # OpenCV puts the first pixel's centre at 0, COLMAP at 0.5.
+        rays = camera.cam_from_img(pixels + 0.5)
+        projection = image.cam_from_world().matrix()
+        for corner, ray in zip(ids, rays, strict=True):
+            observations.setdefault(int(corner), []).append((ray, projection))
+    return observations, views
+
+
+def _place_on_board(reconstruction: pycolmap.Reconstruction, frames_dir: Path,
+                    config: SfmConfig) -> tuple[Similarity, dict] | None:
+    """The model put on the board (metric, z up out of its face, z = 0 on it), in place;
+    None where the board is not seen (`config.board` "required": InputError)."""
+    observations, views = _board_observations(reconstruction, frames_dir, config)
+    centres = np.array([im.projection_center() for im in reconstruction.images.values()
+                        if im.has_pose])
+    try:
+        if views < MIN_VIEWS:
+            raise InputError(frames_dir, f"the board is seen in {views} photos (need "
+                             f"{MIN_VIEWS})")
+        similarity, fit = board_similarity(observations, centres, config.board_spec)
+    except InputError as err:
+        if config.board == "required":
+            spec = config.board_spec
+            raise InputError(frames_dir, f"no {spec.squares_x} x {spec.squares_y} ChArUco "
+                             f"board ({spec.dictionary}) found: {err.problem}; print one "
+                             "with flowerpose marker and put it flat beside the plant") from None
+        return None
+    reconstruction.transform(pycolmap.Sim3d(similarity.scale,
+                                            pycolmap.Rotation3d(similarity.rotation),
+                                            similarity.translation))
+    _progress(f"the board: {fit['corners']} corners in {views} photos, "
+              f"{1000 * fit['rms_m']:.2f} mm RMS from the printed ones")
+    return similarity, {"kind": "board", "up_from": "the board's face", "rms_m": None,
+                        "inliers": None, "scale_from": "the board", "board": {
+                            **fit, "views": views}}
+
+
 def _level(reconstruction: pycolmap.Reconstruction, config: SfmConfig
            ) -> tuple[Similarity, dict]:
     """Put a pose-less model upright in place (`align.level_similarity`), scaled so that
@@ -775,7 +834,9 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
 
     with watch.step("alignment"):
         if kind == "none":
-            similarity, alignment = _level(reconstruction, config)
+            placed = _place_on_board(reconstruction, frames_dir, config) \
+                if config.board != "off" else None
+            similarity, alignment = placed or _level(reconstruction, config)
         else:
             similarity, alignment = _to_bed_frame(reconstruction, by_name, config, frames_dir)
     for stale in sparse_dir.iterdir():
@@ -801,7 +862,8 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
         "alignment": {**alignment, "scale": similarity.scale,
                       "threshold_m": config.align_threshold_m},
         "alignment_rms_m": alignment["rms_m"],
-        "metric": kind != "none" or config.camera_distance_m is not None,
+        "metric": kind != "none" or alignment["kind"] == "board"
+        or config.camera_distance_m is not None,
         "seconds": seconds,
         "config": dataclasses.asdict(config),
     }

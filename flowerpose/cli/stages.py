@@ -156,6 +156,74 @@ def add_frames(sub: argparse._SubParsersAction) -> None:
         "flowerpose.pipeline.frames:FrameSelectConfig", "scan.frames")})
 
 
+def cmd_marker(args: argparse.Namespace) -> int:
+    from flowerpose.cli.options import check_writable
+    from flowerpose.errors import InputError
+    from flowerpose.pipeline.board import PRINT_DPI, BoardSpec, board_image
+
+    suffix = args.out.suffix.lower()
+    if suffix not in (".png", ".pdf"):
+        raise InputError(args.out, "the board is written as .png or .pdf")
+    check_writable(args.out, "--out")
+    if args.out.exists() and not args.overwrite:
+        raise InputError(args.out, "exists: choose another file, or --overwrite")
+    spec = BoardSpec(squares_x=args.squares[0], squares_y=args.squares[1],
+                     square_m=args.square_mm / 1000, marker_m=args.square_mm * 0.73 / 1000)
+    _write_board(args.out, board_image(spec), PRINT_DPI)
+    print(f"a {spec.squares_x} x {spec.squares_y} ChArUco board of {args.square_mm:g} mm "
+          f"squares ({spec.dictionary}) -> {args.out}; print it at 100 % (no fit to page), "
+          "measure a square, and lay it flat beside the plant"
+          + ("" if (spec.squares_x, spec.squares_y, args.square_mm) == (7, 5, 30) else
+             f"; tell reconstruct: --set scan.reconstruct.sfm.board_spec.squares_x="
+             f"{spec.squares_x} --set scan.reconstruct.sfm.board_spec.squares_y="
+             f"{spec.squares_y} --set scan.reconstruct.sfm.board_spec.square_m="
+             f"{spec.square_m:g} --set scan.reconstruct.sfm.board_spec.marker_m="
+             f"{spec.marker_m:g}"))
+    return 0
+
+
+def _write_board(path: Path, grey, dpi: int) -> None:
+    """The board image as PNG or PDF, its resolution recorded, so it prints to size."""
+    import io
+
+    from PIL import Image
+
+    from flowerpose.atomic import write_bytes
+
+    buffer = io.BytesIO()
+    Image.fromarray(grey).save(buffer, format=path.suffix.lstrip(".").upper(),
+                               dpi=(dpi, dpi), resolution=dpi)
+    write_bytes(path, buffer.getvalue())
+
+
+def _squares(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give COLSxROWS, e.g. 7x5") from None
+    if x < 3 or y < 3:
+        raise argparse.ArgumentTypeError(f"{text!r}: at least 3x3 squares")
+    return x, y
+
+
+def add_marker(sub: argparse._SubParsersAction) -> None:
+    """The `marker` subcommand's parser."""
+    p = sub.add_parser(
+        "marker", help="a ChArUco board to print and lay beside the plant (scale and up)",
+        description="Write a ChArUco board (a chessboard with ArUco markers) as a PNG or "
+        "PDF that prints to size at 300 dpi. Laid flat beside the plant in photos without "
+        "poses, it gives reconstruct the cloud's scale and up (scan.reconstruct.sfm.board).",
+        epilog="example:\n  flowerpose marker --out board.pdf")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE.pdf|FILE.png",
+                   help="the board's file")
+    p.add_argument("--squares", type=_squares, default=(7, 5), metavar="COLSxROWS",
+                   help="squares along and across (default: 7x5, an A4 page)")
+    p.add_argument("--square-mm", type=float, default=30.0, metavar="MM",
+                   help="a square's side as printed, millimetres (default: %(default)g)")
+    p.add_argument("--overwrite", action="store_true", help="replace the file if it exists")
+    p.set_defaults(func=cmd_marker)
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.reconstruct import reconstruct
 
