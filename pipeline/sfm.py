@@ -98,8 +98,9 @@ class SfmConfig:
     bundle adjustment, metres."""
     max_image_size: int | None = None
     """Longest image side SIFT sees, pixels; larger frames are downscaled for extraction
-    (keypoints are scaled back to the full image). None: 640 in "poses" mode, where the
-    recorded poses guide matching and the features only refine them, `FULL_IMAGE_SIZE` in
+    (keypoints are scaled back to the full image). None (`feature_defaults`): 640 in
+    "poses" mode with a bot's recorded poses, where they guide matching and the features
+    only refine them, 960 with calibrated photos' poses, `FULL_IMAGE_SIZE` in
     "incremental" mode, which needs them to find the poses. On the scan-3 suite's 1280 x 720
     scans 640 took the sparse stage from 44 to 20 s a plant on 2 cores (features 23 -> 12 s:
     at 960 it was still 22 s, the resize costing what the smaller image saves), camera
@@ -111,9 +112,11 @@ class SfmConfig:
     about 1,200 with the defaults here."""
     first_octave: int | None = None
     """SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 starts at full
-    size (2.7 times faster, about 25 % fewer features). None: 0 in "poses" mode, where the
-    recorded poses guide matching, -1 in "incremental" mode, which needs the features (it
-    registered 46 instead of 111 of 170 views with 0)."""
+    size (2.7 times faster, about 25 % fewer features). None (`feature_defaults`): 0 in
+    "poses" mode, where the recorded poses guide matching; in "incremental" mode -1 for a
+    bot's frames (a simulated scan registered 46 instead of 111 of 170 views with 0), 0 for
+    photos (rough poses or none: the shared real set's 60 photos registered all 60 either
+    way, the doubled images' features flooding the matching of every pair)."""
     peak_threshold: float = 0.0025
     """SIFT's contrast threshold of a keypoint (COLMAP: 0.0067); lower finds more features
     on faint texture such as leaves and soil."""
@@ -174,9 +177,12 @@ class SfmConfig:
 #: cloud is put near its true size, and called not metric.
 ASSUMED_CAMERA_DISTANCE_M = 0.35
 
-#: The longest image side SIFT sees by default, pixels: incremental mapping's, and the
-#: frames' own at the paper's 1280 x 720; "poses" mode's (`SfmConfig.max_image_size`).
-FULL_IMAGE_SIZE, POSES_IMAGE_SIZE = 1280, 640
+#: The longest image side SIFT sees by default, pixels (`feature_defaults`): incremental
+#: mapping's, and the frames' own at the paper's 1280 x 720; "poses" mode's with a bot's
+#: recorded poses (200 frames close together); with calibrated poses of photos (fewer, wider
+#: apart, each registering on its own features: the shared real set's 60 photos of
+#: 1440 x 1080 registered 54 at 640, 60 at 960 and at 1280).
+FULL_IMAGE_SIZE, POSES_IMAGE_SIZE, CALIBRATED_IMAGE_SIZE = 1280, 640, 960
 
 
 @dataclass
@@ -258,8 +264,16 @@ def _threads(config: SfmConfig) -> int:
     return config.num_threads if config.num_threads > 0 else (os.cpu_count() or 1)
 
 
+def feature_defaults(mode: str, kind: str) -> tuple[int, int]:
+    """(max_image_size, first_octave) SIFT gets where SfmConfig leaves them None, by the
+    sparse stage's mode and the frames' pose kind (`frames.POSE_KINDS`)."""
+    if mode == "poses":
+        return (POSES_IMAGE_SIZE if kind == "recorded" else CALIBRATED_IMAGE_SIZE), 0
+    return FULL_IMAGE_SIZE, (-1 if kind == "recorded" else 0)
+
+
 def _extract(database: Path, frames_dir: Path, names: list[str],
-             intrinsics: Intrinsics | None, mode: str, config: SfmConfig) -> None:
+             intrinsics: Intrinsics | None, mode: str, kind: str, config: SfmConfig) -> None:
     reader = pycolmap.ImageReaderOptions()
     if intrinsics is not None and not intrinsics.estimated:
         reader.camera_model = "PINHOLE"
@@ -273,12 +287,12 @@ def _extract(database: Path, frames_dir: Path, names: list[str],
             reader.camera_params = ",".join(repr(float(v)) for v in (
                 (intrinsics.fx + intrinsics.fy) / 2, intrinsics.cx, intrinsics.cy, 0.0))
     options = pycolmap.FeatureExtractionOptions()
-    options.max_image_size = config.max_image_size or (
-        POSES_IMAGE_SIZE if mode == "poses" else FULL_IMAGE_SIZE)
+    size, octave = feature_defaults(mode, kind)
+    options.max_image_size = config.max_image_size or size
     options.num_threads = _threads(config)
     options.sift.max_num_features = config.max_features
     options.sift.first_octave = config.first_octave if config.first_octave is not None \
-        else (0 if mode == "poses" else -1)
+        else octave
     options.sift.peak_threshold = config.peak_threshold
     # Images enter the database first, one after another in `names`' order: extraction
     # would number them as its threads finish, and matching and triangulation follow the
@@ -807,7 +821,7 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     pycolmap.set_random_seed(config.seed)
     with _colmap_logging(config.colmap_log):
         with watch.step("features"):
-            _extract(database, frames_dir, names, intrinsics, mode, config)
+            _extract(database, frames_dir, names, intrinsics, mode, kind, config)
         with watch.step("matching"):
             pairs = _pairs(frames, kind, config)
             if mode == "poses":
