@@ -22,6 +22,7 @@ from __future__ import annotations
 import cv2  # isort: skip
 
 import re
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -38,7 +39,7 @@ from flowerpose.csvio import read_csv_table
 from flowerpose.errors import InputError, missing_extra
 from flowerpose.jsonio import read_json, write_json
 from flowerpose.log import LOG, Tally
-from flowerpose.outputs import OutputFolder
+from flowerpose.outputs import check_output, publish, staging_folder
 from flowerpose.pipeline.frames import (
     FRAMES_OUTPUTS,
     FrameSelectConfig,
@@ -396,21 +397,22 @@ def import_photos(source: Path, out_dir: Path, config: PhotoImportConfig = Photo
         if not is_rotation(pose.rotation):
             raise InputError(colmap or poses, f"{n}: the pose's rotation is not a rotation")
 
-    output = OutputFolder(out_dir, "frames", overwrite, FRAMES_OUTPUTS)
+    # Written beside out_dir and moved in only when whole: a failure (an image that does
+    # not decode after its header read well, a full disk) leaves out_dir as it was.
+    check_output(out_dir, "frames", overwrite, FRAMES_OUTPUTS)
+    staging = staging_folder(out_dir)
     try:
-        images_dir = out_dir / "frames"
-        images_dir.mkdir(parents=True, exist_ok=True)
-        output.record(images_dir)
+        (staging / "frames").mkdir()
         entries = []
         with Tally(len(frames_in), "frames") as tally:
             for k, (index, name, image) in enumerate(frames_in):
                 file = f"frames/{Path(name).stem}.jpg" if reencode or not isinstance(
                     image, Path) else f"frames/{name}"
                 if isinstance(image, Path) and not reencode:
-                    write_bytes(out_dir / file, image.read_bytes())
+                    write_bytes(staging / file, image.read_bytes())
                 else:
                     rgb = _read_rgb(image) if isinstance(image, Path) else image
-                    write_image(out_dir / file, convert(rgb),
+                    write_image(staging / file, convert(rgb),
                                 [cv2.IMWRITE_JPEG_QUALITY, config.jpeg_quality])
                 entry = {"index": index, "file": file, "original": name}
                 if used:
@@ -424,7 +426,7 @@ def import_photos(source: Path, out_dir: Path, config: PhotoImportConfig = Photo
             capture = cv2.VideoCapture(str(source))
             camera_json["fps"] = float(capture.get(cv2.CAP_PROP_FPS) or 30.0)
             capture.release()
-        output.record(write_json(out_dir / "camera.json", camera_json))
+        write_json(staging / "camera.json", camera_json)
         result = {
             "source": str(source), "kind": "video" if source.is_file() else "photos",
             "poses": pose_kind,
@@ -436,11 +438,11 @@ def import_photos(source: Path, out_dir: Path, config: PhotoImportConfig = Photo
             "config": {"count": config.count, "max_size": config.max_size,
                        "units": config.units},
             "seconds": round(watch.elapsed(), 3), "frames": entries}
-        output.record(write_json(out_dir / "frames.json", result))
-    except BaseException:
-        output.abandon()
-        raise
-    output.finish()
+        write_json(staging / "frames.json", result)
+        publish(staging, out_dir, "frames", overwrite)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
     if used and result["up_check_deg"] > 45:
         LOG.warning(f"note: {out_dir}: the given poses' frame is not z-up (the cameras' up is "
                     f"{result['up_check_deg']:.0f} degrees from +z): detect's 'flowers face "

@@ -205,3 +205,35 @@ def test_a_camera_json_of_a_distorted_model_is_refused_as_a_frames_camera(tmp_pa
                                           "fx": 1, "fy": 1, "cx": 5, "cy": 5})
     with pytest.raises(InputError, match="a frames folder's camera is a pinhole"):
         read_intrinsics(tmp_path / "camera.json")
+
+
+def test_an_image_that_fails_to_decode_midway_leaves_the_earlier_folder_whole(tmp_path, capsys):
+    folder = _photos(tmp_path / "p", count=3)
+    import_photos(folder, tmp_path / "frames")
+    before = sorted(p.name for p in (tmp_path / "frames" / "frames").iterdir())
+    write_json(tmp_path / "cam.json", {"model": "OPENCV", "width": WIDTH, "height": HEIGHT,
+                                       "params": [150, 150, 80, 60, -0.1, 0, 0, 0]})
+    data = (folder / "img3.png").read_bytes()
+    (folder / "img3.png").write_bytes(data[:len(data) // 2])  # its header still reads
+    code, _, err = run_cli(capsys, "frames", "--images", folder, "--calibration",
+                           tmp_path / "cam.json", "--out", tmp_path / "frames", "--overwrite")
+    assert code == 2 and "img3.png" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in (tmp_path / "frames" / "frames").iterdir()) == before
+    assert json.loads((tmp_path / "frames" / "frames.json").read_text())["poses"] == "none"
+    assert not list(tmp_path.glob(".frames.partial-*"))
+
+
+def test_a_focal_length_in_exif_seeds_the_camera(tmp_path):
+    from PIL import Image
+
+    folder = tmp_path / "p"
+    folder.mkdir()
+    for k in range(3):
+        image = Image.fromarray(_photo(k))
+        exif = Image.Exif()
+        exif.get_ifd(0x8769)[0xA405] = 27  # FocalLengthIn35mmFilm: a phone's main camera
+        image.save(folder / f"img{k}.jpg", exif=exif)
+    result = import_photos(folder, tmp_path / "frames")
+    camera = read_intrinsics(tmp_path / "frames" / "camera.json")
+    assert result["camera"] == "exif" and camera.estimated
+    assert camera.fx == pytest.approx(27 / 36 * WIDTH)
