@@ -148,9 +148,9 @@ def test_photos_with_a_board_and_no_poses_give_a_metric_upright_cloud(tmp_path, 
                              (-0.05, -0.2, 0.1))]
     photos = tmp_path / "photos"
     photos.mkdir()
-    focal, size = 520.0, (640, 480)
+    focal, size = 420.0, (512, 384)
     centres = []
-    for k, angle in enumerate(np.linspace(0, 2 * np.pi, 28, endpoint=False)):
+    for k, angle in enumerate(np.linspace(0, 2 * np.pi, 20, endpoint=False)):
         height = 0.28 if k % 2 else 0.22
         centre = np.array([0.42 * np.cos(angle), 0.42 * np.sin(angle), height])
         centres.append(centre)
@@ -160,13 +160,13 @@ def test_photos_with_a_board_and_no_poses_give_a_metric_upright_cloud(tmp_path, 
     result = reconstruct(tmp_path / "frames", tmp_path / "recon", progress=False)
     sparse = result.report["sparse"]
     assert sparse["alignment"]["kind"] == "board" and result.report["metric"]
-    assert sparse["alignment"]["board"]["corners"] >= 20
+    assert sparse["alignment"]["board"]["corners"] >= 18
     found = {image.name: image.projection_center()
              for image in result.sparse.reconstruction.images.values() if image.has_pose}
     names = sorted(found)
     truth = np.array([centres[int(n.split("photo")[1][:2])] for n in names])
     similarity = umeyama(np.array([found[n] for n in names]), truth)
-    assert len(names) >= 26
+    assert len(names) >= 19
     assert similarity.scale == pytest.approx(1.0, abs=0.01)  # metric within 1 %
     up = similarity.rotation @ np.array([0, 0, 1.0])
     assert np.degrees(np.arccos(np.clip(up[2], -1, 1))) < 1.0  # z up
@@ -175,6 +175,7 @@ def test_photos_with_a_board_and_no_poses_give_a_metric_upright_cloud(tmp_path, 
     assert np.allclose(heights, truth[:, 2], atol=0.005)
     assert isinstance(result.sparse.reconstruction, pycolmap.Reconstruction)
     # Another board required (other markers): not found, one line, nothing written.
+    capsys.readouterr()  # what the run above logged
     code, _, err = run_cli(capsys, "reconstruct", "-q", tmp_path / "frames", "--out",
                            tmp_path / "other", "--set", "scan.reconstruct.sfm.board=required",
                            "--set", "scan.reconstruct.sfm.board_spec.dictionary=DICT_4X4_50")
