@@ -114,9 +114,12 @@ class SfmConfig:
     """SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 starts at full
     size (2.7 times faster, about 25 % fewer features). None (`feature_defaults`): 0 in
     "poses" mode, where the recorded poses guide matching; in "incremental" mode -1 for a
-    bot's frames (a simulated scan registered 46 instead of 111 of 170 views with 0), 0 for
-    photos (rough poses or none: the shared real set's 60 photos registered all 60 either
-    way, the doubled images' features flooding the matching of every pair)."""
+    bot's frames (a simulated scan registered 46 instead of 111 of 170 views with 0) and
+    for photos smaller than `FULL_IMAGE_SIZE`, 0 for larger photos (rough poses or none: the
+    shared real set's 60 photos of 1440 x 1080 registered all 60 either way, the sparse
+    stage 21 s with 0 and over 90 s with -1, whose doubled images' features flood the
+    matching of every pair; downscaled to 1080 x 810 they registered 31 with 0 and 60
+    with -1)."""
     peak_threshold: float = 0.0025
     """SIFT's contrast threshold of a keypoint (COLMAP: 0.0067); lower finds more features
     on faint texture such as leaves and soil."""
@@ -264,12 +267,14 @@ def _threads(config: SfmConfig) -> int:
     return config.num_threads if config.num_threads > 0 else (os.cpu_count() or 1)
 
 
-def feature_defaults(mode: str, kind: str) -> tuple[int, int]:
+def feature_defaults(mode: str, kind: str, longest_side: int) -> tuple[int, int]:
     """(max_image_size, first_octave) SIFT gets where SfmConfig leaves them None, by the
-    sparse stage's mode and the frames' pose kind (`frames.POSE_KINDS`)."""
+    sparse stage's mode, the frames' pose kind (`frames.POSE_KINDS`) and their longer side,
+    pixels."""
     if mode == "poses":
         return (POSES_IMAGE_SIZE if kind == "recorded" else CALIBRATED_IMAGE_SIZE), 0
-    return FULL_IMAGE_SIZE, (-1 if kind == "recorded" else 0)
+    full_size_photos = kind != "recorded" and longest_side >= FULL_IMAGE_SIZE
+    return FULL_IMAGE_SIZE, (0 if full_size_photos else -1)
 
 
 def _extract(database: Path, frames_dir: Path, names: list[str],
@@ -287,7 +292,7 @@ def _extract(database: Path, frames_dir: Path, names: list[str],
             reader.camera_params = ",".join(repr(float(v)) for v in (
                 (intrinsics.fx + intrinsics.fy) / 2, intrinsics.cx, intrinsics.cy, 0.0))
     options = pycolmap.FeatureExtractionOptions()
-    size, octave = feature_defaults(mode, kind)
+    size, octave = feature_defaults(mode, kind, max(_image_size(frames_dir / names[0])))
     options.max_image_size = config.max_image_size or size
     options.num_threads = _threads(config)
     options.sift.max_num_features = config.max_features

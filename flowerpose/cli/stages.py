@@ -216,8 +216,8 @@ def add_marker(sub: argparse._SubParsersAction) -> None:
         epilog="example:\n  flowerpose marker --out board.pdf")
     p.add_argument("--out", type=Path, required=True, metavar="FILE.pdf|FILE.png",
                    help="the board's file")
-    p.add_argument("--squares", type=_squares, default=(7, 5), metavar="COLSxROWS",
-                   help="squares along and across (default: 7x5, an A4 page)")
+    p.add_argument("--squares", type=_squares, default="7x5", metavar="COLSxROWS",
+                   help="squares along and across (default: %(default)s, an A4 page)")
     p.add_argument("--square-mm", type=float, default=30.0, metavar="MM",
                    help="a square's side as printed, millimetres (default: %(default)g)")
     p.add_argument("--overwrite", action="store_true", help="replace the file if it exists")
