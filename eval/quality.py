@@ -45,6 +45,36 @@ def _scores(distance_cloud: np.ndarray, distance_truth: np.ndarray) -> dict:
     return out
 
 
+def cloud_agreement(a: np.ndarray, b: np.ndarray, threshold_m: float) -> dict:
+    """How well two clouds of one scene agree (both metres, one frame): precision (share
+    of a's points within threshold_m of b), completeness (b's within it of a) and their
+    harmonic mean, the F-score."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if len(a) == 0 or len(b) == 0:
+        return {"precision": 0.0, "completeness": 0.0, "fscore": 0.0}
+    precision = float(np.mean(cKDTree(b).query(a)[0] <= threshold_m))
+    completeness = float(np.mean(cKDTree(a).query(b)[0] <= threshold_m))
+    total = precision + completeness
+    return {"precision": precision, "completeness": completeness,
+            "fscore": 2 * precision * completeness / total if total else 0.0}
+
+
+def rigid_icp(source: np.ndarray, target: np.ndarray, max_distance_m: float = 0.005
+              ) -> np.ndarray:
+    """(N, 3) `source` moved onto `target` by rigid point-to-point ICP (Open3D; no scale:
+    what the cameras' alignment made metric stays so), starting where it is: the last
+    millimetre of an alignment two clouds' camera centres leave."""
+    o3d = open3d()
+    registration = o3d.pipelines.registration
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(source, np.float64)))
+    onto = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(target, np.float64)))
+    result = registration.registration_icp(
+        cloud, onto, max_distance_m, np.eye(4),
+        registration.TransformationEstimationPointToPoint(with_scaling=False))
+    transform = result.transformation
+    return np.asarray(source, np.float64) @ transform[:3, :3].T + transform[:3, 3]
+
+
 def reconstruction_quality(points: np.ndarray, mesh: trimesh.Trimesh, face_part: np.ndarray,
                            samples: int = 200_000, seed: int = 0) -> dict:
     """Quality of a reconstructed cloud against the plant's truth mesh.

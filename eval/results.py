@@ -94,8 +94,10 @@ def _kind(path: Path, report: object) -> str:
             return "bench"
         if "comparison" in report and "outcomes" in report:
             return "fidelity"
-    raise InputError(path, "not an eval report.json, a stress.json, a bench.json or a "
-                     "fidelity.json (made by this version)")
+        if "ways" in report and "agreement" in report:
+            return "photos"
+    raise InputError(path, "not an eval report.json, a stress.json, a bench.json, a "
+                     "photo_bench.json or a fidelity.json (made by this version)")
 
 
 def results_markdown(paths: list[Path], title: str = "Results", paper: bool = True,
@@ -103,8 +105,9 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
     """The results page of these runs: a table row per eval report.json (and the paper's
     own numbers as the last row, with `paper`), with their intervals, the plane fit's
     accuracy curves drawn into `figure` (a PNG beside the page) when given, then a section
-    per stress.json (robustness), bench.json (speed) and fidelity.json (the simulator
-    against a real plant); every run's provenance under its table."""
+    per stress.json (robustness), bench.json (speed), photo_bench.json (real photographs to
+    a cloud) and fidelity.json (the simulator against a real plant); every run's provenance
+    under its table."""
     from flowerpose.eval.bench import bench_markdown
     from flowerpose.eval.stress import stress_markdown
 
@@ -127,6 +130,12 @@ def results_markdown(paths: list[Path], title: str = "Results", paper: bool = Tr
             continue
         if kind == "fidelity":
             sections.append(fidelity_section(report, k))
+            continue
+        if kind == "photos":
+            from flowerpose.eval.photo_bench import photo_bench_markdown
+
+            sections.append(f"## Real photographs to a cloud [{k}]\n\n"
+                            f"{photo_bench_markdown(report)}\n{_provenance(k, report['run'])}\n")
             continue
         s = report["summary"]
         if "pollination" in s:

@@ -1,7 +1,8 @@
-"""Real labelled plants fetched for the user: the authors' published files of a plant, pinned
-to one commit of their repository and checked by SHA-256, laid out as a real plant folder
-(DESIGN.md, "A real labelled plant") with the project's own source.json and the authors'
-licence beside them.
+"""Real data fetched for the user: the authors' published files of a plant, laid out as a
+real plant folder (DESIGN.md, "A real labelled plant") with the project's own source.json
+and the authors' licence beside them; and real photographs of a plant (the ROMI scanner's,
+for `frames --images`), with the files derived from their metadata that the guide uses.
+Each is pinned to one commit of its repository, every file checked by SHA-256.
 
 A fetch downloads into a private folder beside the target and renames it into place only
 when every file is there and matches its checksum, so a failed or interrupted fetch leaves
@@ -44,13 +45,23 @@ class PublishedFile:
 
 @dataclass(frozen=True)
 class PublishedPlant:
-    """A plant whose published files are complete: labels and candidate clouds."""
+    """A published data set: a plant whose labels and candidate clouds are complete, or a
+    plant's photographs."""
 
     name: str
     description: str
     files: tuple[PublishedFile, ...]
     source: dict = field(default_factory=dict)
-    """The project's source.json for it: what the authors' files do not carry."""
+    """The project's source.json for it: what the published files do not carry."""
+    repository: str = REPOSITORY
+    """The GitHub repository, owner/name."""
+    commit: str = COMMIT
+    """The commit its files are pinned to."""
+
+    @property
+    def upstream(self) -> str:
+        """The URL prefix of its files."""
+        return f"https://raw.githubusercontent.com/{self.repository}/{self.commit}/"
 
 
 _CANDIDATES = {0: "ad135fb36721c08f5c9e71427afb642c0857c978b2de20d5136092fc50587f39",
@@ -80,6 +91,30 @@ PLANTS: dict[str, PublishedPlant] = {
                  "carry no label: their centres, in label units, are listed as unlabelled",
          "unlabelled": [[-2.838, -0.507, 10.838], [-3.01, 5.514, 11.608]]}),
 }
+
+def _photo_set(name: str, description: str) -> PublishedPlant:
+    """A photo set listed in assets/data/NAME.json (its repository, commit and files)."""
+    from importlib import resources
+
+    from flowerpose.jsonio import read_json
+
+    with resources.as_file(resources.files("flowerpose.assets") / "data" / f"{name}.json") \
+            as path:
+        manifest = read_json(path)
+    files = tuple(PublishedFile(f["upstream"], f["local"], f["sha256"])
+                  for f in manifest["files"])
+    source = {"note": f"{description}; fetched by flowerpose data fetch from "
+                      f"github.com/{manifest['repository']} at {manifest['commit']}",
+              "licence": "GNU LGPL 3.0 (LICENSE)"}
+    return PublishedPlant(name, description, files, source, manifest["repository"],
+                          manifest["commit"])
+
+
+PLANTS["romi-arabidopsis"] = _photo_set(
+    "romi-arabidopsis",
+    "60 real photographs of a potted Arabidopsis round a 300 mm circle by the ROMI scanner, "
+    "with its logged poses (poses.csv, millimetres) and calibrated cameras (colmap/, "
+    "millimetres)")
 
 #: Where a mirror of the authors' repository is, when none is given on the command line.
 MIRROR_ENV = "FLOWERPOSE_DATA_MIRROR"
@@ -112,9 +147,11 @@ def fetch(name: str, to: Path | None = None, mirror: str | None = None) -> tuple
         for item in published.files:
             target = staging / item.local
             target.parent.mkdir(parents=True, exist_ok=True)
-            _download(item, target, mirror)
+            _download(item, target, mirror, published.upstream)
         write_json(staging / "source.json", published.source)
         found = _verified(published, staging)
+        if (staging / "metadata").is_dir():
+            _derive_romi(staging)
         os.replace(staging, folder)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -122,8 +159,9 @@ def fetch(name: str, to: Path | None = None, mirror: str | None = None) -> tuple
     return folder, [(folder / p.relative_to(staging), n, d) for p, n, d in found]
 
 
-def _download(item: PublishedFile, target: Path, mirror: str | None) -> None:
-    base = UPSTREAM if mirror is None else mirror
+def _download(item: PublishedFile, target: Path, mirror: str | None,
+              upstream: str = UPSTREAM) -> None:
+    base = upstream if mirror is None else mirror
     if mirror is not None and "://" not in mirror:
         source = Path(mirror) / item.upstream
         if not source.is_file():
@@ -158,3 +196,76 @@ def _verified(published: PublishedPlant, folder: Path,
                              f"{digest[:12]}..., expected {item.sha256[:12]}...); {after}")
         found.append((path, path.stat().st_size, digest))
     return found
+
+
+#: The ROMI scanner logs its gimbal's pan with 0 pointing the camera along -y; the rough
+#: poses' heading (`pipeline.photos.read_pose_table`) is measured from +x: 90 degrees on.
+ROMI_PAN_TO_HEADING_DEG = 90.0
+
+
+def _derive_romi(folder: Path) -> None:
+    """A ROMI photo set's derived files: poses.csv (the logged poses) and colmap/ (the
+    calibrated cameras as a COLMAP text model, millimetres, z up)."""
+    romi_rough_poses(folder / "metadata", folder / "poses.csv")
+    romi_colmap_model(folder / "metadata", folder / "colmap")
+
+
+def romi_colmap_model(metadata_dir: Path, out_dir: Path) -> Path:
+    """The calibrated cameras of a ROMI scan's metadata ("colmap_camera": OPENCV camera,
+    world-to-camera rotmat and tvec, millimetres) as a COLMAP text model in out_dir."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from flowerpose.atomic import write_text
+    from flowerpose.jsonio import read_json
+
+    files = sorted(Path(metadata_dir).glob("*.json"))
+    if not files:
+        raise InputError(metadata_dir, "no ROMI metadata (NNNNN_rgb.json) in the folder")
+    cameras, images = [], []
+    for k, path in enumerate(files, 1):
+        try:
+            calibrated = read_json(path)["colmap_camera"]
+            model = calibrated["camera_model"]
+            rotation = np.asarray(calibrated["rotmat"], np.float64).reshape(3, 3)
+            translation = np.asarray(calibrated["tvec"], np.float64).reshape(3)
+            camera = (model["model"], int(model["width"]), int(model["height"]),
+                      tuple(float(v) for v in model["params"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise InputError(path, f'"colmap_camera" needs camera_model, rotmat and tvec '
+                             f"({err})") from None
+        if camera not in cameras:
+            cameras.append(camera)
+        x, y, z, w = (float(v) for v in Rotation.from_matrix(rotation).as_quat())
+        t = " ".join(repr(float(v)) for v in translation)
+        images.append(f"{k} {w!r} {x!r} {y!r} {z!r} {t} "
+                      f"{cameras.index(camera) + 1} {path.stem}.jpg\n\n")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_text(out_dir / "cameras.txt", "".join(
+        f"{k} {m} {w} {h} {' '.join(map(repr, params))}\n"
+        for k, (m, w, h, params) in enumerate(cameras, 1)))
+    write_text(out_dir / "images.txt", "".join(images))
+    write_text(out_dir / "points3D.txt", "")
+    return out_dir
+
+
+def romi_rough_poses(metadata_dir: Path, out_csv: Path) -> Path:
+    """The ROMI scanner's own log of a scan (metadata/NNNNN_rgb.json: "approximate_pose"
+    x, y, z in millimetres, pan and tilt in degrees) as a rough-poses CSV for
+    `flowerpose frames --images ... --poses CSV --pose-units mm`. Only the logged pose is
+    used, not the calibration the files also hold."""
+    from flowerpose.atomic import write_text
+    from flowerpose.jsonio import read_json
+
+    rows = ["file,x,y,z,pan,tilt"]
+    files = sorted(Path(metadata_dir).glob("*.json"))
+    if not files:
+        raise InputError(metadata_dir, "no ROMI metadata (NNNNN_rgb.json) in the folder")
+    for path in files:
+        pose = read_json(path).get("approximate_pose")
+        if not isinstance(pose, list) or len(pose) != 5:
+            raise InputError(path, '"approximate_pose" needs x, y, z, pan, tilt')
+        x, y, z, pan, tilt = (float(v) for v in pose)
+        heading = (pan + ROMI_PAN_TO_HEADING_DEG) % 360
+        rows.append(f"{path.stem}.jpg,{x!r},{y!r},{z!r},{heading!r},{tilt!r}")
+    return write_text(out_csv, "\n".join(rows) + "\n")

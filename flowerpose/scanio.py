@@ -43,6 +43,9 @@ class Intrinsics:
     cx: float
     cy: float
     fps: float = 30.0
+    estimated: bool = False
+    """True where nobody calibrated the camera (a default or EXIF focal length, no
+    distortion known): the sparse stage then refines the focal length and a distortion."""
 
     @property
     def matrix(self) -> np.ndarray:
@@ -53,11 +56,12 @@ class Intrinsics:
         """The same camera at another resolution (the field of view kept)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx,
-                          self.cy * sy, self.fps)
+                          self.cy * sy, self.fps, self.estimated)
 
     def to_json(self) -> dict:
-        return {"model": "PINHOLE", "width": self.width, "height": self.height,
+        data = {"model": "PINHOLE", "width": self.width, "height": self.height,
                 "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "fps": self.fps}
+        return {**data, "estimated": True} if self.estimated else data
 
 
 def read_intrinsics(path: Path) -> Intrinsics:
@@ -72,7 +76,11 @@ def read_intrinsics(path: Path) -> Intrinsics:
     if width <= 0 or height <= 0 or values["fx"] <= 0 or values["fy"] <= 0 or not all(
             np.isfinite(list(values.values()))):
         raise InputError(path, "intrinsics must be positive and finite")
-    return Intrinsics(width, height, fps=float(data.get("fps", 30.0)), **values)
+    if data.get("model", "PINHOLE") != "PINHOLE":
+        raise InputError(path, f"camera.json is a {data['model']} camera: a frames folder's "
+                         "camera is a pinhole (flowerpose frames --images undistorts)")
+    return Intrinsics(width, height, fps=float(data.get("fps", 30.0)),
+                      estimated=data.get("estimated") is True, **values)
 
 
 @dataclass(frozen=True)

@@ -172,3 +172,51 @@ def residuals(similarity: Similarity, source: np.ndarray, target: np.ndarray,
     return {"rms_m": float(np.sqrt(np.mean(distance ** 2))),
             "median_m": float(np.median(distance)), "max_m": float(distance.max()),
             "inliers": int(mask.sum()), "points": len(source)}
+
+
+#: Largest ratio of the smallest to the middle principal spread of the camera centres for
+#: them to lie on a plane (a circle or dome ring round the plant) whose normal is up.
+PLANAR_RATIO = 0.2
+#: The plane's normal is up only within this of the cameras' mean image-up, degrees
+#: (cameras on a short arc at several heights span an upright plane).
+PLANE_UP_AGREEMENT_DEG = 45.0
+
+
+def rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking unit vector a onto unit vector b (Rodrigues)."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis, cosine = np.cross(a, b), float(a @ b)
+    if cosine < -1 + 1e-12:  # opposite: half a turn about any axis normal to a
+        normal = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        normal /= np.linalg.norm(normal)
+        return 2 * np.outer(normal, normal) - np.eye(3)
+    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + skew + skew @ skew / (1 + cosine)
+
+
+def level_similarity(centres: np.ndarray, image_up: np.ndarray) -> tuple[Similarity, str]:
+    """The rigid transform that puts a pose-less reconstruction upright: up becomes +z and
+    the camera centres' mean the origin; the scale is kept. Returns it and how up was found.
+
+    Up is the normal of the plane the camera centres lie on where they do (a ring round the
+    plant: photos taken walking round it) and within PLANE_UP_AGREEMENT_DEG of the cameras'
+    mean image-up direction, turned to its side; else the mean image-up (a camera held
+    upright).
+    centres: (N, 3) camera centres; image_up: (N, 3) each camera's -y axis, model frame.
+    """
+    centres = np.asarray(centres, np.float64)
+    mean_up = np.asarray(image_up, np.float64).mean(axis=0)
+    spread = centres - centres.mean(axis=0)
+    _, singular, vt = np.linalg.svd(spread, full_matrices=False)
+    normal = vt[2] if vt[2] @ mean_up >= 0 else -vt[2]
+    mean_norm = np.linalg.norm(mean_up)
+    if len(centres) >= 4 and singular[1] > 0 and singular[2] / singular[1] <= PLANAR_RATIO \
+            and mean_norm > 0 and normal @ mean_up / mean_norm >= np.cos(np.radians(
+                PLANE_UP_AGREEMENT_DEG)):
+        up, how = normal, "the plane of the camera centres"
+    else:
+        up, how = mean_up, "the cameras' mean image-up direction"
+    if np.linalg.norm(up) < 1e-9:
+        raise InputError("alignment", "the cameras' up directions cancel: cannot tell up")
+    rotation = rotation_onto(up, np.array([0.0, 0.0, 1.0]))
+    return Similarity(1.0, rotation, -rotation @ centres.mean(axis=0)), how

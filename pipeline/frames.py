@@ -113,6 +113,22 @@ def read_frames(frames_dir: str | Path, need_poses: bool = True) -> list[ChosenF
     return frames
 
 
+#: What a frames folder's poses are (frames.json's "poses"): "recorded" by the bot's own
+#: scan (exact in the simulator, millimetres off on a real bot), "calibrated" by a
+#: photogrammetry run (a COLMAP model), "rough" (a gantry's logged positions and pan/tilt,
+#: degrees off), or "none".
+POSE_KINDS = ("recorded", "calibrated", "rough", "none")
+
+
+def pose_kind(frames_dir: str | Path) -> str:
+    """frames.json's "poses" (`POSE_KINDS`); "recorded" where it does not say (a scan's)."""
+    path = Path(frames_dir) / "frames.json"
+    kind = read_json(path).get("poses", "recorded")
+    if kind not in POSE_KINDS:
+        raise InputError(path, f'"poses" is {kind!r}; one of {", ".join(POSE_KINDS)}')
+    return kind
+
+
 def distinct_views(centres: np.ndarray, axes: np.ndarray, priority: np.ndarray,
                    distance_m: float, angle_deg: float) -> np.ndarray:
     """(N,) bool: the views kept when, of views from within `distance_m` of each other

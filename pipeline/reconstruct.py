@@ -17,7 +17,7 @@ PatchMatch where pycolmap has CUDA (`patch_match.py`, out_dir/mvs/).
 from __future__ import annotations
 
 # cv2 before pycolmap (sfm.py says why).
-import cv2  # noqa: F401  # isort: skip
+import cv2  # isort: skip
 
 import dataclasses
 import shutil
@@ -27,6 +27,7 @@ from typing import Literal
 
 import numpy as np
 
+from flowerpose.atomic import write_image
 from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError
 from flowerpose.jsonio import write_json
@@ -95,10 +96,31 @@ def sparse_intrinsics(sparse: SparseResult) -> Intrinsics:
     return Intrinsics(camera.width, camera.height, fx, fy, cx, cy)
 
 
+def undistorted_frames(sparse: SparseResult, frames_dir: Path, out_dir: Path
+                       ) -> tuple[Path, Intrinsics]:
+    """The registered frames of a sparse model whose camera the mapping estimated (with a
+    distortion), undistorted to a pinhole for dense stereo: out_dir/frames/ with
+    frames.json (the same "file" names) and camera.json. Returns out_dir and the pinhole."""
+    from flowerpose.pipeline.undistort import Undistorter
+
+    undistort = Undistorter(next(iter(sparse.reconstruction.cameras.values())))
+    poses = refined_poses(sparse)
+    entries = []
+    for k, name in enumerate(sorted(poses)):
+        rgb = cv2.cvtColor(cv2.imread(str(frames_dir / name), cv2.IMREAD_COLOR),
+                           cv2.COLOR_BGR2RGB)
+        write_image(out_dir / name, undistort(rgb), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        entries.append({"index": k, "file": name})
+    intrinsics = undistort.intrinsics
+    write_json(out_dir / "camera.json", intrinsics.to_json())
+    write_json(out_dir / "frames.json", {"poses": "none", "frames": entries})
+    return out_dir, intrinsics
+
+
 #: What a reconstruction writes in its folder (`outputs.check_output` refuses a folder where
 #: one of them is there and not an earlier reconstruction's, before minutes of work).
 RECONSTRUCT_OUTPUTS = ("cloud.ply", "database.db", "pairs.txt", "reconstruction.json",
-                       "sparse", "sparse.json", "sparse.ply", "mvs")
+                       "sparse", "sparse.json", "sparse.ply", "mvs", "undistorted")
 
 
 def reconstruct(frames_dir: str | Path, out_dir: str | Path,
@@ -146,8 +168,16 @@ def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: Recons
                                                       or FULL_IMAGE_SIZE)
     else:
         poses = refined_poses(sparse) if config.dense_poses == "refined" else None
-        cloud, dense_report = reconstruct_dense(frames_dir, poses=poses,
-                                                intrinsics=sparse_intrinsics(sparse),
+        stereo_frames, intrinsics = frames_dir, None
+        if sparse.report["intrinsics"] == "estimated":
+            # The mapping estimated a distortion: stereo needs a pinhole, and frames.json's
+            # poses (if any) are not the images' refined ones.
+            stereo_frames, intrinsics = undistorted_frames(sparse, frames_dir,
+                                                           work_dir / "undistorted")
+            poses = refined_poses(sparse)
+        cloud, dense_report = reconstruct_dense(stereo_frames, poses=poses,
+                                                intrinsics=intrinsics
+                                                or sparse_intrinsics(sparse),
                                                 config=config.dense, progress=progress,
                                                 scene_points=sparse.cloud.points)
     write_cloud(work_dir / "cloud.ply", cloud)
@@ -161,6 +191,7 @@ def _reconstruct(frames_dir: Path, work_dir: Path, out_dir: Path, config: Recons
         "images_registered": sparse_report["images_registered"],
         "alignment_rms_m": sparse_report["alignment_rms_m"],
         "alignment": sparse_report["alignment"],
+        "metric": sparse_report["metric"],
         "dense_method": method,
         "dense_poses": config.dense_poses if method == "sgbm" else "refined",
         "seconds": watch.report(digits=3),

@@ -8,11 +8,16 @@
       -> work_dir/sparse.json      the report (counts, errors, alignment, seconds, config)
 
 Two ways to get camera poses (SfmConfig.mode):
-- "poses": the bot's recorded poses are the cameras; points are triangulated with them and
-  refined by bundle adjustment (optionally the poses too). Needs camera.json.
-- "incremental": COLMAP's full incremental mapping from the images alone.
-Either way a robust similarity from the reconstructed camera centres to the recorded ones
-puts the model in the bed frame, and its residual is reported.
+- "poses": the recorded poses are the cameras; points are triangulated with them and
+  refined by bundle adjustment (optionally the poses too). Needs a calibrated camera.json
+  and poses good to a fraction of a degree (frames.json's "poses": "recorded" by the bot,
+  or "calibrated").
+- "incremental": COLMAP's full incremental mapping from the images alone. Always so for
+  "rough" poses (a gantry's log: degrees off), for none, and for an estimated camera.
+With poses, a robust similarity from the reconstructed camera centres to the given ones
+puts the model in their frame (metres), and its residual is reported. Without, the model
+is levelled (`align.level_similarity`: z up, origin at the cameras' mean) and its scale
+is the reconstruction's own: the report says "metric": false.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import os
 import shutil
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -44,8 +49,14 @@ from flowerpose.cloudio import Cloud, write_cloud
 from flowerpose.errors import InputError, missing_extra
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG, Tally
-from flowerpose.pipeline.align import Similarity, residuals, robust_similarity
-from flowerpose.pipeline.frames import ChosenFrame, distinct_views, read_frames
+from flowerpose.pipeline.align import (
+    Similarity,
+    level_similarity,
+    residuals,
+    robust_similarity,
+)
+from flowerpose.pipeline.board import MIN_VIEWS, BoardSpec, board_similarity, find_corners
+from flowerpose.pipeline.frames import ChosenFrame, distinct_views, pose_kind, read_frames
 from flowerpose.processes import reclaim_sigterm
 from flowerpose.scanio import Intrinsics, read_intrinsics
 from flowerpose.stopwatch import Stopwatch
@@ -87,8 +98,9 @@ class SfmConfig:
     bundle adjustment, metres."""
     max_image_size: int | None = None
     """Longest image side SIFT sees, pixels; larger frames are downscaled for extraction
-    (keypoints are scaled back to the full image). None: 640 in "poses" mode, where the
-    recorded poses guide matching and the features only refine them, `FULL_IMAGE_SIZE` in
+    (keypoints are scaled back to the full image). None (`feature_defaults`): 640 in
+    "poses" mode with a bot's recorded poses, where they guide matching and the features
+    only refine them, 960 with calibrated photos' poses, `FULL_IMAGE_SIZE` in
     "incremental" mode, which needs them to find the poses. On the scan-3 suite's 1280 x 720
     scans 640 took the sparse stage from 44 to 20 s a plant on 2 cores (features 23 -> 12 s:
     at 960 it was still 22 s, the resize costing what the smaller image saves), camera
@@ -100,14 +112,23 @@ class SfmConfig:
     about 1,200 with the defaults here."""
     first_octave: int | None = None
     """SIFT's first octave: -1 doubles the image first (COLMAP's default), 0 starts at full
-    size (2.7 times faster, about 25 % fewer features). None: 0 in "poses" mode, where the
-    recorded poses guide matching, -1 in "incremental" mode, which needs the features (it
-    registered 46 instead of 111 of 170 views with 0)."""
+    size (2.7 times faster, about 25 % fewer features). None (`feature_defaults`): 0 in
+    "poses" mode, where the recorded poses guide matching; in "incremental" mode -1 for a
+    bot's frames (a simulated scan registered 46 instead of 111 of 170 views with 0) and
+    for photos smaller than `FULL_IMAGE_SIZE`, 0 for larger photos (rough poses or none: the
+    shared real set's 60 photos of 1440 x 1080 registered all 60 either way, the sparse
+    stage 21 s with 0 and over 90 s with -1, whose doubled images' features flood the
+    matching of every pair; downscaled to 1080 x 810 they registered 31 with 0 and 60
+    with -1)."""
     peak_threshold: float = 0.0025
     """SIFT's contrast threshold of a keypoint (COLMAP: 0.0067); lower finds more features
     on faint texture such as leaves and soil."""
     sequential_overlap: int = 5
     """Each frame is matched with this many following frames of the scan."""
+    exhaustive_max_images: int = 150
+    """Frames without poses are matched every pair with every other up to this many frames
+    (photos in any order); more are matched sequentially, `sequential_overlap` times 4
+    following frames each (a video or photos taken in order round the plant)."""
     pose_neighbours: int = 6
     """And with this many nearest recorded camera centres (neighbouring rings of the path)."""
     max_view_angle_deg: float = 60.0
@@ -135,6 +156,17 @@ class SfmConfig:
     """Fewest registered images accepted."""
     min_registered_fraction: float = 0.5
     """Smallest fraction of the images (at distinct poses) that must register."""
+    board: Literal["auto", "required", "off"] = "auto"
+    """Frames without poses: look for a printed ChArUco board (`flowerpose marker`) in the
+    registered photos, and where it is seen take the scale and up from it ("auto"), or
+    fail when it is not ("required"); "off" never looks."""
+    board_spec: BoardSpec = field(default_factory=BoardSpec)
+    """The board looked for (the one `flowerpose marker` prints by default)."""
+    camera_distance_m: float | None = None
+    """Frames without poses: the cameras' median distance from the plant's centre, metres,
+    as the user measured it; it sets the cloud's scale. None: assumed
+    `ASSUMED_CAMERA_DISTANCE_M`, and the report says the cloud is not metric (a marker
+    in view, or poses, fix the scale instead)."""
     num_threads: int = 0
     """Threads for extraction, matching and mapping; 0: every core."""
     seed: int = 0
@@ -143,9 +175,17 @@ class SfmConfig:
     """Show COLMAP's own log lines (stderr) besides the progress lines."""
 
 
-#: The longest image side SIFT sees by default, pixels: incremental mapping's, and the
-#: frames' own at the paper's 1280 x 720; "poses" mode's (`SfmConfig.max_image_size`).
-FULL_IMAGE_SIZE, POSES_IMAGE_SIZE = 1280, 640
+#: The camera distance a pose-less reconstruction assumes where none is stated, metres
+#: (a phone held round a potted plant): the dense stage's thresholds are in metres, so the
+#: cloud is put near its true size, and called not metric.
+ASSUMED_CAMERA_DISTANCE_M = 0.35
+
+#: The longest image side SIFT sees by default, pixels (`feature_defaults`): incremental
+#: mapping's, and the frames' own at the paper's 1280 x 720; "poses" mode's with a bot's
+#: recorded poses (200 frames close together); with calibrated poses of photos (fewer, wider
+#: apart, each registering on its own features: the shared real set's 60 photos of
+#: 1440 x 1080 registered 54 at 640, 60 at 960 and at 1280).
+FULL_IMAGE_SIZE, POSES_IMAGE_SIZE, CALIBRATED_IMAGE_SIZE = 1280, 640, 960
 
 
 @dataclass
@@ -227,22 +267,37 @@ def _threads(config: SfmConfig) -> int:
     return config.num_threads if config.num_threads > 0 else (os.cpu_count() or 1)
 
 
+def feature_defaults(mode: str, kind: str, longest_side: int) -> tuple[int, int]:
+    """(max_image_size, first_octave) SIFT gets where SfmConfig leaves them None, by the
+    sparse stage's mode, the frames' pose kind (`frames.POSE_KINDS`) and their longer side,
+    pixels."""
+    if mode == "poses":
+        return (POSES_IMAGE_SIZE if kind == "recorded" else CALIBRATED_IMAGE_SIZE), 0
+    full_size_photos = kind != "recorded" and longest_side >= FULL_IMAGE_SIZE
+    return FULL_IMAGE_SIZE, (0 if full_size_photos else -1)
+
+
 def _extract(database: Path, frames_dir: Path, names: list[str],
-             intrinsics: Intrinsics | None, mode: str, config: SfmConfig) -> None:
+             intrinsics: Intrinsics | None, mode: str, kind: str, config: SfmConfig) -> None:
     reader = pycolmap.ImageReaderOptions()
-    if intrinsics is not None:
+    if intrinsics is not None and not intrinsics.estimated:
         reader.camera_model = "PINHOLE"
         reader.camera_params = ",".join(repr(float(v)) for v in (
             intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
     else:
+        # Not calibrated: COLMAP refines a focal length and one radial distortion term from
+        # camera.json's estimate (EXIF or its own default).
         reader.camera_model = "SIMPLE_RADIAL"
+        if intrinsics is not None:
+            reader.camera_params = ",".join(repr(float(v)) for v in (
+                (intrinsics.fx + intrinsics.fy) / 2, intrinsics.cx, intrinsics.cy, 0.0))
     options = pycolmap.FeatureExtractionOptions()
-    options.max_image_size = config.max_image_size or (
-        POSES_IMAGE_SIZE if mode == "poses" else FULL_IMAGE_SIZE)
+    size, octave = feature_defaults(mode, kind, max(_image_size(frames_dir / names[0])))
+    options.max_image_size = config.max_image_size or size
     options.num_threads = _threads(config)
     options.sift.max_num_features = config.max_features
     options.sift.first_octave = config.first_octave if config.first_octave is not None \
-        else (0 if mode == "poses" else -1)
+        else octave
     options.sift.peak_threshold = config.peak_threshold
     # Images enter the database first, one after another in `names`' order: extraction
     # would number them as its threads finish, and matching and triangulation follow the
@@ -590,11 +645,124 @@ def _model(mode: str, database: Path, frames_dir: Path, sparse_dir: Path,
     return reconstruction
 
 
+def _pose_kind(frames_dir: Path, given: list[ChosenFrame]) -> str:
+    """frames.json's pose kind (`frames.POSE_KINDS`), checked against its frames: all
+    posed, or none and "poses": "none"."""
+    kind = pose_kind(frames_dir)
+    posed = sum(f.pose is not None for f in given)
+    if posed and posed < len(given):
+        raise InputError(frames_dir / "frames.json", f"{posed} of {len(given)} frames have a "
+                         "pose: give every frame's or none")
+    if not posed and kind != "none":
+        raise InputError(frames_dir / "frames.json", 'no frame has a "pose": mark such a '
+                         'folder "poses": "none" (flowerpose frames --images does)')
+    if posed and kind == "none":
+        raise InputError(frames_dir / "frames.json", '"poses": "none", yet the frames have '
+                         "poses")
+    return kind
+
+
+def _pairs(frames: list[ChosenFrame], kind: str, config: SfmConfig) -> list[tuple[int, int]]:
+    """The image pairs to match: sequential neighbours and, with poses, the nearest
+    cameras looking the same way; without, every pair (`exhaustive_max_images`)."""
+    count = len(frames)
+    if kind == "none":
+        if count <= config.exhaustive_max_images:
+            return [(i, j) for i in range(count) for j in range(i + 1, count)]
+        return sorted(sequential_pairs(count, 4 * config.sequential_overlap))
+    positions = np.array([f.position for f in frames])
+    rotations = np.array([f.rotation for f in frames])
+    return sorted(sequential_pairs(count, config.sequential_overlap)
+                  | pairs_from_poses(positions, rotations, config.pose_neighbours,
+                                     config.max_view_angle_deg))
+
+
+def _board_observations(reconstruction: pycolmap.Reconstruction, frames_dir: Path,
+                        config: SfmConfig) -> tuple[dict, int]:
+    """The board's corners in the registered photos: per corner id, (normalised image
+    point, cam_from_world (3, 4)) per view that saw it; and how many views saw it."""
+    observations: dict[int, list] = {}
+    views = 0
+    for image in reconstruction.images.values():
+        if not image.has_pose:
+            continue
+        grey = cv2.imread(str(frames_dir / image.name), cv2.IMREAD_GRAYSCALE)
+        ids, pixels = find_corners(grey, config.board_spec)
+        if len(ids) == 0:
+            continue
+        views += 1
+        camera = reconstruction.cameras[image.camera_id]
+        # OpenCV puts the first pixel's centre at 0, COLMAP at 0.5.
+        rays = camera.cam_from_img(pixels + 0.5)
+        projection = image.cam_from_world().matrix()
+        for corner, ray in zip(ids, rays, strict=True):
+            observations.setdefault(int(corner), []).append((ray, projection))
+    return observations, views
+
+
+def _place_on_board(reconstruction: pycolmap.Reconstruction, frames_dir: Path,
+                    config: SfmConfig) -> tuple[Similarity, dict] | None:
+    """The model put on the board (metric, z up out of its face, z = 0 on it), in place;
+    None where the board is not seen (`config.board` "required": InputError)."""
+    observations, views = _board_observations(reconstruction, frames_dir, config)
+    centres = np.array([im.projection_center() for im in reconstruction.images.values()
+                        if im.has_pose])
+    try:
+        if views < MIN_VIEWS:
+            raise InputError(frames_dir, f"the board is seen in {views} photos (need "
+                             f"{MIN_VIEWS})")
+        similarity, fit = board_similarity(observations, centres, config.board_spec)
+    except InputError as err:
+        if config.board == "required":
+            spec = config.board_spec
+            raise InputError(frames_dir, f"no {spec.squares_x} x {spec.squares_y} ChArUco "
+                             f"board ({spec.dictionary}) found: {err.problem}; print one "
+                             "with flowerpose marker and put it flat beside the plant") from None
+        return None
+    reconstruction.transform(pycolmap.Sim3d(similarity.scale,
+                                            pycolmap.Rotation3d(similarity.rotation),
+                                            similarity.translation))
+    _progress(f"the board: {fit['corners']} corners in {views} photos, "
+              f"{1000 * fit['rms_m']:.2f} mm RMS from the printed ones")
+    return similarity, {"kind": "board", "up_from": "the board's face", "rms_m": None,
+                        "inliers": None, "scale_from": "the board", "board": {
+                            **fit, "views": views}}
+
+
+def _level(reconstruction: pycolmap.Reconstruction, config: SfmConfig
+           ) -> tuple[Similarity, dict]:
+    """Put a pose-less model upright in place (`align.level_similarity`), scaled so that
+    the cameras' median distance from the scene's centre (the points' median) is
+    `config.camera_distance_m`: stated by the user, or assumed."""
+    images = [im for im in reconstruction.images.values() if im.has_pose]
+    centres = np.array([im.projection_center() for im in images])
+    image_up = np.array([-im.cam_from_world().rotation.matrix()[1] for im in images])
+    level, how = level_similarity(centres, image_up)
+    scene = np.median(_cloud(reconstruction).points, axis=0) if \
+        reconstruction.num_points3D() else centres.mean(axis=0)
+    distance = float(np.median(np.linalg.norm(centres - scene, axis=1)))
+    stated = config.camera_distance_m is not None
+    scale = (config.camera_distance_m if stated else ASSUMED_CAMERA_DISTANCE_M) / distance
+    similarity = Similarity(scale, level.rotation, scale * level.translation)
+    reconstruction.transform(pycolmap.Sim3d(similarity.scale,
+                                            pycolmap.Rotation3d(similarity.rotation),
+                                            similarity.translation))
+    return similarity, {"kind": "levelled", "up_from": how, "rms_m": None, "inliers": None,
+                        "scale_from": "the camera distance stated" if stated
+                        else f"an assumed camera distance of {ASSUMED_CAMERA_DISTANCE_M} m"}
+
+
 def _distinct_frames(frames_dir: Path, given: list[ChosenFrame], config: SfmConfig
                      ) -> list[ChosenFrame]:
-    """The frames at distinct poses; InputError when too few are left."""
+    """The frames at distinct poses (all of them without poses); InputError when too few
+    are left."""
     if len({f.file for f in given}) != len(given):
         raise InputError(frames_dir / "frames.json", "an image is listed twice")
+    if given and given[0].pose is None:
+        if len(given) < max(3, config.min_registered):
+            raise InputError(frames_dir, f"{len(given)} images: structure from motion needs at "
+                             f"least {max(3, config.min_registered)}")
+        return list(given)
     distinct = distinct_poses(np.array([f.position for f in given]).reshape(-1, 3),
                               np.array([f.rotation for f in given]).reshape(-1, 3, 3))
     frames = [f for f, keep in zip(given, distinct, strict=True) if keep]
@@ -626,7 +794,8 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     if not frames_dir.is_dir():
         raise InputError(frames_dir, "frames folder not found")
     watch = Stopwatch()
-    given = read_frames(frames_dir)
+    given = read_frames(frames_dir, need_poses=False)
+    kind = _pose_kind(frames_dir, given)
     frames = _distinct_frames(frames_dir, given, config)
     names = [f.file for f in frames]
     by_name = dict(zip(names, frames, strict=True))
@@ -636,8 +805,13 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
         width, height = _image_size(frames_dir / names[0])
         intrinsics = read_intrinsics(camera_path).scaled(width, height)
     mode = config.mode
-    if mode == "poses" and intrinsics is None:
-        _progress("no camera.json: intrinsics unknown, running incremental mapping")
+    if mode == "poses" and (intrinsics is None or intrinsics.estimated):
+        _progress("the camera is not calibrated: running incremental mapping, which "
+                  "estimates it")
+        mode = "incremental"
+    elif mode == "poses" and kind in ("rough", "none"):
+        _progress(f"poses {'rough' if kind == 'rough' else 'unknown'}: running incremental "
+                  "mapping")
         mode = "incremental"
 
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -652,14 +826,11 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     pycolmap.set_random_seed(config.seed)
     with _colmap_logging(config.colmap_log):
         with watch.step("features"):
-            _extract(database, frames_dir, names, intrinsics, mode, config)
+            _extract(database, frames_dir, names, intrinsics, mode, kind, config)
         with watch.step("matching"):
-            positions = np.array([f.position for f in frames])
-            rotations = np.array([f.rotation for f in frames])
-            pairs = sorted(sequential_pairs(len(frames), config.sequential_overlap)
-                           | pairs_from_poses(positions, rotations, config.pose_neighbours,
-                                              config.max_view_angle_deg))
+            pairs = _pairs(frames, kind, config)
             if mode == "poses":
+                positions = np.array([f.position for f in frames])
                 # Without a baseline the epipolar geometry checks nothing.
                 pairs = [(i, j) for i, j in pairs if np.linalg.norm(
                     positions[i] - positions[j]) >= config.min_baseline_m]
@@ -669,7 +840,7 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
             _write_pairs(work_dir / "pairs.txt", names, pairs)
 
         reconstruction = _model(mode, database, frames_dir, sparse_dir, by_name, config,
-                                intrinsics is not None, watch)
+                                intrinsics is not None and not intrinsics.estimated, watch)
 
     registered = [im for im in reconstruction.images.values()
                   if im.has_pose and im.num_points3D >= MIN_IMAGE_POINTS]
@@ -681,7 +852,12 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
                          "overlap between frames")
 
     with watch.step("alignment"):
-        similarity, alignment = _to_bed_frame(reconstruction, by_name, config, frames_dir)
+        if kind == "none":
+            placed = _place_on_board(reconstruction, frames_dir, config) \
+                if config.board != "off" else None
+            similarity, alignment = placed or _level(reconstruction, config)
+        else:
+            similarity, alignment = _to_bed_frame(reconstruction, by_name, config, frames_dir)
     for stale in sparse_dir.iterdir():
         if stale.is_dir():
             shutil.rmtree(stale)
@@ -691,8 +867,9 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     seconds = watch.report(digits=3)
     camera = next(iter(reconstruction.cameras.values()))
     report = {
-        "frames": str(frames_dir), "mode": mode,
-        "intrinsics": "camera.json" if intrinsics is not None else "estimated",
+        "frames": str(frames_dir), "mode": mode, "poses": kind,
+        "intrinsics": "camera.json" if intrinsics is not None and not intrinsics.estimated
+        else "estimated",
         "camera": {"model": camera.model.name, "width": camera.width,
                    "height": camera.height, "params": [float(v) for v in camera.params]},
         "images_given": len(given), "images_used": len(frames),
@@ -704,12 +881,16 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
         "alignment": {**alignment, "scale": similarity.scale,
                       "threshold_m": config.align_threshold_m},
         "alignment_rms_m": alignment["rms_m"],
+        "metric": kind != "none" or alignment["kind"] == "board"
+        or config.camera_distance_m is not None,
         "seconds": seconds,
         "config": dataclasses.asdict(config),
     }
     write_json(work_dir / "sparse.json", report)
+    placed = (f"camera centres {1000 * alignment['rms_m']:.1f} mm RMS from the given ones"
+              if kind != "none" else f"levelled by {alignment['up_from']}, scale from "
+              f"{alignment['scale_from']}")
     _progress(f"{len(registered)}/{len(frames)} images, {report['points']} points, reprojection "
-              f"{report['mean_reprojection_error_px']:.2f} px, camera centres "
-              f"{1000 * alignment['rms_m']:.1f} mm RMS from the recorded ones "
+              f"{report['mean_reprojection_error_px']:.2f} px, {placed} "
               f"({seconds['total']:.1f} s)")
     return SparseResult(reconstruction, cloud, report)

@@ -8,6 +8,8 @@ usage: python scripts/gallery.py RUNS IMAGES SAMPLES
 - stress.png: the stress report's curves; pollination.png: the pollination plot;
 - filming.png: MuJoCo's view of the simulated FarmBot filming (a frame of preview.mp4) beside
   a frame the simulated camera recorded;
+- photos-cloud.png: the shared real photos' cloud from the images alone, with the cameras,
+  seen from the side and from above;
 - SAMPLES/flowers.json, SAMPLES/report.json, SAMPLES/report.md: what detect and score write
   (report.md's headings two levels down, for the page it goes into).
 """
@@ -79,11 +81,57 @@ def _filming(scan: Path, images: Path) -> None:
     cv2.imwrite(str(images / "filming.png"), _fit(np.hstack([outside, gap, inside])))
 
 
+def photos_cloud(recon: Path, target: Path) -> None:
+    """A reconstruction's cloud (a sample of its points, their own colours) and its
+    registered cameras (centres and optical axes), from the side and from above."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from flowerpose.atomic import write_figure
+    from flowerpose.cloudio import read_cloud
+    from flowerpose.jsonio import read_json
+    from flowerpose.scanio import quaternion_to_matrix
+
+    cloud = read_cloud(recon / "cloud.ply", units="m")
+    keep = np.random.default_rng(0).permutation(len(cloud))[:20000]
+    points, colours = cloud.points[keep], cloud.colors[keep] / 255.0
+    images_txt = (recon / "sparse" / "images.txt")
+    if not images_txt.is_file():
+        import pycolmap
+
+        pycolmap.Reconstruction(str(recon / "sparse")).write_text(str(recon / "sparse"))
+    rows = [line.split() for line in images_txt.read_text().splitlines()
+            if line and not line.startswith("#")][::2]
+    rotation = quaternion_to_matrix(np.array([[float(v) for v in r[1:5]] for r in rows]))
+    translation = np.array([[float(v) for v in r[5:8]] for r in rows])
+    centres = -np.einsum("nji,nj->ni", rotation, translation)
+    axes = rotation[:, 2, :]  # each camera's optical axis in the world
+    metric = read_json(recon / "reconstruction.json").get("metric", True)
+    figure, panels = plt.subplots(1, 2, figsize=(12, 6))
+    for panel, (a, b), title in ((panels[0], (0, 2), "side (x, z)"),
+                                 (panels[1], (0, 1), "above (x, y)")):
+        panel.scatter(points[:, a], points[:, b], c=colours, s=0.5, linewidths=0)
+        panel.scatter(centres[:, a], centres[:, b], c="tab:red", s=12, label="cameras")
+        panel.quiver(centres[:, a], centres[:, b], axes[:, a], axes[:, b], color="tab:red",
+                     width=0.003, scale=12)
+        panel.set_aspect("equal")
+        panel.set_title(title)
+        panel.set_xlabel("metres" if metric else "metres, at an assumed camera distance")
+    panels[0].legend(loc="upper right")
+    figure.suptitle(f"{len(cloud):,} points from {len(rows)} photographs")
+    figure.tight_layout()
+    write_figure(target, figure, dpi=110)
+    plt.close(figure)
+
+
 def main(runs: Path, images: Path, samples: Path) -> None:
     _copy_image(runs / "detect3" / "views" / "views.png", images / "views.png")
     _copy_image(runs / "stress2" / "stress.png", images / "stress.png")
     _copy_image(runs / "eval2" / "pollination.png", images / "pollination.png")
     _filming(runs / "scan3", images)
+    photos_cloud(runs / "photos" / "recon", images / "photos-cloud.png")
     _screenshots(runs / "eval2" / "report.html", images)
     shutil.copyfile(runs / "detect3" / "flowers.json", samples / "flowers.json")
     shutil.copyfile(runs / "score3" / "report.json", samples / "report.json")

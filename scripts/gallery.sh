@@ -2,7 +2,7 @@
 # The pictures of docs/gallery.md and the sample outputs of docs/what-you-get.md, made
 # from real runs (`make gallery`; `make results` runs it too). Each run writes under
 # runs/gallery/ (ignored by git); the pictures go to docs/images/gallery/, the samples to
-# docs/samples/. About 5 minutes on 2 cores.
+# docs/samples/. About 8 minutes on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 flowerpose=.venv/bin/flowerpose
@@ -24,6 +24,16 @@ $flowerpose stress --source oracle --plants 2 --seed 3 --thin 0.5,0.2,0.1,0.05 -
 # view of the gantry filming (preview.mp4).
 $flowerpose scan --sim --plant "$runs/plant3" --frame-rate 0.05 --width 640 --height 360 \
     --out "$runs/scan3" -q > /dev/null
+
+# Real photographs from the images alone (the guide "Your own photographs"): the shared
+# copy where there is one, else the published set, fetched.
+photos=${FLOWERPOSE_SHARED:-../shared}/real-photos/romi-arabidopsis
+if [[ ! -d $photos ]]; then
+    photos=runs/romi-arabidopsis
+    [[ -d $photos ]] || $flowerpose data fetch romi-arabidopsis --to "$photos" > /dev/null
+fi
+$flowerpose frames --images "$photos/images" --out "$runs/photos/frames" --overwrite -q > /dev/null
+$flowerpose reconstruct "$runs/photos/frames" --out "$runs/photos/recon" --overwrite -q > /dev/null
 
 .venv/bin/python scripts/gallery.py "$runs" "$images" "$samples"
 echo "$images, $samples"

@@ -23,7 +23,8 @@ from flowerpose.eval.stats import interval_text, wilson
 
 REPO = Path(__file__).resolve().parents[1]
 #: The pages that hold result blocks.
-PAGES = ("README.md", "DESIGN.md", "docs/guides/reading-the-numbers.md")
+PAGES = ("README.md", "DESIGN.md", "docs/guides/reading-the-numbers.md",
+         "docs/guides/own-photos.md")
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)"
                    r"(<!-- /results:(?P=name) -->)", re.S)
 
@@ -149,11 +150,18 @@ def uncertain_flag(runs: Path) -> str:
             f"suites, {min(shares):.0f}-{max(shares):.0f} % of flowers.\n")
 
 
+def photos_bench(runs: Path) -> str:
+    """The real photos three ways (`flowerpose bench --photos`): its table, as it printed it."""
+    from flowerpose.eval.photo_bench import photo_bench_markdown
+
+    return photo_bench_markdown(_json(runs / "photos" / "photo_bench.json"))
+
+
 #: What makes each block.
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "accuracy-table": accuracy_table, "compare-example": compare_example,
     "flowers-needed": flowers_needed, "wilson-example": wilson_example,
-    "uncertain-flag": uncertain_flag}
+    "uncertain-flag": uncertain_flag, "photos-bench": photos_bench}
 
 
 def blocks(text: str) -> list[str]:

@@ -40,9 +40,18 @@ $flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
     --set 'pollination.curve_angles_deg=[0, 15, 30, 45, 55, 65, 75]' --out runs/pollinate-10 -q
 $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --seed 0 \
     --out runs/pollinate-field-10 -q
+# Real photographs to a cloud three ways, timed and checked against the calibrated cameras
+# (the shared copy where there is one, else the published set, fetched).
+photos=${FLOWERPOSE_SHARED:-../shared}/real-photos/romi-arabidopsis
+if [[ ! -d $photos ]]; then
+    photos=runs/romi-arabidopsis
+    [[ -d $photos ]] || $flowerpose data fetch romi-arabidopsis --to "$photos" > /dev/null
+fi
+$flowerpose bench --photos "$photos" --out runs/photos --overwrite -q
 $flowerpose results runs/scan-3/report.json runs/oracle-10/report.json runs/field-10/report.json \
     runs/real3/report.json runs/pollinate-10/report.json runs/pollinate-field-10/report.json \
     runs/stress-real3/stress.json runs/fidelity/fidelity.json runs/bench/bench.json \
+    runs/photos/photo_bench.json \
     --figure docs/accuracy.png > docs/results.md.partial
 mv docs/results.md.partial docs/results.md
 # The docs' result blocks (the README's table among them) from these runs.

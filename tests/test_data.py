@@ -11,6 +11,7 @@ from flowerpose import data
 from flowerpose.cli import main
 
 SHARED_REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real"
+SHARED_PHOTOS = SHARED_REAL.parent / "real-photos" / "romi-arabidopsis"
 
 
 def _mirror(root: Path, published: data.PublishedPlant, sources: dict[str, Path]) -> Path:
@@ -56,7 +57,7 @@ def test_a_corrupted_or_interrupted_fetch_leaves_nothing(tmp_path, tiny, monkeyp
     assert "does not match its published checksum" in capsys.readouterr().err
     assert list(tmp_path.glob("plant*")) == [] and list(tmp_path.glob(".plant*")) == []
 
-    def cut(item, target, mirror):
+    def cut(*args):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(data, "_download", cut)
@@ -80,3 +81,31 @@ def test_the_papers_plant_from_a_mirror_is_a_real_plant_folder_eval_reads(tmp_pa
     assert main(["eval", "--source", "real", str(tmp_path / "p3"), "--out",
                  str(tmp_path / "eval")]) == 0
     assert "recall" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(not SHARED_PHOTOS.is_dir(), reason="the real photographs are in "
+                    "../shared/real-photos, beside the repository; not here")
+def test_the_photo_set_from_a_mirror_gets_its_poses_and_calibrated_model(tmp_path, capsys):
+    import cv2  # noqa: F401  # before pycolmap (pipeline/sfm.py)
+    import numpy as np
+    import pycolmap
+
+    published = data.PLANTS["romi-arabidopsis"]
+    sources = {item.local: SHARED_PHOTOS / item.local for item in published.files}
+    mirror = _mirror(tmp_path / "mirror", published, sources)
+    assert main(["data", "fetch", "romi-arabidopsis", "--to", str(tmp_path / "romi"),
+                 "--mirror", str(mirror)]) == 0
+    folder = tmp_path / "romi"
+    assert len(list((folder / "images").glob("*.jpg"))) == 60
+    # The calibrated model written from the metadata is the shared copy's, pose for pose.
+    ours = pycolmap.Reconstruction(str(folder / "colmap"))
+    theirs = pycolmap.Reconstruction(str(SHARED_PHOTOS / "colmap"))
+    by_name = {image.name: image for image in theirs.images.values()}
+    assert len(ours.images) == 60
+    for image in ours.images.values():
+        assert np.allclose(image.projection_center(),
+                           by_name[image.name].projection_center(), atol=1e-6)
+    assert np.allclose(ours.cameras[1].params, theirs.cameras[1].params)
+    rows = (folder / "poses.csv").read_text().splitlines()
+    assert rows[0] == "file,x,y,z,pan,tilt" and len(rows) == 61
+    assert rows[1].startswith("00000_rgb.jpg,75.0,375.0,80.0,0.0,")  # pan 270: along +x

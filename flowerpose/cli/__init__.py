@@ -27,6 +27,7 @@ COMMANDS = (
     field.add_pollinate,
     field.add_field,
     field.add_farmduino,
+    stages.add_marker,
     stages.add_frames,
     stages.add_reconstruct,
     stages.add_dataset,

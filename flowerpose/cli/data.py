@@ -1,4 +1,5 @@
-"""`flowerpose data`: the authors' published real plants, listed and fetched."""
+"""`flowerpose data`: published real data (the authors' plants, a plant's photographs),
+listed and fetched."""
 
 from __future__ import annotations
 
@@ -7,12 +8,13 @@ from pathlib import Path
 
 
 def cmd_data(args: argparse.Namespace) -> int:
-    from flowerpose.data import PLANTS, UPSTREAM, default_data_dir, fetch
+    from flowerpose.data import PLANTS, default_data_dir, fetch
 
     if args.action == "list":
         for name, published in PLANTS.items():
-            print(f"{name}: {published.description} ({len(published.files)} files)")
-        print(f"from {UPSTREAM} into {default_data_dir()}/NAME by default")
+            print(f"{name}: {published.description} ({len(published.files)} files, from "
+                  f"{published.upstream})")
+        print(f"into {default_data_dir()}/NAME by default")
         return 0
     if args.name is None:
         from flowerpose.errors import InputError
@@ -30,15 +32,17 @@ def add_data(sub: argparse._SubParsersAction) -> None:
     from flowerpose.data import MIRROR_ENV, PLANTS
 
     p = sub.add_parser(
-        "data", help="the authors' real labelled plants: list them, fetch one",
-        description="List the real plants whose published files are complete, or fetch one: "
-        "its labels and candidate clouds from the authors' repository (pinned to one commit, "
-        "each file checked by SHA-256), laid out as a real plant folder with its source.json "
-        "and the authors' licence; the folder is printed last. A fetch that fails leaves "
-        "nothing behind.",
+        "data", help="real data: the authors' labelled plants, a plant's photographs",
+        description="List the published real data, or fetch one set: a real plant's labels "
+        "and candidate clouds from the authors' repository, laid out as a real plant folder "
+        "with its source.json and the authors' licence; or a plant's photographs with their "
+        "logged and calibrated poses (romi-arabidopsis: images/, poses.csv, colmap/). Each "
+        "is pinned to one commit, every file checked by SHA-256; the folder is printed "
+        "last. A fetch that fails leaves nothing behind.",
         epilog="examples:\n"
         "  flowerpose data list\n"
-        "  flowerpose data fetch paper-plant-3")
+        "  flowerpose data fetch paper-plant-3\n"
+        "  flowerpose data fetch romi-arabidopsis")
     p.add_argument("action", choices=("list", "fetch"), help="list the plants, or fetch one")
     p.add_argument("name", nargs="?", choices=list(PLANTS), metavar="NAME",
                    help=f"fetch: the plant ({', '.join(PLANTS)})")

@@ -373,8 +373,25 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from flowerpose.eval.bench import run_bench
     from flowerpose.pipeline.flowers import PipelineConfig
 
+    if args.photos is not None:
+        return _bench_photos(args)
+
     run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out,
               config=configure(PipelineConfig(), args), cache=stage_cache(args))
+    return 0
+
+
+def _bench_photos(args: argparse.Namespace) -> int:
+    from flowerpose.errors import InputError
+    from flowerpose.eval.photo_bench import run_photo_bench
+    from flowerpose.pipeline.scan_stages import ScanStagesConfig
+
+    if args.out is None:
+        raise InputError(args.photos, "--photos needs --out DIR (the three reconstructions "
+                         "are written there)")
+    config = configure(ScanStagesConfig(), args, reads=("scan.reconstruct",),
+                       command="bench --photos").scan.reconstruct
+    run_photo_bench(args.photos, args.out, args.max_size, config, args.overwrite)
     return 0
 
 
@@ -385,7 +402,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         description="Time the pipeline from cloud to flower poses on one seeded plant's "
         "oracle cloud at each --points size: wall seconds per stage, the median of --repeat "
         "runs, imports and file reading excluded.",
-        epilog="example:\n  flowerpose bench --points 125000 --repeat 3")
+        epilog="examples:\n  flowerpose bench --points 125000 --repeat 3\n"
+        "  flowerpose bench --photos ~/.cache/flowerpose-data/romi-arabidopsis --out bench-photos")
     p.add_argument("--points", type=at_least(1000, CLOUD_POINTS_MAX, "more does not fit in "
                                                "memory"), nargs="+",
                    default=[125_000, 1_000_000], metavar="N",
@@ -397,6 +415,16 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                    "flowers)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="also write bench.json here (default: print only)")
+    p.add_argument("--photos", type=Path, metavar="SET_DIR",
+                   help="instead: time real photographs to a cloud, a set laid out as "
+                   "flowerpose data fetch romi-arabidopsis makes it, three ways (its calibrated "
+                   "model, its rough poses, the images alone), each checked against the "
+                   "calibrated cameras; writes photo_bench.json and the runs to --out")
+    p.add_argument("--max-size", type=POSITIVE, metavar="PX",
+                   help="--photos: downscale the photos to this longest side (default: full "
+                   "size)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="--photos: replace an earlier photo bench's runs in --out")
     add_cache_options(p)
     add_config_options(p, detector=False)
     p.set_defaults(func=cmd_bench)
@@ -416,8 +444,9 @@ def add_results(sub: argparse._SubParsersAction) -> None:
         description="Print a Markdown results page made from runs' own files: a table row "
         "per eval report.json (what ran, flowers found of the visible, false positives, the "
         "fits' errors, with their 95 % intervals) beside the paper's own numbers, then a "
-        "robustness section per stress.json, a speed section per bench.json and a "
-        "sim-to-real section per fidelity.json, each run's command, code version, date and "
+        "robustness section per stress.json, a speed section per bench.json, a real-photos "
+        "section per photo_bench.json and a sim-to-real section per fidelity.json, each "
+        "run's command, code version, date and "
         "machine under its table.",
         epilog="example:\n  flowerpose results runs/oracle-10/report.json "
         "runs/stress3/stress.json runs/bench/bench.json > results.md")

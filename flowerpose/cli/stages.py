@@ -69,10 +69,22 @@ _scan_stage_base = starting_config("flowerpose.pipeline.scan_stages:ScanStagesCo
 
 
 def cmd_frames(args: argparse.Namespace) -> int:
+    from flowerpose.errors import InputError
     from flowerpose.pipeline.frames import select_frames
 
     config = configure(_scan_stage_base(), args, reads=("scan.frames",),
                        command="frames").scan.frames
+    if (args.scan is None) == (args.images is None):
+        raise InputError(args.scan or args.images or "frames", "give a scan folder or "
+                         "--images PHOTOS_DIR_OR_VIDEO, one of them")
+    photo_flags = [f for f, v in (("--colmap", args.colmap), ("--calibration", args.calibration),
+                                  ("--poses", args.poses), ("--max-size", args.max_size))
+                   if v is not None]
+    if args.images is None and photo_flags:
+        raise InputError(args.scan, f"{photo_flags[0]} is for --images; a scan folder has "
+                         "its camera and poses")
+    if args.images is not None:
+        return _frames_from_photos(args, config.count)
     result = select_frames(args.scan, args.out, config, overwrite=args.overwrite)
     sharp = [f["sharpness"] for f in result["frames"]]
     print(f"{len(result['frames'])} of {result['recorded']} frames chosen in "
@@ -81,16 +93,55 @@ def cmd_frames(args: argparse.Namespace) -> int:
     return 0
 
 
+def _frames_from_photos(args: argparse.Namespace, count: int) -> int:
+    from flowerpose.pipeline.photos import PhotoImportConfig, import_photos
+
+    config = PhotoImportConfig(count=count, max_size=args.max_size, units=args.pose_units)
+    result = import_photos(args.images, args.out, config, colmap=args.colmap,
+                           calibration=args.calibration, poses=args.poses,
+                           overwrite=args.overwrite)
+    camera = {"colmap": "the COLMAP model's camera", "calibration": "the calibration",
+              "exif": "a focal length from EXIF (refined by reconstruct)",
+              "default": "an estimated camera (refined by reconstruct)"}[result["camera"]]
+    print(f"{len(result['frames'])} frames from {result['kind']} in {result['seconds']:.1f} s, "
+          f"{camera}{', undistorted' if result['undistorted'] else ''}, poses: "
+          f"{result['poses']} -> {args.out / 'frames.json'}")
+    return 0
+
+
 def add_frames(sub: argparse._SubParsersAction) -> None:
     """The `frames` subcommand's parser."""
     p = sub.add_parser(
-        "frames", help="choose the sharpest frame of each of N bins of a scan",
+        "frames", help="choose the sharpest frames of a scan, or take in photos or a video",
         description="Choose the sharpest frame of each of --count bins of a scan (Laplacian "
         "variance of a centre crop) and write them to --out with their recorded poses "
-        "(frames.json) and the camera (camera.json).",
-        epilog="example:\n  flowerpose frames scan3 --count 200 --out frames3")
-    p.add_argument("scan", type=Path, metavar="SCAN_DIR",
+        "(frames.json) and the camera (camera.json). Or, with --images, make the same "
+        "folder from photographs or a video of any camera: its calibration from --colmap or "
+        "--calibration (distortion removed) or estimated, poses from --colmap (calibrated), "
+        "--poses (rough) or none.",
+        epilog="examples:\n  flowerpose frames scan3 --count 200 --out frames3\n"
+        "  flowerpose frames --images photos/ --out frames-photos\n"
+        "  flowerpose frames --images photos/ --colmap sparse/0 --pose-units mm --out f\n"
+        "  flowerpose frames --images plant.mp4 --count 120 --out frames-video")
+    p.add_argument("scan", type=Path, metavar="SCAN_DIR", nargs="?",
                    help="a scan folder from flowerpose scan (frames/, trajectory.csv)")
+    p.add_argument("--images", type=Path, metavar="DIR|VIDEO",
+                   help="instead of a scan: a folder of JPEG/PNG photographs (all kept) or a "
+                   "video file (the sharpest frame of each of --count bins)")
+    p.add_argument("--colmap", type=Path, metavar="MODEL_DIR",
+                   help="--images: a COLMAP model (text or binary: COLMAP, Metashape, "
+                   "RealityCapture, hloc exports) giving the camera and each photo's pose")
+    p.add_argument("--calibration", type=Path, metavar="CAMERA.json",
+                   help="--images: the camera, as camera.json (PINHOLE fx, fy, cx, cy) or with "
+                   '"model" (any COLMAP camera model) and "params" in COLMAP\'s order')
+    p.add_argument("--poses", type=Path, metavar="POSES.csv",
+                   help="--images: rough poses, columns file, x, y, z (z up), pan (degrees "
+                   "counter-clockwise from +x), tilt (degrees below the horizontal), as a "
+                   "gantry logs them; reconstruct refines them")
+    p.add_argument("--pose-units", choices=("m", "cm", "mm"), default="m",
+                   help="the unit of the positions in --colmap or --poses (default: %(default)s)")
+    p.add_argument("--max-size", type=int, metavar="PX",
+                   help="--images: downscale to at most this longest side, pixels")
     add_setting_flags(p, _scan_stage_base, {"--count": "scan.frames.count",
                                             "--crop": "scan.frames.crop_px",
                                             "--brightness-penalty":
@@ -105,6 +156,74 @@ def add_frames(sub: argparse._SubParsersAction) -> None:
         "flowerpose.pipeline.frames:FrameSelectConfig", "scan.frames")})
 
 
+def cmd_marker(args: argparse.Namespace) -> int:
+    from flowerpose.cli.options import check_writable
+    from flowerpose.errors import InputError
+    from flowerpose.pipeline.board import PRINT_DPI, BoardSpec, board_image
+
+    suffix = args.out.suffix.lower()
+    if suffix not in (".png", ".pdf"):
+        raise InputError(args.out, "the board is written as .png or .pdf")
+    check_writable(args.out, "--out")
+    if args.out.exists() and not args.overwrite:
+        raise InputError(args.out, "exists: choose another file, or --overwrite")
+    spec = BoardSpec(squares_x=args.squares[0], squares_y=args.squares[1],
+                     square_m=args.square_mm / 1000, marker_m=args.square_mm * 0.73 / 1000)
+    _write_board(args.out, board_image(spec), PRINT_DPI)
+    print(f"a {spec.squares_x} x {spec.squares_y} ChArUco board of {args.square_mm:g} mm "
+          f"squares ({spec.dictionary}) -> {args.out}; print it at 100 % (no fit to page), "
+          "measure a square, and lay it flat beside the plant"
+          + ("" if (spec.squares_x, spec.squares_y, args.square_mm) == (7, 5, 30) else
+             f"; tell reconstruct: --set scan.reconstruct.sfm.board_spec.squares_x="
+             f"{spec.squares_x} --set scan.reconstruct.sfm.board_spec.squares_y="
+             f"{spec.squares_y} --set scan.reconstruct.sfm.board_spec.square_m="
+             f"{spec.square_m:g} --set scan.reconstruct.sfm.board_spec.marker_m="
+             f"{spec.marker_m:g}"))
+    return 0
+
+
+def _write_board(path: Path, grey, dpi: int) -> None:
+    """The board image as PNG or PDF, its resolution recorded, so it prints to size."""
+    import io
+
+    from PIL import Image
+
+    from flowerpose.atomic import write_bytes
+
+    buffer = io.BytesIO()
+    Image.fromarray(grey).save(buffer, format=path.suffix.lstrip(".").upper(),
+                               dpi=(dpi, dpi), resolution=dpi)
+    write_bytes(path, buffer.getvalue())
+
+
+def _squares(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give COLSxROWS, e.g. 7x5") from None
+    if x < 3 or y < 3:
+        raise argparse.ArgumentTypeError(f"{text!r}: at least 3x3 squares")
+    return x, y
+
+
+def add_marker(sub: argparse._SubParsersAction) -> None:
+    """The `marker` subcommand's parser."""
+    p = sub.add_parser(
+        "marker", help="a ChArUco board to print and lay beside the plant (scale and up)",
+        description="Write a ChArUco board (a chessboard with ArUco markers) as a PNG or "
+        "PDF that prints to size at 300 dpi. Laid flat beside the plant in photos without "
+        "poses, it gives reconstruct the cloud's scale and up (scan.reconstruct.sfm.board).",
+        epilog="example:\n  flowerpose marker --out board.pdf")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE.pdf|FILE.png",
+                   help="the board's file")
+    p.add_argument("--squares", type=_squares, default="7x5", metavar="COLSxROWS",
+                   help="squares along and across (default: %(default)s, an A4 page)")
+    p.add_argument("--square-mm", type=float, default=30.0, metavar="MM",
+                   help="a square's side as printed, millimetres (default: %(default)g)")
+    p.add_argument("--overwrite", action="store_true", help="replace the file if it exists")
+    p.set_defaults(func=cmd_marker)
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from flowerpose.pipeline.reconstruct import reconstruct
 
@@ -113,8 +232,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     result = reconstruct(args.frames, args.out, config, overwrite=args.overwrite)
     report = result.report
     rms = report["alignment_rms_m"]
+    placed = (f"camera centres {1000 * rms:.2f} mm RMS from the given ones" if rms is not None
+              else f"no poses given: levelled, scale from {report['alignment']['scale_from']}")
     print(f"{report['images_registered']}/{report['images_used']} images registered, "
-          f"camera centres {1000 * rms:.2f} mm RMS from the recorded ones; "
+          f"{placed}; "
           f"{report['points']} points in {report['seconds']['total']:.1f} s "
           f"(sparse {report['seconds']['sparse']:.1f} s, dense {report['seconds']['dense']:.1f} s)"
           f" -> {report['cloud']}, {args.out / 'reconstruction.json'}")

@@ -21,7 +21,6 @@ with the paper's path.
 
 from __future__ import annotations
 
-import csv
 import itertools
 import math
 import re
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.config import apply_overrides, load_toml
+from flowerpose.csvio import read_csv_table
 from flowerpose.errors import InputError
 from flowerpose.hardware.flights.scan_plan import (
     ScanConfig,
@@ -102,7 +102,7 @@ def read_bed(path: Path) -> Bed:
         raise InputError(path, "bed file not found")
     scan = ScanConfig()
     if path.suffix.lower() == ".csv":
-        rows = _csv_rows(path)
+        rows = read_csv_table(path, ("name", "x", "y"), "bed file", "height, radius")
     elif path.suffix.lower() == ".toml":
         data = load_toml(path)
         unknown = sorted(set(data) - {"plant", "scan"})
@@ -209,27 +209,6 @@ def bed_from_points(points: list[dict], geometry: BotGeometry = PAPER_BOT,
     bed = Bed(plants)
     check_bed(bed, source, geometry)
     return bed
-
-
-def _csv_rows(path: Path) -> list[dict]:
-    try:
-        with open(path, newline="", encoding="utf-8") as handle:
-            reader = csv.DictReader(handle)
-            rows = list(reader)
-            header = reader.fieldnames or []
-    except FileNotFoundError:
-        raise InputError(path, "bed file not found") from None
-    except UnicodeDecodeError:
-        raise InputError(path, "not a UTF-8 text file") from None
-    except (OSError, csv.Error) as err:
-        raise InputError(path, f"cannot read it as CSV ({err})") from None
-    missing = [key for key in ("name", "x", "y") if key not in header]
-    if missing:
-        raise InputError(path, f"the header needs the columns name, x and y (optional "
-                         f"height, radius); {missing[0]!r} is missing")
-    # Empty optional cells take the defaults, as an absent TOML key does.
-    return [{key: value for key, value in row.items() if value not in ("", None)}
-            for row in rows]
 
 
 def _plant(path: Path, number: int, row: dict) -> BedPlant:

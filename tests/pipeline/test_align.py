@@ -5,7 +5,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from flowerpose.errors import InputError
-from flowerpose.pipeline.align import Similarity, residuals, robust_similarity, umeyama
+from flowerpose.pipeline.align import (
+    Similarity,
+    level_similarity,
+    residuals,
+    robust_similarity,
+    rotation_onto,
+    umeyama,
+)
 
 
 def known_similarity(seed: int = 1) -> Similarity:
@@ -93,3 +100,38 @@ def test_mismatched_or_bad_values_are_refused():
         rng = np.random.default_rng(1)
         robust_similarity(rng.normal(size=(20, 3)), rng.normal(size=(20, 3)) * 10,
                           threshold_m=1e-6)
+
+
+@pytest.mark.parametrize("ring", [True, False], ids=["ring", "arc"])
+def test_a_posed_less_model_is_levelled_by_its_cameras(ring):
+    """Cameras round a plant in a model frame turned and shifted at random: levelling gives
+    back z up, from the ring's plane (cameras tilted down at the plant), or from the
+    cameras' image-up on a short arc at two heights (cameras held level)."""
+    rng = np.random.default_rng(3)
+    angles = np.linspace(0, 2 * np.pi if ring else 0.6, 24, endpoint=False)
+    centres = np.c_[0.3 * np.cos(angles), 0.3 * np.sin(angles), 0.1 + 0.02 * np.sin(3 * angles)]
+    if not ring:  # cameras at two heights on the arc: no plane of their own is level
+        centres[::2, 2] += 0.15
+    # Ring: cameras looking at the plant's centre, tilted down; arc: held level.
+    forward = -centres if ring else -centres * [1, 1, 0]
+    forward = forward / np.linalg.norm(forward, axis=1, keepdims=True)
+    right = np.cross(forward, [0, 0, 1.0])
+    right /= np.linalg.norm(right, axis=1, keepdims=True)
+    image_up = np.cross(right, forward)
+    turn = Rotation.random(random_state=rng).as_matrix()
+    model = Similarity(2.5, turn, np.array([4.0, -1.0, 7.0]))
+    similarity, how = level_similarity(model.apply(centres), image_up @ turn.T)
+    assert ("plane" in how) == ring
+    up = similarity.rotation @ turn @ np.array([0, 0, 1.0])
+    assert np.degrees(np.arccos(np.clip(up[2], -1, 1))) < 0.5
+    assert similarity.scale == 1.0
+    assert np.allclose(similarity.apply(model.apply(centres)).mean(axis=0), 0, atol=1e-9)
+
+
+def test_rotation_onto_takes_one_direction_onto_another():
+    rng = np.random.default_rng(0)
+    for a in [*rng.normal(size=(5, 3)), np.array([0, 0, -1.0])]:
+        a = a / np.linalg.norm(a)
+        rotation = rotation_onto(a, np.array([0, 0, 1.0]))
+        assert np.allclose(rotation @ a, [0, 0, 1]) and np.isclose(np.linalg.det(rotation), 1)
+        assert np.allclose(rotation.T @ rotation, np.eye(3))

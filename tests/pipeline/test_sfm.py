@@ -248,8 +248,9 @@ def test_missing_folder_or_image_is_a_clear_error(scene, tmp_path):
     (broken / "frames").symlink_to(frames_dir / "frames")
     with pytest.raises(InputError, match="image listed in frames.json not found"):
         reconstruct_sparse(broken, tmp_path / "work")
-    (broken / "frames.json").write_text(json.dumps({"frames": [{"index": 0, "file": "x.jpg"}]}))
-    with pytest.raises(InputError, match="needs \"file\" and \"pose\""):
+    first = data["frames"][0]["file"]
+    (broken / "frames.json").write_text(json.dumps({"frames": [{"index": 0, "file": first}]}))
+    with pytest.raises(InputError, match='no frame has a "pose": mark such a folder'):
         reconstruct_sparse(broken, tmp_path / "work")
 
 
