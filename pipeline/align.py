@@ -194,26 +194,39 @@ def rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + skew + skew @ skew / (1 + cosine)
 
 
-def level_similarity(centres: np.ndarray, image_up: np.ndarray) -> tuple[Similarity, str]:
+def level_similarity(centres: np.ndarray, image_up: np.ndarray,
+                     ground: np.ndarray | None = None) -> tuple[Similarity, str]:
     """The rigid transform that puts a pose-less reconstruction upright: up becomes +z and
     the camera centres' mean the origin; the scale is kept. Returns it and how up was found.
 
-    Up is the normal of the plane the camera centres lie on where they do (a ring round the
-    plant: photos taken walking round it) and within PLANE_UP_AGREEMENT_DEG of the cameras'
-    mean image-up direction, turned to its side; else the mean image-up (a camera held
-    upright).
-    centres: (N, 3) camera centres; image_up: (N, 3) each camera's -y axis, model frame.
+    Up is, in order: the normal of `ground` (the table's or the soil's plane under the plant,
+    found by the caller) turned to the cameras' side; the normal of the plane the camera
+    centres lie on where they do (a ring round the plant: photos taken walking round it);
+    the cameras' mean image-up direction (a camera held upright). A plane's normal counts
+    only within PLANE_UP_AGREEMENT_DEG of the mean image-up, since a camera held upright
+    tells roughly where up is.
+    centres: (N, 3) camera centres; image_up: (N, 3) each camera's -y axis; ground: (3,)
+    a plane's unit normal, either sign; all in the model frame.
     """
     centres = np.asarray(centres, np.float64)
     mean_up = np.asarray(image_up, np.float64).mean(axis=0)
+    mean_norm = np.linalg.norm(mean_up)
+
+    def agrees(normal: np.ndarray) -> bool:
+        return mean_norm > 0 and normal @ mean_up / mean_norm >= np.cos(np.radians(
+            PLANE_UP_AGREEMENT_DEG))
+
     spread = centres - centres.mean(axis=0)
     _, singular, vt = np.linalg.svd(spread, full_matrices=False)
-    normal = vt[2] if vt[2] @ mean_up >= 0 else -vt[2]
-    mean_norm = np.linalg.norm(mean_up)
-    if len(centres) >= 4 and singular[1] > 0 and singular[2] / singular[1] <= PLANAR_RATIO \
-            and mean_norm > 0 and normal @ mean_up / mean_norm >= np.cos(np.radians(
-                PLANE_UP_AGREEMENT_DEG)):
-        up, how = normal, "the plane of the camera centres"
+    ring = vt[2] if vt[2] @ mean_up >= 0 else -vt[2]
+    if ground is not None:
+        ground = np.asarray(ground, np.float64) / np.linalg.norm(ground)
+        ground = ground if ground @ mean_up >= 0 else -ground
+    if ground is not None and agrees(ground):
+        up, how = ground, "the ground's plane"
+    elif len(centres) >= 4 and singular[1] > 0 and singular[2] / singular[1] <= PLANAR_RATIO \
+            and agrees(ring):
+        up, how = ring, "the plane of the camera centres"
     else:
         up, how = mean_up, "the cameras' mean image-up direction"
     if np.linalg.norm(up) < 1e-9:

@@ -729,6 +729,28 @@ def _place_on_board(reconstruction: pycolmap.Reconstruction, frames_dir: Path,
                             **fit, "views": views}}
 
 
+#: A pose-less model's ground: a plane within this fraction of the cameras' distance from
+#: the scene holding at least GROUND_MIN_FRACTION of the sparse points (the table or the
+#: soil round the pot, as the board would be).
+GROUND_DISTANCE_FRACTION, GROUND_MIN_FRACTION = 0.01, 0.25
+
+
+def ground_normal(points: np.ndarray, camera_distance: float, seed: int) -> np.ndarray | None:
+    """The unit normal (either sign) of the dominant plane of a model's sparse points where
+    one holds GROUND_MIN_FRACTION of them, else None (RANSAC, Open3D); model units."""
+    if len(points) < 50 or camera_distance <= 0:
+        return None
+    from flowerpose.log import open3d
+
+    o3d = open3d()
+    o3d.utility.random.seed(seed)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    plane, inliers = cloud.segment_plane(GROUND_DISTANCE_FRACTION * camera_distance, 3, 500)
+    if len(inliers) < GROUND_MIN_FRACTION * len(points):
+        return None
+    return np.asarray(plane[:3], np.float64)
+
+
 def _level(reconstruction: pycolmap.Reconstruction, config: SfmConfig
            ) -> tuple[Similarity, dict]:
     """Put a pose-less model upright in place (`align.level_similarity`), scaled so that
@@ -737,10 +759,11 @@ def _level(reconstruction: pycolmap.Reconstruction, config: SfmConfig
     images = [im for im in reconstruction.images.values() if im.has_pose]
     centres = np.array([im.projection_center() for im in images])
     image_up = np.array([-im.cam_from_world().rotation.matrix()[1] for im in images])
-    level, how = level_similarity(centres, image_up)
-    scene = np.median(_cloud(reconstruction).points, axis=0) if \
-        reconstruction.num_points3D() else centres.mean(axis=0)
+    points = _cloud(reconstruction).points
+    scene = np.median(points, axis=0) if len(points) else centres.mean(axis=0)
     distance = float(np.median(np.linalg.norm(centres - scene, axis=1)))
+    level, how = level_similarity(centres, image_up, ground_normal(points, distance,
+                                                                   config.seed))
     stated = config.camera_distance_m is not None
     scale = (config.camera_distance_m if stated else ASSUMED_CAMERA_DISTANCE_M) / distance
     similarity = Similarity(scale, level.rotation, scale * level.translation)

@@ -135,3 +135,17 @@ def test_rotation_onto_takes_one_direction_onto_another():
         rotation = rotation_onto(a, np.array([0, 0, 1.0]))
         assert np.allclose(rotation @ a, [0, 0, 1]) and np.isclose(np.linalg.det(rotation), 1)
         assert np.allclose(rotation.T @ rotation, np.eye(3))
+
+
+def test_a_ground_plane_is_up_where_the_cameras_agree():
+    """A table's plane under the plant gives up, turned to the cameras' side; a plane the
+    cameras' own up contradicts (a wall behind the plant) is not taken for the ground."""
+    angles = np.linspace(0, 1.0, 12)  # a short arc at two heights: no level ring
+    centres = np.c_[0.3 * np.cos(angles), 0.3 * np.sin(angles), 0.2 + 0.1 * (np.arange(12) % 2)]
+    tilt = Rotation.from_euler("x", 8, degrees=True).as_matrix()
+    image_up = np.tile(tilt @ [0, 0, 1.0], (12, 1))  # held a little off upright
+    similarity, how = level_similarity(centres, image_up, ground=np.array([0, 0, -1.0]))
+    assert how == "the ground's plane"
+    assert np.allclose(similarity.rotation @ [0, 0, 1.0], [0, 0, 1.0])
+    _, how = level_similarity(centres, image_up, ground=np.array([1.0, 0, 0]))
+    assert how == "the cameras' mean image-up direction"
