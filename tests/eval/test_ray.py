@@ -28,15 +28,15 @@ def _rows(folder: Path) -> list[dict]:
 def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
     config = eval_config("realistic")
     grid = parse_grid(["cluster.min_points=10,20"], config)
-    run_sweep(config, grid, plants=2, seed=0, out_dir=tmp_path / "pool", workers=2)
+    run_sweep(config, grid, plants=1, seed=0, out_dir=tmp_path / "pool", workers=2)
     from flowerpose.eval.runner import on_ray
 
     with on_ray(None) as session:
-        run_sweep(config, grid, plants=2, seed=0, out_dir=tmp_path / "ray")
+        run_sweep(config, grid, plants=1, seed=0, out_dir=tmp_path / "ray")
     assert _rows(tmp_path / "ray") == _rows(tmp_path / "pool")
     assert len(_rows(tmp_path / "pool")) == 2
-    # plants, then the evaluations of the grid's two settings and of the defaults
-    assert sum(session.tasks_by_node.values()) == 2 + 3 * 2
+    # the plant, then the evaluations of the grid's two settings and of the defaults
+    assert sum(session.tasks_by_node.values()) == 1 + 3 * 1
 
 
 @pytest.mark.slow
