@@ -49,6 +49,7 @@ def _set_files(set_dir: Path, work: Path) -> tuple[Path, Path, Path]:
             raise InputError(needed, "not found: a photo set holds images/ and colmap/ (as "
                              "flowerpose data fetch romi-arabidopsis lays it out)")
     if not poses.is_file():
+        work.mkdir(parents=True, exist_ok=True)
         poses = romi_rough_poses(set_dir / "metadata", work / "poses.csv")
     return images, colmap, poses
 
@@ -77,7 +78,6 @@ def run_photo_bench(set_dir: Path, out: Path, max_size: int | None = None,
     out/photo_bench.json and print its table. Returns the report."""
     set_dir, out = Path(set_dir), Path(out)
     config = config or ReconstructConfig()
-    out.mkdir(parents=True, exist_ok=True)
     images, colmap, poses = _set_files(set_dir, out)
     calibrated = {name: pose.position for name, pose in
                   read_colmap_model(colmap, "mm")[1].items()}
@@ -121,6 +121,7 @@ def run_photo_bench(set_dir: Path, out: Path, max_size: int | None = None,
                     refined, clouds[b], t)["fscore"], 4) for t in AGREEMENT_M}}
     report = {"run": run_record(), "set": str(set_dir), "max_size": max_size,
               "cpu_count": os.cpu_count(), "ways": ways, "agreement": agreement}
+    out.mkdir(parents=True, exist_ok=True)
     write_json(out / "photo_bench.json", report)
     print(photo_bench_markdown(report), end="")
     print(f"photo bench: {out / 'photo_bench.json'}")

@@ -35,6 +35,7 @@ except ImportError:  # the [recon] extra is not installed
     pycolmap = None
 
 from flowerpose.atomic import write_bytes, write_image
+from flowerpose.config import require
 from flowerpose.csvio import read_csv_table
 from flowerpose.errors import InputError, missing_extra
 from flowerpose.jsonio import read_json, write_json
@@ -48,7 +49,7 @@ from flowerpose.pipeline.frames import (
     is_rotation,
 )
 from flowerpose.processes import reclaim_sigterm
-from flowerpose.scanio import Intrinsics
+from flowerpose.scanio import Intrinsics, image_size
 from flowerpose.stopwatch import Stopwatch
 
 reclaim_sigterm()
@@ -77,6 +78,13 @@ class PhotoImportConfig:
     """The unit of the given poses (a COLMAP model's or the CSV's positions)."""
     jpeg_quality: int = 95
     """JPEG quality of re-encoded images (undistorted or downscaled)."""
+
+    def __post_init__(self):
+        require(self.count >= 1, "count", f"must be at least 1, got {self.count}")
+        require(self.max_size is None or self.max_size >= 16, "max_size",
+                f"must be at least 16 pixels, got {self.max_size}")
+        require(self.units in UNITS, "units", f"one of {', '.join(UNITS)}, got {self.units!r}")
+        require(1 <= self.jpeg_quality <= 100, "jpeg_quality", "must be 1-100")
 
 
 @dataclass(frozen=True)
@@ -107,17 +115,6 @@ def _read_rgb(path: Path) -> np.ndarray:
     if image is None:
         raise InputError(path, "unreadable image (not a JPEG or PNG, or damaged)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file's header (no full decode)."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (UnidentifiedImageError, OSError):
-        raise InputError(path, "unreadable image (not a JPEG or PNG, or damaged)") from None
 
 
 def exif_focal_px(path: Path, width: int, height: int) -> float | None:
@@ -350,7 +347,7 @@ def import_photos(source: Path, out_dir: Path, config: PhotoImportConfig = Photo
 
     if source.is_dir():
         photos = list_photos(source)
-        sizes = {p: _image_size(p) for p in photos}
+        sizes = {p: image_size(p) for p in photos}
         if len(set(sizes.values())) > 1:
             first, odd = photos[0], next(p for p in photos if sizes[p] != sizes[photos[0]])
             raise InputError(odd, f"is {sizes[odd][0]}x{sizes[odd][1]} pixels, but "

@@ -69,7 +69,6 @@ _scan_stage_base = starting_config("flowerpose.pipeline.scan_stages:ScanStagesCo
 
 
 def cmd_frames(args: argparse.Namespace) -> int:
-    from flowerpose.errors import InputError
     from flowerpose.pipeline.frames import select_frames
 
     config = configure(_scan_stage_base(), args, reads=("scan.frames",),
@@ -140,7 +139,7 @@ def add_frames(sub: argparse._SubParsersAction) -> None:
                    "gantry logs them; reconstruct refines them")
     p.add_argument("--pose-units", choices=("m", "cm", "mm"), default="m",
                    help="the unit of the positions in --colmap or --poses (default: %(default)s)")
-    p.add_argument("--max-size", type=int, metavar="PX",
+    p.add_argument("--max-size", type=at_least(16), metavar="PX",
                    help="--images: downscale to at most this longest side, pixels")
     add_setting_flags(p, _scan_stage_base, {"--count": "scan.frames.count",
                                             "--crop": "scan.frames.crop_px",
@@ -158,7 +157,6 @@ def add_frames(sub: argparse._SubParsersAction) -> None:
 
 def cmd_marker(args: argparse.Namespace) -> int:
     from flowerpose.cli.options import check_writable
-    from flowerpose.errors import InputError
     from flowerpose.pipeline.board import PRINT_DPI, BoardSpec, board_image
 
     suffix = args.out.suffix.lower()
@@ -218,7 +216,7 @@ def add_marker(sub: argparse._SubParsersAction) -> None:
                    help="the board's file")
     p.add_argument("--squares", type=_squares, default="7x5", metavar="COLSxROWS",
                    help="squares along and across (default: %(default)s, an A4 page)")
-    p.add_argument("--square-mm", type=float, default=30.0, metavar="MM",
+    p.add_argument("--square-mm", type=positive_number, default=30.0, metavar="MM",
                    help="a square's side as printed, millimetres (default: %(default)g)")
     p.add_argument("--overwrite", action="store_true", help="replace the file if it exists")
     p.set_defaults(func=cmd_marker)
