@@ -214,10 +214,10 @@ def romi_colmap_model(metadata_dir: Path, out_dir: Path) -> Path:
     """The calibrated cameras of a ROMI scan's metadata ("colmap_camera": OPENCV camera,
     world-to-camera rotmat and tvec, millimetres) as a COLMAP text model in out_dir."""
     import numpy as np
-    from scipy.spatial.transform import Rotation
 
     from flowerpose.atomic import write_text
     from flowerpose.jsonio import read_json
+    from flowerpose.scanio import matrix_to_quaternion
 
     files = sorted(Path(metadata_dir).glob("*.json"))
     if not files:
@@ -236,9 +236,9 @@ def romi_colmap_model(metadata_dir: Path, out_dir: Path) -> Path:
                              f"({err})") from None
         if camera not in cameras:
             cameras.append(camera)
-        x, y, z, w = (float(v) for v in Rotation.from_matrix(rotation).as_quat())
+        quaternion = " ".join(repr(float(v)) for v in matrix_to_quaternion(rotation))
         t = " ".join(repr(float(v)) for v in translation)
-        images.append(f"{k} {w!r} {x!r} {y!r} {z!r} {t} "
+        images.append(f"{k} {quaternion} {t} "
                       f"{cameras.index(camera) + 1} {path.stem}.jpg\n\n")
     out_dir.mkdir(parents=True, exist_ok=True)
     write_text(out_dir / "cameras.txt", "".join(

@@ -210,6 +210,17 @@ def trajectory_row(frame: int, t: float, gantry: np.ndarray, yaw: float, pitch: 
     return [str(int(frame))] + [f"{float(v):.9f}" for v in values]
 
 
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file from its header, without decoding its pixels."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (UnidentifiedImageError, OSError):
+        raise InputError(path, "unreadable image (not a JPEG or PNG, or damaged)") from None
+
+
 def frame_files(scan_dir: Path) -> list[Path]:
     """The recorded frame images of a scan folder, in order."""
     return sorted((Path(scan_dir) / "frames").glob("frame_*.jpg"))

@@ -58,7 +58,7 @@ from flowerpose.pipeline.align import (
 from flowerpose.pipeline.board import MIN_VIEWS, BoardSpec, board_similarity, find_corners
 from flowerpose.pipeline.frames import ChosenFrame, distinct_views, pose_kind, read_frames
 from flowerpose.processes import reclaim_sigterm
-from flowerpose.scanio import Intrinsics, read_intrinsics
+from flowerpose.scanio import Intrinsics, image_size, read_intrinsics
 from flowerpose.stopwatch import Stopwatch
 
 # Importing pycolmap gave SIGTERM to glog, which prints a C stack dump and kills the process.
@@ -256,13 +256,6 @@ def pairs_from_poses(positions: np.ndarray, rotations: np.ndarray, neighbours: i
                                                              strict=True)}
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise InputError(path, "unreadable image")
-    return image.shape[1], image.shape[0]
-
-
 def _threads(config: SfmConfig) -> int:
     return config.num_threads if config.num_threads > 0 else (os.cpu_count() or 1)
 
@@ -278,7 +271,8 @@ def feature_defaults(mode: str, kind: str, longest_side: int) -> tuple[int, int]
 
 
 def _extract(database: Path, frames_dir: Path, names: list[str],
-             intrinsics: Intrinsics | None, mode: str, kind: str, config: SfmConfig) -> None:
+             intrinsics: Intrinsics | None, mode: str, kind: str, longest_side: int,
+             config: SfmConfig) -> None:
     reader = pycolmap.ImageReaderOptions()
     if intrinsics is not None and not intrinsics.estimated:
         reader.camera_model = "PINHOLE"
@@ -292,7 +286,7 @@ def _extract(database: Path, frames_dir: Path, names: list[str],
             reader.camera_params = ",".join(repr(float(v)) for v in (
                 (intrinsics.fx + intrinsics.fy) / 2, intrinsics.cx, intrinsics.cy, 0.0))
     options = pycolmap.FeatureExtractionOptions()
-    size, octave = feature_defaults(mode, kind, max(_image_size(frames_dir / names[0])))
+    size, octave = feature_defaults(mode, kind, longest_side)
     options.max_image_size = config.max_image_size or size
     options.num_threads = _threads(config)
     options.sift.max_num_features = config.max_features
@@ -823,9 +817,9 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     names = [f.file for f in frames]
     by_name = dict(zip(names, frames, strict=True))
     camera_path = frames_dir / "camera.json"
+    width, height = image_size(frames_dir / names[0])
     intrinsics = None
     if camera_path.exists():
-        width, height = _image_size(frames_dir / names[0])
         intrinsics = read_intrinsics(camera_path).scaled(width, height)
     mode = config.mode
     if mode == "poses" and (intrinsics is None or intrinsics.estimated):
@@ -849,7 +843,8 @@ def reconstruct_sparse(frames_dir: Path, work_dir: Path, config: SfmConfig | Non
     pycolmap.set_random_seed(config.seed)
     with _colmap_logging(config.colmap_log):
         with watch.step("features"):
-            _extract(database, frames_dir, names, intrinsics, mode, kind, config)
+            _extract(database, frames_dir, names, intrinsics, mode, kind, max(width, height),
+                     config)
         with watch.step("matching"):
             pairs = _pairs(frames, kind, config)
             if mode == "poses":

@@ -92,22 +92,16 @@ def photos_cloud(recon: Path, target: Path) -> None:
     from flowerpose.atomic import write_figure
     from flowerpose.cloudio import read_cloud
     from flowerpose.jsonio import read_json
-    from flowerpose.scanio import quaternion_to_matrix
 
     cloud = read_cloud(recon / "cloud.ply", units="m")
     keep = np.random.default_rng(0).permutation(len(cloud))[:20000]
     points, colours = cloud.points[keep], cloud.colors[keep] / 255.0
-    images_txt = (recon / "sparse" / "images.txt")
-    if not images_txt.is_file():
-        import pycolmap
+    import pycolmap
 
-        pycolmap.Reconstruction(str(recon / "sparse")).write_text(str(recon / "sparse"))
-    rows = [line.split() for line in images_txt.read_text().splitlines()
-            if line and not line.startswith("#")][::2]
-    rotation = quaternion_to_matrix(np.array([[float(v) for v in r[1:5]] for r in rows]))
-    translation = np.array([[float(v) for v in r[5:8]] for r in rows])
-    centres = -np.einsum("nji,nj->ni", rotation, translation)
-    axes = rotation[:, 2, :]  # each camera's optical axis in the world
+    images = [image for image in pycolmap.Reconstruction(str(recon / "sparse")).images.values()
+              if image.has_pose]
+    centres = np.array([image.projection_center() for image in images])
+    axes = np.array([image.cam_from_world().rotation.matrix()[2] for image in images])
     metric = read_json(recon / "reconstruction.json").get("metric", True)
     figure, panels = plt.subplots(1, 2, figsize=(12, 6))
     for panel, (a, b), title in ((panels[0], (0, 2), "side (x, z)"),
@@ -120,7 +114,7 @@ def photos_cloud(recon: Path, target: Path) -> None:
         panel.set_title(title)
         panel.set_xlabel("metres" if metric else "metres, at an assumed camera distance")
     panels[0].legend(loc="upper right")
-    figure.suptitle(f"{len(cloud):,} points from {len(rows)} photographs")
+    figure.suptitle(f"{len(cloud):,} points from {len(images)} photographs")
     figure.tight_layout()
     write_figure(target, figure, dpi=110)
     plt.close(figure)
