@@ -138,7 +138,7 @@ def _source_files() -> list[tuple[str, Path]]:
     """Every flowerpose source file (.py, .toml, .xml) once, as (its package/the path in
     it, path), named by the innermost package holding it: the same names whether the
     packages are installed from their own folders (pipeline/ as flowerpose.pipeline) or
-    laid out one inside another (another revision's tree, `eval/revision.py`), so the same
+    laid out one inside another (another revision's tree, `eval/studies/revision.py`), so the same
     code has the same version either way."""
     folders = _package_folders()
     found: dict[Path, tuple[str, Path]] = {}

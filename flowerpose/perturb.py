@@ -20,7 +20,7 @@ measured on, at a strength that has a unit:
   truth: `draw_cuts`).
 
 Colours are 8-bit sRGB: exposure and cast act on linear light, as a camera's do. The
-stress report (`eval/stress.py`) and the `field` preset's per-plant degradation both use
+stress report (`eval/studies/stress.py`) and the `field` preset's per-plant degradation both use
 these, so a perturbation means the same in both.
 """
 

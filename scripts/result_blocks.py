@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats as scipy_stats
 
-from flowerpose.eval.paired import flower_errors
-from flowerpose.eval.stats import interval_text, wilson
+from flowerpose.eval.scoring.paired import flower_errors
+from flowerpose.eval.scoring.stats import interval_text, wilson
 
 REPO = Path(__file__).resolve().parents[1]
 #: The pages that hold result blocks.
@@ -152,7 +152,7 @@ def uncertain_flag(runs: Path) -> str:
 
 def photos_bench(runs: Path) -> str:
     """The real photos three ways (`flowerpose bench --photos`): its table, as it printed it."""
-    from flowerpose.eval.photo_bench import photo_bench_markdown
+    from flowerpose.eval.studies.photo_bench import photo_bench_markdown
 
     return photo_bench_markdown(_json(runs / "photos" / "photo_bench.json"))
 

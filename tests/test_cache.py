@@ -10,9 +10,9 @@ import pytest
 
 from flowerpose import cache as cache_module
 from flowerpose.cache import StageCache, stage_key
-from flowerpose.eval import scan_source
-from flowerpose.eval.scan_source import (
-    RECONSTRUCTION_FILES,
+from flowerpose.eval.capture import photogrammetry, scan_source
+from flowerpose.eval.capture.photogrammetry import RECONSTRUCTION_FILES
+from flowerpose.eval.capture.scan_source import (
     SCAN_FILES,
     ScanSourceConfig,
     capture_scan_cached,
@@ -64,27 +64,35 @@ def test_an_entry_is_whole_or_absent_and_the_first_of_two_fills_wins(tmp_path):
 
 
 def _fake_capture(monkeypatch):
-    """The capture's two parts as stand-ins that write their files and count their runs."""
-    runs = {"scan": [], "reconstruct": []}
+    """The capture's steps as stand-ins that write their files and count their runs."""
+    runs = {"scan": [], "frames": [], "reconstruct": []}
 
-    def scan(plant_dir, config, path):
+    def film(plant_dir, config, path):
         runs["scan"].append(config)
-        for name in [n for n in SCAN_FILES if n != "frames"] + [
-                "frames/frames.json", "frames/frames/frame_000004.jpg",
-                "scan/frames/frame_000004.jpg"]:
+        for name in [*SCAN_FILES, "scan/frames/frame_000004.jpg"]:
             (plant_dir / name).parent.mkdir(parents=True, exist_ok=True)
             (plant_dir / name).write_text(f"{name} of scan {len(runs['scan'])}")
-        return {"recorded": 10, "frames": 1, "seconds": {"scan": 5.0, "frames": 1.0}}
+        return {"recorded": 10, "seconds": {"scan": 5.0}}
 
-    def reconstruct(plant_dir, config):
+    def choose(folder, frames):
+        runs["frames"].append(frames)
+        assert (folder / "scan" / "frames" / "frame_000004.jpg").is_file()  # a recording
+        for name in ("frames/frames.json", "frames/frames/frame_000004.jpg"):
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_text(f"{name} of choice {len(runs['frames'])}")
+        return {"frames": 1}
+
+    def reconstruct(folder, config):
         runs["reconstruct"].append(config)
         for name in RECONSTRUCTION_FILES:
-            (plant_dir / name).parent.mkdir(parents=True, exist_ok=True)
-            (plant_dir / name).write_text(f"{name} of reconstruction {len(runs['reconstruct'])}")
-        return {"points": 7, "seconds": {"reconstruct": 9.0}}
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_text(f"{name} of reconstruction {len(runs['reconstruct'])}")
+        return {"images_registered": 1, "images_used": 1, "points": 7, "alignment_rms_m": 0.0}
 
-    monkeypatch.setattr(scan_source, "scan_and_choose", scan)
-    monkeypatch.setattr(scan_source, "reconstruct_capture", reconstruct)
+    monkeypatch.setattr(scan_source, "film_plant", film)
+    monkeypatch.setattr(photogrammetry, "choose_frames", choose)
+    monkeypatch.setattr(photogrammetry, "reconstruct_frames", reconstruct)
+    monkeypatch.setattr(scan_source, "cloud_quality", lambda plant_dir, built: {})
     return runs
 
 
@@ -118,7 +126,9 @@ def test_a_scan_capture_runs_once_for_the_same_plant_and_settings(tmp_path, monk
     capture_scan_cached(plant, dataclasses.replace(
         config, frames=dataclasses.replace(config.frames, count=100)), None, root)
     capture_scan_cached(plant, config, ScanPathConfig(azimuth_step_deg=30.0), root)
-    assert len(runs["scan"]) == 3  # another frame count, another path: scanned again
+    # Another frame count: the cache keeps no recording, so the plant is filmed again to
+    # choose from (the stand-in refuses to choose without one); another path: scanned again.
+    assert (len(runs["scan"]), len(runs["frames"])) == (3, 3)
     (plant / "plant.json").write_text(json.dumps({"another": "plant"}))
     capture_scan_cached(plant, config, None, root)
     assert len(runs["scan"]) == 4
@@ -136,7 +146,8 @@ def test_other_reconstruction_settings_reuse_the_scan_and_the_frames(tmp_path, m
     result = capture_scan_cached(plant, other, None, root)
     assert (len(runs["scan"]), len(runs["reconstruct"])) == (1, 2)
     assert result["cached"] == ["scan", "frames"]
-    assert result["seconds"] == {"scan": 0.0, "frames": 0.0, "reconstruct": 9.0}
+    assert result["seconds"]["scan"] == result["seconds"]["frames"] == 0.0
+    assert result["seconds"]["reconstruct"] > 0
     # Each reconstruction keeps its own entry, tied to the scan's.
     assert len(list((root / "reconstruct").iterdir())) == 2
     assert capture_scan_cached(plant, config, None, root)["cached"] == [
@@ -265,9 +276,9 @@ def test_the_cache_command_says_what_is_held_and_prunes_only_entries(tmp_path, c
 
 @pytest.mark.slow
 def test_an_eval_again_takes_its_plants_detections_and_scores_from_the_cache(tmp_path):
-    from flowerpose.eval.config import EvalConfig
-    from flowerpose.eval.harness import run_eval
-    from flowerpose.eval.run import EvalRun
+    from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.jobs.eval_run import EvalRun
+    from flowerpose.eval.studies.eval_recipe import run_eval
 
     root, config = tmp_path / "cache", EvalConfig()
 

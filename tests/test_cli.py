@@ -401,7 +401,7 @@ def test_the_quick_help_examples_run_as_written_with_their_set_example(tmp_path,
 
 def test_every_set_example_names_a_setting_its_command_reads():
     from flowerpose.config import apply_overrides, parse_set_options
-    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.hardware.flights.pollination_plan import PollinateSettings
     from flowerpose.pipeline.flowers import PipelineConfig
 

@@ -13,7 +13,7 @@ def _configured(base, *argv):
 
 
 def test_an_evals_renamed_scan_keys_reach_the_embedded_sections_with_a_warning(capsys):
-    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.jobs.config import EvalConfig
 
     old = _configured(EvalConfig(), "eval", "--set", "scan.frame_rate_hz=0.1",
                       "--set", "scan.sensor.gain=1.2", "--set", "scan.frames=50",
@@ -62,10 +62,10 @@ def test_a_key_a_command_does_not_read_or_a_bad_value_is_one_line_naming_the_ful
 
 
 def test_sweep_grids_tune_sets_and_tune_spaces_take_renamed_keys_too(tmp_path, capsys):
-    from flowerpose.eval.config import EvalConfig
-    from flowerpose.eval.sweep import parse_grid
-    from flowerpose.eval.tune import user_overrides
-    from flowerpose.eval.tune_space import read_space
+    from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.studies.sweep import parse_grid
+    from flowerpose.eval.studies.tune import user_overrides
+    from flowerpose.eval.studies.tune_space import read_space
 
     assert parse_grid(["scan.frames=40,50"], EvalConfig()) == [("scan.frames.count",
                                                                  ["40", "50"])]

@@ -68,8 +68,8 @@ def test_the_citation_file_is_valid_citation_file_format():
 
 def test_the_example_files_the_guides_use_are_read_as_the_commands_read_them():
     from flowerpose.config import load_suite
-    from flowerpose.eval.config import EvalConfig
-    from flowerpose.eval.tune_space import read_space
+    from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.studies.tune_space import read_space
 
     examples = ROOT / "examples"
     keys = [p.key for p in read_space(examples / "tuning" / "space.toml", EvalConfig())]

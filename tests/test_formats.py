@@ -13,10 +13,10 @@ sys.path.insert(0, str(Path(__file__).parent / "eval"))
 from realplants import CENTRES, NORMALS, write_real_plant  # noqa: E402
 
 from flowerpose.cloudio import read_cloud  # noqa: E402
-from flowerpose.eval import accepted  # noqa: E402
-from flowerpose.eval.fresh_seeds import FRESH_SEEDS  # noqa: E402
-from flowerpose.eval.labels import Label, LabelFile, read_labels, write_labels  # noqa: E402
-from flowerpose.eval.report import build_report, write_report  # noqa: E402
+from flowerpose.eval.reports.report import build_report, write_report  # noqa: E402
+from flowerpose.eval.scoring.labels import Label, LabelFile, read_labels, write_labels  # noqa: E402
+from flowerpose.eval.studies import accepted  # noqa: E402
+from flowerpose.eval.studies.fresh_seeds import FRESH_SEEDS  # noqa: E402
 from flowerpose.pipeline.flowers import find_flowers, read_flowers, write_flowers  # noqa: E402
 
 
@@ -79,7 +79,7 @@ def test_report_json_reads_back_as_built(tmp_path):
 
 
 def test_a_generated_plants_truth_reads_back_as_made(tmp_path):
-    from flowerpose.eval.truth import read_plant_truth
+    from flowerpose.eval.scoring.truth import read_plant_truth
     from flowerpose.sim.bundle import make_plant
 
     bundle = make_plant(3, "easy", points=2000, out_dir=tmp_path)

@@ -50,6 +50,68 @@ def test_each_package_imports_only_what_the_layout_allows(folder, forbidden, all
     assert not broken, sorted(broken)
 
 
+#: The floors of eval/'s subpackages (DESIGN.md, "Layout"): a module imports from its own
+#: subpackage and from those on lower floors only, never sideways or up.
+EVAL_FLOORS = {"pool": 0, "scoring": 1, "capture": 1, "reports": 2, "pollination": 2,
+               "jobs": 3, "field": 4, "labelling": 4, "studies": 5}
+#: The field runs of a bed that has no truth: they import nothing of the scoring.
+WITHOUT_TRUTH = ("field/bed_loop.py", "field/physical_bed.py")
+
+
+def _eval_parts(path: Path) -> set[str]:
+    """The eval/ subpackages (or pool) a module imports, anywhere in it."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+        if isinstance(node, ast.ImportFrom) and node.module == "flowerpose.eval":
+            names = [f"flowerpose.eval.{a.name}" for a in node.names]
+        for name in names:
+            parts = name.split(".")
+            if parts[:2] == ["flowerpose", "eval"] and len(parts) > 2:
+                found.add(parts[2])
+    return found
+
+
+def _eval_part(path: Path) -> str:
+    relative = path.relative_to(ROOT / "eval")
+    return relative.parts[0] if len(relative.parts) > 1 else relative.stem
+
+
+def test_every_eval_module_lies_on_a_floor():
+    placed = {_eval_part(p) for p in _modules("eval") if p.name != "__init__.py"
+              or p.parent != ROOT / "eval"}
+    assert placed == set(EVAL_FLOORS), placed ^ set(EVAL_FLOORS)
+
+
+def test_eval_imports_only_from_its_own_floor_or_below():
+    broken = []
+    for path in _modules("eval"):
+        if path.parent == ROOT / "eval" and path.name == "__init__.py":
+            continue
+        own = _eval_part(path)
+        for part in _eval_parts(path) - {own}:
+            if part not in EVAL_FLOORS or EVAL_FLOORS[part] >= EVAL_FLOORS[own]:
+                broken.append(f"{path.relative_to(ROOT)} ({own}, floor {EVAL_FLOORS[own]}) "
+                              f"imports {part}")
+    assert not broken, sorted(broken)
+
+
+def test_field_runs_without_truth_import_no_scoring():
+    for name in WITHOUT_TRUTH:
+        assert "scoring" not in _eval_parts(ROOT / "eval" / name), name
+
+
+def test_a_floor_breach_is_found(tmp_path, monkeypatch):
+    """The floor test reads what it should: a scoring module importing a study is caught."""
+    module = tmp_path / "eval" / "scoring" / "x.py"
+    module.parent.mkdir(parents=True)
+    module.write_text("def f():\n    from flowerpose.eval.studies import guard\n")
+    monkeypatch.setattr(__import__(__name__), "ROOT", tmp_path, raising=False)
+    assert _eval_parts(module) == {"studies"}
+    assert EVAL_FLOORS["studies"] > EVAL_FLOORS["scoring"]
+
+
 def test_importing_every_pipeline_module_loads_no_sim_hardware_or_eval_module():
     """The rule as a user meets it: the pipeline alone, installed on a field machine, never
     pulls in the simulator, the bot or the harness (an import the source reading could miss,

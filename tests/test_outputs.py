@@ -234,7 +234,7 @@ def test_an_eval_rerun_that_is_interrupted_keeps_the_finished_report(tmp_path, m
     sys.path.insert(0, str(Path(__file__).parent / "eval"))
     from realplants import write_real_plant
 
-    from flowerpose.eval import harness
+    from flowerpose.eval.studies import eval_recipe as harness
 
     folder = write_real_plant(tmp_path / "plant", "candidates")
     out = tmp_path / "out"

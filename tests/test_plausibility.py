@@ -84,7 +84,7 @@ def _sagemaker(path: Path, cuboids: list[dict]) -> Path:
 
 
 def test_label_angles_in_degrees_are_refused(tmp_path):
-    from flowerpose.eval.truth import read_sagemaker_truth
+    from flowerpose.eval.scoring.truth import read_sagemaker_truth
 
     labels = _sagemaker(tmp_path / "labels.json", [_cuboid("Flower:1", "Flower"),
                                                    _cuboid("Flower:2", "Flower", 12, 126, 40)])
@@ -94,7 +94,7 @@ def test_label_angles_in_degrees_are_refused(tmp_path):
 
 
 def test_cuboids_of_other_categories_are_left_out_and_named(tmp_path, caplog):
-    from flowerpose.eval.truth import read_sagemaker_truth
+    from flowerpose.eval.scoring.truth import read_sagemaker_truth
 
     labels = _sagemaker(tmp_path / "labels.json", [
         _cuboid("Flower:1", "Flower"), _cuboid("Bud:1", "Bud", x=3.0),

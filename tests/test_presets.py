@@ -9,7 +9,7 @@ import pytest
 from flowerpose.cli import main
 from flowerpose.config import load_preset, preset_hash, preset_names, profile_hash
 from flowerpose.errors import InputError
-from flowerpose.eval.config import eval_config
+from flowerpose.eval.jobs.config import eval_config
 from flowerpose.sim.world_config import SimConfig, preset, sim_preset
 
 
@@ -58,7 +58,7 @@ def _suite_report(path, preset_sha):
 
 
 def test_results_refuse_two_reports_of_one_suite_version_with_other_preset_files(tmp_path):
-    from flowerpose.eval.results import results_markdown
+    from flowerpose.eval.studies.results import results_markdown
 
     one = _suite_report(tmp_path / "one.json", "a" * 64)
     same = _suite_report(tmp_path / "same.json", "a" * 64)

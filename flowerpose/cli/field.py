@@ -40,7 +40,7 @@ def _scan_base():
     frame rate (`SimCameraConfig`; an eval renders fewer, `EVAL_FRAME_RATE_HZ`)."""
     import dataclasses
 
-    from flowerpose.eval.config import EvalConfig
+    from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 
     config = EvalConfig()
@@ -93,7 +93,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         return _scan_field(args)
     if args.plant is None:
         raise InputError("scan --sim", "needs --plant DIR (a folder from flowerpose plant)")
-    from flowerpose.eval.scan_source import scan_plant
+    from flowerpose.eval.capture.scan_source import scan_plant
     from flowerpose.hardware.flights.scan_plan import plan_plant_scan, plan_table
     from flowerpose.sim.export import plant_obstacles, read_plant
 
@@ -536,25 +536,17 @@ def cmd_field(args: argparse.Namespace) -> int:
     return _field_physical(args, bed)
 
 
-#: What a physical bed's run reads of the settings: the frame choice, photogrammetry,
-#: detection and pose, the visits, and the camera's frame size.
-FIELD_SETTINGS = ("scan.frames", "scan.reconstruct", "scan.camera.width",
-                  "scan.camera.height", "pollinate")
-
-
 def _field_physical(args: argparse.Namespace, bed) -> int:
     """field --port / --cloud: the physical bot films the bed's plants with its USB camera,
     each reconstructed and its flowers found while it films the next."""
     import contextlib
-    import dataclasses
 
-    from flowerpose.eval.config import EvalConfig
-    from flowerpose.eval.field_bed import FieldRig, run_field_bed
+    from flowerpose.eval.field.physical_bed import FieldRig, run_field_bed, settings_read
+    from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.hardware.flights.bed_plan import plan_bed
-    from flowerpose.pipeline.flowers import PipelineConfig
 
-    reads = FIELD_SETTINGS + tuple(f.name for f in dataclasses.fields(PipelineConfig))
-    config = configure(EvalConfig(), args, reads=reads, command="field --port/--cloud")
+    config = configure(EvalConfig(), args, reads=tuple(settings_read(EvalConfig())),
+                       command="field --port/--cloud")
     plan = plan_bed(bed)  # a plant out of reach is refused before the camera opens
     print(f"bed: {len(plan.plants)} plants, {plan.duration_s / 60:.0f} min of bot time; "
           "every scan checked against the bot's reach and the neighbours")
@@ -591,9 +583,9 @@ def _field_physical(args: argparse.Namespace, bed) -> int:
 def _field_sim(args: argparse.Namespace, bed) -> int:
     """field --sim: the bed's plants generated and filmed in the simulator, scored."""
     from flowerpose.config import DEFAULT_PRESET
-    from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed, run_sim_bed
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.report import pollination_lines
+    from flowerpose.eval.field.simulated_bed import make_bed_plants, plan_sim_bed, run_sim_bed
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.reports.report import pollination_lines
 
     seed = 0 if args.seed is None else args.seed
     if seed < 0:

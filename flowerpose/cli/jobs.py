@@ -29,7 +29,7 @@ from flowerpose.cli.options import (
 )
 from flowerpose.config import DEFAULT_PRESET, profile_names, suite_names
 from flowerpose.errors import InputError
-from flowerpose.eval.run import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
+from flowerpose.eval.jobs.eval_run import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
 
 #: eval's source, preset, first seed and task when neither the command line nor a suite
 #: says (the run's from `EvalRun`).
@@ -45,8 +45,8 @@ def _default_out() -> Path:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.harness import run_eval
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.studies.eval_recipe import run_eval
 
     suite = _apply_suite(args) if args.suite else None
     _run_from_config(args)
@@ -57,8 +57,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise InputError(args.folders[0], "plant folders are for --source real")
     if args.truth_scale is not None and args.source != "real":
         raise InputError("--truth-scale", "is for --source real")
-    from flowerpose.eval.gates import parse_requirements
-    from flowerpose.eval.methods import ExternalMethod, parse_compare, parse_method
+    from flowerpose.eval.reports.gates import parse_requirements
+    from flowerpose.eval.scoring.methods import ExternalMethod, parse_compare, parse_method
 
     requirements = parse_requirements(args.require)  # a bad gate says so before any work
     if (args.junit or args.summary) and not requirements:
@@ -80,8 +80,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if len(set(names)) < len(names):
         raise InputError("--compare", "each compared method needs a name of its own")
     out = args.out or _default_out()
-    from flowerpose.eval.harness import eval_outputs
-    from flowerpose.eval.report import assets_record
+    from flowerpose.eval.reports.report import assets_record
+    from flowerpose.eval.studies.eval_recipe import eval_outputs
 
     run = EvalRun(source=args.source, plants=args.plants, seed=args.seed,
                   folders=tuple(args.folders), truth_scale=args.truth_scale, task=args.task,
@@ -100,7 +100,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         prune_to_limit(cache)
     import time
 
-    from flowerpose.eval.report import comparison_table, summary_lines, table
+    from flowerpose.eval.reports.report import comparison_table, summary_lines, table
 
     report["timing_s"]["wall"] = round(time.monotonic() - getattr(args, "started",
                                                                   time.monotonic()), 1)
@@ -114,7 +114,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             if "error" in plant:
                 print(f"{plant['plant']}: {plant['error']}")
     if args.task == "pollinate":
-        from flowerpose.eval.report import pollination_lines
+        from flowerpose.eval.reports.report import pollination_lines
 
         for line in pollination_lines(report):
             print(line)
@@ -178,7 +178,7 @@ def _apply_suite(args: argparse.Namespace) -> dict:
 def _gates(report: dict, requirements: list, args: argparse.Namespace) -> int:
     """eval's --require: the table of what failed (or that all hold), the JUnit and
     Markdown files when asked; 1 when a requirement does not hold."""
-    from flowerpose.eval.gates import check, outcome_table, write_junit, write_summary
+    from flowerpose.eval.reports.gates import check, outcome_table, write_junit, write_summary
 
     outcomes = check(report, requirements)
     failed = [o for o in outcomes if not o.passed]
@@ -277,8 +277,8 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
-    from flowerpose.eval.config import EvalConfig, pipeline_part
-    from flowerpose.eval.fidelity import FIDELITY_FILES, outcome_lines, run_fidelity, table
+    from flowerpose.eval.jobs.config import EvalConfig, pipeline_part
+    from flowerpose.eval.studies.fidelity import FIDELITY_FILES, outcome_lines, run_fidelity, table
 
     config = configure(EvalConfig(), args)
     with owned(args.out, "fidelity", args.overwrite, FIDELITY_FILES):
@@ -325,7 +325,7 @@ def cmd_cache(args: argparse.Namespace) -> int:
         gigabytes_to_bytes,
         max_cache_bytes,
     )
-    from flowerpose.eval.report import markdown_table
+    from flowerpose.eval.reports.report import markdown_table
 
     root = args.cache or default_cache_dir()
     if root.exists() and not root.is_dir():
@@ -370,7 +370,7 @@ def add_cache(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from flowerpose.eval.bench import run_bench
+    from flowerpose.eval.studies.bench import run_bench
     from flowerpose.pipeline.flowers import PipelineConfig
 
     if args.photos is not None:
@@ -383,7 +383,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def _bench_photos(args: argparse.Namespace) -> int:
     from flowerpose.errors import InputError
-    from flowerpose.eval.photo_bench import run_photo_bench
+    from flowerpose.eval.studies.photo_bench import run_photo_bench
     from flowerpose.pipeline.scan_stages import ScanStagesConfig
 
     if args.out is None:
@@ -431,7 +431,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_results(args: argparse.Namespace) -> int:
-    from flowerpose.eval.results import results_markdown
+    from flowerpose.eval.studies.results import results_markdown
 
     print(results_markdown(args.reports, args.title, not args.no_paper, args.figure), end="")
     return 0

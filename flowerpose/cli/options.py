@@ -102,7 +102,7 @@ def jobs_on(args: argparse.Namespace) -> contextlib.AbstractContextManager:
     """Where the command's jobs run: Ray (`--ray`), or the process pool."""
     if args.ray is None:
         return contextlib.nullcontext()
-    from flowerpose.eval.runner import on_ray
+    from flowerpose.eval.pool import on_ray
 
     return on_ray(None if args.ray == "local" else args.ray)
 

@@ -260,14 +260,14 @@ def add_reconstruct(sub: argparse._SubParsersAction) -> None:
         "flowerpose.pipeline.reconstruct:ReconstructConfig", "scan.reconstruct")})
 
 
-_dataset_base = starting_config("flowerpose.eval.dataset:DatasetConfig")
+_dataset_base = starting_config("flowerpose.eval.labelling.dataset:DatasetConfig")
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
     from flowerpose.cli.flags import given_settings
     from flowerpose.config import apply_overrides, parse_set_options
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.dataset import DatasetConfig, write_dataset
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.labelling.dataset import DatasetConfig, write_dataset
 
     dataset = apply_overrides(DatasetConfig(), parse_set_options(given_settings(args)))
     config = configure(eval_config(args.preset), args, flags=False)
@@ -353,7 +353,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
                                    result.detection_flowers))
     output.record(*(write_cloud(out / "crops" / f"flower_{flower.id:02d}.ply",
                                 cloud.subset(flower.crop)) for flower in result.flowers))
-    from flowerpose.eval.html_report import PlantView, write_html_report
+    from flowerpose.eval.reports.html_report import PlantView, write_html_report
 
     output.record(write_html_report(
         out / "report.html", f"flowerpose detect: {args.cloud.name}", None,
@@ -416,17 +416,17 @@ def add_pose(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_pose)
 
 
-_eval_base = starting_config("flowerpose.eval.harness:EvalConfig")
+_eval_base = starting_config("flowerpose.eval.studies.eval_recipe:EvalConfig")
 
 
 def cmd_score(args: argparse.Namespace) -> int:
-    from flowerpose.eval.config import EvalConfig
-    from flowerpose.eval.match import score_files
+    from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.reports.score_report import score_files
 
     config = configure(EvalConfig(), args, reads=("score",), command="score")
     report = score_files(args.flowers, args.truth, args.truth_format, args.truth_scale,
                          config.score.max_distance_m)
-    from flowerpose.eval.report import REPORT_FILES, summary_lines, table, write_report
+    from flowerpose.eval.reports.report import REPORT_FILES, summary_lines, table, write_report
 
     print(table(report))
     for line in summary_lines(report):
@@ -468,7 +468,7 @@ def cmd_label(args: argparse.Namespace) -> int:
     import getpass
     import webbrowser
 
-    from flowerpose.eval.label_server import make_server, open_session
+    from flowerpose.eval.labelling.label_server import make_server, open_session
 
     session = open_session(args.folder, args.labeller or getpass.getuser(), args.units,
                            args.detections)
@@ -525,7 +525,7 @@ def add_label(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_agree(args: argparse.Namespace) -> int:
-    from flowerpose.eval.agreement import (
+    from flowerpose.eval.labelling.agreement import (
         agreement,
         agreement_lines,
         labelling_unit,
@@ -544,7 +544,7 @@ def cmd_agree(args: argparse.Namespace) -> int:
 
 def add_agree(sub: argparse._SubParsersAction) -> None:
     """The `agree` subcommand's parser."""
-    from flowerpose.eval.match import MAX_MATCH_DISTANCE
+    from flowerpose.eval.scoring.match import MAX_MATCH_DISTANCE
 
     p = sub.add_parser(
         "agree", help="how far two labellings of one plant agree (label noise, measured)",

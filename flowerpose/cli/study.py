@@ -27,18 +27,18 @@ from flowerpose.cli.options import (
 )
 from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
-from flowerpose.eval.run import SOURCES, SYNTHETIC_SOURCES
+from flowerpose.eval.jobs.eval_run import SOURCES, SYNTHETIC_SOURCES
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.sweep import parse_grid, run_sweep, sweep_outputs
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.studies.sweep import parse_grid, run_sweep, sweep_outputs
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
     config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
     if args.source != "real":
-        from flowerpose.eval.fresh_seeds import refuse_fresh
+        from flowerpose.eval.studies.fresh_seeds import refuse_fresh
 
         refuse_fresh(args.seed, args.plants)
     grid = parse_grid(args.grid, config)
@@ -118,10 +118,10 @@ def _texts(text: str) -> list[str]:
 
 
 def cmd_stress(args: argparse.Namespace) -> int:
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.methods import ExternalMethod, parse_compare
-    from flowerpose.eval.plants import real_plants
-    from flowerpose.eval.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.jobs.plants import real_plants
+    from flowerpose.eval.scoring.methods import ExternalMethod, parse_compare
+    from flowerpose.eval.studies.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
@@ -161,7 +161,7 @@ def cmd_stress(args: argparse.Namespace) -> int:
         from flowerpose.cache import prune_to_limit
 
         prune_to_limit(cache)
-    from flowerpose.eval.stress import compare_tables, stress_table
+    from flowerpose.eval.studies.stress import compare_tables, stress_table
 
     print(stress_table(report))
     for name, table in compare_tables(report):
@@ -173,7 +173,7 @@ def cmd_stress(args: argparse.Namespace) -> int:
 
 def add_stress(sub: argparse._SubParsersAction) -> None:
     """The `stress` subcommand's parser."""
-    from flowerpose.eval.stress import DEFAULT_LEVELS
+    from flowerpose.eval.studies.stress import DEFAULT_LEVELS
 
     def levels(kind: str) -> str:
         return ",".join(f"{v:g}" for v in DEFAULT_LEVELS[kind])
@@ -247,10 +247,10 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
 
 def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.config import parse_set_options
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.fresh_seeds import refuse_fresh
-    from flowerpose.eval.plants import PlantSet, parse_sets
-    from flowerpose.eval.tune import (
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.jobs.plants import PlantSet, parse_sets
+    from flowerpose.eval.studies.fresh_seeds import refuse_fresh
+    from flowerpose.eval.studies.tune import (
         DEFAULTS_FLIPPED,
         TUNE_FILES,
         TuneSpec,
@@ -265,7 +265,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
         user_overrides,
         validation_default,
     )
-    from flowerpose.eval.tune_space import parse_objectives, read_space
+    from flowerpose.eval.studies.tune_space import parse_objectives, read_space
     from flowerpose.stopwatch import Stopwatch
 
     overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
@@ -315,7 +315,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
             if args.ray is None and workers == 1:
                 run_trials(spec, args.trials)
             else:
-                from flowerpose.eval.runner import run_jobs
+                from flowerpose.eval.pool import run_jobs
 
                 tasks = args.trials if args.ray is not None else min(workers, args.trials)
                 shares = [args.trials // tasks + (k < args.trials % tasks) for k in range(tasks)]
@@ -323,7 +323,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
                          labels=[f"worker {k}" for k in range(tasks)])
         finally:
             report = report_study(spec, defaults, watch.elapsed())
-    from flowerpose.eval.tune import tune_markdown
+    from flowerpose.eval.studies.tune import tune_markdown
 
     print(tune_markdown(report))
     print(f"tune: {args.out / 'tune.json'}, {args.out / 'tune.md'}, {args.out / 'tune.html'}"
@@ -388,7 +388,8 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
 
 def cmd_guard(args: argparse.Namespace) -> int:
     from flowerpose.config import parse_set_options
-    from flowerpose.eval.guard import (
+    from flowerpose.eval.reports.report import markdown_table
+    from flowerpose.eval.studies.guard import (
         ACCEPTED,
         GUARD_FILES,
         GuardRun,
@@ -396,9 +397,8 @@ def cmd_guard(args: argparse.Namespace) -> int:
         real_folder,
         run_guard,
     )
-    from flowerpose.eval.guard_report import guard_rows
-    from flowerpose.eval.report import markdown_table
-    from flowerpose.eval.tune import user_overrides
+    from flowerpose.eval.studies.guard_report import guard_rows
+    from flowerpose.eval.studies.tune import user_overrides
     from flowerpose.log import LOG
 
     if args.accept_loss is not None and not args.accept:

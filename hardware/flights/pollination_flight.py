@@ -2,7 +2,7 @@
 
 The executor flies the visits of a `PollinationPlan` (`flights/pollination_plan.py`) in
 order on any `Bot`: the physical one on serial or through FarmBot's web app, or a simulated one in
-the harness (`eval/pollination.py`), so what the harness scores is what a bot is told to
+the harness (`eval/pollination/visits.py`), so what the harness scores is what a bot is told to
 do. Before anything moves, every pose of the plan is checked against the connected bot's
 own travel and head limits, and its position must be known (homed). Each visit starts
 from the top of Z where the bot stands: up, across, the head turned, down to the

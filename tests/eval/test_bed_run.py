@@ -229,7 +229,7 @@ def test_with_pollinate_each_detected_plant_is_visited_and_scored(bed_run, tmp_p
 
 def _small_config():
     """The settings SMALL gives `field --sim` (the bed's cached work is keyed by them)."""
-    from flowerpose.eval.config import eval_config
+    from flowerpose.eval.jobs.config import eval_config
 
     sets = dict(item.split("=") for item in SMALL[3::2])
     return eval_config("easy", [{k: float(v) if "." in v else int(v) for k, v in sets.items()}])
@@ -245,8 +245,10 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
     import contextlib
     import shutil
 
-    from flowerpose.eval import bed_loop, field_bed
-    from flowerpose.eval.bed_run import make_bed_plants, plan_sim_bed
+    from flowerpose.eval.capture import photogrammetry
+    from flowerpose.eval.field import bed_loop
+    from flowerpose.eval.field import physical_bed as field_bed
+    from flowerpose.eval.field.simulated_bed import make_bed_plants, plan_sim_bed
     from flowerpose.hardware.backends.farmduino import FarmduinoBot
     from flowerpose.hardware.flights.bed_plan import read_bed
 
@@ -260,8 +262,9 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
     out = tmp_path / "field"
     for spot in bed.plants:
         shutil.copytree(done / "plants" / spot.name / "scan", out / "plants" / spot.name /
-                        "scan", ignore=shutil.ignore_patterns(*bed_loop.TRUTH_FILES))
-    journal = bed_loop.open_journal(out, bed, field_bed.fingerprint(bed, config), {})
+                        "scan", ignore=shutil.ignore_patterns(*photogrammetry.TRUTH_FILES))
+    journal = bed_loop.open_journal(
+        out, bed, bed_loop.fingerprint(bed, field_bed.settings_read(config)), {})
     for spot in bed.plants:  # filmed, as a bed stopped after its last scan would be
         journal.record["plants"][spot.name] = {"stage": "scanned", "seconds": {"scan": 1.0}}
     journal.save()
@@ -331,7 +334,7 @@ def test_a_bed_needs_the_simulator_and_a_good_bed_file(tmp_path, capsys):
 
 def test_the_bed_map_draws_each_plant_and_its_flowers_normals_from_above():
     from flowerpose.cloudio import Cloud
-    from flowerpose.eval.html_report import MAP_NORMAL_M, BedSpot, PlantView, bed_map
+    from flowerpose.eval.reports.html_report import MAP_NORMAL_M, BedSpot, PlantView, bed_map
 
     flowers = [{"id": 0, "center": [1.0, 0.8, 0.2], "normals": {"plane": [1.0, 0.0, 0.0]}},
                {"id": 1, "center": [1.05, 0.7, 0.2], "normals": {"plane": None}}]

@@ -3,7 +3,7 @@ bench.json; it never asserts a speed (this machine is shared)."""
 
 import pytest
 
-from flowerpose.eval.bench import SIMULATOR_BUDGET_S, run_bench
+from flowerpose.eval.studies.bench import SIMULATOR_BUDGET_S, run_bench
 from flowerpose.jsonio import read_json
 
 

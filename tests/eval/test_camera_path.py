@@ -5,9 +5,9 @@ import dataclasses
 import numpy as np
 
 from flowerpose.cloudio import Cloud, write_cloud
-from flowerpose.eval.config import EvalConfig
-from flowerpose.eval.html_report import CAMERA_RAY_M, _view_3d, write_html_report
-from flowerpose.eval.plants import SyntheticJob, camera_path
+from flowerpose.eval.jobs.config import EvalConfig
+from flowerpose.eval.jobs.plants import SyntheticJob, camera_path
+from flowerpose.eval.reports.html_report import CAMERA_RAY_M, _view_3d, write_html_report
 from flowerpose.jsonio import write_json
 
 

@@ -19,10 +19,10 @@ from flowerpose.cli import main
 from flowerpose.cloudio import read_cloud
 from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
-from flowerpose.eval.coco import rle
-from flowerpose.eval.config import eval_config
-from flowerpose.eval.dataset import DatasetConfig, split_plants, write_dataset
-from flowerpose.eval.yolo import outline
+from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.labelling.coco import rle
+from flowerpose.eval.labelling.dataset import DatasetConfig, split_plants, write_dataset
+from flowerpose.eval.labelling.yolo import outline
 from flowerpose.pipeline.flowers import find_flowers, grid_views
 
 # pycocotools' mask decoding under NumPy 2.

@@ -3,8 +3,8 @@
 import numpy as np
 
 from flowerpose.config import apply_overrides
-from flowerpose.eval.match import score_plant
-from flowerpose.eval.truth import read_plant_truth
+from flowerpose.eval.scoring.match import score_plant
+from flowerpose.eval.scoring.truth import read_plant_truth
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers
 
 

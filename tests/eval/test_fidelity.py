@@ -8,15 +8,15 @@ import pytest
 from realplants import write_real_plant
 
 from flowerpose.cli import main
-from flowerpose.eval.config import eval_config
-from flowerpose.eval.fidelity import (
+from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.scoring.real_source import read_real_plant
+from flowerpose.eval.studies.fidelity import (
     compare,
     real_sample,
     statistics,
     synthetic_cloud,
     synthetic_folders,
 )
-from flowerpose.eval.real_source import read_real_plant
 from flowerpose.pipeline.colour import petal_mask, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.flowers import PipelineConfig
 from flowerpose.sim.bundle import make_plant
@@ -43,7 +43,7 @@ def test_statistics_of_flowers_of_known_size_cupping_and_colour(tmp_path):
 
 
 def test_roughness_tells_a_smooth_surface_from_a_jittered_one():
-    from flowerpose.eval.fidelity import local_roughness
+    from flowerpose.eval.studies.fidelity import local_roughness
     from flowerpose.perturb import smooth_noise
 
     rng = np.random.default_rng(3)

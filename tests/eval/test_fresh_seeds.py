@@ -9,13 +9,13 @@ import pytest
 
 from flowerpose.cli import main
 from flowerpose.config import load_suite, suite_names
-from flowerpose.eval.fresh_seeds import FRESH_SEEDS, entry_draw
-from flowerpose.eval.guard import load_battery
+from flowerpose.eval.studies.fresh_seeds import FRESH_SEEDS, entry_draw
+from flowerpose.eval.studies.guard import load_battery
 
 REPO = Path(__file__).resolve().parents[2]
 #: The files allowed to hold seeds of the range: where it is written down, and the guard's
 #: own records of the plants it drew.
-OWNERS = {"eval/fresh_seeds.py", "assets/guard/accepted.json"}
+OWNERS = {"eval/studies/fresh_seeds.py", "assets/guard/accepted.json"}
 #: A whole number (not part of a word, a hex digest or a decimal fraction).
 NUMBER = re.compile(r"(?<![0-9A-Za-z_.])(\d[\d_]*)(?![0-9A-Za-z_]|\.\d)")
 

@@ -8,7 +8,7 @@ from realplants import write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval.gates import parse_requirements
+from flowerpose.eval.reports.gates import parse_requirements
 
 
 @pytest.mark.slow
@@ -64,9 +64,9 @@ def test_every_shipped_suite_loads_and_what_it_fixes_cannot_be_given_too(tmp_pat
 
 
 def test_the_report_records_the_suite(tmp_path):
-    from flowerpose.eval.config import EvalConfig
-    from flowerpose.eval.harness import run_eval
-    from flowerpose.eval.run import EvalRun
+    from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.jobs.eval_run import EvalRun
+    from flowerpose.eval.studies.eval_recipe import run_eval
 
     suite = {"name": "mine", "version": 3, "description": "a test"}
     run = EvalRun(source="real", folders=(write_real_plant(tmp_path / "plant", "crops"),),

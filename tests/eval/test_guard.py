@@ -15,9 +15,9 @@ from realplants import write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval import accepted as history_file
-from flowerpose.eval.fresh_seeds import FRESH_SEEDS
-from flowerpose.eval.guard import (
+from flowerpose.eval.studies import accepted as history_file
+from flowerpose.eval.studies.fresh_seeds import FRESH_SEEDS
+from flowerpose.eval.studies.guard import (
     BATTERY,
     GuardRun,
     accept,
@@ -26,8 +26,8 @@ from flowerpose.eval.guard import (
     run_guard,
     side_arguments,
 )
-from flowerpose.eval.guard_verdict import Margins, decide, judge_entry
-from flowerpose.eval.revision import dirty, materialise, repository, resolve
+from flowerpose.eval.studies.guard_verdict import Margins, decide, judge_entry
+from flowerpose.eval.studies.revision import dirty, materialise, repository, resolve
 
 MARGINS = Margins(0.5, 2.0, 1.0, 2.0, 0, 0, 0)
 FITS = ("plane", "superellipsoid", "paraboloid")
@@ -368,7 +368,7 @@ def test_the_same_code_laid_out_as_another_revision_has_the_same_code_version(tm
         repo = repository()
     except InputError:
         pytest.skip("flowerpose runs from an installed copy, not a git checkout")
-    roots = ("flowerpose.eval.scan_source",)
+    roots = ("flowerpose.eval.capture.scan_source",)
     files = [str(_module_file(m).relative_to(repo)) for m in module_closure(roots)
              if _module_file(m).is_relative_to(repo)]
     if subprocess.run(["git", "-C", str(repo), "diff", "--quiet", "HEAD", "--", *files]

@@ -72,7 +72,7 @@ def test_a_results_page_has_a_section_per_stress_and_bench_run(tmp_path, capsys)
     from realplants import write_real_plant
 
     from flowerpose.cli import main
-    from flowerpose.eval.report import run_record
+    from flowerpose.eval.reports.report import run_record
     from flowerpose.jsonio import write_json
 
     folder = write_real_plant(tmp_path / "plant", "candidates")

@@ -16,9 +16,9 @@ from realplants import CENTRES, NORMALS, write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval import label_server
-from flowerpose.eval.labels import read_labels
-from flowerpose.eval.real_source import read_real_plant, real_truth
+from flowerpose.eval.labelling import label_server
+from flowerpose.eval.scoring.labels import read_labels
+from flowerpose.eval.scoring.real_source import read_real_plant, real_truth
 from flowerpose.jsonio import write_json
 
 

@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval.agreement import agreement, read_labelling
-from flowerpose.eval.labels import Label, LabelFile, read_labels, write_labels
-from flowerpose.eval.real_source import read_real_plant, real_truth
+from flowerpose.eval.labelling.agreement import agreement, read_labelling
+from flowerpose.eval.scoring.labels import Label, LabelFile, read_labels, write_labels
+from flowerpose.eval.scoring.real_source import read_real_plant, real_truth
 
 
 def _labels(normals=NORMALS, states=None, scale=1.0) -> LabelFile:

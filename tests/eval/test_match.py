@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from flowerpose.eval.match import angle_error_deg, match_flowers, score_plant
-from flowerpose.eval.truth import TruthFlower
+from flowerpose.eval.scoring.match import angle_error_deg, match_flowers, score_plant
+from flowerpose.eval.scoring.truth import TruthFlower
 from flowerpose.pipeline.pose import FlowerPose
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -85,7 +85,7 @@ def test_score_of_nothing():
 
 def test_a_report_says_what_made_it():
     from flowerpose import __version__
-    from flowerpose.eval.report import build_report
+    from flowerpose.eval.reports.report import build_report
 
     report = build_report({}, [], {"total": 0.0})
     assert report["run"]["flowerpose"] == __version__
@@ -99,7 +99,7 @@ def test_a_report_says_what_made_it():
 def test_scoring_against_another_plants_truth_at_the_same_place_warns(tmp_path, caplog):
     import json
 
-    from flowerpose.eval.match import score_files
+    from flowerpose.eval.reports.score_report import score_files
 
     rng = np.random.default_rng(3)
     truth = rng.uniform(-0.1, 0.1, (18, 3)) + [0, 0, 0.3]

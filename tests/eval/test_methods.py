@@ -11,7 +11,7 @@ from realplants import write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval.methods import parse_method
+from flowerpose.eval.scoring.methods import parse_method
 
 SCRIPT = '''
 import json, shutil, subprocess, sys, time

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from flowerpose.eval.pollination import CAUSES, PollinationScoreConfig, plan_and_score
+from flowerpose.eval.pollination.visits import CAUSES, PollinationScoreConfig, plan_and_score
 from flowerpose.hardware.flights.pollination_plan import PollinateConfig
 
 
@@ -69,9 +69,9 @@ def test_poses_far_off_the_axis_miss_and_the_same_poses_as_a_file_do_not(easy_pl
 
 @pytest.mark.slow
 def test_eval_reports_pollination_and_its_curve(tmp_path):
-    from flowerpose.eval.config import eval_config
-    from flowerpose.eval.harness import run_eval
-    from flowerpose.eval.run import EvalRun
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.jobs.eval_run import EvalRun
+    from flowerpose.eval.studies.eval_recipe import run_eval
 
     config = eval_config("easy")
     angles = (30.0,)
@@ -98,7 +98,7 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
     assert flight["status"] == "complete"
     assert len(flight["done"]) == plant["pollination"]["visits"]
     # The results page gives the run a row of its pollination section, and its curve.
-    from flowerpose.eval.results import results_markdown
+    from flowerpose.eval.studies.results import results_markdown
 
     page = results_markdown([tmp_path / "run" / "report.json"])
     assert "## Pollination" in page and "## Accuracy" not in page
@@ -144,8 +144,8 @@ def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in
     from simhelpers import box, handmade_plant
 
     from flowerpose.cloudio import Cloud
-    from flowerpose.eval.pollination import flown_visits, judge
-    from flowerpose.eval.pollination_contact import ContactWorld
+    from flowerpose.eval.pollination.contact import ContactWorld
+    from flowerpose.eval.pollination.visits import flown_visits, judge
     from flowerpose.hardware.flights.pollination_plan import Flower, plan_pollination
     from flowerpose.hardware.geometry import PAPER_TOOL
     from flowerpose.hardware.kinematics import head_boxes

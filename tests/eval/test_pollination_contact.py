@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from flowerpose.eval.pollination_contact import ContactWorld  # noqa: E402
+from flowerpose.eval.pollination.contact import ContactWorld  # noqa: E402
 from flowerpose.hardware.bot import KinematicBot  # noqa: E402
 from flowerpose.hardware.flights.pollination_flight import head_angles  # noqa: E402
 from flowerpose.hardware.kinematics import tool_at  # noqa: E402

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from flowerpose.eval.quality import reconstruction_quality
+from flowerpose.eval.capture.quality import reconstruction_quality
 
 
 def test_the_truth_surface_itself_scores_perfectly_and_noise_lowers_the_scores(plant0):

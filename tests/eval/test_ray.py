@@ -10,9 +10,9 @@ import pytest
 
 from flowerpose.cli import main
 from flowerpose.errors import JobsFailed
-from flowerpose.eval.config import eval_config
-from flowerpose.eval.runner import TASK_RETRIES, run_jobs
-from flowerpose.eval.sweep import parse_grid, run_sweep
+from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.pool import TASK_RETRIES, run_jobs
+from flowerpose.eval.studies.sweep import parse_grid, run_sweep
 
 ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowerpose[ray]')")
 
@@ -29,7 +29,7 @@ def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
     config = eval_config("realistic")
     grid = parse_grid(["cluster.min_points=10,20"], config)
     run_sweep(config, grid, plants=1, seed=0, out_dir=tmp_path / "pool", workers=2)
-    from flowerpose.eval.runner import on_ray
+    from flowerpose.eval.pool import on_ray
 
     with on_ray(None) as session:
         run_sweep(config, grid, plants=1, seed=0, out_dir=tmp_path / "ray")
@@ -41,7 +41,7 @@ def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
 
 @pytest.mark.slow
 def test_a_failing_job_is_tried_again_then_named_and_the_others_are_kept(tmp_path):
-    from flowerpose.eval.runner import on_ray
+    from flowerpose.eval.pool import on_ray
 
     def job(name: str, folder: Path) -> str:
         with open(folder / f"{name}.tries", "a") as tries:
@@ -80,8 +80,8 @@ def test_a_ray_address_where_nothing_listens_is_one_line_at_once(capsys, tmp_pat
     ("patch_match", 1, 1), ("auto", 1, 1), ("auto", 0, 0), ("sgbm", 1, 0)])
 def test_a_capture_asks_for_a_gpu_where_patch_match_will_run(monkeypatch, method,
                                                              gpus_in_cluster, asked):
-    from flowerpose.eval.runner import _task_gpus
-    from flowerpose.eval.scan_source import CAPTURE_GPU
+    from flowerpose.eval.capture.scan_source import CAPTURE_GPU
+    from flowerpose.eval.pool import _task_gpus
 
     monkeypatch.setattr(ray, "cluster_resources",
                         lambda: {"CPU": 2.0, **({"GPU": 1.0} if gpus_in_cluster else {})})
@@ -90,7 +90,7 @@ def test_a_capture_asks_for_a_gpu_where_patch_match_will_run(monkeypatch, method
 
 def test_patch_match_on_a_cluster_without_a_gpu_is_one_line(monkeypatch):
     from flowerpose.errors import InputError
-    from flowerpose.eval.runner import _task_gpus
+    from flowerpose.eval.pool import _task_gpus
 
     monkeypatch.setattr(ray, "cluster_resources", lambda: {"CPU": 2.0})
     with pytest.raises(InputError, match="needs a GPU .* has none"):

@@ -11,11 +11,11 @@ from realplants import CENTRES, NORMALS, SCALE, cuboids, flower, write_real_plan
 from flowerpose.cli import main
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
-from flowerpose.eval.config import EvalConfig
-from flowerpose.eval.harness import run_eval
-from flowerpose.eval.real_source import read_real_plant, real_truth
-from flowerpose.eval.run import EvalRun
-from flowerpose.eval.truth import read_sagemaker_truth
+from flowerpose.eval.jobs.config import EvalConfig
+from flowerpose.eval.jobs.eval_run import EvalRun
+from flowerpose.eval.scoring.real_source import read_real_plant, real_truth
+from flowerpose.eval.scoring.truth import read_sagemaker_truth
+from flowerpose.eval.studies.eval_recipe import run_eval
 from flowerpose.pipeline.flowers import PipelineConfig, pose_crops
 from flowerpose.pipeline.segment import cluster_flowers
 

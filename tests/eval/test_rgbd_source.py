@@ -5,9 +5,9 @@ with the capture's own visibility."""
 import pytest
 
 from flowerpose.config import apply_overrides
-from flowerpose.eval.config import eval_config
-from flowerpose.eval.harness import run_eval
-from flowerpose.eval.run import EvalRun
+from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.jobs.eval_run import EvalRun
+from flowerpose.eval.studies.eval_recipe import run_eval
 
 #: 18 views of 640 x 360 (a ring every 8 cm, one every 60 degrees, one dome ring).
 SMALL = {"sim.viewpoints.azimuth_step_deg": 60.0, "sim.viewpoints.cylinder_step_m": 0.08,

@@ -7,9 +7,9 @@ import pytest
 
 from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
-from flowerpose.eval.config import eval_config
-from flowerpose.eval.harness import run_eval
-from flowerpose.eval.run import EvalRun
+from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.jobs.eval_run import EvalRun
+from flowerpose.eval.studies.eval_recipe import run_eval
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.reconstruct import reconstruct
 

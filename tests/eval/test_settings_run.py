@@ -2,7 +2,7 @@
 
 import pytest
 
-from flowerpose.eval.config import EvalConfig, settings_run
+from flowerpose.eval.jobs.config import EvalConfig, settings_run
 
 PIPELINE = ["colour", "ground", "grid", "detect", "outliers", "cluster", "pose"]
 

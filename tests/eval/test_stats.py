@@ -6,9 +6,9 @@ flowers they repeat."""
 import numpy as np
 import pytest
 
-from flowerpose.eval import stats
-from flowerpose.eval.paired import compare_runs
-from flowerpose.eval.report import summarise
+from flowerpose.eval.reports.report import summarise
+from flowerpose.eval.scoring import stats
+from flowerpose.eval.scoring.paired import compare_runs
 
 
 def _errors(seed: int, count: int) -> list[float]:

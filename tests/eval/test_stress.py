@@ -7,8 +7,8 @@ from realplants import write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
-from flowerpose.eval.config import EvalConfig
-from flowerpose.eval.stress import plan_from, run_stress
+from flowerpose.eval.jobs.config import EvalConfig
+from flowerpose.eval.studies.stress import plan_from, run_stress
 
 
 def _levels(**given):

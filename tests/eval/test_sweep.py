@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from flowerpose.config import apply_overrides
-from flowerpose.eval.config import eval_config
-from flowerpose.eval.sweep import METRICS, parse_grid, run_sweep, sweep_figure
+from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.studies.sweep import METRICS, parse_grid, run_sweep, sweep_figure
 
 
 @pytest.mark.slow
@@ -89,7 +89,7 @@ def test_a_sweep_over_real_plant_folders(tmp_path):
 
 
 def test_the_best_setting_never_adds_a_flipped_normal():
-    from flowerpose.eval.sweep import best_row
+    from flowerpose.eval.studies.sweep import best_row
 
     row = {"recall_visible_low": 0.9, "precision_low": 0.9, "plane_mean_high_deg": 3.0,
            "new_flipped": 0}

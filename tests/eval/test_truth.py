@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
-from flowerpose.eval.truth import read_plant_truth, read_sagemaker_truth, sagemaker_normal
+from flowerpose.eval.scoring.truth import read_plant_truth, read_sagemaker_truth, sagemaker_normal
 
 
 def rx(a):

@@ -7,7 +7,7 @@ import pytest
 from realplants import write_real_plant
 
 from flowerpose.cli import main
-from flowerpose.eval import tune
+from flowerpose.eval.studies import tune
 
 SPACE = '"cluster.eps" = { low = 0.006, high = 0.014, log = true }\n' \
         '"cluster.min_coverage" = { low = 0.2, high = 0.5 }\n'
@@ -163,7 +163,7 @@ class _Trial:
 
 
 def test_a_trial_that_adds_a_flip_is_infeasible_and_never_chosen():
-    from flowerpose.eval.tune import choose
+    from flowerpose.eval.studies.tune import choose
 
     flips = _Trial(1, [0.95], validate_flipped=["val: seed-10 flower 3"])
     clean = _Trial(2, [0.90], validate_flipped=["val: seed-11 flower 1"])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from flowerpose.errors import InputError
-from flowerpose.eval.scan_source import write_scan_truth
+from flowerpose.eval.capture.scan_source import write_scan_truth
 from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
 from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 from flowerpose.hardware.flights.scan_flight import run_scan

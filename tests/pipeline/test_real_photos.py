@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from flowerpose.eval.photo_bench import run_photo_bench
+from flowerpose.eval.studies.photo_bench import run_photo_bench
 
 SHARED = Path(os.environ.get("FLOWERPOSE_SHARED",
                              Path(__file__).resolve().parents[2].parent / "shared"))

@@ -1,0 +1,63 @@
+"""What an eval run is (`EvalRun`): what it runs on and what it measures, beside its
+settings (`config.py`); light, so the command line offers its choices without importing
+the harness."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from flowerpose.errors import InputError
+
+if TYPE_CHECKING:
+    from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.scoring.methods import ExternalMethod
+
+#: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
+#: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
+#: labelled plants (`real_source.py`).
+SOURCES = ("scan", "oracle", "rgbd", "real")
+#: ... those of synthetic plants, with exact truth.
+SYNTHETIC_SOURCES = tuple(s for s in SOURCES if s != "real")
+
+#: What an eval measures: the poses (Table I), or pollination visits with them as well.
+TASKS = ("pose", "pollinate")
+
+#: Synthetic plants an eval makes when not told: a scan takes about 5 minutes a plant here.
+DEFAULT_PLANTS = {**dict.fromkeys(SYNTHETIC_SOURCES, 10), "scan": 2}
+
+
+@dataclass(frozen=True)
+class EvalRun:
+    """What `run_eval` runs, besides the settings: the plants (`plants` generated from
+    `seed` for a synthetic `source`, or the labelled real `folders`, their truth scale from
+    each folder's source.json unless `truth_scale`), the task ("pose", or "pollinate": plan,
+    fly and score pollination visits too), the other settings (by name) and external methods
+    compared on the same clouds, and the suite and the preset and profile files
+    (`report.assets_record`) to record."""
+
+    source: str = "scan"
+    plants: int | None = None
+    """Synthetic plants to make; None: the source's `DEFAULT_PLANTS`."""
+    seed: int = 0
+    folders: tuple[Path, ...] = ()
+    truth_scale: float | None = None
+    task: str = "pose"
+    compare: dict[str, EvalConfig] = field(default_factory=dict)
+    methods: tuple[ExternalMethod, ...] = ()
+    suite: dict | None = None
+    assets: dict[str, dict[str, str]] | None = None
+
+    def __post_init__(self):
+        if self.source not in SOURCES:
+            raise InputError("source", f"'{self.source}': one of {', '.join(SOURCES)}")
+        if self.task not in TASKS:
+            raise InputError("task", f"'{self.task}': one of {', '.join(TASKS)}")
+        if self.task == "pollinate" and self.source == "real":
+            raise InputError("task", "pollinate needs synthetic plants, whose geometry "
+                             "judges the visits: not --source real")
+        if self.plants is None and self.source != "real":
+            object.__setattr__(self, "plants", DEFAULT_PLANTS[self.source])
+        if self.source != "real" and self.plants < 1:
+            raise InputError("plants", f"must be at least 1, got {self.plants}")

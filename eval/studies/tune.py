@@ -1,0 +1,622 @@
+"""`flowerpose tune`: settings searched with Optuna on training plants, proven on validation
+plants the search never sees.
+
+Each trial draws the settings of the space (`tune_space.py`) from Optuna's sampler (TPE,
+seeded by `--sampler-seed`), scores them on every training plant and every validation
+plant (`plants.py`), and returns the training objectives; the validation scores are
+recorded beside them, never shown to the sampler. With one objective each training plant
+reports the objective so far and a median pruner stops hopeless trials; with several the
+study keeps their Pareto front. The study lives in an Optuna storage, so a rerun adds
+trials to it and `optuna-dashboard STORAGE` shows it.
+
+The chosen trial is picked by validation, not training: among the training front (the
+Pareto front; with one objective the best CHOSEN_FROM trials) the highest validation F1,
+ties broken by the lower validation plane error. Without validation plants it is the
+training front's first, and the report says plainly that nothing was validated.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from flowerpose.atomic import write_text
+from flowerpose.config import (
+    DEFAULT_PRESET,
+    load_profile,
+    load_toml,
+    renamed,
+    settings_toml,
+)
+from flowerpose.errors import InputError
+from flowerpose.eval.jobs.config import EvalConfig, eval_config
+from flowerpose.eval.jobs.plants import Plants, PlantSet, world_digest
+from flowerpose.eval.reports.report import markdown_table, run_record, summarise
+from flowerpose.eval.scoring.paired import flower_errors
+from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG
+from flowerpose.eval.studies.tune_space import Objective, Param, typed_settings
+from flowerpose.jsonio import write_json
+from flowerpose.log import LOG
+from flowerpose.outputs import check_folder_writable
+from flowerpose.stopwatch import Stopwatch
+
+#: With one objective, the chosen trial is the best validated among this many best trials.
+CHOSEN_FROM = 5
+#: What tune writes into its --out folder (the study's database too, when it is there).
+TUNE_FILES = ("tune.json", "tune.md", "tune.html", "best.toml", "study.db", "plants",
+              "trials")
+#: The summary numbers each trial records for training and validation (with their 95 %
+#: bounds; `f1_low` is the F1 of the recall's and precision's lower bounds).
+RECORDED = ("f1", "recall_visible", "precision", "fp", "found_visible", "visible",
+            "error_deg.plane.mean", "error_deg.plane.median", "recall_visible_ci95.low",
+            "precision_ci95.low", "error_deg.plane.mean_ci95.low",
+            "error_deg.plane.mean_ci95.high", "error_deg.plane.p90",
+            "error_deg.plane.p90_ci95.high", "error_deg.plane.over_90")
+
+
+@dataclass(frozen=True)
+class TuneSpec:
+    """Everything a trial needs, picklable for worker processes and Ray tasks."""
+
+    space: tuple[Param, ...]
+    train: tuple[PlantSet, ...]
+    validate: tuple[PlantSet, ...]
+    objectives: tuple[Objective, ...]
+    overrides: tuple[dict, ...]
+    """The user's settings (--profile, --config, --set), applied in order under a trial's."""
+    storage: str
+    study_name: str
+    sampler_seed: int | None
+    out_dir: Path
+    cache: Path | None
+
+    def layers(self, settings: dict) -> tuple[dict, ...]:
+        """The user's settings and then a trial's (`settings`), in the order they apply."""
+        return (*self.overrides, settings)
+
+
+class SetScorer:
+    """Scores settings on plant sets: each set's config is its preset's (a real set's: the
+    defaults') with the settings' layers over it; captures are made once per world
+    (`plants.Plants`) and detections come from the stage cache where the same cloud was
+    detected with the same settings."""
+
+    def __init__(self, out_dir: Path, cache: Path | None, workers: int | None = 1):
+        self.out_dir, self.cache = out_dir, cache
+        self.plants = Plants(workers, cache)
+
+    def config(self, plant_set: PlantSet, layers: tuple[dict, ...]) -> EvalConfig:
+        return eval_config(DEFAULT_PRESET if plant_set.real else plant_set.preset, layers)
+
+    def score(self, plant_set: PlantSet, layers: tuple[dict, ...], out_dir: Path) -> list[dict]:
+        """Report.json plant entries of the settings on every plant of the set (each
+        scored into out_dir/NAME/)."""
+        config = self.config(plant_set, layers)
+        world = (f"{plant_set.source}-{plant_set.preset}-"
+                 f"{world_digest(config, plant_set.source)}")
+        jobs = self.plants.jobs(plant_set, config, self.out_dir / "plants" / world).jobs
+        return [job.score(config, out_dir / job.name, self.cache)[0] for job in jobs]
+
+
+def user_overrides(profile: str | None, config_file: Path | None, sets: dict) -> tuple[dict, ...]:
+    """The user's settings in the order they apply: the profile, the file, each --set,
+    each as dotted keys under their current names (`config.renamed`)."""
+    layers = []
+    if profile is not None:
+        layers.append(load_profile(profile))
+    if config_file is not None:
+        layers.append(load_toml(config_file))
+    if sets:
+        layers.append(sets)
+    return tuple(renamed(layer) for layer in layers)
+
+
+def study_name(spec_space: tuple[Param, ...], train: tuple[PlantSet, ...],
+               objectives: tuple[Objective, ...]) -> tuple[str, dict]:
+    """The default study name and what it is made of: the space, the training plants, the
+    objectives and the code version (a study of another code is another study)."""
+    from flowerpose.cache import code_version
+
+    identity = {"space": {p.key: p.to_json() for p in spec_space},
+                "train": [s.describe() for s in train],
+                "objectives": [o.text for o in objectives], "code": code_version()}
+    digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:10]
+    return f"flowerpose-tune-{digest}", identity
+
+
+#: Seconds between a running trial's heartbeats in an RDB storage; a trial silent for
+#: STALE_AFTER_S (its process killed) is marked failed when the study is next opened.
+HEARTBEAT_S = 10
+STALE_AFTER_S = 30
+#: Storage URL schemes on this machine's disk (file paths after "///").
+_FILE_SCHEMES = ("sqlite:///", "journal:///")
+
+
+def check_storage(url: str) -> None:
+    """Refuse, before any trial, a storage URL that cannot work: no scheme, or a file
+    storage whose folder is missing or takes no file; one line naming the URL."""
+    if "://" not in url:
+        raise InputError("--study", f"{url!r} is not a storage URL: give sqlite:///PATH, "
+                         "journal:///PATH or an RDB URL such as postgresql://HOST/DB")
+    for scheme in _FILE_SCHEMES:
+        if url.startswith(scheme):
+            path = Path(url.removeprefix(scheme.rstrip("/")))
+            if not path.parent.is_dir():
+                raise InputError("--study", f"{url}: the folder {path.parent} is not there; "
+                                 "make it first or give another path")
+            check_folder_writable(path.parent)
+            if path.exists() and not os.access(path, os.W_OK):
+                raise InputError("--study", f"{url}: {path} is read-only")
+
+
+def _storage(url: str) -> Any:
+    """The Optuna storage of a URL: an RDB (sqlite waits for a lock instead of failing; a
+    heartbeat marks trials of killed processes failed), or a journal file (journal:///PATH,
+    no heartbeat). A storage that cannot be opened is one line naming the URL."""
+    import optuna
+
+    check_storage(url)
+    if url.startswith("journal:///"):
+        from optuna.storages.journal import JournalFileBackend
+
+        return optuna.storages.JournalStorage(JournalFileBackend(url.removeprefix("journal://")))
+    kwargs = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else {}
+    try:
+        return optuna.storages.RDBStorage(url, engine_kwargs=kwargs,
+                                          heartbeat_interval=HEARTBEAT_S,
+                                          grace_period=STALE_AFTER_S)
+    except Exception as error:  # noqa: BLE001 - SQLAlchemy's and the drivers' errors alike
+        raise InputError("--study", f"{url}: cannot open the storage: "
+                         f"{str(error).splitlines()[0]}") from None
+
+
+def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
+    """The spec's study: created (or, made by the same space, plants and objectives,
+    loaded to add trials to); one of that name made otherwise is refused."""
+    import optuna
+
+    quiet_optuna()
+    sampler = optuna.samplers.TPESampler(seed=spec.sampler_seed)
+    pruner = (optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
+              if len(spec.objectives) == 1 else optuna.pruners.NopPruner())
+    storage = _storage(spec.storage)
+    if not create:
+        return optuna.load_study(study_name=spec.study_name, storage=storage, sampler=sampler,
+                                 pruner=pruner)
+    study = optuna.create_study(study_name=spec.study_name, storage=storage, sampler=sampler,
+                                pruner=pruner, load_if_exists=True,
+                                directions=[o.direction for o in spec.objectives])
+    made = study.user_attrs.get("identity")
+    if made is None:
+        study.set_user_attr("identity", identity)
+    else:
+        mine = {k: v for k, v in identity.items() if k != "code"}
+        theirs = {k: v for k, v in made.items() if k != "code"}
+        if mine != theirs:
+            differs = ", ".join(k for k in mine if mine[k] != theirs.get(k))
+            raise InputError("--study-name", f"{spec.study_name}: that study was made with "
+                             f"another {differs}; give another --study-name")
+    return study
+
+
+#: The study's record of the flowers the defaults flip on the training plants: a trial that
+#: flips another is infeasible (its constraint `new_flipped` above 0).
+DEFAULTS_FLIPPED = "defaults_flipped_train"
+
+
+def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], layers: tuple[dict, ...],
+             folder: Path, after_each: Any = None) -> list[dict] | None:
+    """The plant entries of the settings (`layers`, applied in order) on every plant of the
+    sets (None without sets), each plant named by its set; `after_each(entries)` after
+    each plant's (the pruner's report)."""
+    if not sets:
+        return None
+    entries: list[dict] = []
+    for k, plant_set in enumerate(sets):
+        for entry in scorer.score(plant_set, layers, folder / f"set-{k}"):
+            entries.append({**entry, "plant": f"{plant_set.label}: {entry['plant']}"})
+            if after_each is not None:
+                after_each(entries)
+    return entries
+
+
+def _recorded(entries: list[dict] | None) -> dict | None:
+    """A trial's recorded scores (RECORDED) over its plant entries."""
+    from flowerpose.eval.reports.gates import summary_value
+
+    if entries is None:
+        return None
+    summary = summarise(entries)
+    recorded = {k: summary_value(summary, k) for k in RECORDED}
+    recorded["flipped_flowers"] = sorted(f"{plant}: flower {truth}" for (plant, truth), error
+                                         in flower_errors(entries, "plane").items()
+                                         if error > FLIP_DEG)
+    recorded["over_20"] = sum(e > GROSS_DEG for p in entries for e in p["error_deg"]["plane"])
+    recall, precision = recorded["recall_visible_ci95.low"], recorded["precision_ci95.low"]
+    recorded["f1_low"] = (None if recall is None or precision is None else 0.0
+                          if recall + precision == 0 else
+                          round(2 * recall * precision / (recall + precision), 4))
+    return recorded
+
+
+def _objective(spec: TuneSpec, scorer: SetScorer):
+    import optuna
+
+    def objective(trial: optuna.Trial) -> tuple[float, ...] | float:
+        settings = typed_settings(list(spec.space),
+                                  {p.key: p.suggest(trial) for p in spec.space})
+        layers = spec.layers(settings)
+        folder = Path(tempfile.mkdtemp(prefix=f"trial-{trial.number}-",
+                                       dir=spec.out_dir / "trials"))
+        try:
+            def report(entries: list[dict]) -> None:
+                if len(spec.objectives) == 1:
+                    trial.report(spec.objectives[0].value(summarise(entries, False)),
+                                 len(entries))
+                    if trial.should_prune():
+                        raise optuna.TrialPruned()
+
+            try:
+                train_entries = _entries(scorer, spec.train, layers, folder / "train",
+                                         report)
+                train = summarise(train_entries, False)
+            except optuna.TrialPruned:
+                raise
+            except Exception as err:  # noqa: BLE001 - recorded as the failed trial's reason
+                trial.set_user_attr("error", f"{type(err).__name__}: {err}"
+                                    if not isinstance(err, InputError) else str(err))
+                raise
+            recorded = _recorded(train_entries)
+            trial.set_user_attr("train", recorded)
+            added = len(set(recorded["flipped_flowers"])
+                        - set(trial.study.user_attrs.get(DEFAULTS_FLIPPED, [])))
+            trial.set_user_attr("new_flipped", added)
+            # Infeasible to the sampler (a constraint above 0), whatever its objectives.
+            trial.set_constraint("new_flipped", added)
+            trial.set_user_attr("validate", _recorded(
+                _entries(scorer, spec.validate, layers, folder / "validate")))
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        values = tuple(o.value(train) for o in spec.objectives)
+        return values if len(values) > 1 else values[0]
+
+    return objective
+
+
+def run_trials(spec: TuneSpec, trials: int) -> int:
+    """Add `trials` trials to the spec's study here (a worker process, a Ray task or the
+    command itself); a trial that raises is recorded as failed with its reason and the
+    study goes on. Returns the trials run."""
+    import optuna
+
+    quiet_optuna()
+    study = open_study(spec, {}, create=False)
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=1)
+    watch = Stopwatch()
+
+    def said(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        done = trial.number + 1
+        what = (trial.user_attrs.get("error") or ("pruned" if trial.state.name == "PRUNED"
+                                                  else _values_text(spec, trial)))
+        LOG.info(f"trial {trial.number} {trial.state.name.lower()}: {what} "
+                 f"({watch.elapsed():.0f} s; study {done} trials)")
+
+    (spec.out_dir / "trials").mkdir(parents=True, exist_ok=True)
+    study.optimize(_objective(spec, scorer), n_trials=trials, catch=(Exception,),
+                   callbacks=[said])
+    return trials
+
+
+def clear_dead_trials(study: Any, out_dir: Path, owned: bool) -> int:
+    """Mark the trials whose process died failed, and remove the scratch folders
+    (out_dir/trials/trial-N-*) of every trial not running; returns the trials marked. Run
+    before a session's trials start. owned: this command holds the study alone (its own
+    storage in its locked out_dir), so every trial still running is a dead process's;
+    else those whose heartbeat stopped STALE_AFTER_S ago (an RDB storage)."""
+    import optuna
+
+    running_state = optuna.trial.TrialState.RUNNING
+    before = {t.number for t in study.get_trials(deepcopy=False, states=(running_state,))}
+    if owned:
+        for number in before:
+            study.tell(number, state=optuna.trial.TrialState.FAIL)
+    else:
+        optuna.storages.fail_stale_trials(study)
+    running = {t.number for t in study.get_trials(deepcopy=False, states=(running_state,))}
+    for folder in (out_dir / "trials").glob("trial-*-*"):
+        number = folder.name.split("-")[1]
+        if number.isdigit() and int(number) not in running:
+            shutil.rmtree(folder, ignore_errors=True)
+    return len(before - running)
+
+
+def quiet_optuna() -> None:
+    """Optuna's own log lines become the project's debug lines (`-v`): the project says
+    what happened to each trial itself."""
+    import optuna
+
+    optuna.logging.disable_default_handler()
+    optuna.logging.enable_propagation()
+
+
+def _values_text(spec: TuneSpec, trial: Any) -> str:
+    values = trial.values or []
+    return ", ".join(f"{o.key} {v:.4g}" for o, v in zip(spec.objectives, values, strict=False))
+
+
+def score_defaults(spec: TuneSpec) -> dict:
+    """The user's settings without a trial's, on training and validation plants: the
+    recorded scores, and the validation plant entries (`validate_entries`, for the
+    paired comparison with the chosen trial)."""
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
+    folder = spec.out_dir / "trials" / "defaults"
+    layers = spec.layers({})
+    try:
+        validate = _entries(scorer, spec.validate, layers, folder / "validate")
+        return {"train": _recorded(_entries(scorer, spec.train, layers, folder / "train")),
+                "validate": _recorded(validate), "validate_entries": validate}
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> dict | None:
+    """The chosen trial's settings against the defaults on the validation plants, flower by
+    flower (`paired.compare_runs`): whether any difference is shown, and the verdicts;
+    None without validation plants."""
+    from flowerpose.eval.scoring.paired import compare_runs
+
+    if not defaults.get("validate_entries"):
+        return None
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
+    folder = spec.out_dir / "trials" / "chosen"
+    try:
+        chosen = _entries(scorer, spec.validate, spec.layers(settings), folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    paired = compare_runs(chosen, defaults["validate_entries"])
+    shown = (paired["found"]["shown"] or paired["fp"]["shown"]
+             or any(fit["shown"] for fit in paired["fits"].values()))
+    return {"distinguishable": bool(shown), "verdicts": paired["verdicts"],
+            "plane": paired["fits"]["plane"], "found": paired["found"], "fp": paired["fp"]}
+
+
+def trial_rows(study: Any, spec: TuneSpec) -> list[dict]:
+    """Every trial of the study as tune.json records it."""
+    rows = []
+    for trial in study.trials:
+        rows.append({"number": trial.number, "state": trial.state.name.lower(),
+                     "settings": typed_settings(list(spec.space), trial.params),
+                     "values": trial.values, "train": trial.user_attrs.get("train"),
+                     "validate": trial.user_attrs.get("validate"),
+                     "error": trial.user_attrs.get("error") or _failure(trial),
+                     "seconds": (trial.duration.total_seconds()
+                                 if trial.duration is not None else None)})
+    return rows
+
+
+def _failure(trial: Any) -> str | None:
+    reason = trial.system_attrs.get("fail_reason")
+    if reason is None and trial.state.name == "FAIL" and "error" not in trial.user_attrs:
+        return "its process stopped (killed?) before the trial ended"
+    return None if reason is None else str(reason).strip().splitlines()[-1]
+
+
+def front(study: Any, spec: TuneSpec) -> list[Any]:
+    """The training front among the trials that flip no normal the defaults did not: the
+    Pareto front (several objectives) or the best CHOSEN_FROM trials (one)."""
+    import optuna
+
+    complete = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE
+                and not t.user_attrs.get("new_flipped", 0)]
+    if not complete:
+        return []
+    if len(spec.objectives) > 1:
+        signs = [1.0 if o.direction == "minimize" else -1.0 for o in spec.objectives]
+        costs = [[s * v for s, v in zip(signs, t.values, strict=True)] for t in complete]
+
+        def dominated(k: int) -> bool:
+            return any(all(a <= b for a, b in zip(other, costs[k], strict=True))
+                       and other != costs[k] for other in costs)
+        return [t for k, t in sorted(enumerate(complete), key=lambda kt: kt[1].number)
+                if not dominated(k)]
+    sign = -1.0 if spec.objectives[0].direction == "maximize" else 1.0
+    return sorted(complete, key=lambda t: sign * t.values[0])[:CHOSEN_FROM]
+
+
+def choose(candidates: list[Any], validated: bool, defaults_flipped: list[str] = ()
+           ) -> Any | None:
+    """The chosen trial (CHOICE_RULE), by the validation scores' 95 % bounds, not their
+    point values (or, without validation, the front's first); never one that flips a
+    normal on the validation plants that the defaults (`defaults_flipped`) did not."""
+    if validated:
+        candidates = [t for t in candidates if not set(
+            (t.user_attrs.get("validate") or {}).get("flipped_flowers", []))
+            - set(defaults_flipped)]
+    if not candidates:
+        return None
+    if not validated:
+        return candidates[0]
+
+    def key(trial: Any) -> tuple[float, float]:
+        scores = trial.user_attrs.get("validate") or {}
+        f1 = scores.get("f1_low")
+        plane = scores.get("error_deg.plane.mean_ci95.high")
+        return (-(f1 if f1 is not None else -1.0), plane if plane is not None else math.inf)
+
+    return min(candidates, key=key)
+
+
+CHOICE_RULE = ("the chosen trial: among the training front (trials that flip no normal the "
+               "defaults did not), none that flips one on the validation plants; the "
+               "highest lower bound of the validation F1 (the F1 of the 95 % lower bounds of "
+               "the recall of visible flowers and of the precision), ties broken by the "
+               "lower upper bound of the validation plane error's mean")
+
+
+def best_toml(settings: dict) -> str:
+    """A trial's settings as a --config file: one table per section."""
+    return settings_toml(settings, "flowerpose tune: the chosen trial's settings "
+                         "(flowerpose eval --config FILE)")
+
+
+def _cell(scores: dict | None, key: str) -> str:
+    if not scores or scores.get(key) is None:
+        return "-"
+    value = scores[key]
+    return f"{value:.2f}°" if key.startswith("error_deg") else f"{value:.3f}"
+
+
+def tune_markdown(report: dict) -> str:
+    """tune.md: the front (or top trials) with training and validation scores, the
+    defaults' row, the chosen trial and its rule, the gaps and the warnings."""
+    keys = ("f1", "error_deg.plane.mean")
+    bounds = ("f1_low", "error_deg.plane.mean_ci95.high")
+    header = ["trial", "settings", *(f"train {k}" for k in keys),
+              *(f"validate {k}" for k in keys), "validate F1, lower bound",
+              "validate plane mean, upper bound", "gap F1"]
+    rows = []
+    defaults = report["defaults"]
+    for row in report["front"]:
+        gap = ("-" if not row["validate"] or row["validate"].get("f1") is None
+               or row["train"].get("f1") is None
+               else f"{row['train']['f1'] - row['validate']['f1']:+.3f}")
+        chosen = " (chosen)" if row["number"] == report.get("chosen", {}).get("number") else ""
+        rows.append([f"{row['number']}{chosen}",
+                     ", ".join(f"{k}={_short(v)}" for k, v in row["settings"].items()),
+                     *(_cell(row["train"], k) for k in keys),
+                     *(_cell(row["validate"], k) for k in keys),
+                     *(_cell(row["validate"], k) for k in bounds), gap])
+    rows.append(["defaults", "(the settings without a trial's)",
+                 *(_cell(defaults["train"], k) for k in keys),
+                 *(_cell(defaults["validate"], k) for k in keys),
+                 *(_cell(defaults["validate"], k) for k in bounds), "-"])
+    counts = report["counts"]
+    lines = [f"# flowerpose tune: {report['study']['name']}", "",
+             f"`{report['run']['command']}` ({report['run']['date']}); storage "
+             f"`{report['study']['storage']}`; {counts['complete']} complete, "
+             f"{counts['pruned']} pruned, {counts['failed']} failed trials; objectives "
+             f"{', '.join(report['objectives'])}.", "",
+             "Training: " + "; ".join(s["label"] for s in report["train"]) + ". Validation: "
+             + ("; ".join(s["label"] for s in report["validate"]) if report["validate"]
+                else "**none: nothing was validated**, the choice is by training alone") + ".",
+             "", markdown_table(header, rows), "", f"Rule: {CHOICE_RULE}."]
+    against = report.get("chosen_vs_defaults")
+    if against is not None:
+        lines += ["", "The chosen trial against the defaults on the validation plants, flower "
+                  "by flower: " + "; ".join(against["verdicts"]) + "."]
+    lines += [f"**Warning:** {w}" for w in report["warnings"]]
+    lines += ["", f"Open the study: `optuna-dashboard {report['study']['storage']}`"]
+    return "\n".join(lines) + "\n"
+
+
+def _short(value: Any) -> str:
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def warnings_of(chosen: dict | None, defaults: dict, against: dict | None = None) -> list[str]:
+    """What the report must say of the chosen trial against the defaults: worse point
+    values, and, compared flower by flower on the validation plants (`against`), that no
+    difference is shown."""
+    if chosen is None or not chosen["validate"] or not defaults["validate"]:
+        return []
+    mine, theirs = chosen["validate"], defaults["validate"]
+    said = []
+    if against is not None and not against["distinguishable"]:
+        said.append("the chosen settings are not distinguishable from the defaults on the "
+                    "validation plants (" + "; ".join(against["verdicts"]) + ")")
+    if (mine.get("f1") or 0) < (theirs.get("f1") or 0):
+        said.append(f"the chosen settings' validation F1 ({mine['f1']:.3f}) is below the "
+                    f"defaults' ({theirs['f1']:.3f})")
+    plane, base = mine.get("error_deg.plane.mean"), theirs.get("error_deg.plane.mean")
+    if plane is not None and base is not None and plane > base:
+        said.append(f"the chosen settings' validation plane error ({plane:.2f}°) is above the "
+                    f"defaults' ({base:.2f}°)")
+    return said
+
+
+def write_html(path: Path, study: Any, spec: TuneSpec, markdown: str) -> Path:
+    """tune.html: the study's optimisation history, parameter importances and parallel
+    coordinates (and the Pareto front) as self-contained plotly figures."""
+    import html
+
+    import optuna
+    from plotly.offline import get_plotlyjs
+
+    figures = []
+    names = [o.key for o in spec.objectives]
+    complete = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
+    for k, name in enumerate(names):
+        target = None if len(names) == 1 else (lambda t, k=k: t.values[k])
+        figures.append(optuna.visualization.plot_optimization_history(
+            study, target=target, target_name=name))
+        if len(complete) >= 2 and spec.space:
+            try:
+                figures.append(optuna.visualization.plot_param_importances(
+                    study, target=target, target_name=name))
+            except (RuntimeError, ValueError) as err:  # too few distinct trials to judge
+                LOG.debug(f"tune: no parameter importances for {name}: {err}")
+        figures.append(optuna.visualization.plot_parallel_coordinate(
+            study, target=target, target_name=name))
+    if len(names) == 2:
+        figures.append(optuna.visualization.plot_pareto_front(study, target_names=names))
+    body = "".join(f.to_html(full_html=False, include_plotlyjs=False) for f in figures)
+    page = ("<!doctype html><html><head><meta charset='utf-8'><title>flowerpose tune</title>"
+            f"<script>{get_plotlyjs()}</script></head><body><h1>flowerpose tune</h1>"
+            f"<pre>{html.escape(markdown)}</pre>{body}</body></html>")
+    return write_text(path, page)
+
+
+def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
+    """Write tune.json, tune.md, tune.html and best.toml from the study as it stands."""
+    import optuna
+
+    quiet_optuna()
+    study = open_study(spec, {}, create=False)
+    rows = trial_rows(study, spec)
+    candidates = front(study, spec)
+    chosen_trial = choose(candidates, bool(spec.validate),
+                          (defaults.get("validate") or {}).get("flipped_flowers", []))
+    by_number = {r["number"]: r for r in rows}
+    chosen = None if chosen_trial is None else by_number[chosen_trial.number]
+    against = (None if chosen is None or not spec.validate
+               else chosen_against_defaults(spec, chosen["settings"], defaults))
+    states = [t.state for t in study.trials]
+    report = {"run": run_record(), "study": {"name": spec.study_name, "storage": spec.storage},
+              "space": {p.key: p.to_json() for p in spec.space},
+              "objectives": [o.text for o in spec.objectives],
+              "train": [s.describe() for s in spec.train],
+              "validate": [s.describe() for s in spec.validate],
+              "counts": {"complete": states.count(optuna.trial.TrialState.COMPLETE),
+                         "pruned": states.count(optuna.trial.TrialState.PRUNED),
+                         "failed": states.count(optuna.trial.TrialState.FAIL)},
+              "defaults": {k: v for k, v in defaults.items() if k != "validate_entries"},
+              "trials": rows, "front": [by_number[t.number] for t in candidates],
+              "rule": CHOICE_RULE if spec.validate else "nothing was validated: the training "
+              "front's first", "chosen": chosen, "chosen_vs_defaults": against,
+              "warnings": warnings_of(chosen, defaults, against), "seconds": round(seconds, 1)}
+    write_json(spec.out_dir / "tune.json", report)
+    markdown = tune_markdown(report)
+    write_text(spec.out_dir / "tune.md", markdown)
+    write_html(spec.out_dir / "tune.html", study, spec, markdown)
+    if chosen is not None:
+        write_text(spec.out_dir / "best.toml", best_toml(chosen["settings"]))
+    return report
+
+
+def validation_default(train: list[PlantSet]) -> list[PlantSet]:
+    """The validation plants when none are given: the next seeds after each synthetic
+    training set (none for real plants)."""
+    return [s.following() for s in train if not s.real]
+
+
+def local_storage(url: str) -> bool:
+    """Whether the storage lives on this machine's disk (sqlite, a journal file)."""
+    return url.startswith(("sqlite:", "journal:"))
+
