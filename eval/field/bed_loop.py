@@ -1,9 +1,9 @@
-"""The loop of a field run over a bed, whichever bot films it (`bed_run.py`: the simulated
-bed, scored against its truth; `field_bed.py`: the physical bot's): the bed's journal, the
-plants filmed one after another in the planned order while a worker (a process, or a Ray
-task inside `runner.on_ray`) processes the plant filmed before, and the bed's times. The bot
-never waits for the computer: plant k is processed while plant k+1 is filmed, and the last
-plants' work finishes after the bot is done.
+"""The loop of a field run over a bed, whichever bot films it (`simulated_bed.py`: the
+simulated bed, scored against its truth; `physical_bed.py`: the physical bot's): the bed's
+journal, the plants filmed one after another in the planned order while a worker (a process,
+or a Ray task inside `pool.on_ray`) processes the plant filmed before, and the bed's times.
+The bot never waits for the computer: plant k is processed while plant k+1 is filmed, and
+the last plants' work finishes after the bot is done.
 
 `bed.json`, the bed's journal, is rewritten atomically after every step: the bed, the
 order, and per plant its stage ("planned", "scanned", "detected" or "failed" with the

@@ -100,7 +100,7 @@ def process_field_plant(folder: Path, name: str, at: tuple[float, float], radius
     (folder/reconstruction), its cloud cut to `radius` metres round its stem at `at` (bed
     frame, metres; plant_cloud.ply) and its flowers found (folder/flowers.json). Runs in a
     worker: returns the plant's counts, the warnings said on the way ("notes") and seconds
-    per step. cache: the stage cache's folder (None: none), as `bed_run.process_plant`."""
+    per step. cache: the stage cache's folder (None: none), as `simulated_bed.process_plant`."""
     from flowerpose.eval.capture.detection import detect_cloud
     from flowerpose.pipeline.flowers import read_flowers
 

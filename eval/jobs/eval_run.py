@@ -9,17 +9,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from flowerpose.errors import InputError
+from flowerpose.eval.jobs.plant_set import SOURCES, SYNTHETIC_SOURCES
 
 if TYPE_CHECKING:
     from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.eval.scoring.methods import ExternalMethod
 
-#: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
-#: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
-#: labelled plants (`real_source.py`).
-SOURCES = ("scan", "oracle", "rgbd", "real")
-#: ... those of synthetic plants, with exact truth.
-SYNTHETIC_SOURCES = tuple(s for s in SOURCES if s != "real")
 
 #: What an eval measures: the poses (Table I), or pollination visits with them as well.
 TASKS = ("pose", "pollinate")

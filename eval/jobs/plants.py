@@ -16,20 +16,19 @@ import dataclasses
 import hashlib
 import json
 import zlib
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from flowerpose.cloudio import Cloud, read_cloud
-from flowerpose.config import DEFAULT_PRESET, load_suite, suite_names, to_dict
+from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.capture.detection import detect_cloud
 from flowerpose.eval.capture.rgbd_source import capture_rgbd_clouds
 from flowerpose.eval.capture.scan_source import capture_scan_clouds
 from flowerpose.eval.jobs.config import WORLD_SECTIONS, EvalConfig, pipeline_part
+from flowerpose.eval.jobs.plant_set import PlantSet, real_names
 from flowerpose.eval.pool import run_jobs
 from flowerpose.eval.reports.html_report import PlantView
 from flowerpose.eval.scoring.match import MAX_MATCH_DISTANCE, plant_entry, score_plant
@@ -53,88 +52,6 @@ from flowerpose.pipeline.flowers import (
 )
 from flowerpose.sim.world_config import SimConfig
 from flowerpose.stopwatch import Stopwatch
-
-#: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
-#: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
-#: labelled plants.
-SYNTHETIC = ("scan", "oracle", "rgbd")
-
-
-@dataclass(frozen=True)
-class PlantSet:
-    """Seeded synthetic plants (`plants` of `source` and `preset` from `seed`) or labelled
-    real plant `folders` (their truth scale from each folder's source.json unless
-    `truth_scale`); `label` names the set in reports."""
-
-    source: str
-    preset: str = DEFAULT_PRESET
-    plants: int = 0
-    seed: int = 0
-    folders: tuple[Path, ...] = ()
-    truth_scale: float | None = None
-    label: str = ""
-
-    def __post_init__(self):
-        if self.source not in (*SYNTHETIC, "real"):
-            raise InputError("source", f"'{self.source}': one of {', '.join(SYNTHETIC)}, real")
-        if self.real and not self.folders:
-            raise InputError("source", "real needs at least one labelled plant folder: "
-                             "--source real DIR [DIR ...]")
-        if not self.real and self.plants < 1:
-            raise InputError("plants", f"must be at least 1, got {self.plants}")
-        if not self.label:
-            object.__setattr__(self, "label", ", ".join(Path(f).name for f in self.folders)
-                               if self.real else f"{self.preset} {self.source} seeds "
-                               f"{self.seed}-{self.seed + self.plants - 1}")
-
-    @property
-    def real(self) -> bool:
-        return self.source == "real"
-
-    @property
-    def seeds(self) -> list[int]:
-        return list(range(self.seed, self.seed + self.plants))
-
-    def describe(self) -> dict[str, Any]:
-        if self.real:
-            return {"label": self.label, "source": "real",
-                    "folders": [str(f) for f in self.folders]}
-        return {"label": self.label, "source": self.source, "preset": self.preset,
-                "plants": self.plants, "seed": self.seed}
-
-    def following(self) -> PlantSet:
-        """The same kind of plants, the seeds after these (a synthetic set's validation)."""
-        after = PlantSet(self.source, self.preset, self.plants, self.seed + self.plants)
-        return dataclasses.replace(after, label=f"{after.label} (after {self.label})")
-
-
-def parse_sets(items: list[str]) -> list[PlantSet]:
-    """Plant sets from the command line: each a suite's name (assets/suites/), a suite
-    file (TOML with [eval]: source, preset, plants, seed) or a real plant folder; real
-    folders given one after another form one set."""
-    sets: list[PlantSet] = []
-    folders: list[Path] = []
-    for item in items:
-        path = Path(item)
-        if item in suite_names() or path.suffix == ".toml":
-            sets.append(suite_set(load_suite(item)))
-        elif path.is_dir():
-            folders.append(path)
-        else:
-            raise InputError(item, f"neither a suite ({', '.join(suite_names())}), a suite "
-                             "file (.toml) nor a real plant folder")
-    if folders:
-        sets.append(PlantSet("real", folders=tuple(folders)))
-    return sets
-
-
-def suite_set(suite: dict) -> PlantSet:
-    """A suite's plants (`config.load_suite`), labelled by the suite's name."""
-    fixed = suite["eval"]
-    if fixed["source"] == "real":
-        raise InputError(suite["name"], "a suite of real plants: give their folders instead")
-    return PlantSet(fixed["source"], fixed["preset"], fixed["plants"], fixed["seed"],
-                    label=suite["name"])
 
 
 def world_digest(config: EvalConfig, source: str) -> str:
@@ -504,26 +421,3 @@ def real_plants(folders: list[Path], truth_scale: float | None) -> list[RealPlan
     plants = [read_real_plant(folder, truth_scale) for folder in folders]
     return [dataclasses.replace(plant, name=name)
             for name, plant in zip(real_names(folders), plants, strict=True)]
-
-
-def real_names(folders: Iterable[Path]) -> list[str]:
-    """Each real plant folder's name in a report: its own, or, where two folders share
-    it, with its parent's before it (PARENT-NAME); a folder given twice is refused."""
-    given = [Path(f) for f in folders]
-    resolved = [f.resolve() for f in given]
-    for k, folder in enumerate(resolved):
-        if folder in resolved[:k]:
-            raise InputError(given[k], "is given twice: each plant counts once")
-    names = [f.name for f in resolved]
-    return _unique([f"{f.parent.name}-{f.name}" if names.count(f.name) > 1 else f.name
-                    for f in resolved])
-
-
-def _unique(names: list[str]) -> list[str]:
-    """Folder names made unique by a count: a, a-2, a-3."""
-    seen: dict[str, int] = {}
-    unique = []
-    for name in names:
-        seen[name] = seen.get(name, 0) + 1
-        unique.append(name if seen[name] == 1 else f"{name}-{seen[name]}")
-    return unique

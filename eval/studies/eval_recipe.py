@@ -18,14 +18,8 @@ from flowerpose.atomic import write_text
 from flowerpose.config import settings_toml, to_dict
 from flowerpose.eval.jobs.config import EvalConfig, settings_run
 from flowerpose.eval.jobs.eval_run import EvalRun
-from flowerpose.eval.jobs.plants import (
-    PlantJob,
-    Plants,
-    PlantSet,
-    real_names,
-    real_plants,
-    score_job,
-)
+from flowerpose.eval.jobs.plant_set import PlantSet, real_names
+from flowerpose.eval.jobs.plants import PlantJob, Plants, real_plants, score_job
 from flowerpose.eval.pool import run_jobs
 from flowerpose.eval.reports.html_report import write_html_report
 from flowerpose.eval.reports.report import REPORT_FILES, build_report, summarise, write_report
@@ -73,7 +67,7 @@ def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval")
     cache's folder (`flowerpose.cache`) the captures, detections and scores are taken from
     and put into; None runs every stage."""
     watch = Stopwatch()
-    record = run_record(config, run)
+    record = describe_run(config, run)
     LOG.info(f"eval: {record.said} -> {out_dir}")
     captured = Plants(workers, cache).jobs(record.plants, config, out_dir / "plants")
     jobs, timing = captured.jobs, dict(captured.timing)
@@ -101,7 +95,7 @@ def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval")
     return report
 
 
-def run_record(config: EvalConfig, run: EvalRun) -> RunRecord:
+def describe_run(config: EvalConfig, run: EvalRun) -> RunRecord:
     """The run's plant set, the run's part of report.json's `config` (the settings of the
     stages are added once the jobs say where the pipeline starts), and the title. Bad
     input (no folders, a folder given twice) is refused here, before any work."""

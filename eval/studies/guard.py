@@ -36,6 +36,8 @@ from typing import Any
 from flowerpose.atomic import write_text
 from flowerpose.config import DEFAULT_PRESET, load_toml
 from flowerpose.errors import InputError
+from flowerpose.eval.jobs.eval_run import TASKS
+from flowerpose.eval.jobs.plant_set import SOURCES
 from flowerpose.eval.reports.report import git_commit, run_record, summarise
 from flowerpose.eval.studies import accepted as history_file
 from flowerpose.eval.studies.fresh_seeds import FRESH_SEEDS, entry_draw
@@ -50,8 +52,6 @@ BATTERY = files("flowerpose.assets") / "guard" / "battery.toml"
 ACCEPTED = files("flowerpose.assets") / "guard" / "accepted.json"
 #: What `flowerpose guard` writes into its --out folder (and each entry's runs).
 GUARD_FILES = ("guard.json", "guard.md", "revisions")
-SOURCES = ("oracle", "scan", "rgbd", "real")
-TASKS = ("pose", "pollinate")
 #: Each key an entry may have, with its type.
 _ENTRY_KEYS: dict[str, type | tuple[type, ...]] = {
     "name": str, "description": str, "source": str, "preset": str, "plants": int,

@@ -184,7 +184,8 @@ def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
     `compare`: other settings by name (EvalConfigs, e.g. the published method's profile)
     run on the very same perturbed clouds and compared flower by flower at every level."""
     from flowerpose.eval.jobs.config import pipeline_part
-    from flowerpose.eval.jobs.plants import Plants, PlantSet
+    from flowerpose.eval.jobs.plant_set import PlantSet
+    from flowerpose.eval.jobs.plants import Plants
 
     watch = Stopwatch()
     variants = (Variant(),) + plan.variants

@@ -18,7 +18,8 @@ from flowerpose.atomic import write_figure, write_text
 from flowerpose.config import apply_overrides, current_name, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import WORLD_SECTIONS, EvalConfig, settings_run
-from flowerpose.eval.jobs.plants import Plants, PlantSet, score_job
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.jobs.plants import Plants, score_job
 from flowerpose.eval.pool import run_jobs
 from flowerpose.eval.reports.report import summarise
 from flowerpose.eval.scoring.paired import compare_runs

@@ -37,7 +37,8 @@ from flowerpose.config import (
 )
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import EvalConfig, eval_config
-from flowerpose.eval.jobs.plants import Plants, PlantSet, world_digest
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.jobs.plants import Plants, world_digest
 from flowerpose.eval.reports.report import markdown_table, run_record, summarise
 from flowerpose.eval.scoring.paired import flower_errors
 from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG

@@ -248,7 +248,7 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
 def cmd_tune(args: argparse.Namespace) -> int:
     from flowerpose.config import parse_set_options
     from flowerpose.eval.jobs.config import eval_config
-    from flowerpose.eval.jobs.plants import PlantSet, parse_sets
+    from flowerpose.eval.jobs.plant_set import PlantSet, parse_sets
     from flowerpose.eval.studies.fresh_seeds import refuse_fresh
     from flowerpose.eval.studies.tune import (
         DEFAULTS_FLIPPED,
