@@ -20,11 +20,28 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 from flowerpose.errors import InputError, JobsFailed, one_line
 from flowerpose.log import LOG, Tally
 from flowerpose.processes import quiet_worker
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How a recipe's jobs run, beside what they run on: `workers` processes (None: one
+    a core) and the stage cache's folder `cache` the captures, detections and scores are
+    taken from and put into (None: every stage runs). Inside `on_ray` every job goes to
+    Ray instead of the pool."""
+
+    workers: int | None = None
+    cache: Path | None = None
+
+
+#: A recipe's jobs when not told: a process a core, no stage cache.
+LOCAL = Execution()
+
 
 #: Times a Ray task that raised is run again before it counts as failed.
 TASK_RETRIES = 1

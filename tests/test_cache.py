@@ -17,6 +17,8 @@ from flowerpose.eval.capture.scan_source import (
     ScanSourceConfig,
     capture_scan_cached,
 )
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import Execution
 from flowerpose.scan_geometry import ScanPathConfig
 
 
@@ -283,8 +285,8 @@ def test_an_eval_again_takes_its_plants_detections_and_scores_from_the_cache(tmp
     root, config = tmp_path / "cache", EvalConfig()
 
     def run(out, cfg=config):
-        return run_eval(cfg, EvalRun(source="oracle", plants=1, seed=1), tmp_path / out,
-                        workers=1, cache=root)
+        return run_eval(cfg, EvalRun(PlantSet("oracle", plants=1, seed=1)), tmp_path / out,
+                        Execution(1, root))
 
     first, again = run("a"), run("b")
     assert again["summary"] == first["summary"] and first["timing_s"]["cluster"] > 0

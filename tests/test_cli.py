@@ -101,7 +101,8 @@ def test_eval_writes_the_report_contract(tmp_path, capsys):
     assert report["config"]["cluster"]["eps"] == 0.01
     # An oracle run's settings: the pipeline's, the plants' and the scoring; no scan, RGB-D
     # or fusion settings, which it never used.
-    assert set(report["config"]) == {"source", "plants", "seed", "colour", "ground", "grid",
+    assert set(report["config"]) == {"source", "preset", "plants", "seed", "colour", "ground",
+                                     "grid",
                                      "detect", "outliers", "cluster", "pose", "sim", "score"}
     assert report["timing_s"]["total"] > 0
     assert report["summary"]["recall_visible"] >= 0.9

@@ -2,6 +2,8 @@
 version with a warning, a command refuses keys it does not read, and a section's check
 names the full key."""
 
+import argparse
+
 import pytest
 
 from flowerpose.cli import build_parser, main
@@ -62,14 +64,15 @@ def test_a_key_a_command_does_not_read_or_a_bad_value_is_one_line_naming_the_ful
 
 
 def test_sweep_grids_tune_sets_and_tune_spaces_take_renamed_keys_too(tmp_path, capsys):
+    from flowerpose.cli.options import setting_layers
     from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.eval.studies.sweep import parse_grid
-    from flowerpose.eval.studies.tune import user_overrides
     from flowerpose.eval.studies.tune_space import read_space
 
     assert parse_grid(["scan.frames=40,50"], EvalConfig()) == [("scan.frames.count",
                                                                  ["40", "50"])]
-    assert user_overrides(None, None, {"scan.frames": 50}) == ({"scan.frames.count": 50},)
+    given = argparse.Namespace(profile=None, config=None, set=["scan.frames=50"])
+    assert setting_layers(EvalConfig(), given) == ({"scan.frames.count": "50"},)
     space = tmp_path / "space.toml"
     space.write_text("[scan.frames]\nlow = 40\nhigh = 60\nint = true\n")
     assert [p.key for p in read_space(space, EvalConfig())] == ["scan.frames.count"]

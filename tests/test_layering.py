@@ -73,9 +73,23 @@ def _eval_parts(path: Path) -> set[str]:
     return found
 
 
-def _eval_part(path: Path) -> str:
-    relative = path.relative_to(ROOT / "eval")
+def _eval_part(path: Path, root: Path = ROOT) -> str:
+    relative = path.relative_to(root / "eval")
     return relative.parts[0] if len(relative.parts) > 1 else relative.stem
+
+
+def _floor_breaches(root: Path) -> list[str]:
+    """Every import in root/eval/ of a subpackage beside or above the module's own."""
+    broken = []
+    for path in sorted((root / "eval").rglob("*.py")):
+        if path.parent == root / "eval" and path.name == "__init__.py":
+            continue
+        own = _eval_part(path, root)
+        for part in sorted(_eval_parts(path) - {own}):
+            if part not in EVAL_FLOORS or EVAL_FLOORS[part] >= EVAL_FLOORS[own]:
+                broken.append(f"{path.relative_to(root)} ({own}, floor "
+                              f"{EVAL_FLOORS.get(own)}) imports {part}")
+    return broken
 
 
 def test_every_eval_module_lies_on_a_floor():
@@ -85,16 +99,8 @@ def test_every_eval_module_lies_on_a_floor():
 
 
 def test_eval_imports_only_from_its_own_floor_or_below():
-    broken = []
-    for path in _modules("eval"):
-        if path.parent == ROOT / "eval" and path.name == "__init__.py":
-            continue
-        own = _eval_part(path)
-        for part in _eval_parts(path) - {own}:
-            if part not in EVAL_FLOORS or EVAL_FLOORS[part] >= EVAL_FLOORS[own]:
-                broken.append(f"{path.relative_to(ROOT)} ({own}, floor {EVAL_FLOORS[own]}) "
-                              f"imports {part}")
-    assert not broken, sorted(broken)
+    broken = _floor_breaches(ROOT)
+    assert not broken, broken
 
 
 def test_field_runs_without_truth_import_no_scoring():
@@ -102,14 +108,17 @@ def test_field_runs_without_truth_import_no_scoring():
         assert "scoring" not in _eval_parts(ROOT / "eval" / name), name
 
 
-def test_a_floor_breach_is_found(tmp_path, monkeypatch):
-    """The floor test reads what it should: a scoring module importing a study is caught."""
-    module = tmp_path / "eval" / "scoring" / "x.py"
-    module.parent.mkdir(parents=True)
-    module.write_text("def f():\n    from flowerpose.eval.studies import guard\n")
-    monkeypatch.setattr(__import__(__name__), "ROOT", tmp_path, raising=False)
-    assert _eval_parts(module) == {"studies"}
-    assert EVAL_FLOORS["studies"] > EVAL_FLOORS["scoring"]
+def test_a_floor_breach_is_found(tmp_path):
+    """The floor test reads what it should: a study importing scoring passes, scoring
+    importing a study (inside a function) or a sibling floor does not."""
+    for name, text in (("studies/a.py", "from flowerpose.eval.scoring import match\n"),
+                       ("scoring/b.py", "def f():\n    from flowerpose.eval.studies import a\n"),
+                       ("capture/c.py", "from flowerpose.eval.scoring.match import x\n")):
+        (tmp_path / "eval" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "eval" / name).write_text(text)
+    assert _floor_breaches(tmp_path) == [
+        "eval/capture/c.py (capture, floor 1) imports scoring",
+        "eval/scoring/b.py (scoring, floor 1) imports studies"]
 
 
 def test_importing_every_pipeline_module_loads_no_sim_hardware_or_eval_module():
@@ -173,7 +182,9 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 @pytest.mark.parametrize("folder, package", [
-    ("eval", "flowerpose.eval"), ("sim", "flowerpose.sim"),
+    ("eval", "flowerpose.eval"),
+    *((f"eval/{part}", f"flowerpose.eval.{part}") for part in EVAL_FLOORS if part != "pool"),
+    ("flowerpose/cli", "flowerpose.cli"), ("sim", "flowerpose.sim"),
     ("hardware", "flowerpose.hardware"), ("hardware/backends", "flowerpose.hardware.backends"),
     ("hardware/flights", "flowerpose.hardware.flights"), ("flowerpose", "flowerpose")])
 def test_no_import_circle_within_a_package(folder, package):

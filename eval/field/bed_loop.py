@@ -65,6 +65,24 @@ def open_journal(out: Path, bed: Bed, fingerprint: str, fields: dict[str, Any]) 
 
 
 @dataclasses.dataclass(frozen=True)
+class BedOptions:
+    """How a bed's field run goes, beside what it runs on and where its work runs."""
+
+    keep_going: bool = False
+    """Go on past a plant whose scan or processing fails (marked failed with its error);
+    else the error ends the run."""
+    pollinate: bool = False
+    """Once every plant is processed, visit each detected plant's flowers."""
+    say: Callable[[str], None] = print
+    """Where the run's lines go."""
+
+
+#: A bed's field run when not told: it stops at the first failure, pollinates nothing and
+#: prints its lines.
+WITHOUT_OPTIONS = BedOptions()
+
+
+@dataclasses.dataclass(frozen=True)
 class BedWork:
     """What a kind of bed brings to the loop."""
 

@@ -34,6 +34,8 @@ from flowerpose.eval.capture.photogrammetry import frames_and_cloud
 from flowerpose.eval.field.bed_loop import (
     LOCK,
     SCAN_FAILURES,
+    WITHOUT_OPTIONS,
+    BedOptions,
     BedWork,
     cut_to_plant,
     film_bed,
@@ -45,6 +47,7 @@ from flowerpose.eval.field.bed_loop import (
     timing_text,
 )
 from flowerpose.eval.jobs.config import EvalConfig, pipeline_part
+from flowerpose.eval.pool import LOCAL, Execution
 from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCameraConfig
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant
 from flowerpose.hardware.flights.flight_journal import folder_lock
@@ -126,16 +129,27 @@ def process_field_plant(folder: Path, name: str, at: tuple[float, float], radius
             "pipeline_s": {k: round(v, 3) for k, v in timing.items()}}
 
 
-def run_field_bed(bed: Bed, plan: BedPlan, config: EvalConfig, out: Path, rig: FieldRig,
-                  keep_going: bool = False, say: Callable[[str], None] = print,
-                  pollinate: bool = False, cache: Path | None = None) -> dict:
+@dataclasses.dataclass(frozen=True)
+class FieldBedRun:
+    """What a physical bed's field run runs on: the bed, its plan (checked, `plan_bed`,
+    before the camera opens or the bot connects) and the bot and camera that film it."""
+
+    bed: Bed
+    plan: BedPlan
+    rig: FieldRig
+
+
+def run_field_bed(config: EvalConfig, run: FieldBedRun, out: Path,
+                  execution: Execution = LOCAL, options: BedOptions = WITHOUT_OPTIONS) -> dict:
     """The bed's field run with the physical bot, resumable (the module's docstring).
-    Returns report.json's content. plan: the bed's plan, checked (`bed_plan.plan_bed`)
-    before the camera opens or the bot connects. A plant whose scan (the bot, its camera,
-    the disk) or processing fails is marked failed with its error and, with `keep_going`,
-    the bed goes on without it; else the error goes on, the recording stopped and the
-    connection dropped. pollinate: then each detected plant's flowers are visited
-    (`pollinate`'s plan and flight) before the bot is let go."""
+    Returns report.json's content. A plant whose scan (the bot, its camera, the disk) or
+    processing fails is marked failed with its error and, with `options.keep_going`, the
+    bed goes on without it; else the error goes on, the recording stopped and the
+    connection dropped. With `options.pollinate` each detected plant's flowers are then
+    visited (`pollinate`'s plan and flight) before the bot is let go. The execution's
+    stage cache keeps each plant's frames, reconstruction and detection."""
+    bed, plan, rig = run.bed, run.plan, run.rig
+    cache, keep_going, say = execution.cache, options.keep_going, options.say
     with folder_lock(out, LOCK, "field run"):
         journal = open_journal(out, bed, fingerprint(bed, settings_read(config)),
                                {"bot": rig.source})
@@ -157,7 +171,7 @@ def run_field_bed(bed: Bed, plan: BedPlan, config: EvalConfig, out: Path, rig: F
                     "points")
 
         then = None
-        if pollinate:
+        if options.pollinate:
             def then(bot) -> None:
                 _pollinate(bot, rig, journal, folders, spots, config, keep_going, say)
 

@@ -24,9 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from flowerpose.config import to_dict
+from flowerpose.errors import InputError
 from flowerpose.eval.capture.photogrammetry import frames_and_cloud
 from flowerpose.eval.field.bed_loop import (
     LOCK,
+    WITHOUT_OPTIONS,
+    BedOptions,
     BedWork,
     cut_to_plant,
     film_bed,
@@ -36,6 +39,8 @@ from flowerpose.eval.field.bed_loop import (
     timing_text,
 )
 from flowerpose.eval.jobs.config import EvalConfig
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import LOCAL, Execution
 from flowerpose.hardware.flights.bed_plan import Bed, BedPlan, BedPlant, plan_bed
 from flowerpose.hardware.flights.flight_journal import folder_lock
 from flowerpose.log import noted
@@ -132,23 +137,38 @@ def _cut_to_plant(folder: Path, crop_radius: float) -> tuple[int, dict]:
     return len(kept), quality
 
 
-def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: bool = False,
-                say: Callable[[str], None] = print,
-                serial_time_scale: float | None = None, pollinate: bool = False,
-                cache: Path | None = None) -> dict:
+@dataclasses.dataclass(frozen=True)
+class SimBedRun:
+    """What a simulated bed's field run runs on: the bed file's places and the seeded
+    plants standing at them (`plants`: the i-th place's plant is seed `plants.seed + i`
+    of its preset), filmed by the simulated bot directly (`serial_time_scale` None) or
+    through the physical bot's serial backend on a virtual Farmduino running at K times
+    real time."""
+
+    bed: Bed
+    plants: PlantSet
+    serial_time_scale: float | None = None
+
+    def __post_init__(self):
+        if self.plants.real or self.plants.plants != len(self.bed.plants):
+            raise InputError("bed", f"{len(self.bed.plants)} places need as many seeded "
+                             f"synthetic plants, not {self.plants.label}")
+
+
+def run_sim_bed(config: EvalConfig, run: SimBedRun, out: Path, execution: Execution = LOCAL,
+                options: BedOptions = WITHOUT_OPTIONS) -> dict:
     """The bed's field run in the simulator, resumable (the module's docstring). Returns
     report.json's content. InputError where the bed cannot be scanned (naming the plant) or
     the folder holds another run; a plant whose scan or reconstruction fails is marked
-    failed with its error and, with `keep_going`, the bed goes on without it.
-    serial_time_scale: None films with the simulated bot directly; K through the physical
-    bot's serial backend on a virtual Farmduino running at K times real time.
-    pollinate: then each detected plant's visits are planned from its flowers, flown and
-    scored against its truth (`eval --task pollinate`'s step), into its entry. cache: the
-    stage cache's folder for each plant's frames, reconstruction and detection (None:
-    none; `process_plant`)."""
+    failed with its error and, with `options.keep_going`, the bed goes on without it. With
+    `options.pollinate` each detected plant's visits are then planned from its flowers,
+    flown and scored against its truth (`eval --task pollinate`'s step), into its entry.
+    The execution's stage cache keeps each plant's frames, reconstruction and detection
+    (`process_plant`)."""
     from flowerpose.eval.capture.scan_source import write_scan_truth
     from flowerpose.hardware.flights.scan_flight import run_scan
 
+    bed, seed, cache, say = run.bed, run.plants.seed, execution.cache, options.say
     with folder_lock(out, LOCK, "field run"):
         journal = open_journal(out, bed, fingerprint(bed, {"seed": seed,
                                                             "config": to_dict(config)}),
@@ -172,8 +192,8 @@ def run_sim_bed(bed: Bed, config: EvalConfig, seed: int, out: Path, keep_going: 
         work = BedWork(plan, sim_bed.folders, film, lambda name: (process_plant, (
             sim_bed.folders[name], name, config, reach[name], cache)), said)
         film_bed(journal, work, _bot([sim_bed.folders[n] for n in names], config,
-                                     serial_time_scale), keep_going, say)
-        if pollinate:
+                                     run.serial_time_scale), options.keep_going, say)
+        if options.pollinate:
             _pollinate(out, journal.record, config, say)
             journal.save()
         return _report(out, journal.record, sim_bed.bed, config)

@@ -5,17 +5,18 @@ the harness."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from flowerpose.errors import InputError
-from flowerpose.eval.jobs.plant_set import SOURCES, SYNTHETIC_SOURCES
+from flowerpose.eval.jobs.plant_set import SYNTHETIC_SOURCES, PlantSet
 
 if TYPE_CHECKING:
     from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.eval.scoring.methods import ExternalMethod
 
 
+#: Where an eval's clouds come from when not told.
+DEFAULT_SOURCE = "scan"
 #: What an eval measures: the poses (Table I), or pollination visits with them as well.
 TASKS = ("pose", "pollinate")
 
@@ -25,19 +26,12 @@ DEFAULT_PLANTS = {**dict.fromkeys(SYNTHETIC_SOURCES, 10), "scan": 2}
 
 @dataclass(frozen=True)
 class EvalRun:
-    """What `run_eval` runs, besides the settings: the plants (`plants` generated from
-    `seed` for a synthetic `source`, or the labelled real `folders`, their truth scale from
-    each folder's source.json unless `truth_scale`), the task ("pose", or "pollinate": plan,
-    fly and score pollination visits too), the other settings (by name) and external methods
-    compared on the same clouds, and the suite and the preset and profile files
-    (`report.assets_record`) to record."""
+    """What `run_eval` runs, besides the settings: the plants (`PlantSet`), the task
+    ("pose", or "pollinate": plan, fly and score pollination visits too), the other
+    settings (by name) and external methods compared on the same clouds, and the suite and
+    the preset and profile files (`report.assets_record`) to record."""
 
-    source: str = "scan"
-    plants: int | None = None
-    """Synthetic plants to make; None: the source's `DEFAULT_PLANTS`."""
-    seed: int = 0
-    folders: tuple[Path, ...] = ()
-    truth_scale: float | None = None
+    plants: PlantSet
     task: str = "pose"
     compare: dict[str, EvalConfig] = field(default_factory=dict)
     methods: tuple[ExternalMethod, ...] = ()
@@ -45,14 +39,8 @@ class EvalRun:
     assets: dict[str, dict[str, str]] | None = None
 
     def __post_init__(self):
-        if self.source not in SOURCES:
-            raise InputError("source", f"'{self.source}': one of {', '.join(SOURCES)}")
         if self.task not in TASKS:
             raise InputError("task", f"'{self.task}': one of {', '.join(TASKS)}")
-        if self.task == "pollinate" and self.source == "real":
+        if self.task == "pollinate" and self.plants.real:
             raise InputError("task", "pollinate needs synthetic plants, whose geometry "
                              "judges the visits: not --source real")
-        if self.plants is None and self.source != "real":
-            object.__setattr__(self, "plants", DEFAULT_PLANTS[self.source])
-        if self.source != "real" and self.plants < 1:
-            raise InputError("plants", f"must be at least 1, got {self.plants}")

@@ -9,10 +9,13 @@ import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from flowerpose.config import DEFAULT_PRESET, load_suite, suite_names
 from flowerpose.errors import InputError
+
+if TYPE_CHECKING:
+    from flowerpose.eval.scoring.real_source import RealPlant
 
 #: Where the clouds come from: simulated scans reconstructed by photogrammetry, the
 #: plant's surfaces sampled directly, a simulated depth camera's frames fused, or real
@@ -60,11 +63,22 @@ class PlantSet:
         return list(range(self.seed, self.seed + self.plants))
 
     def describe(self) -> dict[str, Any]:
+        """The plants as every run records them (report.json's and stress.json's `config`,
+        tune's sets): a synthetic set's source, preset, plant count and first seed; a real
+        set's source and each folder as read and checked (`RealPlant.describe`)."""
         if self.real:
-            return {"label": self.label, "source": "real",
-                    "folders": [str(f) for f in self.folders]}
-        return {"label": self.label, "source": self.source, "preset": self.preset,
-                "plants": self.plants, "seed": self.seed}
+            return {"source": "real", "folders": [p.describe() for p in self.real_plants()]}
+        return {"source": self.source, "preset": self.preset, "plants": self.plants,
+                "seed": self.seed}
+
+    def real_plants(self) -> list[RealPlant]:
+        """A real set's folders read and checked (`read_real_plant`), each named uniquely
+        (`real_names`)."""
+        from flowerpose.eval.scoring.real_source import read_real_plant
+
+        plants = [read_real_plant(folder, self.truth_scale) for folder in self.folders]
+        return [dataclasses.replace(plant, name=name)
+                for name, plant in zip(real_names(self.folders), plants, strict=True)]
 
     def following(self) -> PlantSet:
         """The same kind of plants, the seeds after these (a synthetic set's validation)."""

@@ -12,7 +12,6 @@ cloud as it is, or under a seeded perturbation (`Perturbed`: `flowerpose stress`
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import zlib
@@ -28,7 +27,7 @@ from flowerpose.eval.capture.detection import detect_cloud
 from flowerpose.eval.capture.rgbd_source import capture_rgbd_clouds
 from flowerpose.eval.capture.scan_source import capture_scan_clouds
 from flowerpose.eval.jobs.config import WORLD_SECTIONS, EvalConfig, pipeline_part
-from flowerpose.eval.jobs.plant_set import PlantSet, real_names
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.pool import run_jobs
 from flowerpose.eval.reports.html_report import PlantView
 from flowerpose.eval.scoring.match import MAX_MATCH_DISTANCE, plant_entry, score_plant
@@ -37,7 +36,6 @@ from flowerpose.eval.scoring.real_source import (
     evaluate_real_plant,
     plant_cloud,
     read_plant_clouds,
-    read_real_plant,
     real_truth,
 )
 from flowerpose.eval.scoring.truth import as_labelled, read_plant_truth
@@ -323,7 +321,7 @@ class Plants:
         folder/seed-S (unless this world's were made before, into another folder); a real
         set's folders are read and checked, each named uniquely."""
         if plant_set.real:
-            plants = real_plants(list(plant_set.folders), plant_set.truth_scale)
+            plants = plant_set.real_plants()
             return Captured([RealJob(plant.name, plant) for plant in plants], {}, {})
         key = (plant_set.source, world_digest(config, plant_set.source), plant_set.seed,
                plant_set.plants)
@@ -411,13 +409,3 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
         report["cache"] = {"dir": str(cache), "steps_reused": steps,
                            "reused": [plant for plant, c in steps.items() if len(c) == whole]}
     return clouds, timing, report
-
-
-def real_plants(folders: list[Path], truth_scale: float | None) -> list[RealPlant]:
-    """The real plant folders, checked (`read_real_plant`), each named uniquely."""
-    if not folders:
-        raise InputError("source", "real needs at least one labelled plant folder: "
-                         "--source real DIR [DIR ...]")
-    plants = [read_real_plant(folder, truth_scale) for folder in folders]
-    return [dataclasses.replace(plant, name=name)
-            for name, plant in zip(real_names(folders), plants, strict=True)]

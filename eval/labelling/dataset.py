@@ -34,6 +34,7 @@ from flowerpose.atomic import write_image
 from flowerpose.config import require, to_dict
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import EvalConfig
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.labelling.coco import annotation, write_instances
 from flowerpose.eval.labelling.yolo import label_line, write_data_yaml, write_labels
 from flowerpose.eval.reports.report import run_record
@@ -162,13 +163,19 @@ def dataset_writes(dataset: DatasetConfig) -> tuple[str, ...]:
     return ("dataset.json", "split.json", "images", *formats[dataset.format])
 
 
-def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: DatasetConfig,
+def write_dataset(config: EvalConfig, plants: PlantSet, dataset: DatasetConfig, out: Path,
                   overwrite: bool = False) -> dict:
-    """Generate the plants of `seeds`, write their images and annotations into `out` in
+    """Generate the seeded `plants` (`config.sim`'s world; kept in memory, their renders
+    read straight from the scene), write their images and annotations into `out` in
     `dataset.format`, split by plant, with split.json and dataset.json; returns the
     manifest (dataset.json's content)."""
     from flowerpose.sim.bundle import make_plant  # trimesh: the [sim] extra
 
+    if plants.real:
+        raise InputError("source", "a dataset is made of synthetic plants, whose masks are "
+                         "exact: not real folders")
+    seeds = plants.seeds
+    plant_records = []
     split = split_plants(seeds, dataset.val_fraction, dataset.split_seed)
     splits = [name for name in ("train", "val") if split[name]]
     of_seed = {s: name for name in splits for s in split[name]}
@@ -178,7 +185,7 @@ def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: Data
     params = [] if dataset.views == "grid" else [cv2.IMWRITE_JPEG_QUALITY, 95]
     images: dict[str, list[dict]] = {name: [] for name in splits}
     annotations: dict[str, list[dict]] = {name: [] for name in splits}
-    plants, instances = [], 0
+    instances = 0
     with Tally(len(seeds), "plants") as tally:
         for seed in seeds:
             bundle = make_plant(seed, config=config.sim)
@@ -203,8 +210,9 @@ def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: Data
                 first = sum(len(v) for v in annotations.values()) + 1
                 annotations[name] += [annotation(first + k, image_id, 1, mask, flower=f)
                                       for k, (f, mask) in enumerate(masks)]
-            plants.append({"seed": seed, "split": name, "flowers": len(bundle.plant.flowers),
-                           "annotated_flowers": len(seen), "images": len(samples)})
+            plant_records.append({"seed": seed, "split": name,
+                                  "flowers": len(bundle.plant.flowers),
+                                  "annotated_flowers": len(seen), "images": len(samples)})
             tally.finished(f"seed {seed}: {len(samples)} images, {len(seen)} of "
                            f"{len(bundle.plant.flowers)} flowers annotated")
     files = {}
@@ -224,12 +232,12 @@ def write_dataset(out: Path, seeds: list[int], config: EvalConfig, dataset: Data
     manifest = {
         "run": run_record(), "format": dataset.format, "views": dataset.views,
         "preset": config.sim.plant.name, "seeds": seeds, "split": split,
-        "images": sum(p["images"] for p in plants), "instances": instances,
+        "images": sum(p["images"] for p in plant_records), "instances": instances,
         "categories": CATEGORIES,
         "mask": "a flower's petals, receptacle and stamens as seen; its sepals, buds, fruit, "
                 "leaves and soil are background",
         "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
-        "plants": plants,
+        "plants": plant_records,
         "config": {"dataset": to_dict(dataset), "sim": to_dict(config.sim),
                    "ground": to_dict(config.ground), "grid": to_dict(config.grid),
                    **({"scan": {"width": config.scan.camera.width,

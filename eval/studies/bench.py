@@ -9,12 +9,14 @@ import dataclasses
 import os
 import statistics
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.config import DEFAULT_PRESET, to_dict
+from flowerpose.eval.pool import LOCAL, Execution
 from flowerpose.eval.reports.report import markdown_table, run_record
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
@@ -65,15 +67,24 @@ def _oracle_cloud(seed: int, points: int, cache: Path | None) -> Cloud:
         return read_cloud(Path(folder) / "cloud.ply")
 
 
-def run_bench(point_counts: list[int], repeat: int = 3, seed: int = 3,
-              out: Path | None = None, config: PipelineConfig | None = None,
-              cache: Path | None = None) -> dict:
-    """Median wall seconds per stage over `repeat` runs for each cloud size; prints a table
-    and writes bench.json to `out` when given. The clouds are the plant stage's (from the
-    stage cache at `cache` when made before; None: made now); the timed runs never are."""
-    config = config or PipelineConfig()
+@dataclass(frozen=True)
+class BenchPlan:
+    """What `flowerpose bench` times: realistic plant `seed`'s oracle cloud at each of
+    `point_counts` points, each detection `repeat` times (the median kept)."""
+
+    point_counts: tuple[int, ...]
+    repeat: int = 3
+    seed: int = 3
+
+
+def run_bench(config: PipelineConfig, plan: BenchPlan, out: Path | None = None,
+              execution: Execution = LOCAL) -> dict:
+    """Median wall seconds per stage over the plan's repeats for each cloud size; prints a
+    table and writes bench.json to `out` when given. The clouds are the plant stage's
+    (from the execution's stage cache when made before); the timed runs never are."""
+    repeat, seed, cache = plan.repeat, plan.seed, execution.cache
     results = []
-    for points in point_counts:
+    for points in plan.point_counts:
         LOG.info(f"a {points:,}-point cloud (seed {seed}, realistic)...")
         cloud = _oracle_cloud(seed, points, cache)
         find_flowers(cloud, config)  # warm-up: first-call costs of Open3D and SciPy

@@ -18,9 +18,9 @@ from flowerpose.atomic import write_text
 from flowerpose.config import settings_toml, to_dict
 from flowerpose.eval.jobs.config import EvalConfig, settings_run
 from flowerpose.eval.jobs.eval_run import EvalRun
-from flowerpose.eval.jobs.plant_set import PlantSet, real_names
-from flowerpose.eval.jobs.plants import PlantJob, Plants, real_plants, score_job
-from flowerpose.eval.pool import run_jobs
+from flowerpose.eval.jobs.plant_set import real_names
+from flowerpose.eval.jobs.plants import PlantJob, Plants, score_job
+from flowerpose.eval.pool import LOCAL, Execution, run_jobs
 from flowerpose.eval.reports.html_report import write_html_report
 from flowerpose.eval.reports.report import REPORT_FILES, build_report, summarise, write_report
 from flowerpose.eval.scoring.methods import ExternalMethod, run_method
@@ -32,10 +32,9 @@ from flowerpose.stopwatch import Stopwatch
 
 @dataclass
 class RunRecord:
-    """What a run was, as its report says it: the plant set, report.json's `config` (the
-    run and the settings of the stages it ran) and the report's title."""
+    """What a run was, as its report says it: report.json's `config` (the run and the
+    settings of the stages it ran) and the report's title."""
 
-    plants: PlantSet
     config: dict
     title: str
     said: str
@@ -59,20 +58,22 @@ class Sections:
 
 
 def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval"),
-             workers: int | None = None, cache: Path | None = None) -> dict:
+             execution: Execution = LOCAL) -> dict:
     """The benchmark: the run's plants as jobs, scored, compared, pollinated and reported.
     Returns report.json's content and writes report.json, report.md, report.html,
     config.toml and, per plant, its flowers (and for synthetic plants its truth and cloud)
-    under out_dir; compared settings and methods under out_dir/NAME/. `cache`: the stage
-    cache's folder (`flowerpose.cache`) the captures, detections and scores are taken from
-    and put into; None runs every stage."""
+    under out_dir; compared settings and methods under out_dir/NAME/. `execution`: the
+    workers, and the stage cache the captures, detections and scores are taken from and
+    put into."""
+    workers, cache = execution.workers, execution.cache
     watch = Stopwatch()
     record = describe_run(config, run)
     LOG.info(f"eval: {record.said} -> {out_dir}")
-    captured = Plants(workers, cache).jobs(record.plants, config, out_dir / "plants")
+    captured = Plants(workers, cache).jobs(run.plants, config, out_dir / "plants")
     jobs, timing = captured.jobs, dict(captured.timing)
     record.config = {**record.config,
-                     **settings_run(config, run.source, [job.start for job in jobs])}
+                     **settings_run(config, run.plants.source,
+                                    [job.start for job in jobs])}
     entries, stage_timing = _score_jobs(jobs, config, out_dir, workers, cache)
     timing.update(stage_timing)
     sections = Sections(reconstruction=captured.report.get("reconstruction"),
@@ -96,26 +97,24 @@ def run_eval(config: EvalConfig, run: EvalRun, out_dir: Path = Path("runs/eval")
 
 
 def describe_run(config: EvalConfig, run: EvalRun) -> RunRecord:
-    """The run's plant set, the run's part of report.json's `config` (the settings of the
-    stages are added once the jobs say where the pipeline starts), and the title. Bad
-    input (no folders, a folder given twice) is refused here, before any work."""
-    plants = PlantSet(run.source, config.sim.plant.name, run.plants or 0, run.seed,
-                      tuple(run.folders), run.truth_scale)
+    """The run's part of report.json's `config` (its plants, `PlantSet.describe`; the
+    settings of the stages are added once the jobs say where the pipeline starts), and the
+    title. Bad input (a folder given twice or unreadable) is refused here, before any
+    work."""
+    plants = run.plants
+    config_run = plants.describe()
     if plants.real:
-        folders = [p.describe() for p in real_plants(list(run.folders), run.truth_scale)]
-        config_run = {"source": run.source, "folders": folders}
-        said = f"{len(folders)} real plants"
+        said = f"{len(config_run['folders'])} real plants"
         title = f"flowerpose eval: {said}"
     else:
-        config_run = {"source": run.source, "plants": run.plants, "seed": run.seed}
-        said = (f"{run.plants} {config.sim.plant.name} plants from seed {run.seed}, "
-                f"{run.source} clouds")
-        title = (f"flowerpose eval: {run.plants} {config.sim.plant.name} plants, "
-                 f"{run.source} clouds")
+        said = (f"{plants.plants} {config.sim.plant.name} plants from seed {plants.seed}, "
+                f"{plants.source} clouds")
+        title = (f"flowerpose eval: {plants.plants} {config.sim.plant.name} plants, "
+                 f"{plants.source} clouds")
     if run.task == "pollinate":
         config_run.update(task=run.task, pollinate=to_dict(config.pollinate),
                           pollination=to_dict(config.pollination))
-    return RunRecord(plants, config_run, title, said)
+    return RunRecord(config_run, title, said)
 
 
 def _pollinate(jobs: list[PlantJob], entries: list[dict], config: EvalConfig, out_dir: Path,

@@ -31,6 +31,8 @@ import numpy as np
 from flowerpose.atomic import write_figure, write_text
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.errors import InputError
+from flowerpose.eval.jobs.config import EvalConfig, pipeline_part
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.reports.report import markdown_table, run_record
 from flowerpose.eval.scoring.match import match_flowers
 from flowerpose.eval.scoring.real_source import (
@@ -163,13 +165,13 @@ def synthetic_sample(folder: Path, config: PipelineConfig, max_distance: float) 
 DENSITY_MATCH = 1.25
 
 
-def real_outcome(plant: RealPlant, config: PipelineConfig, max_distance: float) -> dict:
+def real_outcome(plant: RealPlant, settings: EvalConfig) -> dict:
     """The real plant's report.json plant entry: the pipeline's flowers scored against its
-    labels."""
-    from flowerpose.eval.scoring.real_source import evaluate_real_plant
+    labels, as eval scores it (`RealJob`)."""
+    from flowerpose.eval.jobs.plants import RealJob
 
     with tempfile.TemporaryDirectory() as scratch:
-        return evaluate_real_plant(plant, config, Path(scratch), max_distance)[0]
+        return RealJob(plant.name, plant).score(settings, Path(scratch))[0]
 
 
 def predicted_outcome(folder: Path, config: PipelineConfig, max_distance: float,
@@ -474,17 +476,19 @@ def table(report: dict[str, Any]) -> str:
 FIDELITY_FILES = ("fidelity.json", "fidelity.md", "fidelity.png")
 
 
-def run_fidelity(real_dir: Path, synthetic_dirs: list[Path], out_dir: Path,
-                 config: PipelineConfig, max_distance: float,
-                 truth_scale: float | None = None, label_error_deg: float = 0.0
-                 ) -> dict[str, Any]:
-    """Statistics of a real plant folder and of synthetic plants, compared, and the
-    synthetic plants' predicted recall and plane error at the real density against the
-    real plant's 95 % intervals (`outcomes`; the synthetic truth tilted by
-    `label_error_deg`, or by the eval run's own `score.label_error_deg` where a synthetic
-    folder is a run); writes fidelity.json, fidelity.md and fidelity.png to out_dir and
-    returns the report."""
-    real_plant = read_real_plant(real_dir, truth_scale)
+def run_fidelity(settings: EvalConfig, real: PlantSet, synthetic_dirs: list[Path],
+                 out_dir: Path) -> dict[str, Any]:
+    """Statistics of a real plant folder (`real`, one) and of synthetic plants, compared,
+    and the synthetic plants' predicted recall and plane error at the real density against
+    the real plant's 95 % intervals (`outcomes`; the synthetic truth tilted by the
+    settings' `score.label_error_deg`, or by the eval run's own where a synthetic folder is
+    a run); writes fidelity.json, fidelity.md and fidelity.png to out_dir and returns the
+    report."""
+    if not real.real or len(real.folders) != 1:
+        raise InputError("--real", "fidelity compares one real plant folder")
+    config, max_distance = pipeline_part(settings), settings.score.max_distance_m
+    label_error_deg = settings.score.label_error_deg
+    real_plant = read_real_plant(real.folders[0], real.truth_scale)
     folders = synthetic_folders(synthetic_dirs)
     real = statistics([real_sample(real_plant, config, max_distance)], config)
     synthetic = statistics([synthetic_sample(f, config, max_distance) for f in folders], config)
@@ -492,7 +496,7 @@ def run_fidelity(real_dir: Path, synthetic_dirs: list[Path], out_dir: Path,
     real_points = real["points"]["p50"]
     predicted = [predicted_outcome(f, config, max_distance, real_points,
                                    run_label_error(f, label_error_deg)) for f in folders]
-    outcome = outcomes(real_outcome(real_plant, config, max_distance), predicted, real_points)
+    outcome = outcomes(real_outcome(real_plant, settings), predicted, real_points)
     out_dir.mkdir(parents=True, exist_ok=True)
     _plot(out_dir / "fidelity.png", real, synthetic, (real_plant.name, "synthetic"))
     report = {"run": run_record(), "real_plant": real_plant.name,

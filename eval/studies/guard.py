@@ -37,7 +37,7 @@ from flowerpose.atomic import write_text
 from flowerpose.config import DEFAULT_PRESET, load_toml
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.eval_run import TASKS
-from flowerpose.eval.jobs.plant_set import SOURCES
+from flowerpose.eval.jobs.plant_set import SOURCES, PlantSet
 from flowerpose.eval.reports.report import git_commit, run_record, summarise
 from flowerpose.eval.studies import accepted as history_file
 from flowerpose.eval.studies.fresh_seeds import FRESH_SEEDS, entry_draw
@@ -89,6 +89,10 @@ class GuardEntry:
     @property
     def real(self) -> bool:
         return self.source == "real"
+
+    def plants_from(self, seed: int) -> PlantSet:
+        """A synthetic entry's plants from `seed` (its trend seed, or a run's fresh one)."""
+        return PlantSet(self.source, self.preset, self.plants, seed)
 
     def label(self) -> str:
         if self.real:
@@ -217,7 +221,7 @@ def real_folder(entry: GuardEntry, folders: list[Path]) -> Path:
 
 
 @dataclass(frozen=True)
-class Plants:
+class EntryDraw:
     """The plants an entry runs on in one run: the first synthetic seed and the
     perturbations' seed."""
 
@@ -230,26 +234,27 @@ class Plants:
         return {"seeds": [self.seed, self.seed + entry.plants - 1]}
 
 
-def fresh_plants(entry: GuardEntry, run_seed: int) -> Plants:
+def fresh_plants(entry: GuardEntry, run_seed: int) -> EntryDraw:
     """The entry's fresh plants of a run (`fresh_seeds.entry_draw`)."""
     seed, stress_seed = entry_draw(run_seed, entry.name, max(entry.plants, 1))
-    return Plants(seed, stress_seed)
+    return EntryDraw(seed, stress_seed)
 
 
-def trend_plants(entry: GuardEntry) -> Plants:
+def trend_plants(entry: GuardEntry) -> EntryDraw:
     """The entry's fixed trend plants: its seeds from `seed`, perturbations from 0."""
-    return Plants(entry.seed, 0)
+    return EntryDraw(entry.seed, 0)
 
 
-def side_arguments(entry: GuardEntry, plants: Plants, out: Path, folders: list[Path],
+def side_arguments(entry: GuardEntry, plants: EntryDraw, out: Path, folders: list[Path],
                    workers: int | None, cache: Path | None) -> list[str]:
     """The command one side runs an entry with (`flowerpose eval` or `stress`)."""
     common = ["--out", str(out), "-q",
               *(["--workers", str(workers)] if workers else []),
               *(["--cache", str(cache)] if cache is not None else ["--no-cache"])]
     if not entry.real:
-        return ["eval", "--source", entry.source, "--preset", entry.preset, "--plants",
-                str(entry.plants), "--seed", str(plants.seed), "--task", entry.task, *common]
+        drawn = entry.plants_from(plants.seed)
+        return ["eval", "--source", drawn.source, "--preset", drawn.preset, "--plants",
+                str(drawn.plants), "--seed", str(drawn.seed), "--task", entry.task, *common]
     folder = str(real_folder(entry, folders))
     if not entry.perturbed:
         return ["eval", "--source", "real", folder, *common]

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -30,7 +30,8 @@ import numpy as np
 from flowerpose.atomic import write_figure, write_text
 from flowerpose.config import to_dict
 from flowerpose.errors import InputError
-from flowerpose.eval.pool import run_jobs
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import LOCAL, Execution, run_jobs
 from flowerpose.eval.reports.report import markdown_table, run_record, summarise
 from flowerpose.eval.scoring.paired import compare_runs, difference_cell, record_cell
 from flowerpose.eval.scoring.stats import GROSS_DEG as STATS_GROSS_DEG
@@ -115,6 +116,9 @@ class StressPlan:
     """Seeded repeats of each random perturbation (thinning, noise, cut)."""
     seed: int = 0
     """Seed of the perturbations (each plant, perturbation and repeat draws its own)."""
+    compare: dict[str, Any] = field(default_factory=dict)
+    """Other settings by name (EvalConfigs, e.g. the published method's profile), run on
+    the very same perturbed clouds and compared flower by flower at every level."""
 
     def __post_init__(self):
         if self.repeats < 1:
@@ -123,7 +127,7 @@ class StressPlan:
 
 def plan_from(levels: dict[str, list[float]], channels: str = "rgb", drop_views: int = 0,
               capture: dict[str, list[str]] | None = None, repeats: int = 1,
-              seed: int = 0) -> StressPlan:
+              seed: int = 0, compare: dict[str, Any] | None = None) -> StressPlan:
     """A plan from the strengths of each kind (`DEFAULT_LEVELS`' keys), the channels a cast
     acts on, how many views are dropped one at a time (the first `drop_views`), and the
     scan capture's knobs (frames, resolution)."""
@@ -142,7 +146,7 @@ def plan_from(levels: dict[str, list[float]], channels: str = "rgb", drop_views:
             raise InputError(kind, f"not a capture knob ({', '.join(CAPTURE_KINDS)})")
         variants += [Variant(capture=(kind, v)) for v in values]
     variants = [v for v in variants if v.perturbation is None or not v.perturbation.is_identity()]
-    return StressPlan(tuple(variants), repeats, seed)
+    return StressPlan(tuple(variants), repeats, seed, dict(compare or {}))
 
 
 def _random(variant: Variant) -> bool:
@@ -174,40 +178,32 @@ def _points_per_flower(flowers_json: Path) -> float | None:
     return float(np.median(points)) if points else None
 
 
-def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
-               folders: list[Path] = (), plants: int = 3, seed: int = 0,
-               workers: int | None = None, cache: Path | None = None,
-               truth_scale: float | None = None, compare: dict[str, Any] | None = None) -> dict:
-    """The robustness report of real plant `folders` (source "real") or `plants` seeded
-    synthetic plants from `source`: writes stress.json, stress.md, stress.png and
-    report.html to out_dir and returns stress.json's content. `config`: an EvalConfig;
-    `compare`: other settings by name (EvalConfigs, e.g. the published method's profile)
-    run on the very same perturbed clouds and compared flower by flower at every level."""
+def run_stress(config: Any, plan: StressPlan, plants: PlantSet, out_dir: Path,
+               execution: Execution = LOCAL) -> dict:
+    """The robustness report of `plants` (real folders, or seeded synthetic plants of a
+    source): writes stress.json, stress.md, stress.png and report.html to out_dir and
+    returns stress.json's content. `config`: an EvalConfig; the plan's `compare` settings
+    run on the very same perturbed clouds."""
     from flowerpose.eval.jobs.config import pipeline_part
-    from flowerpose.eval.jobs.plant_set import PlantSet
     from flowerpose.eval.jobs.plants import Plants
+
+    workers, cache, compare = execution.workers, execution.cache, plan.compare
 
     watch = Stopwatch()
     variants = (Variant(),) + plan.variants
     capture = [v for v in variants if v.capture is not None]
-    if capture and source != "scan":
+    if capture and plants.source != "scan":
         raise InputError(capture[0].kind, "a capture knob needs --source scan")
     keyed = [(v, r) for v in variants for r in range(plan.repeats if _random(v) else 1)]
     runs = out_dir / "runs"
     made = Plants(workers, cache)
-    if source == "real":
-        plant_set = PlantSet("real", folders=tuple(folders), truth_scale=truth_scale)
-        jobs = {None: made.jobs(plant_set, config, out_dir / "plants").jobs}
-        run_config: dict = {"source": "real",
-                            "folders": [job.plant.describe() for job in jobs[None]]}
+    if plants.real:
+        jobs = {None: made.jobs(plants, config, out_dir / "plants").jobs}
     else:
-        plant_set = PlantSet(source, config.sim.plant.name, plants, seed)
-        jobs = {v.capture: made.jobs(plant_set, _captured_with(config, v),
+        jobs = {v.capture: made.jobs(plants, _captured_with(config, v),
                                      out_dir / "plants" / (_folder(v, 0) if v.capture
                                                            else "as-captured")).jobs
                 for v in [Variant(), *capture]}
-        run_config = {"source": source, "plants": plants, "seed": seed,
-                      "preset": config.sim.plant.name}
     names = [job.name for job in jobs[None]]
 
     def scored(settings: Any, folder: Path) -> list[dict]:
@@ -220,7 +216,7 @@ def run_stress(config: Any, plan: StressPlan, out_dir: Path, source: str,
 
     rows = _rows(keyed, names, scored(config, runs),
                  {name: scored(other, runs / name) for name, other in (compare or {}).items()})
-    report = {"run": run_record(), "config": {**run_config, "repeats": plan.repeats,
+    report = {"run": run_record(), "config": {**plants.describe(), "repeats": plan.repeats,
                                               "stress_seed": plan.seed,
                                               "pipeline": to_dict(pipeline_part(config)),
                                               "compare": {name: to_dict(pipeline_part(other))

@@ -20,7 +20,7 @@ from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import WORLD_SECTIONS, EvalConfig, settings_run
 from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.jobs.plants import Plants, score_job
-from flowerpose.eval.pool import run_jobs
+from flowerpose.eval.pool import LOCAL, Execution, run_jobs
 from flowerpose.eval.reports.report import summarise
 from flowerpose.eval.scoring.paired import compare_runs
 from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG
@@ -198,18 +198,16 @@ def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle",
             *(["plants-defaults"] if plants and plants != ["plants"] else []))
 
 
-def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int, seed: int,
-              out_dir: Path, workers: int | None = None, source: str = "oracle",
-              cache: Path | None = None, folders: Iterable[Path] = ()) -> dict:
-    """Evaluate every combination of the grid over `plants` seeded plants' clouds from
-    `source` (oracle, scan or rgbd), or real plant `folders` (source "real"); writes
-    sweep.csv, sweep.png and best.json, and returns
+def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: PlantSet,
+              out_dir: Path, execution: Execution = LOCAL) -> dict:
+    """Evaluate every combination of the grid over `plants` (seeded plants' clouds from a
+    source, or real folders); writes sweep.csv, sweep.png and best.json, and returns
     best.json's "best": the best setting (dotted keys, typed values), its metrics and its
     whole resolved config. Plants are generated, and for scan and rgbd filmed and
-    reconstructed, once for all settings unless a setting changes them; `cache` is the
-    stage cache's folder those captures are taken from and put into (None: none)."""
-    plant_set = (PlantSet("real", folders=tuple(folders)) if source == "real"
-                 else PlantSet(source, config.sim.plant.name, plants, seed))
+    reconstructed, once for all settings unless a setting changes them; the execution's
+    stage cache is where those captures are taken from and put into."""
+    plant_set, source = plants, plants.source
+    workers, cache = execution.workers, execution.cache
     watch = Stopwatch()
     keys = [key for key, _ in grid]
     settings = [dict(zip(keys, combo, strict=True))
@@ -273,7 +271,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: int
                              for t, m, p, c in zip(typed, pooled, per_plant, compared,
                                                    strict=True)],
                 "defaults": defaults, "rule": RANKING_RULE,
-                "plants": len(names), "seed": None if source == "real" else seed,
+                "plants": len(names), "seed": None if plants.real else plants.seed,
                 "source": source,
                 "seconds": round(watch.elapsed(), 2)})
     for row, against in zip(rows, compared, strict=True):

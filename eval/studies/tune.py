@@ -30,9 +30,6 @@ from typing import Any
 from flowerpose.atomic import write_text
 from flowerpose.config import (
     DEFAULT_PRESET,
-    load_profile,
-    load_toml,
-    renamed,
     settings_toml,
 )
 from flowerpose.errors import InputError
@@ -106,19 +103,6 @@ class SetScorer:
         return [job.score(config, out_dir / job.name, self.cache)[0] for job in jobs]
 
 
-def user_overrides(profile: str | None, config_file: Path | None, sets: dict) -> tuple[dict, ...]:
-    """The user's settings in the order they apply: the profile, the file, each --set,
-    each as dotted keys under their current names (`config.renamed`)."""
-    layers = []
-    if profile is not None:
-        layers.append(load_profile(profile))
-    if config_file is not None:
-        layers.append(load_toml(config_file))
-    if sets:
-        layers.append(sets)
-    return tuple(renamed(layer) for layer in layers)
-
-
 def study_name(spec_space: tuple[Param, ...], train: tuple[PlantSet, ...],
                objectives: tuple[Objective, ...]) -> tuple[str, dict]:
     """The default study name and what it is made of: the space, the training plants, the
@@ -126,7 +110,7 @@ def study_name(spec_space: tuple[Param, ...], train: tuple[PlantSet, ...],
     from flowerpose.cache import code_version
 
     identity = {"space": {p.key: p.to_json() for p in spec_space},
-                "train": [s.describe() for s in train],
+                "train": [{"label": s.label, **s.describe()} for s in train],
                 "objectives": [o.text for o in objectives], "code": code_version()}
     digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:10]
     return f"flowerpose-tune-{digest}", identity
@@ -592,8 +576,8 @@ def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
     report = {"run": run_record(), "study": {"name": spec.study_name, "storage": spec.storage},
               "space": {p.key: p.to_json() for p in spec.space},
               "objectives": [o.text for o in spec.objectives],
-              "train": [s.describe() for s in spec.train],
-              "validate": [s.describe() for s in spec.validate],
+              "train": [{"label": s.label, **s.describe()} for s in spec.train],
+              "validate": [{"label": s.label, **s.describe()} for s in spec.validate],
               "counts": {"complete": states.count(optuna.trial.TrialState.COMPLETE),
                          "pruned": states.count(optuna.trial.TrialState.PRUNED),
                          "failed": states.count(optuna.trial.TrialState.FAIL)},

@@ -7,7 +7,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from flowerpose.cli.flags import PHRASES_ATTRIBUTE, add_setting_flags
+from flowerpose.cli.field_bot import (
+    add_camera_options,
+    add_field_bot_options,
+    check_field_bot_flags,
+    field_bot,
+    field_camera,
+    home_field_bot,
+)
+from flowerpose.cli.flags import add_setting_flags
 from flowerpose.cli.options import (
     RENAMED_ATTRIBUTE,
     add_config_options,
@@ -46,36 +54,6 @@ def _scan_base():
     config = EvalConfig()
     return dataclasses.replace(config, scan=dataclasses.replace(config.scan,
                                                                 camera=SimCameraConfig()))
-
-
-#: How --cloud logs in to FarmBot's web app (scan, pollinate, field).
-WEB_APP_LOGIN = ("log in with FARMBOT_TOKEN, or FARMBOT_EMAIL and FARMBOT_PASSWORD "
-                 "(FARMBOT_SERVER for another server), or --token-file")
-
-
-def _add_token_file(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--token-file", type=Path, metavar="FILE", help="--cloud: a file outside "
-                   "the repository, readable by its owner alone, holding a FarmBot token (its "
-                   "JSON or its JWT)")
-
-
-def _add_field_bot_options(p: argparse.ArgumentParser, cloud: str = "") -> None:
-    """--port / --cloud and their options: the physical bot (scan, pollinate, field);
-    `cloud`: what else --cloud means to the command."""
-    p.add_argument("--port", metavar="PORT", help="the physical bot through its Farmduino on "
-                   "this serial port (e.g. /dev/ttyACM0; best /dev/serial/by-id/...)")
-    p.add_argument("--cloud", action="store_true", help="the physical bot through FarmBot's web "
-                   f"app{cloud}; {WEB_APP_LOGIN}")
-    p.add_argument("--firmware-params", type=Path, metavar="FILE", help="--port: the bot's "
-                   "firmware settings as the FarmBot web app exports them (JSON); written to "
-                   "the Farmduino at connect and read back, as FarmBot OS does (default: the "
-                   "settings the board holds)")
-    p.add_argument("--home-here", action="store_true", help="--port: the gantry stands at "
-                   "home (put there by hand): take it as home instead of homing, for a bot "
-                   "without endstops or encoders")
-    _add_token_file(p)
-    # The serial backend's errors advise its `settings`, which --firmware-params loads.
-    p.set_defaults(**{PHRASES_ATTRIBUTE: {"settings": "--firmware-params"}})
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
@@ -133,7 +111,7 @@ def _scan_field(args: argparse.Namespace) -> int:
                          "stands, X,Y in metres in the bed frame")
     size = configure(_scan_base(), args, reads=("scan.camera.width", "scan.camera.height"),
                      command="scan --port/--cloud").scan.camera
-    _check_field_bot_flags(args)
+    check_field_bot_flags(args)
     plan = plan_field_scan(args.plant_at, args.plant_height, args.plant_radius)
     x, y = args.plant_at
     print(f"plan: {len(plan.waypoints)} waypoints around the plant at ({x:.3f}, {y:.3f}) m, "
@@ -145,15 +123,15 @@ def _scan_field(args: argparse.Namespace) -> int:
         return 0
     from flowerpose.hardware.backends.usb_camera import check_disk_space
 
-    camera, recorder, source_camera = _field_camera(args, size.width, size.height,
+    camera, recorder, source_camera = field_camera(args, size.width, size.height,
                                                     plan.duration_s)
     check_disk_space(args.out, camera, plan.duration_s)
-    connect, source = _field_bot(args, camera=recorder.bind, observer=recorder.observe)
+    connect, source = field_bot(args, camera=recorder.bind, observer=recorder.observe)
     source["camera"] = source_camera
     source["plant"] = {"at": [x, y], "height": args.plant_height, "radius": args.plant_radius}
     try:
         with connect() as bot:
-            _home_field_bot(args, bot)
+            home_field_bot(args, bot)
             approach_start(bot, plan, args.out)
             manifest = run_scan(bot, plan, args.out, source={
                 **source, "bot": bot.info.name, "firmware": bot.info.firmware})
@@ -182,8 +160,8 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sim", action="store_true", help="the simulated bot (MuJoCo + renderer)")
     p.add_argument("--plant", type=Path, metavar="DIR",
                    help="--sim: the plant folder from flowerpose plant")
-    _add_field_bot_options(p)
-    _add_camera_options(p, "--width x --height")
+    add_field_bot_options(p)
+    add_camera_options(p, "--width x --height")
     p.add_argument("--plant-at", type=plant_xy, metavar="X,Y", help="--port/--cloud: where "
                    "the plant's stem stands, metres in the bed frame: x along the bed from "
                    "FarmBot's home end, y across it, (0, 0) the soil corner at home")
@@ -214,105 +192,6 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_scan)
 
 
-def _add_camera_options(p: argparse.ArgumentParser, size: str) -> None:
-    """--camera, --calibration and --keep-all: the head's USB camera (scan, field); `size`:
-    how the command sets the frame size."""
-    p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera, "
-                   "best its stable path /dev/v4l/by-id/...-video-index0; records MJPG at "
-                   f"{size}, 30 fps, exposure and focus locked")
-    p.add_argument("--calibration", type=Path, metavar="CAMERA.json", help="--port/--cloud: "
-                   "the camera's calibrated intrinsics at that size (default: estimated from "
-                   "a 62.2 degree horizontal field of view)")
-    p.add_argument("--keep-all", action="store_true", help="--port/--cloud: save every frame "
-                   "(30 fps: several GB for a 20-minute scan) instead of the 3 sharpest of "
-                   "each of 200 bins of the path, chosen while recording")
-    p.set_defaults(**{PHRASES_ATTRIBUTE: {**(p.get_default(PHRASES_ATTRIBUTE) or {}),
-                                          "choose": "leaving out --keep-all"}})
-
-
-def _field_camera(args: argparse.Namespace, width: int, height: int, duration_s: float):
-    """The USB camera of --camera, checked before the bot moves: its settings
-    (`UsbCameraConfig`; frames chosen over `duration_s` of bot time unless --keep-all), the
-    recorder the bot films with, and what scan.json records of it."""
-    if args.camera is None:
-        raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
-                         "/dev/v4l/by-id/usb-...-video-index0")
-    if not Path(args.camera).exists():
-        raise InputError(args.camera, "no such camera device; list them with "
-                         "ls -l /dev/v4l/by-id/")
-    from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
-    from flowerpose.hardware.trajectory import TrajectoryRecorder
-    from flowerpose.scanio import read_intrinsics
-
-    if args.calibration is not None:
-        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
-    choose = None if args.keep_all else FrameChoice(duration_s)
-    camera = UsbCameraConfig(width=width, height=height, calibration=args.calibration,
-                             choose=choose)
-    recorder = TrajectoryRecorder(lambda clock: UsbCamera(args.camera, clock, camera))
-    described = {"device": args.camera, "width": width, "height": height,
-                 "intrinsics": str(args.calibration or "estimated from the field of view"),
-                 "frames": "every frame" if choose is None else
-                 f"the {choose.keep} sharpest of each of {choose.bins} bins of the path"}
-    return camera, recorder, described
-
-
-def _check_field_bot_flags(args: argparse.Namespace) -> None:
-    """Refuse --port's and --cloud's options given to the other bot."""
-    if args.token_file is not None and not args.cloud:
-        raise InputError("--token-file", "is for --cloud")
-    for flag, value in (("--firmware-params", args.firmware_params),
-                        ("--home-here", args.home_here)):
-        if value and args.port is None:
-            raise InputError(flag, "is for --port (with --cloud, FarmBot OS holds the "
-                             "bot's settings and finds home)")
-
-
-def _field_bot(args: argparse.Namespace, camera=None, observer=None):
-    """The physical bot of --port or --cloud: a function that connects to it, and what
-    scan.json / flight.json record of it (no secret)."""
-    _check_field_bot_flags(args)
-    if args.cloud:
-        from flowerpose.hardware.backends.cloud_bot import FarmbotCloudBot
-        from flowerpose.hardware.backends.cloud_credentials import CloudCredentials
-
-        credentials = CloudCredentials.from_environment(token_file=args.token_file)
-        source = {"backend": "farmbot-cloud", "server": credentials.server}
-
-        def connect():
-            return FarmbotCloudBot(credentials, camera=camera, observer=observer)
-    else:
-        from flowerpose.hardware.backends.farmduino import FarmduinoBot
-        from flowerpose.hardware.protocol import read_settings
-
-        settings = None
-        if args.firmware_params is not None:
-            settings = read_settings(args.firmware_params)
-        else:
-            LOG.warning("warning: no --firmware-params: the Farmduino runs on the settings it "
-                        "holds, its firmware's defaults unless they were stored in its EEPROM "
-                        "(FarmBot OS, which writes them, is not connected)")
-        source = {"backend": "serial", "port": args.port,
-                  "firmware_params": str(args.firmware_params or "the board's own")}
-
-        def connect():
-            return FarmduinoBot(args.port, camera=camera, observer=observer,
-                                settings=settings)
-    return connect, source
-
-
-def _home_field_bot(args: argparse.Namespace, bot) -> None:
-    """--port: home the bot just connected (or take where it stands, --home-here)."""
-    if args.port is not None and args.home_here:
-        LOG.warning(f"warning: --home-here: {bot.info.name} takes where the gantry "
-                    "stands for home; every move is off by as much as it is not at home")
-        bot.home_here()
-    elif args.port is not None:
-        # Opening the port reset the board, which lost the position: home, Z first.
-        LOG.info(f"homing {bot.info.name} (Z, Y, X)")
-        bot.home()
-
-
 _pollinate_base = starting_config("flowerpose.hardware.flights.pollination_plan:PollinateSettings")
 
 
@@ -335,7 +214,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
     if args.port and args.cloud:
         raise InputError("pollinate", "choose one bot: --port PORT or --cloud, not both")
     flying = bool(args.port or args.cloud) and not args.dry_run
-    _check_field_bot_flags(args)
+    check_field_bot_flags(args)
     settings = configure(_pollinate_base(), args)
     config = settings.pollinate
     document = read_json(args.flowers)
@@ -374,7 +253,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         if obstacles is None:
             raise InputError("--plant-cloud", "needed to fly: without the plant's cloud the "
                              "visits are not checked for collisions with the plant")
-        bot = _field_bot(args)  # credentials and settings file read before writing
+        bot = field_bot(args)  # credentials and settings file read before writing
     with owned(args.out, "pollinate", args.overwrite, ("pollination.json", FLIGHT_NAME)) \
             as output:
         output.record(write_json(args.out / "pollination.json", {
@@ -412,7 +291,7 @@ def _fly_pollination(args: argparse.Namespace, plan, connect, source: dict) -> i
 
     # flight.json is declared, never recorded: no later run of this stage deletes it.
     with connect() as bot:
-        _home_field_bot(args, bot)
+        home_field_bot(args, bot)
         flight = fly_pollination(bot, plan, args.out, source={
             **source, "bot": bot.info.name, "firmware": bot.info.firmware})
     print(f"flight {flight['status']}: {len(flight['done'])}/{len(flight['visits'])} "
@@ -458,7 +337,7 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="also print every move (FarmBot millimetres and servo commands), "
                    "and fly nothing")
-    _add_field_bot_options(p)
+    add_field_bot_options(p)
     add_config_options(p, profile=False, detector=False,
                         example="pollinate.standoff_m=0.04 (metres; pollinate reads "
                         "pollinate.*, pollination.json's config, and colour.*, which tells a "
@@ -541,8 +420,15 @@ def _field_physical(args: argparse.Namespace, bed) -> int:
     each reconstructed and its flowers found while it films the next."""
     import contextlib
 
-    from flowerpose.eval.field.physical_bed import FieldRig, run_field_bed, settings_read
+    from flowerpose.eval.field.bed_loop import BedOptions
+    from flowerpose.eval.field.physical_bed import (
+        FieldBedRun,
+        FieldRig,
+        run_field_bed,
+        settings_read,
+    )
     from flowerpose.eval.jobs.config import EvalConfig
+    from flowerpose.eval.pool import Execution
     from flowerpose.hardware.flights.bed_plan import plan_bed
 
     config = configure(EvalConfig(), args, reads=tuple(settings_read(EvalConfig())),
@@ -551,24 +437,24 @@ def _field_physical(args: argparse.Namespace, bed) -> int:
     print(f"bed: {len(plan.plants)} plants, {plan.duration_s / 60:.0f} min of bot time; "
           "every scan checked against the bot's reach and the neighbours")
     size = config.scan.camera
-    camera, recorder, described = _field_camera(args, size.width, size.height,
+    camera, recorder, described = field_camera(args, size.width, size.height,
                                                  max(s.duration_s for s in plan.scans))
-    connect, source = _field_bot(args, camera=recorder.bind, observer=recorder.observe)
+    connect, source = field_bot(args, camera=recorder.bind, observer=recorder.observe)
     source["camera"] = described
 
     @contextlib.contextmanager
     def session():
         try:
             with connect() as bot:
-                _home_field_bot(args, bot)
+                home_field_bot(args, bot)
                 yield bot
         finally:
             recorder.close()
 
     with jobs_on(args):
-        report = run_field_bed(bed, plan, config, args.out,
-                               FieldRig(session, recorder, camera, source), args.keep_going,
-                               pollinate=args.pollinate, cache=stage_cache(args))
+        report = run_field_bed(config, FieldBedRun(bed, plan, FieldRig(
+            session, recorder, camera, source)), args.out, Execution(cache=stage_cache(args)),
+            BedOptions(args.keep_going, args.pollinate))
     summary = report["summary"]
     print(f"bed: {summary['detected']} of {summary['plants']} plants detected, "
           f"{summary['flowers']} flowers found ({summary['with_normal']} with a normal) -> "
@@ -583,8 +469,16 @@ def _field_physical(args: argparse.Namespace, bed) -> int:
 def _field_sim(args: argparse.Namespace, bed) -> int:
     """field --sim: the bed's plants generated and filmed in the simulator, scored."""
     from flowerpose.config import DEFAULT_PRESET
-    from flowerpose.eval.field.simulated_bed import make_bed_plants, plan_sim_bed, run_sim_bed
+    from flowerpose.eval.field.bed_loop import BedOptions
+    from flowerpose.eval.field.simulated_bed import (
+        SimBedRun,
+        make_bed_plants,
+        plan_sim_bed,
+        run_sim_bed,
+    )
     from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.jobs.plant_set import PlantSet
+    from flowerpose.eval.pool import Execution
     from flowerpose.eval.reports.report import pollination_lines
 
     seed = 0 if args.seed is None else args.seed
@@ -592,7 +486,7 @@ def _field_sim(args: argparse.Namespace, bed) -> int:
         raise InputError("--seed", f"must be 0 or more, got {seed}")
     if args.time_scale is not None and not args.via_farmduino:
         raise InputError("--time-scale", "is the virtual Farmduino's: add --via-farmduino")
-    _check_field_bot_flags(args)
+    check_field_bot_flags(args)
     for flag in ("--camera", "--calibration", "--keep-all"):
         if getattr(args, flag[2:].replace("-", "_")):
             raise InputError(flag, "is the physical bot's camera: the simulated bed films "
@@ -605,9 +499,10 @@ def _field_sim(args: argparse.Namespace, bed) -> int:
         return 0
     scale = time_scale if args.via_farmduino else None
     with jobs_on(args):
-        report = run_sim_bed(bed, config, seed, args.out, args.keep_going,
-                             serial_time_scale=scale, pollinate=args.pollinate,
-                             cache=stage_cache(args))
+        plants = PlantSet("scan", config.sim.plant.name, len(bed.plants), seed)
+        report = run_sim_bed(config, SimBedRun(bed, plants, scale), args.out,
+                             Execution(cache=stage_cache(args)),
+                             BedOptions(args.keep_going, args.pollinate))
     summary = report["summary"]
     print(f"bed: {len(report['plants'])} of {len(bed.plants)} plants detected; "
           f"{summary['found_visible']} of {summary['visible']} visible flowers found, "
@@ -656,9 +551,9 @@ def add_field(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bed", type=Path, metavar="FILE",
                    help="the bed file: where each plant stands (an example: "
                    "assets/beds/example-4.toml in the package)")
-    _add_field_bot_options(p, cloud=" (without --bed, the bed is the plants of your "
+    add_field_bot_options(p, cloud=" (without --bed, the bed is the plants of your "
                            "account's garden: the web app's plant list)")
-    _add_camera_options(p, "scan.camera.width x scan.camera.height (--set; 1280 x 720)")
+    add_camera_options(p, "scan.camera.width x scan.camera.height (--set; 1280 x 720)")
     p.add_argument("--sim", action="store_true",
                    help="the simulated bot and generated plants, scored against their truth")
     p.add_argument("--seed", type=int, default=None, metavar="S",

@@ -27,17 +27,18 @@ from flowerpose.cli.options import (
     positive_number,
     stage_cache,
 )
-from flowerpose.config import DEFAULT_PRESET, profile_names, suite_names
+from flowerpose.config import DEFAULT_PRESET, preset_names, profile_names, suite_names
 from flowerpose.errors import InputError
-from flowerpose.eval.jobs.eval_run import DEFAULT_PLANTS, SOURCES, TASKS, EvalRun
+from flowerpose.eval.jobs.eval_run import DEFAULT_PLANTS, DEFAULT_SOURCE, TASKS, EvalRun
+from flowerpose.eval.jobs.plant_set import SOURCES, PlantSet
 
 #: eval's source, preset, first seed and task when neither the command line nor a suite
 #: says (the run's from `EvalRun`).
-EVAL_DEFAULTS = {"source": EvalRun.source, "preset": DEFAULT_PRESET, "seed": EvalRun.seed,
+EVAL_DEFAULTS = {"source": DEFAULT_SOURCE, "preset": DEFAULT_PRESET, "seed": 0,
                  "task": EvalRun.task}
 #: What a report's config (and so its config.toml) records of the run beside the settings,
 #: which `eval --config` takes as the run's own where the command line does not say.
-EVAL_RUN_KEYS = ("source", "folders", "plants", "seed", "task")
+EVAL_RUN_KEYS = ("source", "preset", "folders", "plants", "seed", "task")
 
 
 def _default_out() -> Path:
@@ -80,17 +81,17 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if len(set(names)) < len(names):
         raise InputError("--compare", "each compared method needs a name of its own")
     out = args.out or _default_out()
+    from flowerpose.eval.pool import Execution
     from flowerpose.eval.reports.report import assets_record
     from flowerpose.eval.studies.eval_recipe import eval_outputs
 
-    run = EvalRun(source=args.source, plants=args.plants, seed=args.seed,
-                  folders=tuple(args.folders), truth_scale=args.truth_scale, task=args.task,
-                  compare=compare, methods=tuple(methods), suite=suite,
+    run = EvalRun(eval_plants(args, config.sim.plant.name), task=args.task, compare=compare,
+                  methods=tuple(methods), suite=suite,
                   assets=assets_record(None if args.source == "real" else args.preset,
                                        args.profile))
     writes = eval_outputs(args.source, args.folders, [*compare, *(m.name for m in methods)])
     with owned(out, "eval", args.overwrite, writes) as output, jobs_on(args):
-        report = run_eval(config, run, out, workers=args.workers, cache=cache)
+        report = run_eval(config, run, out, Execution(args.workers, cache))
         # All of it is this run's, so a rerun into the folder replaces all of it (plants this
         # run made that the next does not make go too).
         output.record(*(out / name for name in writes if (out / name).exists()))
@@ -122,6 +123,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return _gates(report, requirements, args) if requirements else 0
 
 
+def eval_plants(args: argparse.Namespace, preset: str) -> PlantSet:
+    """The plants a run of eval, stress or sweep names: the --source's seeded plants of
+    `preset` (the config's `sim.plant.name`; --plants, else eval's `DEFAULT_PLANTS`;
+    --seed), or the real folders."""
+    if args.source == "real":
+        return PlantSet("real", folders=tuple(args.folders),
+                        truth_scale=getattr(args, "truth_scale", None))
+    return PlantSet(args.source, preset,
+                    DEFAULT_PLANTS[args.source] if args.plants is None else args.plants,
+                    args.seed)
+
+
 def _run_from_config(args: argparse.Namespace) -> None:
     """A --config file's run keys (`EVAL_RUN_KEYS`, as a report's config.toml holds them)
     taken as this run's where the command line leaves them out; each checked as its flag
@@ -134,8 +147,8 @@ def _run_from_config(args: argparse.Namespace) -> None:
     for key, value in load_toml(where).items():
         if key not in EVAL_RUN_KEYS or getattr(args, key) not in (None, []):
             continue
-        if key in ("source", "task"):
-            choices = SOURCES if key == "source" else TASKS
+        if key in ("source", "task", "preset"):
+            choices = {"source": SOURCES, "task": TASKS, "preset": preset_names()}[key]
             if value not in choices:
                 raise InputError(where, f"{key}: must be one of {', '.join(choices)}, got "
                                  f"{value!r}")
@@ -277,14 +290,13 @@ def add_eval(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_fidelity(args: argparse.Namespace) -> int:
-    from flowerpose.eval.jobs.config import EvalConfig, pipeline_part
+    from flowerpose.eval.jobs.config import EvalConfig
     from flowerpose.eval.studies.fidelity import FIDELITY_FILES, outcome_lines, run_fidelity, table
 
     config = configure(EvalConfig(), args)
+    real = PlantSet("real", folders=(args.real,), truth_scale=args.truth_scale)
     with owned(args.out, "fidelity", args.overwrite, FIDELITY_FILES):
-        report = run_fidelity(args.real, args.synthetic, args.out, pipeline_part(config),
-                              config.score.max_distance_m, args.truth_scale,
-                              config.score.label_error_deg)
+        report = run_fidelity(config, real, args.synthetic, args.out)
     print(table(report))
     for line in outcome_lines(report["outcomes"]):
         print(f"predicted at the real density: {line}")
@@ -370,14 +382,16 @@ def add_cache(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from flowerpose.eval.studies.bench import run_bench
+    from flowerpose.eval.pool import Execution
+    from flowerpose.eval.studies.bench import BenchPlan, run_bench
     from flowerpose.pipeline.flowers import PipelineConfig
 
     if args.photos is not None:
         return _bench_photos(args)
 
-    run_bench(args.points, repeat=args.repeat, seed=args.seed, out=args.out,
-              config=configure(PipelineConfig(), args), cache=stage_cache(args))
+    run_bench(configure(PipelineConfig(), args),
+              BenchPlan(tuple(args.points), args.repeat, args.seed), args.out,
+              Execution(cache=stage_cache(args)))
     return 0
 
 

@@ -227,9 +227,22 @@ def starting_config(where: str) -> Callable[[], Any]:
 def configure(base: Any, args: argparse.Namespace, flags: bool = True,
               reads: tuple[str, ...] | None = None, command: str = "",
               run_keys: tuple[str, ...] = ()) -> Any:
-    """`base` with the --profile, then the --config file, then the settings' flags
-    (`flags`), then each --set, applied; renamed keys (`config.RENAMED_SETTINGS`, and the
-    command's own, `RENAMED_ATTRIBUTE`) are taken under their new names, with a warning.
+    """`base` with the user's settings applied, layer by layer (`setting_layers`)."""
+    from flowerpose.config import apply_overrides
+
+    return functools.reduce(apply_overrides,
+                            setting_layers(base, args, flags, reads, command, run_keys), base)
+
+
+def setting_layers(base: Any, args: argparse.Namespace, flags: bool = True,
+                   reads: tuple[str, ...] | None = None, command: str = "",
+                   run_keys: tuple[str, ...] = ()) -> tuple[dict[str, Any], ...]:
+    """The user's settings over `base`, as dotted keys in the order they apply: the
+    --profile, then the --config file, then the settings' flags (`flags`) and --detector,
+    then each --set; renamed keys (`config.RENAMED_SETTINGS`, and the command's own,
+    `RENAMED_ATTRIBUTE`) are taken under their new names, with a warning. The one way a
+    command layers them: `configure` applies them, `tune` and `guard` pass them on (a
+    trial's settings over them; each side's command line).
     `reads`: the sections ("pose") and keys ("scan.camera.width") `command` reads; a --config or
     --set key outside them is refused in one line, since it would be silently ignored.
     `run_keys`: a --config file's top-level keys that are the command's own arguments
@@ -238,7 +251,6 @@ def configure(base: Any, args: argparse.Namespace, flags: bool = True,
     from flowerpose.cli.flags import given_settings
     from flowerpose.config import (
         RENAMED_SETTINGS,
-        apply_overrides,
         load_profile,
         load_toml,
         parse_set_options,
@@ -247,20 +259,21 @@ def configure(base: Any, args: argparse.Namespace, flags: bool = True,
 
     command_renames = getattr(args, RENAMED_ATTRIBUTE, None)
     renames = {**RENAMED_SETTINGS, **(command_renames() if command_renames else {})}
-    config = base
+    layers = []
     if getattr(args, "profile", None) is not None:
-        config = apply_overrides(config, load_profile(args.profile))
+        layers.append(renamed(load_profile(args.profile), renames))
     if args.config is not None:
         settings = {key: value for key, value in load_toml(args.config).items()
                     if key not in run_keys}
-        config = apply_overrides(config, _read_only(renamed(settings, renames), reads,
-                                                    command, str(args.config), base))
+        layers.append(_read_only(renamed(settings, renames), reads, command,
+                                 str(args.config), base))
     detector = getattr(args, "detector", None)
     sets = _read_only(renamed(parse_set_options(args.set), renames), reads, command, "--set",
                       base)
     flagged = ((given_settings(args) if flags else [])
                + ([f"detect.detector={detector}"] if detector else []))
-    return apply_overrides(apply_overrides(config, parse_set_options(flagged)), sets)
+    layers += [parse_set_options(flagged), sets]
+    return tuple(layer for layer in layers if layer)
 
 
 def _read_only(settings: dict[str, Any], reads: tuple[str, ...] | None, command: str,

@@ -267,15 +267,16 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     from flowerpose.cli.flags import given_settings
     from flowerpose.config import apply_overrides, parse_set_options
     from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.jobs.plant_set import PlantSet
     from flowerpose.eval.labelling.dataset import DatasetConfig, write_dataset
 
     dataset = apply_overrides(DatasetConfig(), parse_set_options(given_settings(args)))
     config = configure(eval_config(args.preset), args, flags=False)
-    seeds = list(range(args.seed, args.seed + args.plants))
-    manifest = write_dataset(args.out, seeds, config, dataset, args.overwrite)
+    plants = PlantSet("oracle", config.sim.plant.name, args.plants, args.seed)
+    manifest = write_dataset(config, plants, dataset, args.out, args.overwrite)
     split = manifest["split"]
     print(f"{manifest['images']} images, {manifest['instances']} flower instances of "
-          f"{len(seeds)} plants ({len(split['train'])} train, {len(split['val'])} val: seeds "
+          f"{plants.plants} plants ({len(split['train'])} train, {len(split['val'])} val: seeds "
           f"{', '.join(map(str, split['val'])) or 'none'}) as {dataset.format} -> "
           f"{args.out / 'dataset.json'}")
     return 0

@@ -5,9 +5,10 @@ never sees) and `guard` (the battery every pipeline change is checked on)."""
 from __future__ import annotations
 
 import argparse
+import functools
 from pathlib import Path
 
-from flowerpose.cli.jobs import EVAL_RUN_KEYS
+from flowerpose.cli.jobs import EVAL_RUN_KEYS, eval_plants
 from flowerpose.cli.options import (
     PLANTS,
     POSITIVE,
@@ -23,15 +24,17 @@ from flowerpose.cli.options import (
     jobs_on,
     owned,
     positive_number,
+    setting_layers,
     stage_cache,
 )
 from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
-from flowerpose.eval.jobs.eval_run import SOURCES, SYNTHETIC_SOURCES
+from flowerpose.eval.jobs.plant_set import SOURCES, SYNTHETIC_SOURCES, PlantSet
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.pool import Execution
     from flowerpose.eval.studies.sweep import parse_grid, run_sweep, sweep_outputs
 
     if args.folders and args.source != "real":
@@ -46,9 +49,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     writes = sweep_outputs(grid, args.source, args.folders)
     with owned(args.out, "sweep", args.overwrite, writes), \
             jobs_on(args):
-        best = run_sweep(config, grid, plants=args.plants, seed=args.seed, out_dir=args.out,
-                         workers=args.workers, source=args.source, cache=cache,
-                         folders=args.folders)
+        best = run_sweep(config, grid, eval_plants(args, config.sim.plant.name), args.out,
+                         Execution(args.workers, cache))
     if cache is not None:
         from flowerpose.cache import prune_to_limit
 
@@ -119,7 +121,7 @@ def _texts(text: str) -> list[str]:
 
 def cmd_stress(args: argparse.Namespace) -> int:
     from flowerpose.eval.jobs.config import eval_config
-    from flowerpose.eval.jobs.plants import real_plants
+    from flowerpose.eval.pool import Execution
     from flowerpose.eval.scoring.methods import ExternalMethod, parse_compare
     from flowerpose.eval.studies.stress import DEFAULT_LEVELS, STRESS_FILES, plan_from, run_stress
 
@@ -130,7 +132,8 @@ def cmd_stress(args: argparse.Namespace) -> int:
               else list(DEFAULT_LEVELS[kind]) for kind in DEFAULT_LEVELS}
     if args.source == "real":
         views = min(len(p.clouds) if p.stage == "candidates" else config.grid.views
-                    for p in real_plants(args.folders, args.truth_scale)
+                    for p in PlantSet("real", folders=tuple(args.folders),
+                                      truth_scale=args.truth_scale).real_plants()
                     if p.stage != "crops") if any(
             True for _ in args.folders) else 0
     else:
@@ -146,17 +149,18 @@ def cmd_stress(args: argparse.Namespace) -> int:
     for value in capture.get("frames", []):
         if not value.isdigit():
             raise InputError("--frames", f"{value!r}: a whole number of frames")
-    plan = plan_from(levels, args.channels, drop, capture, args.repeats, args.stress_seed)
     compare = {name: what for name, what in (parse_compare(text, config)
                                              for text in args.compare)}
     for name, what in compare.items():
         if isinstance(what, ExternalMethod):
             raise InputError("--compare", f"{name}: stress compares settings (a profile or a "
                              "detector), not an external command")
+    plan = plan_from(levels, args.channels, drop, capture, args.repeats, args.stress_seed,
+                     compare)
     cache = stage_cache(args)
     with owned(args.out, "stress", args.overwrite, (*STRESS_FILES, *compare)), jobs_on(args):
-        report = run_stress(config, plan, args.out, args.source, args.folders, args.plants,
-                            args.seed, args.workers, cache, args.truth_scale, compare)
+        report = run_stress(config, plan, eval_plants(args, config.sim.plant.name), args.out,
+                            Execution(args.workers, cache))
     if cache is not None and args.source != "real":
         from flowerpose.cache import prune_to_limit
 
@@ -246,7 +250,7 @@ def add_stress(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from flowerpose.config import parse_set_options
+    from flowerpose.config import apply_overrides
     from flowerpose.eval.jobs.config import eval_config
     from flowerpose.eval.jobs.plant_set import PlantSet, parse_sets
     from flowerpose.eval.studies.fresh_seeds import refuse_fresh
@@ -262,14 +266,14 @@ def cmd_tune(args: argparse.Namespace) -> int:
         run_trials,
         score_defaults,
         study_name,
-        user_overrides,
         validation_default,
     )
     from flowerpose.eval.studies.tune_space import parse_objectives, read_space
     from flowerpose.stopwatch import Stopwatch
 
-    overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
-    base = configure(eval_config(args.preset or DEFAULT_PRESET), args)
+    preset_config = eval_config(args.preset or DEFAULT_PRESET)
+    overrides = setting_layers(preset_config, args)
+    base = functools.reduce(apply_overrides, overrides, preset_config)
     space = tuple(read_space(args.space, base))
     objectives = tuple(parse_objectives(args.objective))
     train = parse_sets(args.train) if args.train else [
@@ -387,7 +391,7 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_guard(args: argparse.Namespace) -> int:
-    from flowerpose.config import parse_set_options
+    from flowerpose.eval.jobs.config import eval_config
     from flowerpose.eval.reports.report import markdown_table
     from flowerpose.eval.studies.guard import (
         ACCEPTED,
@@ -398,7 +402,6 @@ def cmd_guard(args: argparse.Namespace) -> int:
         run_guard,
     )
     from flowerpose.eval.studies.guard_report import guard_rows
-    from flowerpose.eval.studies.tune import user_overrides
     from flowerpose.log import LOG
 
     if args.accept_loss is not None and not args.accept:
@@ -408,7 +411,7 @@ def cmd_guard(args: argparse.Namespace) -> int:
     for entry in entries:
         if entry.real:
             real_folder(entry, args.real)
-    overrides = user_overrides(args.profile, args.config, parse_set_options(args.set))
+    overrides = setting_layers(eval_config(DEFAULT_PRESET), args)
     accepted = args.accepted or Path(str(ACCEPTED))
     if args.accepted is not None and not args.accepted.is_file() and not args.accept:
         if args.base is None:

@@ -249,6 +249,7 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
     from flowerpose.eval.field import bed_loop
     from flowerpose.eval.field import physical_bed as field_bed
     from flowerpose.eval.field.simulated_bed import make_bed_plants, plan_sim_bed
+    from flowerpose.eval.pool import Execution
     from flowerpose.hardware.backends.farmduino import FarmduinoBot
     from flowerpose.hardware.flights.bed_plan import read_bed
 
@@ -278,9 +279,10 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
 
     said = []
     rig = field_bed.FieldRig(serial_bot, None, None, {"backend": "serial"})
-    report = field_bed.run_field_bed(bed, plan_sim_bed(sim_bed), config, out, rig,
-                                     pollinate=True, say=said.append,
-                                     cache=bed_file.parent / "cache")
+    report = field_bed.run_field_bed(
+        config, field_bed.FieldBedRun(bed, plan_sim_bed(sim_bed), rig), out,
+        Execution(cache=bed_file.parent / "cache"),
+        bed_loop.BedOptions(pollinate=True, say=said.append))
     assert not any("filming" in line for line in said), said
     rows = {row["plant"]: row for row in report["bed"]["plants"]}
     for spot in bed.plants:

@@ -3,13 +3,15 @@ bench.json; it never asserts a speed (this machine is shared)."""
 
 import pytest
 
-from flowerpose.eval.studies.bench import SIMULATOR_BUDGET_S, run_bench
+from flowerpose.eval.pool import Execution
+from flowerpose.eval.studies.bench import SIMULATOR_BUDGET_S, BenchPlan, run_bench
 from flowerpose.jsonio import read_json
+from flowerpose.pipeline.flowers import PipelineConfig
 
 
 @pytest.mark.slow
 def test_bench_times_every_pipeline_stage_and_simulator_step(tmp_path, capsys):
-    report = run_bench([20000], repeat=1, seed=3, out=tmp_path)
+    report = run_bench(PipelineConfig(), BenchPlan((20000,), repeat=1, seed=3), tmp_path)
     (result,) = report["results"]
     assert result["points"] == 20000 and result["flowers"] > 0
     assert set(result["median_s"]) >= {"total"} and result["median_s"]["total"] > 0
@@ -44,9 +46,10 @@ def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
 def test_bench_takes_its_cloud_from_the_stage_cache_when_made_before(tmp_path, monkeypatch):
     from flowerpose.sim import bundle
 
-    first = run_bench([20000], repeat=1, seed=3, cache=tmp_path / "cache")
+    plan = BenchPlan((20000,), repeat=1, seed=3)
+    first = run_bench(PipelineConfig(), plan, None, Execution(cache=tmp_path / "cache"))
     made = []
     monkeypatch.setattr(bundle, "make_plant", lambda *a, **k: made.append(a))
-    again = run_bench([20000], repeat=1, seed=3, cache=tmp_path / "cache")
+    again = run_bench(PipelineConfig(), plan, None, Execution(cache=tmp_path / "cache"))
     assert made == [] and len(list((tmp_path / "cache" / "plant").iterdir())) == 1
     assert again["results"][0]["flowers"] == first["results"][0]["flowers"]

@@ -20,6 +20,7 @@ from flowerpose.cloudio import read_cloud
 from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.labelling.coco import rle
 from flowerpose.eval.labelling.dataset import DatasetConfig, split_plants, write_dataset
 from flowerpose.eval.labelling.yolo import outline
@@ -38,7 +39,8 @@ CONFIG = apply_overrides(eval_config("realistic"), {"grid.views": "6"})
 def exports(tmp_path_factory):
     """The same two plants exported as COCO and as YOLO: {format: (folder, manifest)}."""
     out = tmp_path_factory.mktemp("datasets")
-    return {f: (out / f, write_dataset(out / f, SEEDS, CONFIG, DatasetConfig(format=f)))
+    plants = PlantSet("oracle", "realistic", len(SEEDS), SEEDS[0])
+    return {f: (out / f, write_dataset(CONFIG, plants, DatasetConfig(format=f), out / f))
             for f in ("coco", "yolo")}
 
 

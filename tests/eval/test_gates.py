@@ -8,6 +8,8 @@ from realplants import write_real_plant
 
 from flowerpose.cli import main
 from flowerpose.errors import InputError
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import Execution
 from flowerpose.eval.reports.gates import parse_requirements
 
 
@@ -69,7 +71,7 @@ def test_the_report_records_the_suite(tmp_path):
     from flowerpose.eval.studies.eval_recipe import run_eval
 
     suite = {"name": "mine", "version": 3, "description": "a test"}
-    run = EvalRun(source="real", folders=(write_real_plant(tmp_path / "plant", "crops"),),
+    run = EvalRun(PlantSet("real", folders=(write_real_plant(tmp_path / "plant", "crops"),)),
                   suite=suite)
-    report = run_eval(EvalConfig(), run, tmp_path / "out", workers=1)
+    report = run_eval(EvalConfig(), run, tmp_path / "out", Execution(1))
     assert report["suite"] == suite

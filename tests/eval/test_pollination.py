@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.pollination.visits import CAUSES, PollinationScoreConfig, plan_and_score
+from flowerpose.eval.pool import Execution
 from flowerpose.hardware.flights.pollination_plan import PollinateConfig
 
 
@@ -79,8 +81,8 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
     config = dataclasses.replace(
         config, pollination=dataclasses.replace(config.pollination, curve_angles_deg=angles),
         pollinate=dataclasses.replace(config.pollinate, path_checks=0))
-    report = run_eval(config, EvalRun(source="oracle", plants=1, seed=2, task="pollinate"),
-                      tmp_path / "run", workers=1)
+    report = run_eval(config, EvalRun(PlantSet("oracle", plants=1, seed=2), task="pollinate"),
+                      tmp_path / "run", Execution(1))
     summary = report["summary"]
     for key in ("pollination", "pollination_ceiling"):
         assert set(summary[key]) == {"visits", "flowers", "successes", "success_rate",

@@ -11,7 +11,8 @@ import pytest
 from flowerpose.cli import main
 from flowerpose.errors import JobsFailed
 from flowerpose.eval.jobs.config import eval_config
-from flowerpose.eval.pool import TASK_RETRIES, run_jobs
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import TASK_RETRIES, Execution, run_jobs
 from flowerpose.eval.studies.sweep import parse_grid, run_sweep
 
 ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'flowerpose[ray]')")
@@ -28,11 +29,12 @@ def _rows(folder: Path) -> list[dict]:
 def test_a_sweep_on_ray_gives_the_pools_report(tmp_path):
     config = eval_config("realistic")
     grid = parse_grid(["cluster.min_points=10,20"], config)
-    run_sweep(config, grid, plants=1, seed=0, out_dir=tmp_path / "pool", workers=2)
+    run_sweep(config, grid, PlantSet("oracle", plants=1, seed=0), tmp_path / "pool",
+              Execution(2))
     from flowerpose.eval.pool import on_ray
 
     with on_ray(None) as session:
-        run_sweep(config, grid, plants=1, seed=0, out_dir=tmp_path / "ray")
+        run_sweep(config, grid, PlantSet("oracle", plants=1, seed=0), tmp_path / "ray")
     assert _rows(tmp_path / "ray") == _rows(tmp_path / "pool")
     assert len(_rows(tmp_path / "pool")) == 2
     # the plant, then the evaluations of the grid's two settings and of the defaults

@@ -13,6 +13,8 @@ from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import EvalConfig
 from flowerpose.eval.jobs.eval_run import EvalRun
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import Execution
 from flowerpose.eval.scoring.real_source import read_real_plant, real_truth
 from flowerpose.eval.scoring.truth import read_sagemaker_truth
 from flowerpose.eval.studies.eval_recipe import run_eval
@@ -37,8 +39,8 @@ def test_labels_come_back_in_the_cloud_units_with_the_authors_euler_convention(t
 @pytest.mark.parametrize("stage", ["crops", "candidates", "cloud"])
 def test_each_stage_finds_every_labelled_flower_and_its_normal(tmp_path, stage):
     folder = write_real_plant(tmp_path / stage, stage)
-    report = run_eval(EvalConfig(), EvalRun(source="real", folders=(folder,)), tmp_path / "out",
-                      workers=1)
+    report = run_eval(EvalConfig(), EvalRun(PlantSet("real", folders=(folder,))), tmp_path / "out",
+                      Execution(1))
     plant = report["plants"][0]
     assert (plant["stage"], plant["gt"], plant["found"], plant["fp"]) == (stage, 4, 4, 0)
     assert max(plant["error_deg"]["plane"]) < 2.0
@@ -58,8 +60,8 @@ def test_a_flower_without_a_label_counts_as_extra_when_the_folder_lists_it(tmp_p
     unlisted = write_real_plant(tmp_path / "unlisted", "candidates", labelled=3)
     listed = write_real_plant(tmp_path / "listed", "candidates", labelled=3,
                               source={"unlabelled": [list(CENTRES[3] * SCALE)]})
-    report = run_eval(EvalConfig(), EvalRun(source="real", folders=(unlisted, listed)),
-                      tmp_path / "out", workers=1)
+    report = run_eval(EvalConfig(), EvalRun(PlantSet("real", folders=(unlisted, listed))),
+                      tmp_path / "out", Execution(1))
     first, second = report["plants"]
     assert (first["found"], first["extra"], first["fp"]) == (3, 0, 1)
     assert (second["found"], second["visible"], second["extra"], second["fp"]) == (4, 3, 1, 0)
@@ -75,8 +77,8 @@ def test_a_labelled_flower_the_cloud_does_not_hold_is_not_visible(tmp_path):
     (folder / "labels.json").write_text(json.dumps(labels))
     truth = real_truth(read_real_plant(folder))
     assert [t.visible for t in truth] == [True, True, True, True, False]
-    report = run_eval(EvalConfig(), EvalRun(source="real", folders=(folder,)), tmp_path / "out",
-                      workers=1)
+    report = run_eval(EvalConfig(), EvalRun(PlantSet("real", folders=(folder,))), tmp_path / "out",
+                      Execution(1))
     plant = report["plants"][0]
     assert (plant["gt"], plant["visible"], plant["found_visible"]) == (5, 4, 4)
     assert report["summary"]["recall_visible"] == 1.0
@@ -85,8 +87,8 @@ def test_a_labelled_flower_the_cloud_does_not_hold_is_not_visible(tmp_path):
 
 def test_the_upstream_profile_runs_beside_the_default(tmp_path):
     folder = write_real_plant(tmp_path / "plant", "crops")
-    run = EvalRun(source="real", folders=(folder,), compare={"upstream": EvalConfig()})
-    report = run_eval(EvalConfig(), run, tmp_path / "out", workers=1)
+    run = EvalRun(PlantSet("real", folders=(folder,)), compare={"upstream": EvalConfig()})
+    report = run_eval(EvalConfig(), run, tmp_path / "out", Execution(1))
     assert report["compare"]["upstream"]["summary"]["found"] == 4
     assert set(report["compare"]["upstream"]["config"]) == {"colour", "cluster", "pose"}
     assert (tmp_path / "out" / "upstream" / "plant" / "flowers.json").exists()
@@ -95,8 +97,8 @@ def test_the_upstream_profile_runs_beside_the_default(tmp_path):
 def test_a_scale_that_puts_no_label_near_any_point_is_refused(tmp_path):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     with pytest.raises(InputError, match="is the scale right"):
-        run_eval(EvalConfig(), EvalRun(source="real", folders=(folder,), truth_scale=1.0),
-                 tmp_path / "out", workers=1)
+        run_eval(EvalConfig(), EvalRun(PlantSet("real", folders=(folder,), truth_scale=1.0)),
+                 tmp_path / "out", Execution(1))
 
 
 

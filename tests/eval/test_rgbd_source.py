@@ -7,6 +7,8 @@ import pytest
 from flowerpose.config import apply_overrides
 from flowerpose.eval.jobs.config import eval_config
 from flowerpose.eval.jobs.eval_run import EvalRun
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import Execution
 from flowerpose.eval.studies.eval_recipe import run_eval
 
 #: 18 views of 640 x 360 (a ring every 8 cm, one every 60 degrees, one dome ring).
@@ -17,7 +19,7 @@ SMALL = {"sim.viewpoints.azimuth_step_deg": 60.0, "sim.viewpoints.cylinder_step_
 @pytest.mark.slow
 def test_a_small_rgbd_scan_is_fused_and_its_flowers_found(tmp_path):
     config = apply_overrides(eval_config("easy"), SMALL)
-    report = run_eval(config, EvalRun(source="rgbd", plants=1, seed=2), tmp_path, workers=1)
+    report = run_eval(config, EvalRun(PlantSet("rgbd", plants=1, seed=2)), tmp_path, Execution(1))
     summary = report["summary"]
     # Seed 2 has 5 open flowers; 18 views leave one of them too thinly seen to pass.
     assert summary["gt"] == 5 and summary["found"] >= 4 and summary["fp"] == 0

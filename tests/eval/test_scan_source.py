@@ -9,6 +9,7 @@ from flowerpose.config import apply_overrides
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import eval_config
 from flowerpose.eval.jobs.eval_run import EvalRun
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.studies.eval_recipe import run_eval
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
 from flowerpose.pipeline.reconstruct import reconstruct
@@ -21,7 +22,7 @@ SMALL = {"scan.camera.width": 640, "scan.camera.height": 360, "scan.camera.frame
 def small_eval(tmp_path_factory):
     out = tmp_path_factory.mktemp("scan_eval")
     config = apply_overrides(eval_config("realistic"), SMALL)
-    return run_eval(config, EvalRun(source="scan", plants=1, seed=0), out), out
+    return run_eval(config, EvalRun(PlantSet("scan", plants=1, seed=0)), out), out
 
 
 @pytest.mark.slow

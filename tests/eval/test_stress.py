@@ -8,6 +8,8 @@ from realplants import write_real_plant
 from flowerpose.cli import main
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import EvalConfig
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import Execution
 from flowerpose.eval.studies.stress import plan_from, run_stress
 
 
@@ -20,8 +22,10 @@ def test_stress_of_a_real_plant_is_seeded_and_reports_every_perturbation(tmp_pat
     folder = write_real_plant(tmp_path / "plant", "candidates")
     plan = plan_from(_levels(thin=[0.5], cast=[0.15], noise=[0.001]), channels="r",
                      drop_views=2, repeats=2, seed=3)
-    first = run_stress(EvalConfig(), plan, tmp_path / "a", "real", [folder], workers=1)
-    again = run_stress(EvalConfig(), plan, tmp_path / "b", "real", [folder], workers=1)
+    first = run_stress(EvalConfig(), plan, PlantSet("real", folders=(folder,)), tmp_path / "a",
+                       Execution(1))
+    again = run_stress(EvalConfig(), plan, PlantSet("real", folders=(folder,)), tmp_path / "b",
+                       Execution(1))
     labels = [row["label"] for row in first["rows"]]
     assert labels == ["thin 0.5", "cast r+0.15", "noise 0.001", "drop_view 0", "drop_view 1"]
     assert [r["repeats"] for r in first["rows"]] == [2, 1, 2, 1, 1]
@@ -58,4 +62,4 @@ def test_stress_command_line_and_its_refusals(tmp_path, capsys):
     assert "thin" in capsys.readouterr().err
     with pytest.raises(InputError):
         run_stress(EvalConfig(), plan_from(_levels(), capture={"frames": ["50"]}),
-                   tmp_path / "c", "oracle")
+                   PlantSet("oracle", plants=3), tmp_path / "c")

@@ -8,6 +8,8 @@ import pytest
 
 from flowerpose.config import apply_overrides
 from flowerpose.eval.jobs.config import eval_config
+from flowerpose.eval.jobs.plant_set import PlantSet
+from flowerpose.eval.pool import Execution
 from flowerpose.eval.studies.sweep import METRICS, parse_grid, run_sweep, sweep_figure
 
 
@@ -16,7 +18,7 @@ def test_a_tiny_sweep_names_the_best_setting_with_its_whole_typed_config(tmp_pat
     # The base asks 2000 points of a cluster (no flower has them); the grid tries it and 20.
     base = apply_overrides(eval_config("realistic"), {"cluster.min_points": "2000"})
     grid = parse_grid(["cluster.min_points=2000,20", "detect.backproject=mask"], base)
-    best = run_sweep(base, grid, plants=2, seed=0, out_dir=tmp_path, workers=1)
+    best = run_sweep(base, grid, PlantSet("oracle", plants=2, seed=0), tmp_path, Execution(1))
     saved = json.loads((tmp_path / "best.json").read_text())
     assert saved["best"] == best
     assert best["setting"] == {"cluster.min_points": 20, "detect.backproject": "mask"}
