@@ -28,7 +28,8 @@ from flowerpose.pipeline.colour import (
     sepal_mask,
     white_balanced,
 )
-from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
+from flowerpose.pipeline.detect import DetectConfig, backproject, make_detector
+from flowerpose.pipeline.detection import Detection
 from flowerpose.pipeline.envelope import CloudMeasure
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.ground import GroundConfig, remove_ground
