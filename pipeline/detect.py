@@ -4,7 +4,8 @@ The paper fine-tuned YOLOv10 through a hosted API whose weights were never publi
 default here needs no weights: white petal pixels around a yellow centre, grouped into
 connected components, each giving a box and a mask. A user's exported model runs through
 the built-in ONNX detector (`onnx:MODEL.onnx`, `pipeline/onnx_detector.py`), and any other
-detector (a local YOLO, say) plugs in by implementing `Detector`.
+detector (a local YOLO, say) plugs in by implementing `Detector`. What a detector returns,
+`Detection`, is in `pipeline/detection.py`.
 """
 
 from __future__ import annotations
@@ -20,37 +21,11 @@ import numpy as np
 from flowerpose.config import require
 from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import ColourConfig, petal_mask, pistil_mask, rgb_to_hsv
+from flowerpose.pipeline.detection import Detection, components
+from flowerpose.pipeline.onnx_detector import OnnxConfig, OnnxDetector
 
 #: The `detect.detector` prefix of the built-in ONNX detector: "onnx:MODEL.onnx".
 ONNX_PREFIX = "onnx:"
-
-
-@dataclass(frozen=True)
-class OnnxConfig:
-    """The built-in ONNX detector (`detect.detector=onnx:MODEL.onnx`): how a user's model
-    is fed and read (`pipeline/onnx_detector.py` documents the contract)."""
-
-    input_px: int = 640
-    """Side of the square input, pixels, for a model whose input size is not fixed (a
-    fixed-size model gets its own size); each view is letterboxed to it (Ultralytics'
-    default image size)."""
-    score_threshold: float = 0.25
-    """A box model's rows scoring below this are dropped (Ultralytics' default
-    confidence)."""
-    mask_threshold: float = 0.5
-    """A segmentation model's pixels count as flower from this probability on."""
-    flower_class: int = 0
-    """The flower's class index: a box row's class, or a segmentation output's channel. 0
-    for a model trained on `flowerpose dataset` (YOLO class 0; COCO category 1, class 0 of
-    a model trained with contiguous class indices)."""
-
-    def __post_init__(self):
-        require(self.input_px >= 32, "detect.onnx.input_px", "must be at least 32 pixels")
-        require(0 <= self.score_threshold <= 1, "detect.onnx.score_threshold",
-                "must be within 0-1")
-        require(0 < self.mask_threshold <= 1, "detect.onnx.mask_threshold",
-                "must be above 0, at most 1")
-        require(self.flower_class >= 0, "detect.onnx.flower_class", "must be 0 or more")
 
 
 @dataclass(frozen=True)
@@ -88,18 +63,6 @@ class DetectConfig:
                 "needs 0 < detect.min_area_m2 < detect.max_area_m2")
 
 
-@dataclass(frozen=True)
-class Detection:
-    """One flower found in one image."""
-
-    box: tuple[int, int, int, int]
-    """(x0, y0, x1, y1) pixel box, end exclusive."""
-    mask: np.ndarray
-    """(y1 - y0, x1 - x0) bool: the detection's pixels inside its box."""
-    score: float
-    """Confidence in [0, 1]; the colour detector gives the component's white share."""
-
-
 class Detector(Protocol):
     """Finds flowers in one projected image."""
 
@@ -128,34 +91,8 @@ class ColourDetector:
             size = 2 * cfg.close_radius_px + 1
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
             flower = cv2.morphologyEx(flower, cv2.MORPH_CLOSE, kernel) & occupied
-        return components(flower.astype(bool), white, pixel_size_m, cfg, cfg.min_white_fraction)
-
-
-def components(mask: np.ndarray, weights: np.ndarray, pixel_size_m: float,
-               config: DetectConfig, min_score: float = 0.0) -> list[Detection]:
-    """The 8-connected components of `mask` within the config's area limits, each a
-    Detection scored by the mean of `weights` over it; those scoring below `min_score`
-    are left out.
-
-    mask: (H, W) bool; weights: (H, W) float or bool in 0-1; pixel_size_m: metres per
-    pixel (the limits are in square metres)."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
-                                                                connectivity=8)
-    if count <= 1:
-        return []
-    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-    score = np.bincount(labels.ravel(), weights=np.asarray(weights, np.float64).ravel(),
-                        minlength=count) / np.maximum(area, 1)
-    pixel_area = pixel_size_m**2
-    keep = ((area * pixel_area >= config.min_area_m2)
-            & (area * pixel_area <= config.max_area_m2) & (score >= min_score))
-    keep[0] = False
-    detections = []
-    for label in np.flatnonzero(keep):
-        x, y, w, h = stats[label, :4]
-        detections.append(Detection((int(x), int(y), int(x + w), int(y + h)),
-                                    labels[y:y + h, x:x + w] == label, float(score[label])))
-    return detections
+        return components(flower.astype(bool), white, pixel_size_m,
+                          (cfg.min_area_m2, cfg.max_area_m2), cfg.min_white_fraction)
 
 
 def make_detector(config: DetectConfig, colour: ColourConfig) -> Detector:
@@ -167,8 +104,6 @@ def make_detector(config: DetectConfig, colour: ColourConfig) -> Detector:
         return ColourDetector(config, colour)
     model = _onnx_model(config.detector)
     if model is not None:
-        from flowerpose.pipeline.onnx_detector import OnnxDetector
-
         return OnnxDetector(model, config)
     module_name, class_name = _plugin_name(config.detector)
     try:

@@ -20,6 +20,7 @@ from flowerpose.config import to_dict
 from flowerpose.errors import InputError
 from flowerpose.jsonio import object_list, read_json, unit3, vector3, write_json
 from flowerpose.log import LOG, open3d
+from flowerpose.pipeline.cluster_config import ClusterConfig, OutlierConfig, for_cloud
 from flowerpose.pipeline.colour import (
     ColourConfig,
     petal_mask,
@@ -28,22 +29,15 @@ from flowerpose.pipeline.colour import (
     sepal_mask,
     white_balanced,
 )
-from flowerpose.pipeline.detect import DetectConfig, Detection, backproject, make_detector
+from flowerpose.pipeline.detect import DetectConfig, backproject, make_detector
+from flowerpose.pipeline.detection import Detection
 from flowerpose.pipeline.envelope import CloudMeasure
 from flowerpose.pipeline.grid import GridConfig, Projection, project_all
 from flowerpose.pipeline.ground import GroundConfig, remove_ground
-from flowerpose.pipeline.limits import (
-    Density,
-    Sizing,
-    for_cloud,
-    pose_for_density,
-    sized_to_cloud,
-)
-from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose
+from flowerpose.pipeline.limits import Density, Sizing, sized_to_cloud
+from flowerpose.pipeline.pose import FlowerPose, PoseConfig, estimate_pose, pose_for_density
 from flowerpose.pipeline.segment import (
-    ClusterConfig,
     OrientedBox,
-    OutlierConfig,
     cloud_spacing,
     cluster_flowers,
     corolla,

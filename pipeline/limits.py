@@ -13,25 +13,23 @@ Two measurements of the cloud size them:
   `outliers.radius_points`, `pose.base_min_points`, `support_min_points`) hold for clouds
   with at least `cluster.density_reference` points within `eps` of such a point; a sparser
   cloud has them multiplied by its density over that, never below `COUNT_FLOORS`
-  (`for_density`). Lengths that must span several points (a surface link, the crop
+  (`sized_count`). Lengths that must span several points (a surface link, the crop
   margin, the pistil's DBSCAN radius) are at least `SPACING_FLOORS` point spacings.
 
 Counts are never raised for a denser cloud: the stated ones are the paper's, and more
-points only make a flower easier to find.
+points only make a flower easier to find. The settings that own the limits apply this
+module's rules to themselves: `cluster_config.for_cloud` (the outlier and cluster
+settings) and `pose.pose_for_density` (the pose stage's counts).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, TypeVar
+from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
-
-if TYPE_CHECKING:
-    from flowerpose.pipeline.pose import PoseConfig
-    from flowerpose.pipeline.segment import ClusterConfig, OutlierConfig
 
 #: Neighbours of the k-nearest-neighbour estimate of the surface area each point stands for.
 AREA_NEIGHBOURS = 8
@@ -123,47 +121,17 @@ class Density:
     """What the point counts were multiplied by (1: as stated)."""
 
 
-def for_cloud(outliers: OutlierConfig, cluster: ClusterConfig, scale: float,
-              spacing: float | None) -> tuple[OutlierConfig, ClusterConfig, Density]:
-    """The outlier and cluster settings for a cloud: every limit in metres multiplied by
-    `scale` (the flowers' size), lengths raised to SPACING_FLOORS point spacings, and point
-    counts sized to the density (`cluster.density_reference`, COUNT_FLOORS)."""
-    lengths = {"eps": cluster.eps, "split_link_m": cluster.split_link_m,
-               "pistil_eps": cluster.pistil_eps, "crop_margin_m": cluster.crop_margin_m,
-               "split_min_separation_m": cluster.split_min_separation_m}
-    lengths = {name: value * scale for name, value in lengths.items()}
-    radius_m = outliers.radius_m * scale
-    if spacing is not None:
-        lengths = {name: max(value, SPACING_FLOORS.get(name, 0.0) * spacing)
-                   for name, value in lengths.items()}
-        radius_m = max(radius_m, SPACING_FLOORS["radius_m"] * spacing)
-    density = _density(lengths["eps"], spacing, cluster.density_reference)
-    outliers = replace(outliers, radius_m=radius_m,
-                       radius_points=_count(outliers.radius_points, "radius_points", density))
-    cluster = replace(cluster, **lengths,
-                      min_points=_count(cluster.min_points, "min_points", density),
-                      pistil_min_points=_count(cluster.pistil_min_points, "pistil_min_points",
-                                               density))
-    return outliers, cluster, density
-
-
-def pose_for_density(pose: PoseConfig, density: Density) -> PoseConfig:
-    """The pose settings with their point counts sized to the cloud's density."""
-    if density.factor == 1.0:
-        return pose
-    return replace(pose, base_min_points=_count(pose.base_min_points, "base_min_points", density),
-                   support_min_points=_count(pose.support_min_points, "support_min_points",
-                                             density))
-
-
-def _density(eps: float, spacing: float | None, reference: float | None) -> Density:
+def measured_density(eps: float, spacing: float | None, reference: float | None) -> Density:
+    """How a cloud of this point `spacing` sizes the counts stated for `reference` points
+    within `eps` of a point (`ClusterConfig.density_reference`; eps and spacing in one
+    unit): the factor is the neighbours within eps over the reference, at most 1."""
     if spacing is None or reference is None or spacing <= 0:
         return Density(spacing, None, 1.0)
     neighbours = np.pi * eps ** 2 / spacing ** 2
     return Density(spacing, float(neighbours), float(min(1.0, neighbours / reference)))
 
 
-def _count(stated: int, name: str, density: Density) -> int:
+def sized_count(stated: int, name: str, density: Density) -> int:
     """A point count sized to the density: stated x factor, at least its floor (or the
     stated count, where that is lower), rounded."""
     if density.factor >= 1.0 or stated == 0:

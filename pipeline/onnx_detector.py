@@ -28,13 +28,59 @@ detector's, and go on to back-projection, clustering and pose the same way.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
 
+from flowerpose.config import require
 from flowerpose.errors import InputError, missing_extra
-from flowerpose.pipeline.detect import DetectConfig, Detection, components
+from flowerpose.pipeline.detection import Detection, components
+
+
+@dataclass(frozen=True)
+class OnnxConfig:
+    """The built-in ONNX detector (`detect.detector=onnx:MODEL.onnx`): how a user's model
+    is fed and read (the module's docstring documents the contract)."""
+
+    input_px: int = 640
+    """Side of the square input, pixels, for a model whose input size is not fixed (a
+    fixed-size model gets its own size); each view is letterboxed to it (Ultralytics'
+    default image size)."""
+    score_threshold: float = 0.25
+    """A box model's rows scoring below this are dropped (Ultralytics' default
+    confidence)."""
+    mask_threshold: float = 0.5
+    """A segmentation model's pixels count as flower from this probability on."""
+    flower_class: int = 0
+    """The flower's class index: a box row's class, or a segmentation output's channel. 0
+    for a model trained on `flowerpose dataset` (YOLO class 0; COCO category 1, class 0 of
+    a model trained with contiguous class indices)."""
+
+    def __post_init__(self):
+        require(self.input_px >= 32, "detect.onnx.input_px", "must be at least 32 pixels")
+        require(0 <= self.score_threshold <= 1, "detect.onnx.score_threshold",
+                "must be within 0-1")
+        require(0 < self.mask_threshold <= 1, "detect.onnx.mask_threshold",
+                "must be above 0, at most 1")
+        require(self.flower_class >= 0, "detect.onnx.flower_class", "must be 0 or more")
+
+
+class DetectSettings(Protocol):
+    """What the ONNX detector reads of the `detect` settings (`detect.DetectConfig`): its
+    own section and the area limits of a mask's components, square metres."""
+
+    @property
+    def onnx(self) -> OnnxConfig: ...
+
+    @property
+    def min_area_m2(self) -> float: ...
+
+    @property
+    def max_area_m2(self) -> float: ...
+
 
 #: onnxruntime's backends in the order tried: a GPU where onnxruntime-gpu has one, else the
 #: CPU.
@@ -67,7 +113,7 @@ def letterbox(image: np.ndarray, size: tuple[int, int]
 class OnnxDetector:
     """A user's ONNX box or segmentation model (the module's contract) as a `Detector`."""
 
-    def __init__(self, model: str | Path, config: DetectConfig):
+    def __init__(self, model: str | Path, config: DetectSettings):
         """model: the .onnx file; config: `detect` (its `onnx` section and area limits)."""
         self.model, self.config = Path(model), config
         self.name = f"onnx:{model}"
@@ -147,7 +193,8 @@ class OnnxDetector:
                              pad[0]:pad[0] + int(round(width * scale))]
         view = cv2.resize(inside, (width, height), interpolation=cv2.INTER_LINEAR)
         flower = occupied & (view >= self.config.onnx.mask_threshold)
-        return components(flower, view, pixel_size_m, self.config)
+        return components(flower, view, pixel_size_m,
+                          (self.config.min_area_m2, self.config.max_area_m2))
 
 
 def _first_line(err: Exception) -> str:

@@ -14,6 +14,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.config import require
 from flowerpose.errors import InputError
+from flowerpose.pipeline.cluster_config import ClusterConfig
 from flowerpose.pipeline.colour import (
     ColourConfig,
     petal_mask,
@@ -33,8 +34,9 @@ from flowerpose.pipeline.fit import (
     fit_superellipsoid,
     principal_axes,
 )
+from flowerpose.pipeline.limits import Density, sized_count
 from flowerpose.pipeline.methods import METHODS
-from flowerpose.pipeline.segment import ClusterConfig, corolla, the_pistil
+from flowerpose.pipeline.segment import corolla, the_pistil
 
 DirectionReference = Literal["combined", "crop", "petal_base", "petal_surface"]
 
@@ -265,6 +267,16 @@ class PoseConfig:
                 "must be 0 or more (corolla radii)")
         require(self.uncertain_pistil_points >= 0, "pose.uncertain_pistil_points",
                 "must be 0 or more")
+
+
+def pose_for_density(pose: PoseConfig, density: Density) -> PoseConfig:
+    """The pose settings with their point counts sized to the cloud's density."""
+    if density.factor == 1.0:
+        return pose
+    return replace(pose, base_min_points=sized_count(pose.base_min_points, "base_min_points",
+                                                     density),
+                   support_min_points=sized_count(pose.support_min_points, "support_min_points",
+                                                  density))
 
 
 @dataclass

@@ -34,13 +34,8 @@ from flowerpose.jsonio import write_json
 from flowerpose.outputs import check_output, publish, staging_folder
 from flowerpose.pipeline.dense import DenseConfig, reconstruct_dense
 from flowerpose.pipeline.patch_match import cuda_available, reconstruct_patch_match
-from flowerpose.pipeline.sfm import (
-    FULL_IMAGE_SIZE,
-    MIN_IMAGE_POINTS,
-    SfmConfig,
-    SparseResult,
-    reconstruct_sparse,
-)
+from flowerpose.pipeline.sfm import MIN_IMAGE_POINTS, SparseResult, reconstruct_sparse
+from flowerpose.pipeline.sfm_config import FULL_IMAGE_SIZE, SfmConfig
 from flowerpose.scanio import Intrinsics
 from flowerpose.stopwatch import Stopwatch
 

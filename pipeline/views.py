@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from flowerpose.atomic import write_image
-from flowerpose.pipeline.detect import Detection
+from flowerpose.pipeline.detection import Detection
 from flowerpose.pipeline.grid import Projection
 
 BOX_COLOUR = (255, 0, 200)  # magenta RGB: stands out on white, green and brown

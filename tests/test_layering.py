@@ -182,13 +182,25 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 @pytest.mark.parametrize("folder, package", [
-    ("eval", "flowerpose.eval"),
+    ("pipeline", "flowerpose.pipeline"), ("eval", "flowerpose.eval"),
     *((f"eval/{part}", f"flowerpose.eval.{part}") for part in EVAL_FLOORS if part != "pool"),
     ("flowerpose/cli", "flowerpose.cli"), ("sim", "flowerpose.sim"),
     ("hardware", "flowerpose.hardware"), ("hardware/backends", "flowerpose.hardware.backends"),
     ("hardware/flights", "flowerpose.hardware.flights"), ("flowerpose", "flowerpose")])
 def test_no_import_circle_within_a_package(folder, package):
     assert _cycle(_package_imports(ROOT / folder, package)) is None
+
+
+#: Most lines a module may have: past it, a module holds more than one job.
+MAX_MODULE_LINES = 700
+
+
+def test_every_module_is_at_most_max_module_lines():
+    long = sorted(f"{path.relative_to(ROOT)}: {lines} lines"
+                  for folder in ("pipeline", "sim", "hardware", "eval", "flowerpose")
+                  for path in _modules(folder)
+                  if (lines := len(path.read_text().splitlines())) > MAX_MODULE_LINES)
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
 
 
 def test_an_import_circle_is_found():

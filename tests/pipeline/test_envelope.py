@@ -9,11 +9,11 @@ from candidate_flowers import PISTIL, candidate_flowers
 from flowerpose.cloudio import Cloud, to_metres
 from flowerpose.config import apply_overrides
 from flowerpose.perturb import Perturbation, channel_gain, parse_perturbation, perturb, relit
+from flowerpose.pipeline.cluster_config import ClusterConfig, OutlierConfig, for_cloud
 from flowerpose.pipeline.colour import ColourConfig, white_gain
 from flowerpose.pipeline.fit import fit_plane
 from flowerpose.pipeline.flowers import PipelineConfig, find_flowers_in_candidates
-from flowerpose.pipeline.limits import COUNT_FLOORS, Density, for_cloud
-from flowerpose.pipeline.segment import ClusterConfig, OutlierConfig
+from flowerpose.pipeline.limits import COUNT_FLOORS, Density
 
 
 def _matched(cloud: Cloud, centres: np.ndarray, normals: np.ndarray,

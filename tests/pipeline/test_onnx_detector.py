@@ -11,8 +11,8 @@ from onnx import TensorProto, helper, numpy_helper
 
 from flowerpose.errors import InputError
 from flowerpose.pipeline.colour import ColourConfig
-from flowerpose.pipeline.detect import ColourDetector, DetectConfig, OnnxConfig
-from flowerpose.pipeline.onnx_detector import OnnxDetector, letterbox
+from flowerpose.pipeline.detect import ColourDetector, DetectConfig
+from flowerpose.pipeline.onnx_detector import OnnxConfig, OnnxDetector, letterbox
 
 
 def _save(path: Path, nodes, output_shape, input_shape=(1, 3, "H", "W"), initializers=()):

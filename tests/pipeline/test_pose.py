@@ -8,9 +8,10 @@ from scipy.spatial.transform import Rotation
 
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
+from flowerpose.pipeline.cluster_config import ClusterConfig
 from flowerpose.pipeline.colour import ColourConfig, pistil_mask, rgb_to_hsv
 from flowerpose.pipeline.pose import METHODS, PoseConfig, estimate_pose, split_petals_pistil
-from flowerpose.pipeline.segment import ClusterConfig, pistil_clusters
+from flowerpose.pipeline.segment import pistil_clusters
 
 RADIUS = 0.015  # corolla radius, metres
 DOME_RADIUS = 0.003  # receptacle radius, metres

@@ -3,9 +3,9 @@ from candidate_flowers import PETAL, candidate_flowers, plane_axes
 
 from flowerpose.cloudio import Cloud
 from flowerpose.pipeline import segment
+from flowerpose.pipeline.cluster_config import ClusterConfig
 from flowerpose.pipeline.flowers import PipelineConfig
 from flowerpose.pipeline.segment import (
-    ClusterConfig,
     Grouping,
     cluster_flowers,
     crop_flowers,

@@ -15,14 +15,9 @@ from scipy.ndimage import map_coordinates
 
 from flowerpose.errors import InputError
 from flowerpose.pipeline.frames import read_frames
-from flowerpose.pipeline.sfm import (
-    SfmConfig,
-    distinct_poses,
-    epipolar_matches,
-    pairs_from_poses,
-    reconstruct_sparse,
-    sequential_pairs,
-)
+from flowerpose.pipeline.sfm import distinct_poses, reconstruct_sparse
+from flowerpose.pipeline.sfm_config import SfmConfig
+from flowerpose.pipeline.sfm_matching import epipolar_matches, pairs_from_poses, sequential_pairs
 
 # A textured bed patch with three blocks on it: (min xyz, max xyz), metres, bed frame.
 BOXES = np.array([
@@ -195,12 +190,12 @@ def test_sift_sees_the_frames_at_the_size_each_mode_needs(images, tmp_path, monk
     """Unset, SIFT's image size follows the mode: 640 px where the recorded poses guide
     matching, the frames' 1280 where incremental mapping finds the poses from the
     features; a size given is used in either."""
-    from flowerpose.pipeline import sfm
+    from flowerpose.pipeline import sfm_matching
 
     def extract(*args, extraction_options, **kwargs):
         raise _Extracted(extraction_options.max_image_size)
 
-    monkeypatch.setattr(sfm.pycolmap, "extract_features", extract)
+    monkeypatch.setattr(sfm_matching.pycolmap, "extract_features", extract)
     positions, rotations = ring_poses()
     frames_dir = frames_folder(tmp_path / "scene", images, positions, rotations, camera=camera)
     for config, expected in ((SfmConfig(), size), (SfmConfig(max_image_size=800), 800)):
@@ -304,10 +299,15 @@ def test_epipolar_matching_keeps_true_matches_and_refuses_lookalikes():
                             2.0).shape == (0, 2)
 
 
-def test_importing_sfm_first_keeps_png_writing_alive(tmp_path):
+@pytest.mark.parametrize("module", ["sfm", "sfm_matching"])
+def test_importing_sfm_first_keeps_png_writing_alive(tmp_path, module):
     """pycolmap imported before cv2 aborts the process on cv2.imwrite(.png) (libpng double
-    free): the module must import cv2 first."""
-    script = ("import flowerpose.pipeline.sfm\n"
+    free): each module of the sparse stage that imports pycolmap must import cv2 first
+    (sys.modules keeps the order imports began in; the crash alone depends on what else
+    loaded libpng first)."""
+    script = (f"import sys, flowerpose.pipeline.{module}\n"
+              "names = list(sys.modules)\n"
+              "assert names.index('cv2') < names.index('pycolmap'), 'pycolmap before cv2'\n"
               "import cv2, numpy as np\n"
               f"assert cv2.imwrite({str(tmp_path / 'x.png')!r}, np.zeros((8, 8, 3), np.uint8))\n")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
