@@ -25,8 +25,6 @@ SOURCES = ("scan", "oracle", "rgbd", "real")
 SYNTHETIC_SOURCES = tuple(s for s in SOURCES if s != "real")
 
 
-
-
 @dataclass(frozen=True)
 class PlantSet:
     """Seeded synthetic plants (`plants` of `source` and `preset` from `seed`) or labelled

@@ -195,8 +195,6 @@ def add_scan(sub: argparse._SubParsersAction) -> None:
 _pollinate_base = starting_config("flowerpose.hardware.flights.pollination_plan:PollinateSettings")
 
 
-
-
 def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
     from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, read_flight

@@ -101,7 +101,6 @@ def test_a_scale_that_puts_no_label_near_any_point_is_refused(tmp_path):
                  tmp_path / "out", Execution(1))
 
 
-
 def test_a_wrong_truth_scale_is_said_as_the_flag_that_set_it(tmp_path, capsys):
     folder = write_real_plant(tmp_path / "plant", "candidates")
     assert main(["eval", "--source", "real", str(folder), "--truth-scale", "1", "--out",
