@@ -16,6 +16,8 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud, read_cloud
 from flowerpose.config import DEFAULT_PRESET, to_dict
+from flowerpose.errors import InputError
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.pool import LOCAL, Execution
 from flowerpose.eval.reports.report import markdown_table, run_record
 from flowerpose.jsonio import write_json
@@ -32,8 +34,10 @@ UPSTREAM_SECONDS = (78, 105)
 SIMULATOR_BUDGET_S = {"plant": 2.0, "visibility": 3.0, "oracle_cloud": 5.0}
 
 
-def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
-    """Median wall seconds of the simulator's steps for realistic plant `seed`: generating
+def simulator_seconds(seed: int = 0, repeat: int = 3, name: str = DEFAULT_PRESET
+                      ) -> dict[str, float]:
+    """Median wall seconds of the simulator's steps for plant `seed` of preset `name`:
+    generating
     the plant, its flowers' visibility from the scan path, and its oracle cloud."""
     from flowerpose.scan_geometry import path_cameras
     from flowerpose.sim.oracle import sample_oracle_cloud
@@ -45,7 +49,7 @@ def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
     for _ in range(repeat):
         watch = Stopwatch()
         with watch.step("plant"):
-            plant = generate_plant(seed, preset(DEFAULT_PRESET))
+            plant = generate_plant(seed, preset(name))
         views = path_cameras(plant.center[:2], plant.height)[1]
         with watch.step("visibility"):
             flower_visibility(plant, views)
@@ -56,11 +60,11 @@ def simulator_seconds(seed: int = 0, repeat: int = 3) -> dict[str, float]:
     return {name: round(statistics.median(values), 4) for name, values in runs.items()}
 
 
-def _oracle_cloud(seed: int, points: int, cache: Path | None) -> Cloud:
-    """Realistic plant `seed`'s oracle cloud of `points` points, as `eval` makes it."""
+def _oracle_cloud(plant: PlantSet, points: int, cache: Path | None) -> Cloud:
+    """The plant's oracle cloud of `points` points, as `eval` makes it."""
     from flowerpose.eval.jobs.plants import generate_plant_files
 
-    sim = sim_preset(DEFAULT_PRESET)
+    seed, sim = plant.seed, sim_preset(plant.preset)
     sim = dataclasses.replace(sim, oracle=dataclasses.replace(sim.oracle, points=points))
     with tempfile.TemporaryDirectory() as folder:
         generate_plant_files(seed, sim, Path(folder), cache)
@@ -69,24 +73,26 @@ def _oracle_cloud(seed: int, points: int, cache: Path | None) -> Cloud:
 
 @dataclass(frozen=True)
 class BenchPlan:
-    """What `flowerpose bench` times: realistic plant `seed`'s oracle cloud at each of
-    `point_counts` points, each detection `repeat` times (the median kept)."""
+    """What `flowerpose bench` times: the plant's oracle cloud at each of `point_counts`
+    points, each detection `repeat` times (the median kept)."""
 
     point_counts: tuple[int, ...]
     repeat: int = 3
-    seed: int = 3
 
 
-def run_bench(config: PipelineConfig, plan: BenchPlan, out: Path | None = None,
+def run_bench(config: PipelineConfig, plan: BenchPlan, plant: PlantSet, out: Path | None = None,
               execution: Execution = LOCAL) -> dict:
-    """Median wall seconds per stage over the plan's repeats for each cloud size; prints a
+    """Median wall seconds per stage over the plan's repeats for each cloud size of the one
+    seeded `plant` (its preset's oracle cloud, and the simulator's steps for it); prints a
     table and writes bench.json to `out` when given. The clouds are the plant stage's
     (from the execution's stage cache when made before); the timed runs never are."""
-    repeat, seed, cache = plan.repeat, plan.seed, execution.cache
+    if plant.real or plant.plants != 1:
+        raise InputError("seed", "bench times one seeded synthetic plant")
+    repeat, seed, cache = plan.repeat, plant.seed, execution.cache
     results = []
     for points in plan.point_counts:
-        LOG.info(f"a {points:,}-point cloud (seed {seed}, realistic)...")
-        cloud = _oracle_cloud(seed, points, cache)
+        LOG.info(f"a {points:,}-point cloud (seed {seed}, {plant.preset})...")
+        cloud = _oracle_cloud(plant, points, cache)
         find_flowers(cloud, config)  # warm-up: first-call costs of Open3D and SciPy
         runs = [find_flowers(cloud, config) for _ in range(repeat)]
         stages = list(runs[0].timing_s)
@@ -94,7 +100,7 @@ def run_bench(config: PipelineConfig, plan: BenchPlan, out: Path | None = None,
         results.append({"points": len(cloud), "flowers": len(runs[0].flowers),
                         "median_s": median,
                         "runs_total_s": [round(r.timing_s["total"], 4) for r in runs]})
-    simulator = simulator_seconds(seed, repeat)
+    simulator = simulator_seconds(seed, repeat, plant.preset)
     report = {"run": run_record(), "results": results, "simulator_s": simulator,
               "simulator_budget_s": SIMULATOR_BUDGET_S, "repeat": repeat, "seed": seed,
               "cpu_count": os.cpu_count(), "config": to_dict(config)}

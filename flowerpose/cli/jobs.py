@@ -389,8 +389,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.photos is not None:
         return _bench_photos(args)
 
-    run_bench(configure(PipelineConfig(), args),
-              BenchPlan(tuple(args.points), args.repeat, args.seed), args.out,
+    run_bench(configure(PipelineConfig(), args), BenchPlan(tuple(args.points), args.repeat),
+              PlantSet("oracle", DEFAULT_PRESET, 1, args.seed), args.out,
               Execution(cache=stage_cache(args)))
     return 0
 

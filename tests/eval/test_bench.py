@@ -3,15 +3,19 @@ bench.json; it never asserts a speed (this machine is shared)."""
 
 import pytest
 
+from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.pool import Execution
 from flowerpose.eval.studies.bench import SIMULATOR_BUDGET_S, BenchPlan, run_bench
 from flowerpose.jsonio import read_json
 from flowerpose.pipeline.flowers import PipelineConfig
 
+#: Realistic seed 3: 18 open flowers.
+PLANT = PlantSet("oracle", "realistic", 1, 3)
+
 
 @pytest.mark.slow
 def test_bench_times_every_pipeline_stage_and_simulator_step(tmp_path, capsys):
-    report = run_bench(PipelineConfig(), BenchPlan((20000,), repeat=1, seed=3), tmp_path)
+    report = run_bench(PipelineConfig(), BenchPlan((20000,), repeat=1), PLANT, tmp_path)
     (result,) = report["results"]
     assert result["points"] == 20000 and result["flowers"] > 0
     assert set(result["median_s"]) >= {"total"} and result["median_s"]["total"] > 0
@@ -46,10 +50,10 @@ def test_bench_and_plant_take_settings_by_their_dotted_keys(tmp_path, capsys):
 def test_bench_takes_its_cloud_from_the_stage_cache_when_made_before(tmp_path, monkeypatch):
     from flowerpose.sim import bundle
 
-    plan = BenchPlan((20000,), repeat=1, seed=3)
-    first = run_bench(PipelineConfig(), plan, None, Execution(cache=tmp_path / "cache"))
+    plan = BenchPlan((20000,), repeat=1)
+    first = run_bench(PipelineConfig(), plan, PLANT, None, Execution(cache=tmp_path / "cache"))
     made = []
     monkeypatch.setattr(bundle, "make_plant", lambda *a, **k: made.append(a))
-    again = run_bench(PipelineConfig(), plan, None, Execution(cache=tmp_path / "cache"))
+    again = run_bench(PipelineConfig(), plan, PLANT, None, Execution(cache=tmp_path / "cache"))
     assert made == [] and len(list((tmp_path / "cache" / "plant").iterdir())) == 1
     assert again["results"][0]["flowers"] == first["results"][0]["flowers"]
