@@ -64,10 +64,14 @@ class SimBed:
     (`render.instance_offsets`)."""
 
 
-def make_bed_plants(bed: Bed, config: EvalConfig, seed: int, out: Path | None) -> SimBed:
+def make_bed_plants(bed: Bed, config: EvalConfig, seed: int, out: Path | None,
+                    cache: Path | None = None) -> SimBed:
     """A plant of seed `seed + i` for the i-th plant of the bed file, standing at its
-    place, written to out/plants/NAME (None: kept in memory, for a dry run). The bed's
-    heights and radii become the generated plants' own."""
+    place, written to out/plants/NAME by eval's plant stage (`generate_plant_files`, from
+    the stage cache at `cache` where made before), or kept in memory where `out` is None
+    (a dry run, which writes nothing). The bed's heights and radii become the generated
+    plants' own."""
+    from flowerpose.eval.jobs.plants import generate_plant_files
     from flowerpose.sim.bundle import make_plant
     from flowerpose.sim.export import plant_obstacles, read_plant
     from flowerpose.sim.render import instance_offsets
@@ -77,10 +81,12 @@ def make_bed_plants(bed: Bed, config: EvalConfig, seed: int, out: Path | None) -
         sim = dataclasses.replace(config.sim, plant=dataclasses.replace(
             config.sim.plant, center_xy_m=(spot.x, spot.y)))
         folder = None if out is None else out / "plants" / spot.name
-        if folder is not None and (folder / "plant.json").exists():
-            plant = read_plant(folder)  # made by this run before (the journal says whose)
+        if folder is None:
+            plant = make_plant(seed + index, config=sim).plant
         else:
-            plant = make_plant(seed + index, config=sim, out_dir=folder).plant
+            if not (folder / "plant.json").exists():  # else made by this run before
+                generate_plant_files(seed + index, sim, folder, cache)
+            plant = read_plant(folder)
         reach = float(np.hypot(*(np.asarray(plant.mesh.vertices)[:, :2]
                                  - np.asarray(plant.center[:2])).T).max())
         made.append(plant)
@@ -173,7 +179,7 @@ def run_sim_bed(config: EvalConfig, run: SimBedRun, out: Path, execution: Execut
         journal = open_journal(out, bed, fingerprint(bed, {"seed": seed,
                                                             "config": to_dict(config)}),
                                {"seed": seed})
-        sim_bed = make_bed_plants(bed, config, seed, out)
+        sim_bed = make_bed_plants(bed, config, seed, out, cache)
         plan = plan_sim_bed(sim_bed)
         reach = {p.name: p.radius + CROP_MARGIN_M for p in sim_bed.bed.plants}
         names = [p.name for p in bed.plants]
