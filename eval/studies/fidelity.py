@@ -174,31 +174,41 @@ def real_outcome(plant: RealPlant, settings: EvalConfig) -> dict:
         return RealJob(plant.name, plant).score(settings, Path(scratch))[0]
 
 
-def predicted_outcome(folder: Path, config: PipelineConfig, max_distance: float,
-                      points_per_flower: float | None, label_error_deg: float) -> dict:
-    """A synthetic plant's report.json plant entry at the real plant's density: its cloud
-    thinned (seeded) where its flowers hold more than DENSITY_MATCH times
-    `points_per_flower`, its truth tilted as hand labels are (`label_error_deg`)."""
-    from flowerpose.eval.scoring.match import plant_entry, score_plant
-    from flowerpose.eval.scoring.truth import as_labelled
+def predicted_outcome(folder: Path, settings: EvalConfig, points_per_flower: float | None,
+                      label_error_deg: float) -> dict:
+    """A synthetic plant's report.json plant entry at the real plant's density, scored as
+    eval scores it (`SyntheticJob`): its cloud thinned (seeded) where its flowers hold more
+    than DENSITY_MATCH times `points_per_flower`, its truth tilted as hand labels are
+    (`label_error_deg`)."""
+    import dataclasses
+
+    from flowerpose.cloudio import write_cloud
+    from flowerpose.eval.jobs.plants import SyntheticJob
     from flowerpose.perturb import thin
 
     cloud_path, truth_path = synthetic_cloud(folder)  # type: ignore[misc]
-    cloud = read_cloud(cloud_path)
-    own = find_flowers(cloud, config)
-    own_points = np.median([len(f.crop) for f in own.flowers]) if own.flowers else None
-    result = own
-    if (points_per_flower is not None and own_points is not None
-            and own_points > DENSITY_MATCH * points_per_flower):
-        rng = np.random.default_rng(zlib.crc32(folder.name.encode()))
-        result = find_flowers(thin(cloud, points_per_flower / own_points, rng), config)
-    truth = read_plant_truth(truth_path)
-    if label_error_deg > 0:
-        truth = as_labelled(truth, label_error_deg, folder.name)
-    entry = plant_entry(folder.name, score_plant([f.pose for f in result.flowers], truth,
-                                                 max_distance))
-    kept = [len(f.crop) for f in result.flowers]
+    scored = dataclasses.replace(settings, score=dataclasses.replace(
+        settings.score, label_error_deg=label_error_deg))
+    with tempfile.TemporaryDirectory() as scratch:
+        entry, _ = SyntheticJob(folder.name, cloud_path, truth_path).score(scored, Path(scratch))
+        kept = _flower_points(Path(scratch) / "flowers.json")
+        own_points = np.median(kept) if kept else None
+        if (points_per_flower is not None and own_points is not None
+                and own_points > DENSITY_MATCH * points_per_flower):
+            rng = np.random.default_rng(zlib.crc32(folder.name.encode()))
+            thinned = write_cloud(Path(scratch) / "thinned.ply", thin(
+                read_cloud(cloud_path), points_per_flower / own_points, rng))
+            entry, _ = SyntheticJob(folder.name, thinned, truth_path).score(scored,
+                                                                            Path(scratch))
+            kept = _flower_points(Path(scratch) / "flowers.json")
     return {**entry, "points_per_flower": float(np.median(kept)) if kept else None}
+
+
+def _flower_points(flowers_json: Path) -> list[int]:
+    """Each flower's points (its crop's) of a flowers.json."""
+    from flowerpose.jsonio import read_json
+
+    return [f["points"] for f in read_json(flowers_json)["flowers"]]
 
 
 def outcomes(real_entry: dict, predicted: list[dict], real_points: float | None) -> dict:
@@ -494,7 +504,7 @@ def run_fidelity(settings: EvalConfig, real: PlantSet, synthetic_dirs: list[Path
     synthetic = statistics([synthetic_sample(f, config, max_distance) for f in folders], config)
     rows = compare(real, synthetic)
     real_points = real["points"]["p50"]
-    predicted = [predicted_outcome(f, config, max_distance, real_points,
+    predicted = [predicted_outcome(f, settings, real_points,
                                    run_label_error(f, label_error_deg)) for f in folders]
     outcome = outcomes(real_outcome(real_plant, settings), predicted, real_points)
     out_dir.mkdir(parents=True, exist_ok=True)
