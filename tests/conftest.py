@@ -12,12 +12,14 @@ from flowerpose.sim.bundle import PlantBundle, make_plant
 HARDWARE = Path(__file__).parent / "hardware"
 
 
-#: The test files that take longest (seconds of a 2-core run, 2026-12-05: the bed runs 190,
-#: pollination 90, the README 75, ...), run first: `make test` hands whole files to its
-#: workers in collection order, and the longest first makes them end together.
-LONGEST_FIRST = ("eval/test_bed_run.py", "eval/test_pollination.py", "test_readme.py",
-                 "eval/test_scan_source.py", "eval/test_bed_serial.py",
-                 "eval/test_html_report.py", "eval/test_ray.py", "hardware/test_cloud_broker.py",
+#: The test files that take longest (seconds of a 2-core run alone, 2026-12-07: the bed runs
+#: 217, the real photographs 128; in a full run, pollination 90, the README 85, the board
+#: 100, ...), run first: `make test` hands whole files to its workers in collection order,
+#: and the longest first makes them end together.
+LONGEST_FIRST = ("eval/test_bed_run.py", "pipeline/test_real_photos.py",
+                 "eval/test_pollination.py", "test_readme.py", "pipeline/test_board.py",
+                 "eval/test_scan_source.py", "eval/test_ray.py", "eval/test_bed_serial.py",
+                 "eval/test_html_report.py", "hardware/test_cloud_broker.py",
                  "hardware/test_interrupt.py", "hardware/test_sim_bot.py")
 
 
