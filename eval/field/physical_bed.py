@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from flowerpose.config import to_dict
+from flowerpose.config import to_dict, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.capture.photogrammetry import frames_and_cloud
 from flowerpose.eval.field.bed_loop import (
@@ -86,15 +86,8 @@ FIELD_SETTINGS = ("scan.frames", "scan.reconstruct", "scan.camera.width",
 def settings_read(config: EvalConfig) -> dict[str, Any]:
     """The settings a physical bed's run reads (`FIELD_SETTINGS` and the pipeline's
     sections), by dotted key: what `bed_loop.fingerprint` keys the run by."""
-    tree = to_dict(config)
     pipeline = tuple(f.name for f in dataclasses.fields(PipelineConfig))
-    found = {}
-    for key in (*FIELD_SETTINGS, *pipeline):
-        value = tree
-        for part in key.split("."):
-            value = value[part]
-        found[key] = value
-    return found
+    return {key: value_at(config, key) for key in (*FIELD_SETTINGS, *pipeline)}
 
 
 def process_field_plant(folder: Path, name: str, at: tuple[float, float], radius: float,

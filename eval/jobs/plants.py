@@ -409,3 +409,13 @@ def capture_clouds(config: EvalConfig, source: str, folders: dict[int, Path],
         report["cache"] = {"dir": str(cache), "steps_reused": steps,
                            "reused": [plant for plant, c in steps.items() if len(c) == whole]}
     return clouds, timing, report
+
+
+def points_per_flower(flowers_json: Path) -> float | None:
+    """The median points of the flowers a run found (its density as the pipeline saw it),
+    from its flowers.json; None where it found none."""
+    from flowerpose.jsonio import read_json
+
+    points = [f.get("points") for f in read_json(flowers_json).get("flowers", [])]
+    points = [p for p in points if isinstance(p, int)]
+    return float(np.median(points)) if points else None

@@ -184,6 +184,7 @@ def predicted_outcome(folder: Path, settings: EvalConfig, points_per_flower: flo
 
     from flowerpose.cloudio import write_cloud
     from flowerpose.eval.jobs.plants import SyntheticJob
+    from flowerpose.eval.jobs.plants import points_per_flower as median_points
     from flowerpose.perturb import thin
 
     cloud_path, truth_path = synthetic_cloud(folder)  # type: ignore[misc]
@@ -191,8 +192,7 @@ def predicted_outcome(folder: Path, settings: EvalConfig, points_per_flower: flo
         settings.score, label_error_deg=label_error_deg))
     with tempfile.TemporaryDirectory() as scratch:
         entry, _ = SyntheticJob(folder.name, cloud_path, truth_path).score(scored, Path(scratch))
-        kept = _flower_points(Path(scratch) / "flowers.json")
-        own_points = np.median(kept) if kept else None
+        own_points = median_points(Path(scratch) / "flowers.json")
         if (points_per_flower is not None and own_points is not None
                 and own_points > DENSITY_MATCH * points_per_flower):
             rng = np.random.default_rng(zlib.crc32(folder.name.encode()))
@@ -200,15 +200,8 @@ def predicted_outcome(folder: Path, settings: EvalConfig, points_per_flower: flo
                 read_cloud(cloud_path), points_per_flower / own_points, rng))
             entry, _ = SyntheticJob(folder.name, thinned, truth_path).score(scored,
                                                                             Path(scratch))
-            kept = _flower_points(Path(scratch) / "flowers.json")
-    return {**entry, "points_per_flower": float(np.median(kept)) if kept else None}
-
-
-def _flower_points(flowers_json: Path) -> list[int]:
-    """Each flower's points (its crop's) of a flowers.json."""
-    from flowerpose.jsonio import read_json
-
-    return [f["points"] for f in read_json(flowers_json)["flowers"]]
+            own_points = median_points(Path(scratch) / "flowers.json")
+    return {**entry, "points_per_flower": own_points}
 
 
 def outcomes(real_entry: dict, predicted: list[dict], real_points: float | None) -> dict:

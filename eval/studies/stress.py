@@ -36,7 +36,7 @@ from flowerpose.eval.reports.report import markdown_table, run_record, summarise
 from flowerpose.eval.scoring.paired import compare_runs, difference_cell, record_cell
 from flowerpose.eval.scoring.stats import GROSS_DEG as STATS_GROSS_DEG
 from flowerpose.eval.scoring.stats import interval_text
-from flowerpose.jsonio import read_json, write_json
+from flowerpose.jsonio import write_json
 from flowerpose.perturb import KINDS, UNITS, Perturbation
 from flowerpose.stopwatch import Stopwatch
 
@@ -168,14 +168,9 @@ def _stress_job(job: PlantJob, perturbed: Perturbed | None, config: Any, folder:
     """One plant's cloud under a perturbation (or as captured), detected and scored through
     the job's own `score`, and the median points of the flowers it found."""
     entry, _ = job.score(config, folder, cache, perturbed)
-    return {"entry": entry, "points": _points_per_flower(folder / "flowers.json")}
+    from flowerpose.eval.jobs.plants import points_per_flower
 
-
-def _points_per_flower(flowers_json: Path) -> float | None:
-    """The median points of the flowers a run found (its density as the pipeline saw it)."""
-    points = [f.get("points") for f in read_json(flowers_json).get("flowers", [])]
-    points = [p for p in points if isinstance(p, int)]
-    return float(np.median(points)) if points else None
+    return {"entry": entry, "points": points_per_flower(folder / "flowers.json")}
 
 
 def run_stress(config: Any, plan: StressPlan, plants: PlantSet, out_dir: Path,
@@ -215,13 +210,13 @@ def run_stress(config: Any, plan: StressPlan, plants: PlantSet, out_dir: Path,
                         stage="stress", labels=[a[0].name for a in job_args])
 
     rows = _rows(keyed, names, scored(config, runs),
-                 {name: scored(other, runs / name) for name, other in (compare or {}).items()})
+                 {name: scored(other, runs / name) for name, other in compare.items()})
     report = {"run": run_record(), "config": {**plants.describe(), "repeats": plan.repeats,
                                               "stress_seed": plan.seed,
                                               "pipeline": to_dict(pipeline_part(config)),
                                               "compare": {name: to_dict(pipeline_part(other))
                                                           for name, other in
-                                                          (compare or {}).items()}},
+                                                          compare.items()}},
               "baseline": rows[0], "rows": rows[1:], "seconds": round(watch.elapsed(), 2)}
     write_json(out_dir / "stress.json", report)
     write_text(out_dir / "stress.md", stress_markdown(report))
