@@ -176,6 +176,13 @@ def joint_positions(pose: HeadPose, geometry: BotGeometry = PAPER_BOT) -> np.nda
     return np.concatenate([slides, yaw[..., None], pitch[..., None]], -1)
 
 
+def head_angles(pose: HeadPose, geometry: BotGeometry = PAPER_BOT) -> tuple[float, float]:
+    """The yaw and pitch the head's servos take for one `pose`, radians (its yaw wrapped into
+    the servo's reach, or flipped: the solution the tool's positions assume)."""
+    yaw, pitch = joint_positions(pose, geometry)[3:]
+    return float(yaw), float(pitch)
+
+
 def _head_axes(yaw: np.ndarray, pitch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The head's forward (optical axis) and the image's down, (..., 3) unit vectors in
     the bed frame, of head angles, radians."""

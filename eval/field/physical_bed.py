@@ -243,11 +243,8 @@ def _pollinate_plant(bot, rig: FieldRig, folder: Path, spot: BedPlant,
     """One plant's visits planned and flown; what its journal entry keeps of them."""
     from flowerpose.cloudio import read_cloud
     from flowerpose.hardware.flights.pollination_flight import fly_pollination, read_flight
-    from flowerpose.hardware.flights.pollination_plan import (
-        check_plant,
-        plan_pollination,
-        read_visit_flowers,
-    )
+    from flowerpose.hardware.flights.pollination_plan import plan_pollination
+    from flowerpose.hardware.flights.visit_flowers import check_plant, read_visit_flowers
     from flowerpose.jsonio import write_json
     from flowerpose.pipeline.colour import flower_coloured
     from flowerpose.pipeline.flowers import read_flowers

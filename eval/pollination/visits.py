@@ -28,22 +28,26 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.pollination.contact import ContactWorld, Touches
+from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 from flowerpose.hardware.bot import KinematicBot
+from flowerpose.hardware.flights.close_look import CloseLook
 from flowerpose.hardware.flights.pollination_flight import fly_pollination
 from flowerpose.hardware.flights.pollination_plan import (
-    UNCERTAIN,
     Flower,
+    PlantObstacles,
     PollinateConfig,
     plan_pollination,
-    read_visit_flowers,
 )
+from flowerpose.hardware.flights.visit_flowers import UNCERTAIN, read_visit_flowers
 from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
 from flowerpose.hardware.kinematics import HeadPose, tool_forward
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import write_json
-from flowerpose.pipeline.colour import flower_coloured
+from flowerpose.pipeline.colour import ColourConfig, flower_coloured
+from flowerpose.pipeline.pose import PoseConfig
 from flowerpose.sim.contact import ContactConfig
 from flowerpose.sim.pieces import FLOWER_PARTS, Part
+from flowerpose.stopwatch import Stopwatch
 
 #: The causes a visit fails for, in the order they are looked at.
 CAUSES = ("missed", "no pose", "uncertain", "unreachable", "pose off", "collision")
@@ -90,11 +94,22 @@ OTHER_FLOWER_PARTS = [int(p) for p in FLOWER_PARTS if p != Part.SEPAL]
 PISTIL_PARTS = [int(Part.RECEPTACLE), int(Part.STAMEN)]
 
 
+@dataclass(frozen=True)
+class LookSetup:
+    """What a close look needs in the simulator (`pollinate.look`): the scan's camera, its
+    model and imperfections, and the pipeline's pose and colour settings, which estimate
+    the flower's pose again from the close frames."""
+
+    camera: SimCameraConfig
+    pose: PoseConfig
+    colour: ColourConfig
+
+
 def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | None,
                    match_distance_m: float, plan_config: PollinateConfig,
                    config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
                    flight_json: Path | None = None, world: ContactWorld | None = None,
-                   corolla: np.ndarray | None = None) -> dict:
+                   corolla: np.ndarray | None = None, look: LookSetup | None = None) -> dict:
     """One plant's pollination: plan from flowers.json's poses (None: the true poses) with
     the plant's cloud (bed frame, metres; None: reach alone) as obstacles, fly
     the plan on a simulated bot, replay the flight through the plant in MuJoCo and judge
@@ -102,13 +117,15 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
     record goes to flight_json when given; `world`: the plant's contact world (and the plant
     read once), when the caller has one; `corolla`: the cloud's points of a flower's colour
     by the run's colour model (`flower_coloured`), which may be a target's own corolla,
-    when the caller has them (else by the default model). Returns the per-plant report
-    section."""
+    when the caller has them (else by the default model); `look`: each visit looks again
+    before it touches (`hardware/flights/close_look.py`) where `pollinate.look.views` asks,
+    the frames rendered by the simulated camera. Returns the per-plant report section."""
     from flowerpose.pipeline.flowers import read_flowers
     from flowerpose.sim.export import read_plant
 
     plant = world.plant if world is not None else read_plant(plant_dir)
     truth = plant.flowers
+    looking = look is not None and plan_config.look.views > 0
     if flowers_json is None:
         estimates = [Flower(f.id, np.asarray(f.center, float), np.asarray(f.normal, float),
                             float(f.radius))
@@ -116,34 +133,67 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
         nearest, skipped = {f.id: f.id for f in truth}, {}
     else:
         entries = read_flowers(flowers_json)
-        estimates, skipped = read_visit_flowers(entries,
-                                                visit_uncertain=plan_config.visit_uncertain)
+        estimates, skipped = read_visit_flowers(
+            entries, visit_uncertain=plan_config.plans_uncertain if looking
+            else plan_config.visit_uncertain)
         nearest = _match(truth, entries, match_distance_m)
-    plan = plan_pollination(estimates, None if cloud is None else cloud.points, plan_config,
-                            tool=tool, corolla=None if cloud is None
-                            else corolla if corolla is not None
-                            else flower_coloured(cloud.colors))
+    watch = Stopwatch()
+    obstacles = PlantObstacles.of(None if cloud is None else cloud.points,
+                                  None if cloud is None else corolla if corolla is not None
+                                  else flower_coloured(cloud.colors))
+    plan = plan_pollination(estimates, None if cloud is None else obstacles.points,
+                            plan_config, tool=tool, corolla=obstacles.corolla)
+    planning_s = watch.elapsed()
     with tempfile.TemporaryDirectory() as scratch:  # a fresh flight, never a resumed one
-        timeline, flown, flight = flown_visits(plan, Path(scratch))
+        close = (CloseLook({f.id: f for f in estimates}, obstacles, plan_config,
+                           Path(scratch) / "look", look.pose, look.colour, tool=tool)
+                 if looking else None)
+        timeline, flown, flight = flown_visits(plan, Path(scratch) / "flight", close,
+                                               (plant_dir, look.camera) if looking else None)
     if flight_json is not None:
         write_json(flight_json, flight)
     world = world or ContactWorld(plant, config.contact, tool)
     outcomes = [judge(f, nearest.get(f.id), plan, flown, timeline, world, config, tool,
-                      skipped) for f in truth]
+                      skipped, {e.id for e in estimates if e.uncertain})
+                for f in truth]
     return {"visits": len(plan.planned), "planned_s": round(plan.duration_s, 1),
             "flown_s": round(flight["sessions"][-1]["bot_time_end"], 1)
             if flight["sessions"] else 0.0,
+            "time_s": visit_times(flight, planning_s),
             "flowers": outcomes, **tally(outcomes)}
 
 
-def flown_visits(plan, scratch: Path) -> tuple[Timeline, dict[int, tuple[float, float]], dict]:
+def visit_times(flight: dict, planning_s: float) -> dict:
+    """A flight's time by part, summed over its visits, seconds: planning (wall clock), the
+    flights (bot clock, from each lift to the way out's end, the close look's own moves
+    and rests apart), the close look's moves and rests (bot clock) and its reconstruction
+    and pose (wall clock); and the visits they add up over."""
+    done = flight["done"]
+    looks = [d["look"] for d in done if "look" in d]
+    look_s = sum(look["bot_s"] for look in looks)
+    return {"visits": len(done), "planning": round(planning_s, 2),
+            "flight": round(sum(d["t1"] - d["t0"] for d in done) - look_s, 2),
+            "look": round(look_s, 2),
+            "look_compute": round(sum(look["seconds"] for look in looks), 2)}
+
+
+def flown_visits(plan, scratch: Path, look: CloseLook | None = None,
+                 camera: tuple[Path, SimCameraConfig] | None = None
+                 ) -> tuple[Timeline, dict[int, dict], dict]:
     """`plan` flown by the executor on a simulated bot (its record in the empty folder
-    `scratch`): the bot's timeline, each flower's visit as (start, end) on the bot's clock,
-    and the flight's record."""
+    `scratch`): the bot's timeline, each flower's visit (flight.json's `done` entry) and the
+    flight's record. With `look`, each visit looks again first, the frames rendered of the
+    plant in `camera`'s folder by its camera."""
     timeline = Timeline()
-    flight = fly_pollination(KinematicBot(observer=timeline.add), plan, scratch,
-                             source={"backend": "simulated"}, progress=False)
-    return timeline, {int(d["flower"]): (d["t0"], d["t1"]) for d in flight["done"]}, flight
+    if camera is None:
+        bot = KinematicBot(observer=timeline.add)
+    else:
+        from flowerpose.hardware.backends.sim_bot import SimBot, SimBotConfig
+
+        bot = SimBot([camera[0]], SimBotConfig(camera=camera[1]), observer=timeline.add)
+    flight = fly_pollination(bot, plan, scratch, source={"backend": "simulated"},
+                             progress=False, look=look)
+    return timeline, {int(d["flower"]): d for d in flight["done"]}, flight
 
 
 def _match(truth: list, entries: list[dict], distance_m: float) -> dict[int, int | None]:
@@ -162,28 +212,31 @@ def _match(truth: list, entries: list[dict], distance_m: float) -> dict[int, int
     return found
 
 
-def _rest_time(timeline: Timeline, t0: float, t1: float) -> float:
-    """Bot-clock seconds halfway through the one rest of the visit flown from t0 to t1."""
-    rest = next(a for a in timeline.activities() if a.kind == "dwell" and t0 <= a.t0 < t1)
-    return rest.t0 + rest.elapsed / 2
-
-
-def judge(flower, detection: int | None, plan, flown: dict[int, tuple[float, float]],
-           timeline: Timeline, world: ContactWorld, config: PollinationScoreConfig,
-           tool: PollinatorTool, skipped: dict[int, str] | None = None) -> dict:
-    """One true flower's outcome: success or the first cause of failure. `skipped`: the
-    detections left alone before planning and why (`read_visit_flowers`)."""
+def judge(flower, detection: int | None, plan, flown: dict[int, dict],
+          timeline: Timeline, world: ContactWorld, config: PollinationScoreConfig,
+          tool: PollinatorTool, skipped: dict[int, str] | None = None,
+          uncertain: set[int] = frozenset()) -> dict:
+    """One true flower's outcome: success or the first cause of failure. `flown`: each
+    visit's flight.json `done` entry; `skipped`: the detections left alone before planning
+    and why (`read_visit_flowers`); `uncertain`: the planned detections whose sign was
+    uncertain (a close look had to settle it)."""
     entry = {"flower": int(flower.id), "detection": detection}
     if detection is None:
         return {**entry, "outcome": "missed"}
     visit = next((v for v in plan.visits if v.flower == detection), None)
     if visit is None:
-        uncertain = (skipped or {}).get(detection) == UNCERTAIN
-        return {**entry, "outcome": "uncertain" if uncertain else "no pose"}
+        left = (skipped or {}).get(detection) == UNCERTAIN
+        return {**entry, "outcome": "uncertain" if left else "no pose"}
     if visit.status != "planned":
         return {**entry, "outcome": "unreachable", "reason": visit.reason}
-    t0, t1 = flown[detection]
-    rest = _rest_time(timeline, t0, t1)
+    done = flown[detection]
+    if "look" in done:
+        entry["look"] = done["look"]["status"]
+    if done["rest"] is None:  # the close look left it alone
+        return {**entry, "outcome": "uncertain" if detection in uncertain else "unreachable",
+                "reason": done["look"].get("why", "")}
+    t0, t1 = done["t0"], done["t1"]
+    rest = (done["rest"][0] + done["rest"][1]) / 2
     tip, ahead = tool_forward(HeadPose(*(v[0] for v in timeline.poses([rest]))), tool)
     miss = float(np.linalg.norm(tip - np.asarray(flower.center)))
     angle = float(np.degrees(np.arccos(np.clip(-ahead @ np.asarray(flower.normal), -1, 1))))
@@ -264,11 +317,13 @@ def _rate(outcomes: list[str]) -> float | None:
 
 
 def write_success_plot(path: Path, rows: list[dict], curve: list[dict] = (),
-                       cone_deg: float | None = None, max_angle_deg: float | None = None
-                       ) -> Path:
+                       cone_deg: float | None = None, max_angle_deg: float | None = None,
+                       before_after: tuple[dict | None, dict] | None = None) -> Path:
     """pollination.png: success rate against the pose's plane error; with `curve`
     (`approach_angle.summarise_curve`), beside it success against the approach's angle off
-    the true axis, the planner's cone and the score's angle limit marked."""
+    the true axis, the planner's cone and the score's angle limit marked; with
+    `before_after` (the summaries from the scan's poses alone and with the close look),
+    the flowers by outcome before and after the close look."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -280,9 +335,10 @@ def write_success_plot(path: Path, rows: list[dict], curve: list[dict] = (),
     if not used:
         raise InputError(path, "no detected flower to plot")
     curve = [r for r in curve if r["planned"]]
-    figure, axes = plt.subplots(1, 2 if curve else 1, figsize=(11 if curve else 7, 3.5),
-                                squeeze=False, gridspec_kw={"width_ratios": [3, 2]}
-                                if curve else None)
+    compared = before_after if before_after is not None and before_after[0] else None
+    ratios = [3] + ([2] if curve else []) + ([2] if compared else [])
+    figure, axes = plt.subplots(1, len(ratios), figsize=(4 + 3.5 * len(ratios), 3.5),
+                                squeeze=False, gridspec_kw={"width_ratios": ratios})
     axis = axes[0][0]
     labels = [f"{r['from_deg']}-{r['to_deg']}" for r in used]
     x = np.arange(len(used))
@@ -301,6 +357,8 @@ def write_success_plot(path: Path, rows: list[dict], curve: list[dict] = (),
     axis.legend(loc="upper right", fontsize=8)
     if curve:
         _plot_curve(axes[0][1], curve, cone_deg, max_angle_deg)
+    if compared:
+        _plot_before_after(axes[0][-1], *compared)
     figure.tight_layout()
     write_file(path, lambda tmp: figure.savefig(tmp, format="png", dpi=120))
     plt.close(figure)
@@ -325,3 +383,20 @@ def _plot_curve(axis, curve: list[dict], cone_deg: float | None,
     axis.set_ylabel("touch success (contact replay)")
     axis.set_ylim(0, 1.15)
     axis.legend(loc="lower left", fontsize=8)
+
+
+def _plot_before_after(axis, before: dict, after: dict) -> None:
+    """The flowers by outcome from the scan's poses alone and with the close look."""
+    outcomes = ["success", *CAUSES]
+    x = np.arange(len(outcomes))
+    for offset, summary, colour, name in ((-0.2, before, "#c9c9c9", "the scan's poses alone"),
+                                          (0.2, after, "#3f7f1f", "with the close look")):
+        counts = [summary["successes"], *(summary["failures"][c] for c in CAUSES)]
+        axis.bar(x + offset, counts, width=0.4, color=colour, label=name)
+        for k, count in enumerate(counts):
+            axis.annotate(str(count), (x[k] + offset, count), ha="center", va="bottom",
+                          fontsize=7)
+    axis.set_xticks(x, outcomes, rotation=30, ha="right", fontsize=8)
+    axis.set_ylabel("flowers")
+    axis.set_title("before and after the close look", fontsize=9)
+    axis.legend(loc="upper right", fontsize=8)

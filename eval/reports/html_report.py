@@ -31,6 +31,7 @@ from flowerpose.eval.reports.report import (
     comparison_rows,
     interval_rows,
     note_lines,
+    pollination_lines,
     summary_lines,
     table_rows,
 )
@@ -91,6 +92,7 @@ def write_html_report(path: Path, title: str, report: dict | None,
         parts += _bed(bed, plants)
     if report is not None:
         parts += _scores(report)
+        parts += _pollination(report, Path(path).parent / "pollination.png")
     for plant in plants:
         entry = _entry(report, plant.name)
         parts.append(f'<h2 id="{_e(_anchor(plant.name))}">{_e(plant.name)}</h2>')
@@ -208,6 +210,22 @@ def _scores(report: dict) -> list[str]:
         parts.append(_figure_html(_histograms(errors), "histograms"))
     if report.get("reconstruction"):
         parts += ["<h2>Reconstruction</h2>", _reconstruction_table(report["reconstruction"])]
+    return parts
+
+
+def _pollination(report: dict, plot: Path) -> list[str]:
+    """The pollination task's results (`pollination_lines`) and its figure, where it ran:
+    before and after the close look, and the time per visit."""
+    if "pollination" not in report["summary"]:
+        return []
+    parts = ["<h2>Pollination</h2>",
+             "<ul>" + "".join(f"<li>{_e(line)}</li>" for line in pollination_lines(report))
+             + "</ul>"]
+    if plot.is_file():
+        encoded = base64.b64encode(plot.read_bytes()).decode("ascii")
+        parts.append(f'<img class="views" src="data:image/png;base64,{encoded}" '
+                     'alt="pollination success against the pose error, and before and after '
+                     'the close look">')
     return parts
 
 

@@ -345,6 +345,10 @@ def write_report(out_dir: Path, report: dict, title: str) -> tuple[Path, Path]:
           "", "## Errors with 95 % intervals", "", interval_table(report), "", INTERVAL_LEGEND]
     if report.get("compare"):
         md += ["", "## Compared on the same plants", "", comparison_table(report)]
+    if "pollination" in report["summary"]:
+        md += ["", "## Pollination", "", *[f"- {line}" for line in pollination_lines(report)],
+               "", "![pollination success, and before and after the close look]"
+               "(pollination.png)"]
     notes = note_lines(report)
     if notes:
         md += ["", "## What the run assumed", "", *[f"- {line}" for line in notes]]
@@ -359,7 +363,10 @@ def pollination_lines(report: dict) -> list[str]:
     """The printed summary of `eval --task pollinate`: success with the estimated and with
     the true poses, and the failures by cause."""
     lines = []
-    for key, what in (("pollination", "estimated poses"),
+    looked = "close_look" in report["summary"]
+    for key, what in (("pollination", "estimated poses" + (", looked at again" if looked
+                                                           else "")),
+                      ("pollination_scan_pose", "the scan's poses alone"),
                       ("pollination_ceiling", "true poses (the planner's ceiling)")):
         part = report["summary"].get(key)
         if part is None:
@@ -371,4 +378,15 @@ def pollination_lines(report: dict) -> list[str]:
         lines.append(f"pollination from {what}: {part['successes']} of {flowers} flowers "
                      f"({'-' if rate is None else f'{rate:.3f} {interval}'.strip()}) in "
                      f"{part['visits']} visits; failures: {failures or 'none'}")
+    if looked:
+        close = report["summary"]["close_look"]
+        times = close["time_per_visit_s"]
+        statuses = ", ".join(f"{n} {status}" for status, n in close["looks"].items())
+        lines.append(f"close look: {close['won']} flowers won and {close['lost']} lost of "
+                     f"{close['flowers']} against the scan's poses alone; looks: "
+                     f"{statuses or 'none'}")
+        if times["visits"]:
+            lines.append(f"time per visit: planning {times['planning']:.1f} s, flight "
+                         f"{times['flight']:.1f} s and the close look {times['look']:.1f} s "
+                         f"(bot clock), its reconstruction {times['look_compute']:.1f} s")
     return lines

@@ -5,6 +5,7 @@ client."""
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 from pathlib import Path
 
 from flowerpose.cli.field_bot import (
@@ -198,14 +199,14 @@ _pollinate_base = starting_config("flowerpose.hardware.flights.pollination_plan:
 def cmd_pollinate(args: argparse.Namespace) -> int:
     from flowerpose.cloudio import read_cloud
     from flowerpose.hardware.flights.pollination_flight import FLIGHT_NAME, read_flight
-    from flowerpose.hardware.flights.pollination_plan import (
+    from flowerpose.hardware.flights.pollination_plan import plan_pollination
+    from flowerpose.hardware.flights.scan_plan import pose_header, pose_row
+    from flowerpose.hardware.flights.visit_flowers import (
         NO_NORMAL,
         UNCERTAIN,
         check_plant,
-        plan_pollination,
         read_visit_flowers,
     )
-    from flowerpose.hardware.flights.scan_plan import pose_header, pose_row
     from flowerpose.jsonio import read_json, write_json
     from flowerpose.pipeline.flowers import read_flowers
 
@@ -221,7 +222,7 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
                          "phone scan's): pollination needs flowers in the bed frame, from a "
                          "FarmBot scan's reconstruction")
     flowers, skipped = read_visit_flowers(read_flowers(args.flowers), args.method,
-                                          config.visit_uncertain)
+                                          config.plans_uncertain)
     if not flowers:
         raise InputError(args.flowers, f"no flower has a {args.method} normal to approach "
                          "along" + (" that is certain (pollinate.visit_uncertain visits the "
@@ -251,9 +252,10 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
         if obstacles is None:
             raise InputError("--plant-cloud", "needed to fly: without the plant's cloud the "
                              "visits are not checked for collisions with the plant")
-        bot = field_bot(args)  # credentials and settings file read before writing
-    with owned(args.out, "pollinate", args.overwrite, ("pollination.json", FLIGHT_NAME)) \
-            as output:
+        camera = look_camera(args) if config.look.views else None  # checked before writing
+        bot = field_bot(args, camera=camera)  # credentials and settings read before writing
+    with owned(args.out, "pollinate", args.overwrite,
+               ("pollination.json", FLIGHT_NAME, LOOK_FOLDER)) as output:
         output.record(write_json(args.out / "pollination.json", {
             **plan.to_json(), "flowers": str(args.flowers), "method": args.method,
             "no_normal": [f for f, why in skipped.items() if why == NO_NORMAL],
@@ -265,9 +267,13 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
           f"{plan.duration_s / 60:.1f} min of bot time; reach, the soil and "
           + ("clearance from the plant's cloud" if obstacles is not None else "no collisions")
           + f" checked -> {args.out / 'pollination.json'}")
+    uncertain = {f.id for f in flowers if f.uncertain}
     for visit in plan.visits:
         if visit.status != "planned":
             print(f"flower {visit.flower}: unreachable {visit.reason}")
+        elif visit.flower in uncertain:
+            print(f"flower {visit.flower}: its normal's sign is uncertain: touched only if the "
+                  "close look settles it")
     for flower, why in skipped.items():
         print(f"flower {flower}: no {args.method} normal" if why == NO_NORMAL else
               f"flower {flower}: its normal's sign is uncertain, left alone (--set "
@@ -278,23 +284,68 @@ def cmd_pollinate(args: argparse.Namespace) -> int:
             label = "" if move.flower < 0 else f"{move.flower:7d}"
             print(f"{pose_row(k, move.kind, move.pose)} {label}")
     if flying and plan.planned:
-        return _fly_pollination(args, plan, *bot)
+        look = None
+        if config.look.views:
+            from flowerpose.hardware.flights.close_look import CloseLook
+            from flowerpose.hardware.flights.pollination_plan import PlantObstacles
+
+            look = CloseLook({f.id: f for f in flowers}, PlantObstacles.of(obstacles, corolla),
+                             config, args.out / LOOK_FOLDER, settings.pose, settings.colour)
+        return _fly_pollination(args, plan, look, *bot)
     return 0
 
 
-def _fly_pollination(args: argparse.Namespace, plan, connect, source: dict) -> int:
-    """pollinate --port / --cloud: fly the plan on the physical bot (flight.json; a flight
-    cut short resumes when rerun)."""
-    from flowerpose.hardware.flights.pollination_flight import fly_pollination
+#: The close look's frames, a folder per flower, in a pollinate --out folder.
+LOOK_FOLDER = "look"
 
-    # flight.json is declared, never recorded: no later run of this stage deletes it.
+
+def _fly_pollination(args: argparse.Namespace, plan, look, connect, source: dict) -> int:
+    """pollinate --port / --cloud: fly the plan on the physical bot (flight.json; a flight
+    cut short resumes when rerun), looking again at each flower first with `look`, whose
+    refined poses then join pollination.json's visits."""
+    from flowerpose.hardware.flights.pollination_flight import fly_pollination
+    from flowerpose.jsonio import read_json, write_json
+
+    # flight.json and look/ are declared, never recorded: no later run of this stage
+    # deletes them.
     with connect() as bot:
         home_field_bot(args, bot)
         flight = fly_pollination(bot, plan, args.out, source={
-            **source, "bot": bot.info.name, "firmware": bot.info.firmware})
-    print(f"flight {flight['status']}: {len(flight['done'])}/{len(flight['visits'])} "
-          f"flowers pollinated -> {args.out / 'flight.json'}")
+            **source, "bot": bot.info.name, "firmware": bot.info.firmware}, look=look)
+    touched = sum(entry["rest"] is not None for entry in flight["done"])
+    if look is not None:
+        looks = {entry["flower"]: entry["look"] for entry in flight["done"] if "look" in entry}
+        document = read_json(args.out / "pollination.json")
+        for visit in document["visits"]:
+            if visit["flower"] in looks:
+                visit["look"] = looks[visit["flower"]]
+        write_json(args.out / "pollination.json", document)
+        counts = Counter(entry["status"] for entry in looks.values())
+        print("close look: " + ", ".join(f"{n} {status}" for status, n in counts.items())
+              + f" -> {args.out / 'pollination.json'}")
+    flown = f" ({len(flight['done'])} visits flown)" if touched != len(flight["done"]) else ""
+    print(f"flight {flight['status']}: {touched}/{len(flight['visits'])} flowers pollinated"
+          f"{flown} -> {args.out / 'flight.json'}")
     return 0
+
+
+def look_camera(args: argparse.Namespace):
+    """The head's USB camera the close look takes its frames with (--camera, checked
+    before anything moves): its factory, which takes the bot's clock."""
+    if args.camera is None:
+        raise InputError("--camera", "needed to fly with the close look: the head's USB "
+                         "camera, e.g. /dev/v4l/by-id/usb-...-video-index0 (--set "
+                         "pollinate.look.views=0 flies on the scan's poses alone)")
+    if not Path(args.camera).exists():
+        raise InputError(args.camera, "no such camera device; list them with "
+                         "ls -l /dev/v4l/by-id/")
+    from flowerpose.hardware.backends.usb_camera import UsbCamera, UsbCameraConfig
+    from flowerpose.scanio import read_intrinsics
+
+    if args.calibration is not None:
+        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
+    config = UsbCameraConfig(calibration=args.calibration, focus=args.focus)
+    return lambda clock: UsbCamera(args.camera, clock, config)
 
 
 def add_pollinate(sub: argparse._SubParsersAction) -> None:
@@ -336,6 +387,16 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
                    help="also print every move (FarmBot millimetres and servo commands), "
                    "and fly nothing")
     add_field_bot_options(p)
+    p.add_argument("--camera", metavar="DEVICE", help="--port/--cloud: the head's USB camera "
+                   "the close look takes its frames with (pollinate.look.*), best its stable "
+                   "path /dev/v4l/by-id/...-video-index0")
+    p.add_argument("--calibration", type=Path, metavar="CAMERA.json", help="--port/--cloud: "
+                   "the camera's calibrated intrinsics at 1280 x 720 (default: estimated from "
+                   "a 62.2 degree horizontal field of view)")
+    p.add_argument("--focus", type=float, metavar="F", help="--camera: the manual focus "
+                   "(V4L2 focus_absolute) that is sharp at the close look's 15 cm, calibrated "
+                   "with it (default: locked where the autofocus settles as the camera opens, "
+                   "which may be far)")
     add_config_options(p, profile=False, detector=False,
                         example="pollinate.standoff_m=0.04 (metres; pollinate reads "
                         "pollinate.*, pollination.json's config, and colour.*, which tells a "

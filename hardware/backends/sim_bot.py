@@ -161,6 +161,10 @@ def _visible_fractions(camera_to_bed: np.ndarray) -> dict[int, float]:
     return seen_in_render(out.instance, out.depth, camera_to_bed, small, _worker["petals"])
 
 
+#: The noise stream of the stills (`SimCamera.frame`), apart from each video frame's own.
+STILL_STREAM = 1
+
+
 class SimCamera(Camera):
     """The simulated IMX219 on the head: see the module docstring."""
 
@@ -181,18 +185,33 @@ class SimCamera(Camera):
         self._still_since = 0.0
         self._next_index = 0
         self._start = 0.0
+        self._renderer = None  # the stills' renderer, made at the first still
+        self._stills = 0
 
     def intrinsics(self) -> dict[str, float]:
         return self._intrinsics.to_json()
 
     def frame(self) -> Frame:
+        """A still from the video stream: rendered where the head is, with the sensor's
+        imperfections for the time since the camera stopped (its defocus), noise and the
+        stream's JPEG compression, as a recorded frame gets them."""
         from flowerpose.sim.export import read_plant
         from flowerpose.sim.render import Output, PlantRenderer
+        from flowerpose.sim.sensor import apply_sensor
 
+        if self._renderer is None:
+            self._renderer = PlantRenderer([read_plant(d) for d in self._plant_dirs],
+                                           self.config.render)
         gantry, yaw, pitch = self._state()
-        renderer = PlantRenderer([read_plant(d) for d in self._plant_dirs])
         pose = self._poser.camera_to_bed(gantry, yaw, pitch)
-        return Frame(renderer.render(pose, self._intrinsics, Output.RGB).rgb, self._clock())
+        with self._pause():  # rendering takes none of the bot's time
+            rgb = self._renderer.render(pose, self._intrinsics, Output.RGB).rgb
+            # Stills draw their noise from a stream of their own, apart from the video's.
+            rng = np.random.default_rng([self.config.seed, STILL_STREAM, self._stills])
+            image, _ = apply_sensor(rgb, np.zeros(2), self._clock() - self._still_since,
+                                    self.config.sensor, rng)
+        self._stills += 1
+        return Frame(image, self._clock())
 
     def start_recording(self, path: str | Path) -> None:
         if self._scan_dir is not None:
@@ -223,9 +242,8 @@ class SimCamera(Camera):
         return image_velocity(pose, later, dt, self._intrinsics, self.config.image_depth_m)
 
     def observe(self, activity: Activity) -> None:
-        """Schedule the frames the camera takes during `activity` (bot clock seconds)."""
-        if self._scan_dir is None:
-            return
+        """Schedule the frames the camera takes during `activity` (bot clock seconds); not
+        recording, only note when the camera last stopped (a still's defocus)."""
         end = activity.t0 + activity.elapsed
         moving_until = activity.t0
         if activity.kind == "move" and np.any(activity.gantry_start != activity.gantry_end):
@@ -235,6 +253,9 @@ class SimCamera(Camera):
         elif activity.kind == "head":
             moving_until = activity.t0 + head_turn_time(activity,
                                                         self.config.servo_speed_rad_s)
+        if self._scan_dir is None:
+            self._still_since = max(self._still_since, moving_until)
+            return
         rate = self.config.frame_rate_hz
         # Frames on a grid from the recording's start, the same for every backend.
         first = math.ceil((activity.t0 - self._start) * rate - 1e-9)
@@ -382,12 +403,20 @@ def sim_camera(plant_dirs: list[Path], config: SimBotConfig,
 class SimBot(KinematicBot):
     """The simulated FarmBot: `KinematicBot` timing, MuJoCo's camera pose, rendered frames."""
 
-    def __init__(self, plant_dirs: list[Path], config: SimBotConfig = SimBotConfig()):
+    def __init__(self, plant_dirs: list[Path], config: SimBotConfig = SimBotConfig(),
+                 observer: Callable[[Activity], None] | None = None):
+        """observer: also told of every Activity, after the camera (a flight's timeline)."""
         self.sim_config = config
+
+        def observe(activity: Activity) -> None:
+            self.camera.observe(activity)
+            if observer is not None:
+                observer(activity)
+
         super().__init__(BotInfo.from_geometry("simulated (MuJoCo)"),
                          head_settle_s=config.head_settle_s,
                          camera=sim_camera(plant_dirs, config, self._current),
-                         observer=lambda activity: self.camera.observe(activity))
+                         observer=observe)
 
     def _current(self) -> tuple[np.ndarray, float, float]:
         yaw, pitch = self.head()

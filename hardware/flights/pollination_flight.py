@@ -24,9 +24,10 @@ import numpy as np
 
 from flowerpose.errors import InputError
 from flowerpose.hardware.bot import Bot, check_head, check_target
+from flowerpose.hardware.flights.close_look import CloseLook
 from flowerpose.hardware.flights.flight_journal import Journal, folder_lock
 from flowerpose.hardware.flights.pollination_plan import Move, PollinationPlan
-from flowerpose.hardware.kinematics import HeadPose, joint_positions
+from flowerpose.hardware.kinematics import head_angles
 from flowerpose.log import LOG, Tally
 
 FLIGHT_NAME = "flight.json"
@@ -48,13 +49,6 @@ def visit_moves(plan: PollinationPlan) -> dict[int, list[Move]]:
         if move.flower >= 0 and move.kind != "lift":
             moves.setdefault(move.flower, []).append(move)
     return moves
-
-
-def head_angles(pose: HeadPose) -> tuple[float, float]:
-    """The yaw and pitch the head's servos take for `pose`, radians (its yaw wrapped into
-    the servo's reach, or flipped: the solution the plan's tool positions assume)."""
-    yaw, pitch = joint_positions(pose)[3:]
-    return float(yaw), float(pitch)
 
 
 def check_flight(bot: Bot, plan: PollinationPlan) -> None:
@@ -90,18 +84,22 @@ def read_flight(out_dir: Path, plan: PollinationPlan) -> dict | None:
 
 
 def fly_pollination(bot: Bot, plan: PollinationPlan, out_dir: Path, *, source: dict,
-                    progress: bool = True) -> dict:
+                    progress: bool = True, look: CloseLook | None = None) -> dict:
     """Fly `plan` with `bot`, recording into out_dir/flight.json (`flight_journal`); resumes
     a flight of the same plan already recorded there, and refuses a folder another flight
-    is flying from. Returns flight.json's content: `done`, one entry a visit flown
-    ({"flower", "t0", "t1"}: bot-clock seconds from its lift to its retreat's end), `status`
-    ("complete", or "interrupted" when an error cut it), `sessions`."""
+    is flying from. With `look`, each visit looks again at its flower from the
+    pre-approach pose and flies the approach planned from what it sees (`close_look.py`).
+    Returns flight.json's content: `done`, one entry a visit flown ({"flower", "t0", "t1",
+    "rest"}: bot-clock seconds from its lift to its way out's end, and of the swab's rest,
+    null where it touched nothing; with a look its record, `look`), `status` ("complete",
+    or "interrupted" when an error cut it), `sessions`."""
     out_dir = Path(out_dir)
     with folder_lock(out_dir, LOCK_NAME, "pollination flight"):
-        return _fly(bot, plan, out_dir, source, progress)
+        return _fly(bot, plan, out_dir, source, progress, look)
 
 
-def _fly(bot: Bot, plan: PollinationPlan, out_dir: Path, source: dict, progress: bool) -> dict:
+def _fly(bot: Bot, plan: PollinationPlan, out_dir: Path, source: dict, progress: bool,
+         look: CloseLook | None) -> dict:
     order = [v.flower for v in plan.planned]
     journal = Journal.open(out_dir / FLIGHT_NAME, flight_id(plan),
                            {"source": source, "visits": order, "done": []}, kept=("done",),
@@ -121,6 +119,7 @@ def _fly(bot: Bot, plan: PollinationPlan, out_dir: Path, source: dict, progress:
         LOG.info(f"pollinate: resuming at visit {len(done) + 1} of {len(order)}"
                  + (" (the last session ended without closing)" if journal.cut else ""))
     moves = visit_moves(plan)
+    visits = {v.flower: v for v in plan.planned}
     top = bot.info.travel_max[2]
     with journal.session(bot, started_visit=len(done)), \
             Tally(len(pending) if progress else 0, "visits") as tally:
@@ -128,23 +127,40 @@ def _fly(bot: Bot, plan: PollinationPlan, out_dir: Path, source: dict, progress:
             t0 = bot.now()
             here = bot.position()
             bot.move_to([here[0], here[1], top])  # every visit starts from the top of Z
-            angles = None
-            for move in moves[flower]:
-                if move.kind == "dwell":
-                    bot.dwell(plan.config.dwell_s)
-                    continue
-                bot.move_to(move.pose.gantry)
-                # The head turns at the top, clear of the plant, and at a path's waypoints
-                # once the gantry is there, as the planner checked the path.
-                wanted = head_angles(move.pose)
-                if move.kind == "travel" or (move.kind in ("descend", "climb")
-                                             and not np.allclose(wanted, angles)):
-                    bot.set_head(*wanted)
-                    angles = wanted
-            flight["done"].append({"flower": flower, "t0": round(t0, 4),
-                                   "t1": round(bot.now(), 4)})
+            entry = {"flower": flower}
+            route = moves[flower]
+            if look is not None:
+                arrive = next(k for k, m in enumerate(route) if m.kind == "approach")
+                rest = _fly_moves(bot, route[:arrive], plan.config.dwell_s)
+                route, entry["look"] = look.visit(bot, visits[flower], route[arrive:])
+            rest = _fly_moves(bot, route, plan.config.dwell_s)
+            entry.update(t0=round(t0, 4), t1=round(bot.now(), 4),
+                         rest=None if rest is None else [round(t, 4) for t in rest])
+            flight["done"].append(entry)
             journal.save()
             tally.advance(1)
         here = bot.position()
         bot.move_to([here[0], here[1], top])
     return flight
+
+
+def _fly_moves(bot: Bot, moves: list[Move], dwell_s: float) -> tuple[float, float] | None:
+    """Fly `moves` in order; returns the bot-clock start and end of the rest on the flower
+    (None: no rest among them)."""
+    rest = None
+    angles = bot.head()
+    for move in moves:
+        if move.kind == "dwell":
+            start = bot.now()
+            bot.dwell(dwell_s)
+            rest = (start, bot.now())
+            continue
+        bot.move_to(move.pose.gantry)
+        # The head turns at the top, clear of the plant, and at a path's waypoints once the
+        # gantry is there, as the planner checked the path.
+        wanted = head_angles(move.pose)
+        if move.kind == "travel" or (move.kind in ("descend", "climb")
+                                     and not np.allclose(wanted, angles)):
+            bot.set_head(*wanted)
+            angles = wanted
+    return rest

@@ -45,7 +45,9 @@ from flowerpose.hardware.motion import (
     move_duration,
     move_trajectory,
 )
+from flowerpose.pipeline.close_look import CloseLookConfig
 from flowerpose.pipeline.colour import ColourConfig
+from flowerpose.pipeline.pose import PoseConfig
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,11 @@ class PollinateConfig:
     counts as `approach_path.ANGLE_LEVER_M` metres a radian); each segment is then checked
     as flown, `samples_per_move` poses a move."""
 
+    look: CloseLookConfig = field(default_factory=CloseLookConfig)
+    """The close look before each touch (`flights/close_look.py`): a few frames from near
+    the pre-approach pose refine the flower's centre and axis, and the last approach is
+    planned again from them."""
+
     def __post_init__(self):
         for name in ("standoff_m", "clearance_m", "touch_radius_m", "straight_within_m",
                      "cone_step_deg", "path_box_m", "path_step_m", "path_tries", "path_bend_m",
@@ -135,6 +142,12 @@ class PollinateConfig:
             raise InputError("pollinate.cone_deg", f"must be 0 or more, below 90, got "
                              f"{self.cone_deg}")
 
+    @property
+    def plans_uncertain(self) -> bool:
+        """Whether flowers whose sign is uncertain are planned: when asked, or when a close
+        look settles it first (`look.visit_uncertain`)."""
+        return self.visit_uncertain or bool(self.look.views and self.look.visit_uncertain)
+
 
 @dataclass(frozen=True)
 class PollinateSettings:
@@ -146,6 +159,9 @@ class PollinateSettings:
     """The planner (`plan_pollination`)."""
     colour: ColourConfig = field(default_factory=ColourConfig)
     """The colour model (`pipeline.colour`)."""
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    """The pose stage (`pipeline.pose`), which estimates a flower's pose again from the
+    close look's frames."""
 
 
 @dataclass(frozen=True)
@@ -157,6 +173,9 @@ class Flower:
     center: np.ndarray
     normal: np.ndarray
     radius: float | None = None
+    uncertain: bool = False
+    """The pose stage could not settle the normal's sign (flowers.json `uncertain`): only a
+    close look that settles it lets the swab touch."""
 
 
 @dataclass(frozen=True)
@@ -242,22 +261,48 @@ def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
     corolla, so a leaf beside the flower stays an obstacle; None: any point near it."""
     profile = profile or MotionProfile()
     start = geometry.home if start is None else np.asarray(start, np.float64)
-    points = np.empty((0, 3)) if obstacles is None else np.asarray(obstacles, np.float64)
-    tree = cKDTree(points) if len(points) else None
-    flowery = (np.ones(len(points), bool) if corolla is None
-               else np.asarray(corolla, bool).reshape(len(points)))
-    visits = [_plan_visit(f, points, flowery, tree, config, geometry, tool, profile)
-              for f in flowers]
+    plant = PlantObstacles.of(obstacles, corolla)
+    visits = [plan_visit(f, plant, config, geometry, tool, profile) for f in flowers]
     planned = [v for v in visits if v.status == "planned"]
     order = _short_order(planned, start, geometry, profile)
     ordered = [planned[k] for k in order]
-    moves = _moves(ordered, start, geometry)
-    _check_transfers(moves, tree, config, geometry, tool, profile)
+    moves = plan_moves(ordered, start, geometry)
+    _check_transfers(moves, plant.tree, config, geometry, tool, profile)
     duration = sum(move_duration(a.pose.gantry, b.pose.gantry, profile) + END_OF_MOVE_S
                    for a, b in zip(moves, moves[1:], strict=False) if b.kind != "dwell")
     duration += config.dwell_s * len(ordered)
     unreachable = [v for v in visits if v.status != "planned"]
     return PollinationPlan(ordered + unreachable, moves, float(duration), config)
+
+
+@dataclass(frozen=True)
+class PlantObstacles:
+    """The plant's cloud as the planner checks a visit against it: points (M, 3), metres,
+    bed frame; `corolla` (M,) bool, those of a flower's colour (a target's own corolla may
+    be only these); their tree (None without points: reach alone)."""
+
+    points: np.ndarray
+    corolla: np.ndarray
+    tree: cKDTree | None
+
+    @classmethod
+    def of(cls, obstacles: np.ndarray | None, corolla: np.ndarray | None = None
+           ) -> PlantObstacles:
+        """`plan_pollination`'s obstacles and corolla (None: no cloud; every point)."""
+        points = np.empty((0, 3)) if obstacles is None else np.asarray(obstacles, np.float64)
+        flowery = (np.ones(len(points), bool) if corolla is None
+                   else np.asarray(corolla, bool).reshape(len(points)))
+        return cls(points, flowery, cKDTree(points) if len(points) else None)
+
+
+def plan_visit(flower: Flower, plant: PlantObstacles, config: PollinateConfig,
+               geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool = PAPER_TOOL,
+               profile: MotionProfile | None = None, here: HeadPose | None = None) -> Visit:
+    """One flower's visit (`plan_pollination`'s, without the order): down from the top of
+    Z, or with `here` from the head's pose near the flower (after a close look, `Visit.path`
+    the move from it)."""
+    return _plan_visit(flower, plant.points, plant.corolla, plant.tree, config, geometry, tool,
+                       profile or MotionProfile(), here)
 
 
 def tilted(normal: np.ndarray, angle_deg, azimuth_rad) -> np.ndarray:
@@ -286,10 +331,13 @@ def _directions(normal: np.ndarray, config: PollinateConfig) -> tuple[np.ndarray
 
 def _plan_visit(flower: Flower, points: np.ndarray, corolla: np.ndarray,
                 tree: cKDTree | None, config: PollinateConfig, geometry: BotGeometry,
-                tool: PollinatorTool, profile: MotionProfile) -> Visit:
+                tool: PollinatorTool, profile: MotionProfile,
+                here: HeadPose | None = None) -> Visit:
     """The visit along the flower's axis, else along the nearest direction in the cone
     that is reachable and clear: down the straight descent, or where that is blocked a path
-    round the plant (`path_tries` directions at most); else why not."""
+    round the plant (`path_tries` directions at most); else why not. With `here` (the head
+    near the flower already, after a close look) the way to the pre-approach pose is the
+    move from `here` instead (`Visit.path`: its pieces, the last the pre-approach pose)."""
     axes, angles = _directions(flower.normal, config)
     distance = np.linalg.norm(points - flower.center, axis=1)
     own = (config.touch_radius_m if flower.radius is None
@@ -313,7 +361,15 @@ def _plan_visit(flower: Flower, points: np.ndarray, corolla: np.ndarray,
             kind = ("the camera head meets the plant on the way in"
                     if reason.startswith("the camera head")
                     else "the pollinator meets the plant on the way in")
-        if not reason:
+        if not reason and here is not None:
+            path = ([pre] if tree is None
+                    else flyable(here, pre, tree, config, geometry, tool, profile))
+            kind = "the move from the close look's pose is blocked"
+            if path is not None:
+                return Visit(flower.id, "planned", "", approach, float(angle), pre, touch,
+                             steps, path)
+            reason = "no clear move to it from the close look's pose"
+        elif not reason:
             reason = _descent_blocked(pre, tree, config, geometry, tool, profile)
             kind = "the way down is blocked (no path searched)"
             path: list[HeadPose] = []
@@ -472,7 +528,7 @@ def _route(pre: HeadPose, tree: cKDTree | None, config: PollinateConfig,
         return []
     flown: list[HeadPose] = []
     for a, b in zip([start, *path[:-1]], path, strict=True):
-        pieces = _flyable(a, b, tree, config, geometry, tool, profile)
+        pieces = flyable(a, b, tree, config, geometry, tool, profile)
         if pieces is None:
             return []
         flown.extend(pieces)
@@ -496,7 +552,7 @@ def _flown(a: HeadPose, b: HeadPose, profile: MotionProfile, samples: int) -> He
                     np.concatenate([move.pitch, a.pitch + share * (b.pitch - a.pitch)]))
 
 
-def _flyable(a: HeadPose, b: HeadPose, tree: cKDTree, config: PollinateConfig,
+def flyable(a: HeadPose, b: HeadPose, tree: cKDTree, config: PollinateConfig,
              geometry: BotGeometry, tool: PollinatorTool,
              profile: MotionProfile) -> list[HeadPose] | None:
     """The segment from a to b (joint space) cut into the fewest equal moves (up to 64)
@@ -577,7 +633,8 @@ def _short_order(visits: list[Visit], start: np.ndarray, geometry: BotGeometry,
     return [k - 1 for k in order[1:]]
 
 
-def _moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry) -> list[Move]:
+def plan_moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry = PAPER_BOT
+               ) -> list[Move]:
     """The moves of the visits in order: up to the top of Z, across, down to the
     pre-approach pose (straight, or along the visit's path), in to the centre, a rest, back
     out (and up the path). The head turns at the top, and at a path's waypoints."""
@@ -618,56 +675,3 @@ def _check_transfers(moves: list[Move], tree: cKDTree | None, config: PollinateC
             raise InputError(f"flower {b.flower}", f"the travel at the top of Z passes "
                              f"{distance * 1000:.0f} mm from the plant: it is taller than "
                              "the gantry can clear")
-
-
-#: Why a detected flower is not visited, before planning: it has no normal of the method, or
-#: its normal's sign is uncertain (flowers.json `uncertain`) and uncertain flowers are left
-#: alone (`PollinateConfig.visit_uncertain`).
-NO_NORMAL, UNCERTAIN = "no normal", "uncertain"
-
-
-def read_visit_flowers(entries: list[dict], method: str = "plane",
-                       visit_uncertain: bool = False) -> tuple[list[Flower], dict[int, str]]:
-    """The flowers of flowers.json entries (`pipeline.flowers.read_flowers`) to visit: those
-    with a `method` normal (and, unless `visit_uncertain`, whose sign is not uncertain);
-    and the others' ids with why each is left alone (NO_NORMAL, UNCERTAIN)."""
-    flowers, skipped = [], {}
-    for k, entry in enumerate(entries):
-        normal = entry["normals"].get(method)
-        flower = int(entry.get("id", k))
-        if normal is None:
-            skipped[flower] = NO_NORMAL
-        elif entry.get("uncertain", False) and not visit_uncertain:
-            skipped[flower] = UNCERTAIN
-        else:
-            flowers.append(Flower(flower, np.asarray(entry["center"], float),
-                                  np.asarray(normal, float), _radius(entry)))
-    return flowers, skipped
-
-
-def _radius(entry: dict) -> float | None:
-    """A flowers.json flower's radius, metres: half the lesser of its box's two larger
-    extents (the corolla's span; the least is its depth), or None without a box."""
-    box = entry.get("box")
-    if not isinstance(box, dict) or "extent" not in box:
-        return None
-    extent = np.sort(np.asarray(box["extent"], float))
-    return float(extent[1] / 2) if extent[1] > 0 else None
-
-
-def check_plant(flowers: list[Flower], plant_at, height: float, radius: float,
-                source: object) -> None:
-    """Refuse flowers that are not the plant's at `plant_at` (x, y), `height` x `radius`
-    metres, with 5 cm to spare: a flowers.json of another plant, or not in the bed frame.
-    InputError names `source` (the file), or the argument out of range."""
-    from flowerpose.hardware.flights.scan_plan import check_plant_position
-
-    x, y = check_plant_position(plant_at, height, radius)
-    for flower in flowers:
-        off = float(np.hypot(flower.center[0] - x, flower.center[1] - y))
-        if off > radius + 0.05 or not -0.05 <= flower.center[2] <= height + 0.05:
-            raise InputError(source, f"flower {flower.id} at ({flower.center[0]:.3f}, "
-                             f"{flower.center[1]:.3f}, {flower.center[2]:.3f}) m is not on "
-                             f"the plant at ({x:g}, {y:g}) m ({off:.2f} m from its stem; "
-                             f"the plant {radius:g} m x {height:g} m): is it this plant's, "
-                             "in the bed frame?")

@@ -170,5 +170,5 @@ def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in
     outcome = judge(plant.flowers[0], 0, plan, flown, timeline, world,
                     PollinationScoreConfig(), PAPER_TOOL)
     assert outcome["outcome"] == "success", outcome
-    touched = world.fly(timeline, *flown[0]).patches
+    touched = world.fly(timeline, flown[0]["t0"], flown[0]["t1"]).patches
     assert not np.isin(world.patches.part[touched], [int(Part.LEAF)]).any()

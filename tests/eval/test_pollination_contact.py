@@ -8,8 +8,10 @@ pytest.importorskip("mujoco")
 
 from flowerpose.eval.pollination.contact import ContactWorld  # noqa: E402
 from flowerpose.hardware.bot import KinematicBot  # noqa: E402
-from flowerpose.hardware.flights.pollination_flight import head_angles  # noqa: E402
-from flowerpose.hardware.kinematics import tool_at  # noqa: E402
+from flowerpose.hardware.kinematics import (
+    head_angles,  # noqa: E402
+    tool_at,  # noqa: E402
+)
 from flowerpose.hardware.trajectory import Timeline  # noqa: E402
 from flowerpose.sim.pieces import Part  # noqa: E402
 

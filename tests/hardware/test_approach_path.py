@@ -114,7 +114,8 @@ def test_the_executor_flies_the_paths_waypoints_on_a_virtual_farmduino(tmp_path,
     write_json(tmp_path / "flowers.json", {"units": "m", "frame": "bed", "flowers": [
         {"id": 0, "center": CENTER.tolist(), "normals": {"plane": UP.tolist()}}]})
     argv = ["pollinate", tmp_path / "flowers.json", "--plant-at", "1.5,0.75",
-            "--plant-cloud", tmp_path / "plant.ply", "--out", tmp_path / "visits"]
+            "--plant-cloud", tmp_path / "plant.ply", "--out", tmp_path / "visits",
+            "--set", "pollinate.look.views=0"]  # the executor on the scan's poses
     with virtual.VirtualFarmduino(time_scale=1000.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
         code = main([str(a) for a in [*argv, "--port", device.path]])

@@ -264,7 +264,7 @@ def test_a_neighbours_petals_inside_the_touch_radius_stay_obstacles_once_the_rad
 
 
 def test_a_flowers_radius_is_read_from_its_box_in_its_files_unit(tmp_path):
-    from flowerpose.hardware.flights.pollination_plan import read_visit_flowers
+    from flowerpose.hardware.flights.visit_flowers import read_visit_flowers
     from flowerpose.pipeline.flowers import read_flowers
 
     path = tmp_path / "flowers.json"
@@ -277,7 +277,7 @@ def test_a_flowers_radius_is_read_from_its_box_in_its_files_unit(tmp_path):
 
 
 def test_an_uncertain_flower_is_left_alone_unless_asked(tmp_path):
-    from flowerpose.hardware.flights.pollination_plan import (
+    from flowerpose.hardware.flights.visit_flowers import (
         NO_NORMAL,
         UNCERTAIN,
         read_visit_flowers,

@@ -20,6 +20,9 @@ from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import read_json
 
 CENTER = np.array([1.5, 0.75, 0.2])
+#: These flights test the executor on the scan's poses: the close look needs a camera
+#: (tests/hardware/test_close_look.py flies it).
+NO_LOOK = ("--set", "pollinate.look.views=0")
 
 
 def _flowers() -> list[Flower]:
@@ -122,7 +125,7 @@ def test_pollinate_flies_on_a_virtual_farmduino_after_homing(tmp_path, capsys):
     virtual = pytest.importorskip("flowerpose.hardware.backends.virtual_farmduino")
     flowers = _flowers_file(tmp_path)
     argv = ["pollinate", flowers, "--plant-at", "1.5,0.75", "--plant-cloud",
-            tmp_path / "plant.ply", "--out", tmp_path / "visits"]
+            tmp_path / "plant.ply", "--out", tmp_path / "visits", *NO_LOOK]
     code, out, err = run_cli(capsys, *argv, "--port", "/dev/no-such-port", "--dry-run")
     assert code == 0 and " dwell " in out and not (tmp_path / "visits" / FLIGHT_NAME).exists()
     with virtual.VirtualFarmduino(time_scale=100.0,
@@ -186,7 +189,8 @@ def test_a_cloud_flight_interrupted_resumes_at_the_next_visit(tmp_path, capsys, 
         return client
 
     argv = ["pollinate", path, "--plant-at", "1.5,0.75", "--plant-cloud",
-            tmp_path / "cloud" / "plant.ply", "--out", tmp_path / "visits", "--cloud"]
+            tmp_path / "cloud" / "plant.ply", "--out", tmp_path / "visits", "--cloud",
+            *NO_LOOK]
     monkeypatch.setattr(cloud_bot, "farmbot_client", factory)
     code, _, err = run_cli(capsys, *argv)
     assert code == 130 and "interrupted" in err
@@ -208,7 +212,7 @@ def test_flying_without_credentials_is_refused_before_the_plan_is_written(tmp_pa
     flowers = _flowers_file(tmp_path)
     code, _, err = run_cli(capsys, "pollinate", flowers, "--plant-at", "1.5,0.75",
                         "--plant-cloud", tmp_path / "plant.ply", "--out", tmp_path / "visits",
-                        "--cloud")
+                        "--cloud", *NO_LOOK)
     assert code == 2 and "FARMBOT_TOKEN" in err.splitlines()[-1]
     assert not (tmp_path / "visits").exists()
 
