@@ -40,6 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flowerpose.errors import InputError
+
 FARMBOT_ASSETS = Path(str(files("flowerpose.assets") / "farmbot"))
 YAW_PIN, PITCH_PIN = 6, 5
 """Farmduino pins of the head's yaw and pitch servos (the paper's wiring)."""
@@ -172,6 +174,20 @@ class PollinatorTool:
     tip_radius_m: float = 0.004
     """Radius of the swab at its tip: an 8 mm head, about as wide as a strawberry flower's
     6-8 mm receptacle, the part a visit must touch."""
+
+    def __post_init__(self):
+        for name in ("reach_m", "shaft_start_m", "shaft_radius_m", "tip_radius_m"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"pollinate.tool.{name}", f"must be positive, got "
+                                 f"{getattr(self, name)}")
+        if self.offset_down_m < 0:
+            raise InputError("pollinate.tool.offset_down_m", f"must be 0 or more, got "
+                             f"{self.offset_down_m}")
+        if not self.shaft_start_m < self.reach_m - self.tip_radius_m:
+            raise InputError("pollinate.tool.shaft_start_m", f"the shaft must start "
+                             f"({self.shaft_start_m} m) before the swab "
+                             f"({self.reach_m - self.tip_radius_m:g} m ahead of the pitch "
+                             "axis)")
 
 
 PAPER_TOOL = PollinatorTool()

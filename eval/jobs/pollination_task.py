@@ -89,7 +89,8 @@ def _pollinate_job(job: SyntheticJob, config: EvalConfig, out_dir: Path
     its success against the approach's angle (`approach_angle.py`)."""
     plant_dir = job.folder(out_dir)
     cloud = read_cloud(job.cloud)
-    world = ContactWorld(read_plant(plant_dir), config.pollination.contact)
+    world = ContactWorld(read_plant(plant_dir), config.pollination.contact,
+                         config.pollinate.tool)
     corolla = flower_coloured(cloud.colors, config.colour)  # once: every plan uses it
     look = LookSetup(config.scan.camera, config.pose, config.colour)
 
@@ -103,7 +104,7 @@ def _pollinate_job(job: SyntheticJob, config: EvalConfig, out_dir: Path
                  if config.pollinate.look.views else None)
     ceiling = score(None, "flight_ceiling.json", None)
     curve = approach_curve(world, cloud, config.pollinate, config.pollination,
-                           corolla=corolla)
+                           config.pollinate.tool, corolla=corolla)
     return estimated, scan_pose, ceiling, curve
 
 

@@ -46,6 +46,19 @@ class Touches:
     steps: int
 
 
+def shape_tool(spec, tool: PollinatorTool) -> None:
+    """Give the model's pollinator (`farmbot.xml`, body `pollinator`: the shaft, the swab
+    and its tip site) the geometry of `tool`, metres in the pitch bracket's frame (x ahead
+    along the optical axis, z up in the image: the offset is down)."""
+    spec.body("pollinator").pos = [0.0, 0.0, -tool.offset_down_m]
+    shaft = spec.geom("pollinator_shaft")
+    shaft.fromto = [tool.shaft_start_m, 0.0, 0.0, tool.reach_m - tool.tip_radius_m, 0.0, 0.0]
+    shaft.size = [tool.shaft_radius_m, 0.0, 0.0]
+    swab = spec.geom("pollinator_swab")
+    swab.pos, swab.size = [tool.reach_m, 0.0, 0.0], [tool.tip_radius_m, 0.0, 0.0]
+    spec.site("pollinator_tip").pos = [tool.reach_m, 0.0, 0.0]
+
+
 class ContactWorld:
     """The bot and one plant in MuJoCo, to fly stretches of a flight through."""
 
@@ -60,6 +73,7 @@ class ContactWorld:
         self.plant = plant
         self.patches: PlantPatches = plant_patches(plant, config)
         spec = mujoco.MjSpec.from_file(str(FARMBOT_ASSETS / "scene.xml"))
+        shape_tool(spec, tool)
         spec.option.gravity = [0.0, 0.0, 0.0]  # the generated shape is the leaves' rest shape
         spec.option.timestep = config.timestep_s
         names = add_plant(spec, self.patches, config)

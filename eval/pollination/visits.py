@@ -39,7 +39,7 @@ from flowerpose.hardware.flights.pollination_plan import (
     plan_pollination,
 )
 from flowerpose.hardware.flights.visit_flowers import UNCERTAIN, read_visit_flowers
-from flowerpose.hardware.geometry import PAPER_TOOL, PollinatorTool
+from flowerpose.hardware.geometry import PollinatorTool
 from flowerpose.hardware.kinematics import HeadPose, tool_forward
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.jsonio import write_json
@@ -107,7 +107,7 @@ class LookSetup:
 
 def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | None,
                    match_distance_m: float, plan_config: PollinateConfig,
-                   config: PollinationScoreConfig, tool: PollinatorTool = PAPER_TOOL,
+                   config: PollinationScoreConfig, tool: PollinatorTool | None = None,
                    flight_json: Path | None = None, world: ContactWorld | None = None,
                    corolla: np.ndarray | None = None, look: LookSetup | None = None) -> dict:
     """One plant's pollination: plan from flowers.json's poses (None: the true poses) with
@@ -119,12 +119,14 @@ def plan_and_score(plant_dir: Path, flowers_json: Path | None, cloud: Cloud | No
     by the run's colour model (`flower_coloured`), which may be a target's own corolla,
     when the caller has them (else by the default model); `look`: each visit looks again
     before it touches (`hardware/flights/close_look.py`) where `pollinate.look.views` asks,
-    the frames rendered by the simulated camera. Returns the per-plant report section."""
+    the frames rendered by the simulated camera; `tool`: the pollinator (None:
+    `plan_config.tool`). Returns the per-plant report section."""
     from flowerpose.pipeline.flowers import read_flowers
     from flowerpose.sim.export import read_plant
 
     plant = world.plant if world is not None else read_plant(plant_dir)
     truth = plant.flowers
+    tool = tool or plan_config.tool
     looking = look is not None and plan_config.look.views > 0
     if flowers_json is None:
         estimates = [Flower(f.id, np.asarray(f.center, float), np.asarray(f.normal, float),

@@ -45,7 +45,7 @@ from flowerpose.hardware.flights.pollination_plan import (
     flyable,
     plan_visit,
 )
-from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL, BotGeometry, PollinatorTool
+from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry, PollinatorTool
 from flowerpose.hardware.kinematics import HeadPose, forward, head_angles, look_at
 from flowerpose.hardware.motion import MotionProfile
 from flowerpose.jsonio import write_json
@@ -84,7 +84,8 @@ class CloseLook:
     pose: PoseConfig | None = None
     colour: ColourConfig | None = None
     geometry: BotGeometry = PAPER_BOT
-    tool: PollinatorTool = PAPER_TOOL
+    tool: PollinatorTool | None = None
+    """The pollinator; None: `config.tool`."""
     profile: MotionProfile | None = None
 
     def visit(self, bot: Bot, visit: Visit, scan_moves: list[Move]) -> tuple[list[Move], dict]:
@@ -158,7 +159,8 @@ class CloseLook:
         """The moves from a to b, each clear of the plant and within reach (None: none)."""
         if self.plant.tree is None:
             return [b]
-        return flyable(a, b, self.plant.tree, self.config, self.geometry, self.tool,
+        return flyable(a, b, self.plant.tree, self.config, self.geometry,
+                       self.tool or self.config.tool,
                        self.profile or MotionProfile())
 
     def _fly(self, bot: Bot, poses: list[HeadPose]) -> None:

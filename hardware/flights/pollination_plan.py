@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from flowerpose.errors import InputError
 from flowerpose.hardware.flights.approach_path import joint_state, plan_path
 from flowerpose.hardware.flights.scan_plan import poses_along
-from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL, BotGeometry, PollinatorTool
+from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry, PollinatorTool
 from flowerpose.hardware.kinematics import (
     HeadPose,
     UnreachableError,
@@ -123,6 +123,12 @@ class PollinateConfig:
     counts as `approach_path.ANGLE_LEVER_M` metres a radian); each segment is then checked
     as flown, `samples_per_move` poses a move."""
 
+    tool: PollinatorTool = field(default_factory=PollinatorTool)
+    """The pollinator on the head (`geometry.PollinatorTool`): where its swab is, how long
+    and how far under the camera its shaft runs. The plans, the flights and the contact
+    replay all take its geometry from here. A longer shaft reaches lower flowers (the
+    gantry's Z travel ends 0.218 m above the soil); a tip less than 18.75 degrees under the
+    lens's axis (its offset against its reach past the lens, 8 cm) shows in the frames."""
     look: CloseLookConfig = field(default_factory=CloseLookConfig)
     """The close look before each touch (`flights/close_look.py`): a few frames from near
     the pre-approach pose refine the flower's centre and axis, and the last approach is
@@ -250,7 +256,7 @@ class PollinationPlan:
 
 def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
                      config: PollinateConfig = PollinateConfig(),
-                     geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool = PAPER_TOOL,
+                     geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool | None = None,
                      profile: MotionProfile | None = None,
                      start: np.ndarray | None = None,
                      corolla: np.ndarray | None = None) -> PollinationPlan:
@@ -258,8 +264,10 @@ def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
     metres, bed frame; default home). obstacles: (M, 3) points of the plant (its cloud),
     metres, bed frame, or None to check reach alone. corolla: (M,) bool, the obstacles of a
     flower's colour (`pipeline.colour.flower_coloured`): only they may be a target's own
-    corolla, so a leaf beside the flower stays an obstacle; None: any point near it."""
+    corolla, so a leaf beside the flower stays an obstacle; None: any point near it.
+    tool: the pollinator; None: `config.tool`."""
     profile = profile or MotionProfile()
+    tool = tool or config.tool
     start = geometry.home if start is None else np.asarray(start, np.float64)
     plant = PlantObstacles.of(obstacles, corolla)
     visits = [plan_visit(f, plant, config, geometry, tool, profile) for f in flowers]
@@ -296,13 +304,13 @@ class PlantObstacles:
 
 
 def plan_visit(flower: Flower, plant: PlantObstacles, config: PollinateConfig,
-               geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool = PAPER_TOOL,
+               geometry: BotGeometry = PAPER_BOT, tool: PollinatorTool | None = None,
                profile: MotionProfile | None = None, here: HeadPose | None = None) -> Visit:
     """One flower's visit (`plan_pollination`'s, without the order): down from the top of
     Z, or with `here` from the head's pose near the flower (after a close look, `Visit.path`
     the move from it)."""
-    return _plan_visit(flower, plant.points, plant.corolla, plant.tree, config, geometry, tool,
-                       profile or MotionProfile(), here)
+    return _plan_visit(flower, plant.points, plant.corolla, plant.tree, config, geometry,
+                       tool or config.tool, profile or MotionProfile(), here)
 
 
 def tilted(normal: np.ndarray, angle_deg, azimuth_rad) -> np.ndarray:

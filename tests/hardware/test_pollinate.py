@@ -40,6 +40,53 @@ def test_the_tools_tip_in_the_model_is_where_the_kinematics_put_it():
         assert np.abs(data.site_xpos[site] - tip).max() < 1e-9
 
 
+def test_another_tool_is_shaped_in_the_contact_model_where_its_kinematics_put_it():
+    mujoco = pytest.importorskip("mujoco")
+    from flowerpose.eval.pollination.contact import shape_tool
+    from flowerpose.hardware.geometry import FARMBOT_ASSETS, PollinatorTool
+
+    tool = PollinatorTool(reach_m=0.2, offset_down_m=0.045, tip_radius_m=0.005)
+    spec = mujoco.MjSpec.from_file(str(FARMBOT_ASSETS / "scene.xml"))
+    shape_tool(spec, tool)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(4)
+    poses = HeadPose(rng.uniform(PAPER_BOT.gantry_min, PAPER_BOT.gantry_max, (50, 3)),
+                     rng.uniform(0.0, 2 * np.pi, 50), rng.uniform(-0.5, 2.0, 50))
+    tips, _ = tool_forward(poses, tool)
+    for qpos, tip in zip(joint_positions(poses), tips, strict=True):
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        assert np.abs(data.site_xpos[model.site("pollinator_tip").id] - tip).max() < 1e-9
+        assert np.abs(data.geom_xpos[model.geom("pollinator_swab").id] - tip).max() < 1e-9
+    assert model.geom("pollinator_swab").size[0] == pytest.approx(0.005)
+
+
+def test_a_longer_shaft_reaches_a_low_flower_the_papers_cannot():
+    from flowerpose.hardware.geometry import PollinatorTool
+
+    low = Flower(0, np.array([1.5, 0.75, 0.04]), np.array([1.0, 0.0, 0.0]))
+    (short,) = _plan([low]).visits
+    assert short.status == "unreachable" and "Z travel" in short.reason
+    (longer,) = _plan([low], tool=PollinatorTool(reach_m=0.22)).visits
+    assert longer.status == "planned"
+    tip, _ = tool_forward(longer.touch, PollinatorTool(reach_m=0.22))
+    assert np.linalg.norm(tip - (low.center + 0.002 * longer.approach)) < 1e-9
+
+
+@pytest.mark.parametrize("settings, words", [
+    ({"reach_m": 0.0}, "reach_m: must be positive"),
+    ({"offset_down_m": -0.01}, "offset_down_m: must be 0 or more"),
+    ({"shaft_start_m": 0.2}, "the shaft must start"),
+])
+def test_a_bad_tool_is_refused_naming_its_setting(settings, words):
+    from flowerpose.errors import InputError
+    from flowerpose.hardware.geometry import PollinatorTool
+
+    with pytest.raises(InputError, match=words):
+        PollinatorTool(**settings)
+
+
 def test_tool_at_puts_the_tip_where_asked_along_the_direction_asked():
     rng = np.random.default_rng(3)
     tips = rng.uniform([0.5, 0.3, 0.05], [2.5, 1.2, 0.3], (100, 3))
