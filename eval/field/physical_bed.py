@@ -213,9 +213,10 @@ def _pollinate(bot, rig: FieldRig, journal, folders: dict[str, Path],
                spots: dict[str, BedPlant], config: EvalConfig, keep_going: bool,
                say: Callable[[str], None]) -> None:
     """Each detected plant's flowers visited, in the bed's order: the plan from its
-    flowers.json (plane normals; those of uncertain sign left alone unless
-    `pollinate.visit_uncertain`) round its cut cloud, from over where the head stands,
-    flown (resumed where flight.json says). Into its journal entry as "pollination"."""
+    flowers.json (plane normals; those of uncertain sign planned only where the close look
+    will settle them, or `pollinate.visit_uncertain`) round its cut cloud, from over where
+    the head stands, flown with the close look (`pollinate.look`) and resumed where
+    flight.json says. Into its journal entry as "pollination"."""
     record = journal.record
     for name in record["order"]:
         entry = record["plants"][name]
@@ -242,8 +243,9 @@ def _pollinate_plant(bot, rig: FieldRig, folder: Path, spot: BedPlant,
                      config: EvalConfig) -> dict:
     """One plant's visits planned and flown; what its journal entry keeps of them."""
     from flowerpose.cloudio import read_cloud
+    from flowerpose.hardware.flights.close_look import CloseLook
     from flowerpose.hardware.flights.pollination_flight import fly_pollination, read_flight
-    from flowerpose.hardware.flights.pollination_plan import plan_pollination
+    from flowerpose.hardware.flights.pollination_plan import PlantObstacles, plan_pollination
     from flowerpose.hardware.flights.visit_flowers import check_plant, read_visit_flowers
     from flowerpose.jsonio import write_json
     from flowerpose.pipeline.colour import flower_coloured
@@ -251,27 +253,33 @@ def _pollinate_plant(bot, rig: FieldRig, folder: Path, spot: BedPlant,
 
     out = folder / "pollination"
     flowers, skipped = read_visit_flowers(read_flowers(folder / "flowers.json"), "plane",
-                                          config.pollinate.visit_uncertain)
+                                          config.pollinate.plans_uncertain)
     summary = {"flowers": len(flowers) + len(skipped), "skipped": len(skipped)}
     if not flowers:
-        return {**summary, "planned": 0, "done": 0, "status": "complete"}
+        return {**summary, "planned": 0, "flown": 0, "done": 0, "status": "complete"}
     check_plant(flowers, spot.at, spot.height, spot.radius + CUT_MARGIN_M,
                 folder / "flowers.json")
     cloud = read_cloud(folder / "reconstruction" / "plant_cloud.ply", units="m")
     # The same plan every time (ordered from home, as `pollinate` plans): a flight cut
     # short resumes it. The flight lifts the head to the top before every visit.
-    plan = plan_pollination(flowers, cloud.points, config.pollinate,
-                            corolla=flower_coloured(cloud.colors, config.colour))
+    plant = PlantObstacles.of(cloud.points, flower_coloured(cloud.colors, config.colour))
+    plan = plan_pollination(flowers, cloud.points, config.pollinate, corolla=plant.corolla)
     if read_flight(out, plan) is None:
         write_json(out / "pollination.json", {**plan.to_json(), "flowers":
                                               str(folder / "flowers.json"), "method": "plane"})
     if plan.planned:
+        look = (CloseLook({f.id: f for f in flowers}, plant, config.pollinate, out / "look",
+                          config.pose, config.colour)
+                if config.pollinate.look.views else None)
         flight = fly_pollination(bot, plan, out, source={
-            **rig.source, "bot": bot.info.name, "firmware": bot.info.firmware}, progress=False)
-        done, status = len(flight["done"]), flight["status"]
+            **rig.source, "bot": bot.info.name, "firmware": bot.info.firmware},
+            progress=False, look=look)
+        flown, status = len(flight["done"]), flight["status"]
+        done = sum(entry["rest"] is not None for entry in flight["done"])
     else:
-        done, status = 0, "complete"
-    return {**summary, "planned": len(plan.planned), "done": done, "status": status}
+        flown, done, status = 0, 0, "complete"
+    return {**summary, "planned": len(plan.planned), "flown": flown, "done": done,
+            "status": status}
 
 
 def _report(out: Path, record: dict, bed: Bed, config: EvalConfig) -> dict:
