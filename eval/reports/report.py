@@ -364,8 +364,7 @@ def pollination_lines(report: dict) -> list[str]:
     the true poses, and the failures by cause."""
     lines = []
     looked = "close_look" in report["summary"]
-    for key, what in (("pollination", "estimated poses" + (", looked at again" if looked
-                                                           else "")),
+    for key, what in (("pollination", "estimated poses"),
                       ("pollination_scan_pose", "the scan's poses alone"),
                       ("pollination_ceiling", "true poses (the planner's ceiling)")):
         part = report["summary"].get(key)
@@ -382,9 +381,9 @@ def pollination_lines(report: dict) -> list[str]:
         close = report["summary"]["close_look"]
         times = close["time_per_visit_s"]
         statuses = ", ".join(f"{n} {status}" for status, n in close["looks"].items())
-        lines.append(f"close look: {close['won']} flowers won and {close['lost']} lost of "
-                     f"{close['flowers']} against the scan's poses alone; looks: "
-                     f"{statuses or 'none'}")
+        lines.append(f"close look (in the estimated poses' visits): {close['won']} flowers "
+                     f"won and {close['lost']} lost of {close['flowers']} against the scan's "
+                     f"poses alone; looks: {statuses or 'none'}")
         if times["visits"]:
             lines.append(f"time per visit: planning {times['planning']:.1f} s, flight "
                          f"{times['flight']:.1f} s and the close look {times['look']:.1f} s "

@@ -206,7 +206,7 @@ def test_pollinate_looks_again_on_a_virtual_farmduino_and_records_the_refined_po
     truth = read_json(plant_dir / "plant.json")
     argv = ["pollinate", path, "--plant-at", ",".join(map(str, truth["plant_center"][:2])),
             "--plant-cloud", plant_dir / "cloud.ply", "--out", tmp_path / "visits"]
-    with virtual.VirtualFarmduino(time_scale=100.0,
+    with virtual.VirtualFarmduino(time_scale=1000.0,
                                   params=virtual.FEEDBACK_PARAMETERS) as device:
         code, out, err = run_cli(capsys, *argv, "--port", device.path)
     assert code == 0, err
