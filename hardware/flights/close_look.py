@@ -36,6 +36,7 @@ import numpy as np
 
 from flowerpose.atomic import write_image
 from flowerpose.hardware.bot import Bot
+from flowerpose.hardware.bot_errors import CameraError
 from flowerpose.hardware.flights.pollination_plan import (
     Flower,
     Move,
@@ -138,7 +139,11 @@ class CloseLook:
             self._fly(bot, way)
             trail.extend(way)
             bot.dwell(look.settle_s)
-            frame = bot.camera.frame()
+            try:
+                frame = bot.camera.frame()
+            except CameraError as error:  # the scan's pose is flown, as without a view
+                skipped.append(f"the camera failed: {error}")
+                break
             yaw, pitch = bot.head()
             centre, rotation = forward(HeadPose(bot.position(), yaw, pitch), self.geometry)
             name = f"frames/frame_{index:06d}.jpg"
@@ -150,7 +155,8 @@ class CloseLook:
             here = pose
         # Back the way it came: each move was checked both ways.
         self._fly(bot, [*trail[-2::-1], visit.pre] if trail else [])
-        write_json(folder / "camera.json", {"model": "PINHOLE", **bot.camera.intrinsics()})
+        if entries:
+            write_json(folder / "camera.json", {"model": "PINHOLE", **bot.camera.intrinsics()})
         write_json(folder / "frames.json", {"poses": "recorded", "flower": flower.id,
                                             "frames": entries})
         return entries, skipped

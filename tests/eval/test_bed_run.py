@@ -296,9 +296,10 @@ def test_the_physical_beds_run_finds_the_flowers_without_truth_and_visits_them(b
         flight = json.loads((out / "plants" / spot.name / "pollination" /
                              "flight.json").read_text())
         assert len(flight["done"]) == visits["flown"] >= visits["done"]
-        # The board's camera sees one colour: every close look keeps the scan's pose (and
+        # This bot has no camera: every close look keeps the scan's pose, saying why (and
         # leaves a flower of uncertain sign alone).
-        assert all(entry["look"]["status"] in ("kept", "left") for entry in flight["done"])
+        assert all(entry["look"]["status"] in ("kept", "left") and "camera" in
+                   entry["look"]["reason"] for entry in flight["done"])
         assert visits["done"] == sum(entry["look"]["status"] == "kept"
                                      for entry in flight["done"])
         assert flight["source"]["backend"] == "serial"
