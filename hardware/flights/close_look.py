@@ -91,8 +91,9 @@ class CloseLook:
 
     def visit(self, bot: Bot, visit: Visit, scan_moves: list[Move]) -> tuple[list[Move], dict]:
         """Look at `visit`'s flower from its pre-approach pose, where `bot` stands, and
-        return the moves to fly from there to the top of Z (`scan_moves`: the scan plan's,
-        from the approach on) and flight.json's `look` record."""
+        return the moves to fly from there to the visit's end (`scan_moves`: the scan
+        plan's, from the approach on; the executor lifts the head before the next visit)
+        and flight.json's `look` record."""
         watch = Stopwatch()
         flower = self.flowers[visit.flower]
         t0 = bot.now()
