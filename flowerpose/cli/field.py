@@ -364,7 +364,7 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
         "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
         "--dry-run\n"
         "  flowerpose pollinate detect3/flowers.json --plant-at 1.50,0.75 --out visits3 "
-        "--port /dev/ttyACM0")
+        "--port /dev/ttyACM0 --camera /dev/video0")
     p.add_argument("flowers", type=Path, metavar="FLOWERS.json",
                    help="flower poses in the bed frame (flowerpose detect on a FarmBot scan's "
                    "reconstruction, or a simulated one)")
