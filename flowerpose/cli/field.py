@@ -15,6 +15,7 @@ from flowerpose.cli.field_bot import (
     field_bot,
     field_camera,
     home_field_bot,
+    look_camera,
 )
 from flowerpose.cli.flags import add_setting_flags
 from flowerpose.cli.options import (
@@ -327,25 +328,6 @@ def _fly_pollination(args: argparse.Namespace, plan, look, connect, source: dict
     print(f"flight {flight['status']}: {touched}/{len(flight['visits'])} flowers pollinated"
           f"{flown} -> {args.out / 'flight.json'}")
     return 0
-
-
-def look_camera(args: argparse.Namespace):
-    """The head's USB camera the close look takes its frames with (--camera, checked
-    before anything moves): its factory, which takes the bot's clock."""
-    if args.camera is None:
-        raise InputError("--camera", "needed to fly with the close look: the head's USB "
-                         "camera, e.g. /dev/v4l/by-id/usb-...-video-index0 (--set "
-                         "pollinate.look.views=0 flies on the scan's poses alone)")
-    if not Path(args.camera).exists():
-        raise InputError(args.camera, "no such camera device; list them with "
-                         "ls -l /dev/v4l/by-id/")
-    from flowerpose.hardware.backends.usb_camera import UsbCamera, UsbCameraConfig
-    from flowerpose.scanio import read_intrinsics
-
-    if args.calibration is not None:
-        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
-    config = UsbCameraConfig(calibration=args.calibration, focus=args.focus)
-    return lambda clock: UsbCamera(args.camera, clock, config)
 
 
 def add_pollinate(sub: argparse._SubParsersAction) -> None:

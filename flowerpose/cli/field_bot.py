@@ -57,22 +57,40 @@ def add_camera_options(p: argparse.ArgumentParser, size: str) -> None:
                                           "choose": "leaving out --keep-all"}})
 
 
-def field_camera(args: argparse.Namespace, width: int, height: int, duration_s: float):
-    """The USB camera of --camera, checked before the bot moves: its settings
-    (`UsbCameraConfig`; frames chosen over `duration_s` of bot time unless --keep-all), the
-    recorder the bot films with, and what scan.json records of it."""
+def check_camera_flags(args: argparse.Namespace, needed_for: str) -> None:
+    """Refuse, before the bot moves, a missing or absent --camera and a bad --calibration;
+    `needed_for`: what the camera is needed for, in the message."""
     if args.camera is None:
-        raise InputError("--camera", "needed to scan: the head's USB camera, e.g. "
+        raise InputError("--camera", f"needed {needed_for}: the head's USB camera, e.g. "
                          "/dev/v4l/by-id/usb-...-video-index0")
     if not Path(args.camera).exists():
         raise InputError(args.camera, "no such camera device; list them with "
                          "ls -l /dev/v4l/by-id/")
+    if args.calibration is not None:
+        from flowerpose.scanio import read_intrinsics
+
+        read_intrinsics(args.calibration)
+
+
+def look_camera(args: argparse.Namespace):
+    """The head's USB camera the close look takes its frames with (--camera, checked
+    before anything moves): its factory, which takes the bot's clock."""
+    check_camera_flags(args, "to fly with the close look (--set pollinate.look.views=0 "
+                       "flies on the scan's poses alone)")
+    from flowerpose.hardware.backends.usb_camera import UsbCamera, UsbCameraConfig
+
+    config = UsbCameraConfig(calibration=args.calibration, focus=args.focus)
+    return lambda clock: UsbCamera(args.camera, clock, config)
+
+
+def field_camera(args: argparse.Namespace, width: int, height: int, duration_s: float):
+    """The USB camera of --camera, checked before the bot moves: its settings
+    (`UsbCameraConfig`; frames chosen over `duration_s` of bot time unless --keep-all), the
+    recorder the bot films with, and what scan.json records of it."""
+    check_camera_flags(args, "to scan")
     from flowerpose.hardware.backends.usb_camera import FrameChoice, UsbCamera, UsbCameraConfig
     from flowerpose.hardware.trajectory import TrajectoryRecorder
-    from flowerpose.scanio import read_intrinsics
 
-    if args.calibration is not None:
-        read_intrinsics(args.calibration)  # a bad file stops us before the bot moves
     choose = None if args.keep_all else FrameChoice(duration_s)
     camera = UsbCameraConfig(width=width, height=height, calibration=args.calibration,
                              choose=choose)
