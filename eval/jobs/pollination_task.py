@@ -29,13 +29,19 @@ if TYPE_CHECKING:
 
 
 def pollinate_plants(jobs: list[SyntheticJob], entries: list[dict], config: EvalConfig,
-                     out_dir: Path, workers: int | None) -> dict:
+                     out_dir: Path, workers: int | None,
+                     folders: list[tuple[Path, Path]] | None = None) -> dict:
     """Each synthetic plant's visits from its estimates (with the close look, and where it
     runs without it too) and from its truth, scored, into its entry (`pollination`,
     `pollination_scan_pose`, `pollination_ceiling`); returns the report's sections of the
     success against pose error and against the approach's angle off the axis
-    (`approach_angle.py`), which out_dir/pollination.png draws."""
-    results = run_jobs(_pollinate_job, [(job, config, out_dir) for job in jobs], workers,
+    (`approach_angle.py`), which out_dir/pollination.png draws. folders: per job, the
+    folder of its plant's files and the one its flowers.json is in and its flights go
+    (default: its folder in out_dir, for both; a sweep's settings have their own)."""
+    folders = folders or [(job.folder(out_dir), job.folder(out_dir)) for job in jobs]
+    results = run_jobs(_pollinate_job, [(job, config, *where)
+                                        for job, where in zip(jobs, folders, strict=True)],
+                       workers,
                        lambda k, v: f"{jobs[k].name}: pollinated {v[0]['successes']} of "
                        f"{len(v[0]['flowers'])} flowers ("
                        + ("" if v[1] is None else f"{v[1]['successes']} from the scan's "
@@ -83,11 +89,11 @@ def pollination_summary(entries: list[dict]) -> dict:
     return summary
 
 
-def _pollinate_job(job: SyntheticJob, config: EvalConfig, out_dir: Path
+def _pollinate_job(job: SyntheticJob, config: EvalConfig, plant_dir: Path, folder: Path
                    ) -> tuple[dict, dict, list[dict]]:
-    """One synthetic plant's pollination from its estimates and from its true poses, and
+    """One synthetic plant's (its files in `plant_dir`) pollination from its estimates
+    (flowers.json in `folder`, where its flights are written) and from its true poses, and
     its success against the approach's angle (`approach_angle.py`)."""
-    plant_dir = job.folder(out_dir)
     cloud = read_cloud(job.cloud)
     world = ContactWorld(read_plant(plant_dir), config.pollination.contact,
                          config.pollinate.tool)
@@ -97,10 +103,10 @@ def _pollinate_job(job: SyntheticJob, config: EvalConfig, out_dir: Path
     def score(flowers: Path | None, flight: str, close: LookSetup | None) -> dict:
         return plan_and_score(plant_dir, flowers, cloud, config.score.max_distance_m,
                               config.pollinate, config.pollination, world=world,
-                              flight_json=plant_dir / flight, corolla=corolla, look=close)
+                              flight_json=folder / flight, corolla=corolla, look=close)
 
-    estimated = score(plant_dir / "flowers.json", "flight.json", look)
-    scan_pose = (score(plant_dir / "flowers.json", "flight_scan_pose.json", None)
+    estimated = score(folder / "flowers.json", "flight.json", look)
+    scan_pose = (score(folder / "flowers.json", "flight_scan_pose.json", None)
                  if config.pollinate.look.views else None)
     ceiling = score(None, "flight_ceiling.json", None)
     curve = approach_curve(world, cloud, config.pollinate, config.pollination,

@@ -4,6 +4,9 @@ Plants are generated once and shared by every setting (unless a `sim.*` setting 
 then every (setting, plant) pair runs in one process pool. Writes `sweep.csv` (a row per
 setting), `sweep.png` (each metric per setting, its spread over the plants) and `best.json`
 (the best setting, its metrics and whole config; every setting with its plants' metrics).
+With the pollination task, each setting's plants are visited as `eval --task pollinate`
+visits them (a study of the pollinator's geometry or the planner's settings), and the
+share of flowers pollinated ranks the settings.
 """
 
 from __future__ import annotations
@@ -18,17 +21,21 @@ from flowerpose.atomic import write_figure, write_text
 from flowerpose.config import apply_overrides, current_name, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import WORLD_SECTIONS, EvalConfig, settings_run
+from flowerpose.eval.jobs.eval_run import EvalRun
 from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.jobs.plants import Plants, score_job
 from flowerpose.eval.pool import LOCAL, Execution, run_jobs
 from flowerpose.eval.reports.report import summarise
 from flowerpose.eval.scoring.paired import compare_runs
-from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG
+from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG, mcnemar, wilson
 from flowerpose.jsonio import write_json
 from flowerpose.stopwatch import Stopwatch
 
 METRICS = ("recall", "recall_visible", "fp_rate", "plane_mean_deg", "superellipsoid_mean_deg",
            "paraboloid_mean_deg", "seconds_per_plant")
+#: sweep.png's metrics for a sweep of the pollination task.
+POLLINATION_METRICS = ("pollinated", "pollinated_ceiling", "collision_share", "recall_visible",
+                       "plane_mean_deg")
 
 
 def parse_grid(items: list[str], config: EvalConfig) -> list[tuple[str, list[str]]]:
@@ -69,7 +76,43 @@ def _metrics(entries: list[dict], seconds: list[float], intervals: bool = True) 
     metrics["plane_mean_low_deg"], metrics["plane_mean_high_deg"] = plane["low"], plane["high"]
     metrics.update(tail_metrics(entries, s))
     metrics["seconds_per_plant"] = round(sum(seconds) / len(seconds), 4)
+    if entries and all("pollination" in e for e in entries):
+        metrics.update(pollination_metrics(entries, intervals))
     return metrics
+
+
+def pollination_metrics(entries: list[dict], intervals: bool = True) -> dict:
+    """A pollination sweep's metrics over plant entries: the share of flowers pollinated
+    from the estimated poses and from the true ones (the planner's ceiling), with their
+    Wilson 95 % bounds; the visits, the visits that collided or pushed a leaf and their
+    share; the flowers no approach reached."""
+    metrics: dict = {}
+    for name, key in (("pollinated", "pollination"), ("pollinated_ceiling",
+                                                      "pollination_ceiling")):
+        outcomes = [o["outcome"] for e in entries for o in e[key]["flowers"]]
+        successes = outcomes.count("success")
+        metrics[name] = round(successes / len(outcomes), 4) if outcomes else None
+        bounds = wilson(successes, len(outcomes)) if intervals else {}
+        metrics[f"{name}_low"], metrics[f"{name}_high"] = bounds.get("low"), bounds.get("high")
+        metrics[f"{name}_flowers"] = successes
+    outcomes = [o["outcome"] for e in entries for o in e["pollination"]["flowers"]]
+    visits = sum(e["pollination"]["visits"] for e in entries)
+    metrics.update(flowers=len(outcomes), visits=visits,
+                   collisions=outcomes.count("collision"),
+                   collision_share=round(outcomes.count("collision") / visits, 4)
+                   if visits else None, unreachable=outcomes.count("unreachable"))
+    return metrics
+
+
+def pollinated_against(ours: list[dict], defaults: list[dict]) -> dict:
+    """A setting's pollinated flowers against the defaults' on the same plants: the
+    flowers only one of them pollinated, and McNemar's exact test of the difference."""
+    def pollinated(entries: list[dict]) -> set:
+        return {(e["plant"], o["flower"]) for e in entries
+                for o in e["pollination"]["flowers"] if o["outcome"] == "success"}
+
+    flowers = sum(len(e["pollination"]["flowers"]) for e in ours)
+    return mcnemar(pollinated(ours), pollinated(defaults), flowers)
 
 
 def tail_metrics(entries: list[dict], summary: dict) -> dict:
@@ -96,10 +139,16 @@ def best_row(rows: list[dict]) -> dict:
     (`new_flipped`), then ranked by the intervals, not the point values: the highest lower
     bound of the recall of visible flowers, then of the precision, then the lowest upper
     bound of the plane error's mean (a setting that looks better on few flowers does not
-    outrank one shown good on many)."""
+    outrank one shown good on many). A pollination sweep's rows rank by the lower bound
+    of the share pollinated first, then of the planner's ceiling, then the fewest
+    collisions (`POLLINATION_RULE`)."""
     def key(row: dict) -> tuple:
         high = row["plane_mean_high_deg"]
-        return (row.get("new_flipped", 0) > 0, -(row["recall_visible_low"] or 0.0),
+        pollination = (() if "pollinated" not in row else
+                       (-(row["pollinated_low"] or 0.0), -(row["pollinated_ceiling_low"] or 0.0),
+                        row["collisions"]))
+        return (row.get("new_flipped", 0) > 0, *pollination,
+                -(row["recall_visible_low"] or 0.0),
                 -(row["precision_low"] or 0.0), high if high is not None else 1e9)
     return min(rows, key=key)
 
@@ -122,7 +171,10 @@ METRIC_LABELS = {"recall": "recall", "recall_visible": "recall (visible)",
                  "plane_mean_deg": "plane error (°)",
                  "superellipsoid_mean_deg": "superellipsoid\nerror (°)",
                  "paraboloid_mean_deg": "paraboloid error (°)",
-                 "seconds_per_plant": "seconds per plant"}
+                 "seconds_per_plant": "seconds per plant",
+                 "pollinated": "pollinated\n(estimated poses)",
+                 "pollinated_ceiling": "pollinated\n(true poses)",
+                 "collision_share": "collisions\n(of visits)"}
 
 
 def setting_label(setting: dict) -> str:
@@ -131,10 +183,11 @@ def setting_label(setting: dict) -> str:
 
 
 def sweep_figure(settings: list[dict], pooled: list[dict], per_plant: list[list[dict]],
-                 best: int):
-    """sweep.png's figure: per metric, each setting a category on the x axis (nothing
-    joins them), its plants' values as a box and points, the value over all its plants as
-    a diamond, and the best setting shaded and named.
+                 best: int, metrics: tuple[str, ...] = METRICS):
+    """sweep.png's figure: per metric (`METRICS`, or a pollination sweep's
+    `POLLINATION_METRICS`), each setting a category on the x axis (nothing joins them), its
+    plants' values as a box and points, the value over all its plants as a diamond, and
+    the best setting shaded and named.
 
     settings: the grid's settings (full dotted keys, typed values); pooled: their metrics
     over all plants; per_plant: per setting, each plant's metrics; best: the best
@@ -147,9 +200,9 @@ def sweep_figure(settings: list[dict], pooled: list[dict], per_plant: list[list[
 
     rng = np.random.default_rng(0)  # the points' sideways jitter, the same every run
     count = len(settings)
-    fig, axes = plt.subplots(len(METRICS), 1, sharex=True, squeeze=False,
-                             figsize=(max(6.0, 1.3 * count + 3), 1.9 * len(METRICS) + 1.2))
-    for ax, metric in zip(axes[:, 0], METRICS, strict=True):
+    fig, axes = plt.subplots(len(metrics), 1, sharex=True, squeeze=False,
+                             figsize=(max(6.0, 1.3 * count + 3), 1.9 * len(metrics) + 1.2))
+    for ax, metric in zip(axes[:, 0], metrics, strict=True):
         ax.axvspan(best - 0.45, best + 0.45, color="gold", alpha=0.25, zorder=0)
         for k, plants in enumerate(per_plant):
             values = np.array([m[metric] for m in plants if m[metric] is not None], float)
@@ -198,15 +251,17 @@ def sweep_outputs(grid: list[tuple[str, list[str]]], source: str = "oracle",
             *(["plants-defaults"] if plants and plants != ["plants"] else []))
 
 
-def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: PlantSet,
+def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: PlantSet | EvalRun,
               out_dir: Path, execution: Execution = LOCAL) -> dict:
     """Evaluate every combination of the grid over `plants` (seeded plants' clouds from a
-    source, or real folders); writes sweep.csv, sweep.png and best.json, and returns
-    best.json's "best": the best setting (dotted keys, typed values), its metrics and its
-    whole resolved config. Plants are generated, and for scan and rgbd filmed and
-    reconstructed, once for all settings unless a setting changes them; the execution's
-    stage cache is where those captures are taken from and put into."""
-    plant_set, source = plants, plants.source
+    source, or real folders; an `EvalRun` for its task too: "pollinate" visits each
+    setting's plants as `eval --task pollinate` does); writes sweep.csv, sweep.png and
+    best.json, and returns best.json's "best": the best setting (dotted keys, typed values),
+    its metrics and its whole resolved config. Plants are generated, and for scan and rgbd
+    filmed and reconstructed, once for all settings unless a setting changes them; the
+    execution's stage cache is where those captures are taken from and put into."""
+    run = plants if isinstance(plants, EvalRun) else EvalRun(plants)
+    plant_set, source = run.plants, run.plants.source
     workers, cache = execution.workers, execution.cache
     watch = Stopwatch()
     keys = [key for key, _ in grid]
@@ -217,10 +272,11 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     configs = [apply_overrides(config, s) for s in settings] + [config]
     made = Plants(workers, cache)
     separate = _separate_plants(keys, source)
-    jobs = []
+    jobs, plant_folders = [], []
     for k, cfg in enumerate(configs):
         folder = out_dir / (f"plants-{_name(k, settings)}" if separate else "plants")
         jobs.append(made.jobs(plant_set, cfg, folder).jobs)
+        plant_folders.append(folder)
     names = [job.name for job in jobs[0]]
     job_args = [(job, cfg, out_dir / f"setting-{_name(k, settings)}" / job.name, cache)
                 for k, cfg in enumerate(configs) for job in jobs[k]]
@@ -234,6 +290,14 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     typed = [{key: value_at(cfg, key) for key in keys} for cfg in configs[:-1]]
     entries = [[e for e, _ in results[k * len(names):(k + 1) * len(names)]]
                for k in range(len(configs))]
+    if run.task == "pollinate":  # each setting's flights and pollination.png in its folder
+        from flowerpose.eval.jobs.pollination_task import pollinate_plants
+
+        for k, cfg in enumerate(configs):
+            setting = out_dir / f"setting-{_name(k, settings)}"
+            pollinate_plants(jobs[k], entries[k], cfg, setting, workers,
+                             [(plant_folders[k] / job.name, setting / job.name)
+                              for job in jobs[k]])
     pooled, per_plant = [], []
     for k in range(len(configs)):
         chunk = results[k * len(names):(k + 1) * len(names)]
@@ -243,12 +307,20 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     defaults = {"metrics": pooled[-1], "plants": per_plant[-1]}
     pooled, per_plant = pooled[:-1], per_plant[:-1]
     compared = [against_defaults(entries[k], entries[-1]) for k in range(len(settings))]
+    if run.task == "pollinate":
+        for k, c in enumerate(compared):
+            c["pollinated"] = pollinated_against(entries[k], entries[-1])
     rows = [{**setting, **metrics, "distinguishable_from_defaults": c["distinguishable"],
              "plane_vs_defaults_deg": c["plane"]["mean_difference"],
              "plane_vs_defaults_low_deg": c["plane"]["ci95"]["low"],
              "plane_vs_defaults_high_deg": c["plane"]["ci95"]["high"],
             "new_flipped": len(c["new"]["flipped"]), "new_over_20": len(c["new"]["over_20"])}
             for setting, metrics, c in zip(typed, pooled, compared, strict=True)]
+    if run.task == "pollinate":
+        for row, c in zip(rows, compared, strict=True):
+            row.update(pollinated_won=c["pollinated"]["only_ours"],
+                       pollinated_lost=c["pollinated"]["only_theirs"],
+                       pollinated_vs_defaults_p=round(c["pollinated"]["p"], 4))
     best_index = rows.index(best_row(rows))
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=list(rows[0]))
@@ -257,7 +329,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     write_text(out_dir / "sweep.csv", table.getvalue())
     import matplotlib.pyplot as plt
 
-    figure = sweep_figure(typed, pooled, per_plant, best_index)
+    figure = sweep_figure(typed, pooled, per_plant, best_index,
+                          POLLINATION_METRICS if run.task == "pollinate" else METRICS)
     write_figure(out_dir / "sweep.png", figure)
     plt.close(figure)
     best = {"setting": typed[best_index], "metrics": pooled[best_index],
@@ -270,8 +343,9 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
                 "settings": [{"setting": t, "metrics": m, "plants": p, "vs_defaults": c}
                              for t, m, p, c in zip(typed, pooled, per_plant, compared,
                                                    strict=True)],
-                "defaults": defaults, "rule": RANKING_RULE,
-                "plants": len(names), "seed": None if plants.real else plants.seed,
+                "defaults": defaults, "task": run.task,
+                "rule": POLLINATION_RULE if run.task == "pollinate" else RANKING_RULE,
+                "plants": len(names), "seed": None if plant_set.real else plant_set.seed,
                 "source": source,
                 "seconds": round(watch.elapsed(), 2)})
     for row, against in zip(rows, compared, strict=True):
@@ -284,6 +358,15 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
               f"{row['worst_deg']}° ({row['worst_flower']}), {row['seconds_per_plant']} s/plant; "
               "against the defaults: "
               + "; ".join(against["verdicts"][:1] + against["verdicts"][3:]))
+        if run.task == "pollinate":
+            print(f"  pollinated {row['pollinated_flowers']} of {row['flowers']} "
+                  f"({row['pollinated']:.1%}) {_bounds(row, 'pollinated', 3)}, from the true "
+                  f"poses {row['pollinated_ceiling_flowers']} "
+                  f"{_bounds(row, 'pollinated_ceiling', 3)}, {row['unreachable']} unreachable, "
+                  f"{row['collisions']} collisions in "
+                  f"{row['visits']} visits; against the defaults {row['pollinated_won']} won, "
+                  f"{row['pollinated_lost']} lost (McNemar p "
+                  f"{row['pollinated_vs_defaults_p']})")
     print(f"sweep: {out_dir / 'sweep.csv'}, {out_dir / 'sweep.png'}, {out_dir / 'best.json'}")
     return best
 
@@ -292,6 +375,13 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
 RANKING_RULE = ("never a setting that flips a normal the defaults did not; then the highest "
                 "95 % lower bound of the recall of visible flowers, then of the precision, "
                 "then the lowest upper bound of the plane error's mean")
+
+
+#: How a pollination sweep's best setting is chosen.
+POLLINATION_RULE = ("never a setting that flips a normal the defaults did not; then the highest "
+                    "95 % lower bound of the share of flowers pollinated from the estimated "
+                    "poses, then from the true poses, then the fewest collisions; then as "
+                    "RANKING_RULE")
 
 
 def _name(k: int, settings: list[dict]) -> str:

@@ -29,16 +29,21 @@ from flowerpose.cli.options import (
 )
 from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
+from flowerpose.eval.jobs.eval_run import TASKS
 from flowerpose.eval.jobs.plant_set import SOURCES, SYNTHETIC_SOURCES, PlantSet
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.jobs.eval_run import EvalRun
     from flowerpose.eval.pool import Execution
     from flowerpose.eval.studies.sweep import parse_grid, run_sweep, sweep_outputs
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
+    if args.task == "pollinate" and args.source == "real":
+        raise InputError("--task", "pollinate needs synthetic plants, whose geometry judges "
+                         "the visits: not --source real")
     config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
     if args.source != "real":
         from flowerpose.eval.studies.fresh_seeds import refuse_fresh
@@ -49,16 +54,19 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     writes = sweep_outputs(grid, args.source, args.folders)
     with owned(args.out, "sweep", args.overwrite, writes), \
             jobs_on(args):
-        best = run_sweep(config, grid, eval_plants(args, config.sim.plant.name), args.out,
-                         Execution(args.workers, cache))
+        run = EvalRun(eval_plants(args, config.sim.plant.name), task=args.task)
+        best = run_sweep(config, grid, run, args.out, Execution(args.workers, cache))
     if cache is not None:
         from flowerpose.cache import prune_to_limit
 
         prune_to_limit(cache)
     metrics = best["metrics"]
+    measured = (f"pollinated {metrics['pollinated']}, from the true poses "
+                f"{metrics['pollinated_ceiling']}" if args.task == "pollinate" else
+                f"recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
+                f"plane {metrics['plane_mean_deg']}°")
     print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
-          + f" (recall_visible {metrics['recall_visible']}, fp_rate {metrics['fp_rate']}, "
-          f"plane {metrics['plane_mean_deg']}°; its settings in {args.out / 'best.json'})"
+          + f" ({measured}; its settings in {args.out / 'best.json'})"
           + ("" if best["vs_defaults"]["distinguishable"] else
              "; not distinguishable from the defaults on these plants"))
     return 0
@@ -79,7 +87,9 @@ def add_sweep(sub: argparse._SubParsersAction) -> None:
         "  flowerpose sweep --source scan --plants 3 --grid cluster.eps=0.006,0.008,0.01,0.012 "
         "--out sweep-scan\n"
         "  flowerpose sweep --source real paper-plant-3 --grid "
-        "cluster.eps=0.008,0.01 --out sweep-real")
+        "cluster.eps=0.008,0.01 --out sweep-real\n"
+        "  flowerpose sweep --task pollinate --preset field --plants 10 --grid "
+        "pollinate.tool.reach_m=0.12,0.16 --set pollinate.look.views=0 --out sweep-tool")
     p.add_argument("--grid", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting's dotted key and its values; repeat for a grid over several")
     p.add_argument("--source", choices=SOURCES, default="oracle",
@@ -92,6 +102,11 @@ def add_sweep(sub: argparse._SubParsersAction) -> None:
                    help="seeded plants per setting (default: %(default)s)")
     p.add_argument("--seed", type=SEED, default=0, metavar="S",
                    help="first plant seed (default: %(default)s)")
+    p.add_argument("--task", choices=TASKS, default="pose",
+                   help="pose: rank the settings by the flowers found and their poses; "
+                   "pollinate: also visit each setting's flowers as eval --task pollinate "
+                   "does, and rank by the share pollinated (a study of the pollinator's "
+                   "geometry or the planner's settings) (default: %(default)s)")
     add_preset(p)
     add_workers(p)
     add_output(p, "folder for sweep.csv, sweep.png and best.json")

@@ -100,3 +100,33 @@ def test_the_best_setting_never_adds_a_flipped_normal():
     assert best_row([better_but_flips, row]) is row
     assert best_row([better_but_flips, {**row, "recall_visible_low": 0.95}])[
         "recall_visible_low"] == 0.95
+
+
+@pytest.mark.slow
+def test_a_pollination_sweep_ranks_the_settings_by_the_flowers_pollinated(tmp_path):
+    from flowerpose.eval.jobs.eval_run import EvalRun
+
+    # No path search and no close look: the sweep's pollination is on trial here.
+    base = apply_overrides(eval_config("easy"), {"pollinate.path_checks": "0",
+                                                 "pollinate.look.views": "0"})
+    # A shaft too short to reach past the head's own housing pollinates nothing.
+    grid = parse_grid(["pollinate.tool.reach_m=0.05"], base)
+    run = EvalRun(PlantSet("oracle", plants=1, seed=2), task="pollinate")
+    best = run_sweep(base, grid, run, tmp_path, Execution(1))
+    saved = json.loads((tmp_path / "best.json").read_text())
+    assert saved["task"] == "pollinate" and "pollinated" in saved["rule"]
+    short = saved["settings"][0]["metrics"]
+    defaults = saved["defaults"]["metrics"]
+    assert short["pollinated"] == 0.0 and defaults["pollinated"] > 0.0
+    assert defaults["pollinated_ceiling_flowers"] >= defaults["pollinated_flowers"]
+    assert 0.0 <= defaults["pollinated_low"] <= defaults["pollinated"] <= defaults["pollinated_high"]
+    rows = list(csv.DictReader((tmp_path / "sweep.csv").open()))
+    assert int(rows[0]["pollinated_lost"]) == defaults["pollinated_flowers"]
+    assert int(rows[0]["pollinated_won"]) == 0
+    assert best["setting"] == {"pollinate.tool.reach_m": 0.05}  # the only setting swept
+    # Each setting's flights beside its flowers; the plant's files shared.
+    assert (tmp_path / "setting-0" / "seed-2" / "flight.json").exists()
+    assert (tmp_path / "setting-defaults" / "seed-2" / "flight_ceiling.json").exists()
+    assert not (tmp_path / "plants" / "seed-2" / "flight.json").exists()
+    assert (tmp_path / "setting-defaults" / "pollination.png").exists()
+    assert (tmp_path / "sweep.png").read_bytes()[:4] == b"\x89PNG"
