@@ -18,7 +18,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from flowerpose.atomic import write_figure, write_text
-from flowerpose.config import apply_overrides, current_name, value_at
+from flowerpose.config import apply_overrides, current_name, to_dict, value_at
 from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import WORLD_SECTIONS, EvalConfig, settings_run
 from flowerpose.eval.jobs.eval_run import EvalRun
@@ -304,7 +304,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
         pooled.append(_metrics(entries[k], [t["total"] for _, t in chunk]))
         per_plant.append([{"plant": e["plant"], **_metrics([e], [t["total"]], False)}
                           for e, t in chunk])
-    defaults = {"metrics": pooled[-1], "plants": per_plant[-1]}
+    defaults = {"setting": {key: value_at(config, key) for key in keys},
+                "metrics": pooled[-1], "plants": per_plant[-1]}
     pooled, per_plant = pooled[:-1], per_plant[:-1]
     compared = [against_defaults(entries[k], entries[-1]) for k in range(len(settings))]
     if run.task == "pollinate":
@@ -337,6 +338,9 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
             "vs_defaults": compared[best_index],
             "config": settings_run(configs[best_index], "real" if source == "real"
                                    else "oracle", [job.start for job in jobs[best_index]])}
+    if run.task == "pollinate":  # the visits' settings too, as eval's report records them
+        best["config"].update(pollinate=to_dict(configs[best_index].pollinate),
+                              pollination=to_dict(configs[best_index].pollination))
     write_json(out_dir / "best.json",
                {"best": best, "grid": {key: [value_at(apply_overrides(config, {key: v}), key)
                                              for v in values] for key, values in grid},

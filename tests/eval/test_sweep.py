@@ -124,6 +124,8 @@ def test_a_pollination_sweep_ranks_the_settings_by_the_flowers_pollinated(tmp_pa
     assert int(rows[0]["pollinated_lost"]) == defaults["pollinated_flowers"]
     assert int(rows[0]["pollinated_won"]) == 0
     assert best["setting"] == {"pollinate.tool.reach_m": 0.05}  # the only setting swept
+    assert saved["defaults"]["setting"] == {"pollinate.tool.reach_m": 0.12}
+    assert best["config"]["pollinate"]["tool"]["reach_m"] == 0.05
     # Each setting's flights beside its flowers; the plant's files shared.
     assert (tmp_path / "setting-0" / "seed-2" / "flight.json").exists()
     assert (tmp_path / "setting-defaults" / "seed-2" / "flight_ceiling.json").exists()
