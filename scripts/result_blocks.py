@@ -3,7 +3,7 @@
 Every figure the docs give as a result lives between `<!-- results:NAME -->` and
 `<!-- /results:NAME -->` in a page of PAGES, and is written there by BLOCKS[NAME] from the
 runs under runs/; `tests/test_docs.py` finds result numbers anywhere else. Run after the
-runs: `python scripts/result_blocks.py [RUNS]`.
+runs: `python scripts/result_blocks.py [RUNS [BLOCK ...]]` (every block, or those named).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from flowerpose.eval.scoring.stats import interval_text, wilson
 REPO = Path(__file__).resolve().parents[1]
 #: The pages that hold result blocks.
 PAGES = ("README.md", "DESIGN.md", "docs/guides/reading-the-numbers.md",
-         "docs/guides/own-photos.md")
+         "docs/guides/own-photos.md", "docs/guides/pollination.md")
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)"
                    r"(<!-- /results:(?P=name) -->)", re.S)
 
@@ -157,11 +157,56 @@ def photos_bench(runs: Path) -> str:
     return photo_bench_markdown(_json(runs / "photos" / "photo_bench.json"))
 
 
+def tool_study(runs: Path) -> str:
+    """Which pollinator reaches the flowers (`sweep --task pollinate` over the tool's
+    reach and offset): a row a tool, the default first."""
+    sweep = _json(runs / "sweep-tool" / "best.json")
+    rows = [("the default: " if k == 0 else "") + _tool(entry["setting"], sweep)
+            for k, entry in enumerate([{"setting": {}}, *sweep["settings"]])]
+    metrics = [sweep["defaults"]["metrics"], *(s["metrics"] for s in sweep["settings"])]
+    against = [None, *(s["vs_defaults"]["pollinated"] for s in sweep["settings"])]
+
+    def share(m: dict, key: str) -> str:
+        return (f"{m[f'{key}_flowers']} ({m[key]:.1%}) "
+                f"[{m[f'{key}_low']:.0%}, {m[f'{key}_high']:.0%}]")
+
+    lines = ["| pollinator (reach, offset under the lens) | pollinated (the scan's poses) | "
+             "pollinated (true poses) | unreachable | collisions (of visits) | "
+             "against the default |", "|---|---|---|---|---|---|"]
+    for row, m, c in zip(rows, metrics, against, strict=True):
+        versus = "-" if c is None else (f"{c['only_ours']} won, {c['only_theirs']} lost "
+                                        f"(McNemar p {c['p']:.2g})")
+        lines.append(f"| {row} | {share(m, 'pollinated')} | {share(m, 'pollinated_ceiling')} "
+                     f"| {m['unreachable']} | {m['collisions']} of {m['visits']} | {versus} |")
+    best = max(metrics, key=lambda m: m["pollinated_ceiling"])
+    reached = [r for r, m in zip(rows, metrics, strict=True) if m["pollinated_ceiling"] >= 0.95]
+    answer = (f"The tools that reach 95% of the flowers with the true poses: "
+              f"{'; '.join(reached)}." if reached else
+              f"No tool swept reaches 95% of the flowers even with the true poses; the most "
+              f"is {best['pollinated_ceiling']:.1%}.")
+    return (f"{sweep['plants']} plants of the `{sweep['best']['config']['sim']['plant']['name']}`"
+            f" preset from seed "
+            f"{sweep['seed']}, {metrics[0]['flowers']} flowers:\n\n" + "\n".join(lines)
+            + f"\n\n{answer}\n")
+
+
+def _tool(setting: dict, sweep: dict) -> str:
+    """A swept tool as its reach and offset, centimetres: the setting's, else the
+    defaults' (best.json's `defaults.setting`), else the best setting's config's."""
+    tool = sweep["best"]["config"]["pollinate"]["tool"]
+    values = {key: setting.get(f"pollinate.tool.{key}",
+                               sweep["defaults"]["setting"].get(f"pollinate.tool.{key}",
+                                                                tool[key]))
+              for key in ("reach_m", "offset_down_m")}
+    return f"{values['reach_m'] * 100:g} cm, {values['offset_down_m'] * 100:g} cm"
+
+
 #: What makes each block.
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "accuracy-table": accuracy_table, "compare-example": compare_example,
     "flowers-needed": flowers_needed, "wilson-example": wilson_example,
-    "uncertain-flag": uncertain_flag, "photos-bench": photos_bench}
+    "uncertain-flag": uncertain_flag, "photos-bench": photos_bench,
+    "tool-study": tool_study}
 
 
 def blocks(text: str) -> list[str]:
@@ -174,16 +219,21 @@ def outside_blocks(text: str) -> str:
     return BLOCK.sub(lambda m: m.group(1) + m.group(4), text)
 
 
-def fill(text: str, runs: Path) -> str:
-    """A page with every result block made again from the runs."""
-    return BLOCK.sub(lambda m: m.group(1) + BLOCKS[m.group("name")](runs) + m.group(4), text)
+def fill(text: str, runs: Path, only: set[str] | None = None) -> str:
+    """A page with every result block (or those named in `only`) made again from the runs."""
+    def made(m: re.Match) -> str:
+        if only is not None and m.group("name") not in only:
+            return m.group(0)
+        return m.group(1) + BLOCKS[m.group("name")](runs) + m.group(4)
+
+    return BLOCK.sub(made, text)
 
 
-def main(runs: Path) -> None:
+def main(runs: Path, only: set[str] | None = None) -> None:
     for page in PAGES:
         path = REPO / page
         text = path.read_text(encoding="utf-8")
-        filled = fill(text, runs)
+        filled = fill(text, runs, only)
         if filled != text:
             partial = path.with_name(path.name + ".partial")
             partial.write_text(filled, encoding="utf-8")
@@ -192,4 +242,6 @@ def main(runs: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else REPO / "runs")
+    # python scripts/result_blocks.py [RUNS [BLOCK ...]]: every block, or the ones named.
+    main(Path(sys.argv[1]) if len(sys.argv) > 1 else REPO / "runs",
+         set(sys.argv[2:]) or None)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The runs behind docs/results.md and the README's results table, then the page itself
 # and the gallery (`make results`). Each run writes under runs/ (ignored by git); the page
-# cites each run's command, code, date and machine. About 70 minutes on 2 cores. Runs only
+# cites each run's command, code, date and machine. About 70 minutes on 2 cores, and
+# an hour more for the pollinator sweep. Runs only
 # from a clean tree: every number on the page is then the commit's it names.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -40,6 +41,10 @@ $flowerpose eval --task pollinate --source oracle --plants 10 --seed 0 \
     --set 'pollination.curve_angles_deg=[0, 15, 30, 45, 55, 65, 75]' --out runs/pollinate-10 -q
 $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --seed 0 \
     --out runs/pollinate-field-10 -q
+# Which pollinator reaches the flowers: the shaft's reach and offset, without the close look.
+$flowerpose sweep --task pollinate --source oracle --preset field --plants 10 --seed 0 \
+    --grid pollinate.tool.reach_m=0.2,0.24 --grid pollinate.tool.offset_down_m=0.03,0.07 \
+    --set pollinate.look.views=0 --out runs/sweep-tool -q
 # Real photographs to a cloud three ways, timed and checked against the calibrated cameras
 # (the shared copy where there is one, else the published set, fetched).
 photos=${FLOWERPOSE_SHARED:-../shared}/real-photos/romi-arabidopsis
