@@ -170,7 +170,9 @@ def tool_study(runs: Path) -> str:
         return (f"{m[f'{key}_flowers']} ({m[key]:.1%}) "
                 f"[{m[f'{key}_low']:.0%}, {m[f'{key}_high']:.0%}]")
 
-    lines = ["| pollinator (reach, offset under the lens) | pollinated (the scan's poses) | "
+    looked = sweep["best"]["config"]["pollinate"]["look"]["views"] > 0
+    poses = "the scan's poses, then the close look" if looked else "the scan's poses"
+    lines = [f"| pollinator (reach, offset under the lens) | pollinated ({poses}) | "
              "pollinated (true poses) | unreachable | collisions (of visits) | "
              "against the default |", "|---|---|---|---|---|---|"]
     for row, m, c in zip(rows, metrics, against, strict=True):
@@ -229,7 +231,12 @@ def fill(text: str, runs: Path, only: set[str] | None = None) -> str:
     return BLOCK.sub(made, text)
 
 
-def main(runs: Path, only: set[str] | None = None) -> None:
+def main(runs: Path, only: set[str] | None = None) -> int:
+    unknown = sorted((only or set()) - set(BLOCKS))
+    if unknown:
+        print(f"result_blocks.py: no such block: {', '.join(unknown)} (the blocks: "
+              f"{', '.join(BLOCKS)})", file=sys.stderr)
+        return 2
     for page in PAGES:
         path = REPO / page
         text = path.read_text(encoding="utf-8")
@@ -238,10 +245,13 @@ def main(runs: Path, only: set[str] | None = None) -> None:
             partial = path.with_name(path.name + ".partial")
             partial.write_text(filled, encoding="utf-8")
             partial.replace(path)
-        print(f"{page}: {', '.join(blocks(text)) or 'no blocks'}")
+        made = [name for name in blocks(text) if only is None or name in only]
+        if made:
+            print(f"{page}: {', '.join(made)}")
+    return 0
 
 
 if __name__ == "__main__":
     # python scripts/result_blocks.py [RUNS [BLOCK ...]]: every block, or the ones named.
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else REPO / "runs",
-         set(sys.argv[2:]) or None)
+    sys.exit(main(Path(sys.argv[1]) if len(sys.argv) > 1 else REPO / "runs",
+                  set(sys.argv[2:]) or None))

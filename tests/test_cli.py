@@ -173,6 +173,8 @@ def _grey_cloud(path):
     (["eval", "--plants", "0", "--out", "{tmp}/e"], ["--plants"]),
     (["sweep", "--grid", "cluster.eps", "--out", "{tmp}/s"], ["--grid"]),
     (["sweep", "--grid", "nope.eps=1,2", "--out", "{tmp}/s"], ["nope"]),
+    (["sweep", "--task", "pollinate", "--grid", "pollinate.cone_azimuths=16,0", "--out",
+      "{tmp}/s"], ["pollinate.cone_azimuths", "positive"]),
     (["eval", "--plants", "abc"], ["--plants", "whole number"]),
     (["frames", "{tmp}/scan", "--count", "0", "--out", "{tmp}/f"], ["--count", "at least 1"]),
     (["frames", "{tmp}/scan", "--set", "crop_px=2", "--out", "{tmp}/f"], ["--crop", "3 pixels"]),

@@ -1,12 +1,12 @@
 """Sweeps: the benchmark over a grid of settings, to tune grid resolution, DBSCAN and more.
 
 Plants are generated once and shared by every setting (unless a `sim.*` setting varies),
-then every (setting, plant) pair runs in one process pool. Writes `sweep.csv` (a row per
+then every (setting, plant) pair is scored in one process pool. Writes `sweep.csv` (a row per
 setting), `sweep.png` (each metric per setting, its spread over the plants) and `best.json`
 (the best setting, its metrics and whole config; every setting with its plants' metrics).
 With the pollination task, each setting's plants are visited as `eval --task pollinate`
-visits them (a study of the pollinator's geometry or the planner's settings), and the
-share of flowers pollinated ranks the settings.
+visits them (a study of the pollinator's geometry or the planner's settings; a pool for
+each setting's visits in turn), and the share of flowers pollinated ranks the settings.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from flowerpose.eval.jobs.plants import Plants, score_job
 from flowerpose.eval.pool import LOCAL, Execution, run_jobs
 from flowerpose.eval.reports.report import summarise
 from flowerpose.eval.scoring.paired import compare_runs
-from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG, mcnemar, wilson
+from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG, mcnemar, p_text
 from flowerpose.jsonio import write_json
 from flowerpose.stopwatch import Stopwatch
 
@@ -84,23 +84,23 @@ def _metrics(entries: list[dict], seconds: list[float], intervals: bool = True) 
 def pollination_metrics(entries: list[dict], intervals: bool = True) -> dict:
     """A pollination sweep's metrics over plant entries: the share of flowers pollinated
     from the estimated poses and from the true ones (the planner's ceiling), with their
-    Wilson 95 % bounds; the visits, the visits that collided or pushed a leaf and their
-    share; the flowers no approach reached."""
+    Wilson 95 % bounds (`visits.summarise_pollination`); the visits, the visits that
+    collided or pushed a leaf and their share; the flowers no approach reached."""
+    from flowerpose.eval.pollination.visits import summarise_pollination
+
     metrics: dict = {}
     for name, key in (("pollinated", "pollination"), ("pollinated_ceiling",
                                                       "pollination_ceiling")):
-        outcomes = [o["outcome"] for e in entries for o in e[key]["flowers"]]
-        successes = outcomes.count("success")
-        metrics[name] = round(successes / len(outcomes), 4) if outcomes else None
-        bounds = wilson(successes, len(outcomes)) if intervals else {}
-        metrics[f"{name}_low"], metrics[f"{name}_high"] = bounds.get("low"), bounds.get("high")
-        metrics[f"{name}_flowers"] = successes
-    outcomes = [o["outcome"] for e in entries for o in e["pollination"]["flowers"]]
-    visits = sum(e["pollination"]["visits"] for e in entries)
-    metrics.update(flowers=len(outcomes), visits=visits,
-                   collisions=outcomes.count("collision"),
-                   collision_share=round(outcomes.count("collision") / visits, 4)
-                   if visits else None, unreachable=outcomes.count("unreachable"))
+        summary = summarise_pollination([e[key] for e in entries])
+        bounds = summary["success_rate_ci95"] if intervals else {}
+        metrics.update({name: summary["success_rate"], f"{name}_low": bounds.get("low"),
+                        f"{name}_high": bounds.get("high"),
+                        f"{name}_flowers": summary["successes"]})
+        if key == "pollination":
+            visits, collisions = summary["visits"], summary["failures"]["collision"]
+            metrics.update(flowers=summary["flowers"], visits=visits, collisions=collisions,
+                           collision_share=round(collisions / visits, 4) if visits else None,
+                           unreachable=summary["failures"]["unreachable"])
     return metrics
 
 
@@ -311,6 +311,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     if run.task == "pollinate":
         for k, c in enumerate(compared):
             c["pollinated"] = pollinated_against(entries[k], entries[-1])
+            c["distinguishable"] = c["distinguishable"] or c["pollinated"]["shown"]
     rows = [{**setting, **metrics, "distinguishable_from_defaults": c["distinguishable"],
              "plane_vs_defaults_deg": c["plane"]["mean_difference"],
              "plane_vs_defaults_low_deg": c["plane"]["ci95"]["low"],
@@ -321,7 +322,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
         for row, c in zip(rows, compared, strict=True):
             row.update(pollinated_won=c["pollinated"]["only_ours"],
                        pollinated_lost=c["pollinated"]["only_theirs"],
-                       pollinated_vs_defaults_p=round(c["pollinated"]["p"], 4))
+                       pollinated_vs_defaults_p=c["pollinated"]["p"])
     best_index = rows.index(best_row(rows))
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=list(rows[0]))
@@ -363,14 +364,15 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
               "against the defaults: "
               + "; ".join(against["verdicts"][:1] + against["verdicts"][3:]))
         if run.task == "pollinate":
+            share = "-" if row["pollinated"] is None else f"{row['pollinated']:.1%}"
             print(f"  pollinated {row['pollinated_flowers']} of {row['flowers']} "
-                  f"({row['pollinated']:.1%}) {_bounds(row, 'pollinated', 3)}, from the true "
+                  f"({share}) {_bounds(row, 'pollinated', 3)}, from the true "
                   f"poses {row['pollinated_ceiling_flowers']} "
                   f"{_bounds(row, 'pollinated_ceiling', 3)}, {row['unreachable']} unreachable, "
                   f"{row['collisions']} collisions in "
                   f"{row['visits']} visits; against the defaults {row['pollinated_won']} won, "
                   f"{row['pollinated_lost']} lost (McNemar p "
-                  f"{row['pollinated_vs_defaults_p']})")
+                  f"{p_text(row['pollinated_vs_defaults_p'])})")
     print(f"sweep: {out_dir / 'sweep.csv'}, {out_dir / 'sweep.png'}, {out_dir / 'best.json'}")
     return best
 

@@ -41,9 +41,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.folders and args.source != "real":
         raise InputError(args.folders[0], "plant folders are for --source real")
-    if args.task == "pollinate" and args.source == "real":
-        raise InputError("--task", "pollinate needs synthetic plants, whose geometry judges "
-                         "the visits: not --source real")
     config = configure(eval_config(args.preset), args, run_keys=EVAL_RUN_KEYS)
     if args.source != "real":
         from flowerpose.eval.studies.fresh_seeds import refuse_fresh
@@ -52,9 +49,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     grid = parse_grid(args.grid, config)
     cache = stage_cache(args)
     writes = sweep_outputs(grid, args.source, args.folders)
-    with owned(args.out, "sweep", args.overwrite, writes), \
-            jobs_on(args):
-        run = EvalRun(eval_plants(args, config.sim.plant.name), task=args.task)
+    run = EvalRun(eval_plants(args, config.sim.plant.name), task=args.task)
+    with owned(args.out, "sweep", args.overwrite, writes), jobs_on(args):
         best = run_sweep(config, grid, run, args.out, Execution(args.workers, cache))
     if cache is not None:
         from flowerpose.cache import prune_to_limit

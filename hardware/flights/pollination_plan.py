@@ -145,7 +145,7 @@ class PollinateConfig:
     def __post_init__(self):
         for name in ("standoff_m", "clearance_m", "touch_radius_m", "straight_within_m",
                      "cone_step_deg", "path_box_m", "path_step_m", "path_tries", "path_bend_m",
-                     "rim_margin_m"):
+                     "rim_margin_m", "cone_azimuths"):
             if not getattr(self, name) > 0:
                 raise InputError(f"pollinate.{name}", f"must be positive, got "
                                  f"{getattr(self, name)}")

@@ -102,6 +102,24 @@ def test_the_best_setting_never_adds_a_flipped_normal():
         "recall_visible_low"] == 0.95
 
 
+def test_a_pollination_sweep_ranks_by_the_share_pollinated_then_the_ceiling_then_collisions():
+    from flowerpose.eval.studies.sweep import best_row
+
+    row = {"recall_visible_low": 0.9, "precision_low": 0.9, "plane_mean_high_deg": 3.0,
+           "new_flipped": 0, "pollinated": 0.8, "pollinated_low": 0.7,
+           "pollinated_ceiling_low": 0.8, "collisions": 2}
+    # The share pollinated from the estimated poses outranks a higher ceiling and the poses.
+    higher_ceiling = {**row, "pollinated_low": 0.69, "pollinated_ceiling_low": 0.95,
+                      "recall_visible_low": 0.99}
+    assert best_row([higher_ceiling, row]) is row
+    # Tied on it, the ceiling decides; tied on both, the fewer collisions.
+    assert best_row([row, {**row, "pollinated_ceiling_low": 0.85}])[
+        "pollinated_ceiling_low"] == 0.85
+    assert best_row([row, {**row, "collisions": 1}])["collisions"] == 1
+    # Never a setting that flips a normal the defaults did not, however many it pollinates.
+    assert best_row([{**row, "pollinated_low": 0.99, "new_flipped": 1}, row]) is row
+
+
 @pytest.mark.slow
 def test_a_pollination_sweep_ranks_the_settings_by_the_flowers_pollinated(tmp_path):
     from flowerpose.eval.jobs.eval_run import EvalRun
@@ -119,10 +137,14 @@ def test_a_pollination_sweep_ranks_the_settings_by_the_flowers_pollinated(tmp_pa
     defaults = saved["defaults"]["metrics"]
     assert short["pollinated"] == 0.0 and defaults["pollinated"] > 0.0
     assert defaults["pollinated_ceiling_flowers"] >= defaults["pollinated_flowers"]
-    assert 0.0 <= defaults["pollinated_low"] <= defaults["pollinated"] <= defaults["pollinated_high"]
+    assert (0.0 <= defaults["pollinated_low"] <= defaults["pollinated"]
+            <= defaults["pollinated_high"])
     rows = list(csv.DictReader((tmp_path / "sweep.csv").open()))
     assert int(rows[0]["pollinated_lost"]) == defaults["pollinated_flowers"]
     assert int(rows[0]["pollinated_won"]) == 0
+    # The poses are the same on both sides, so any difference shown is the pollination's.
+    against = saved["settings"][0]["vs_defaults"]
+    assert against["distinguishable"] == against["pollinated"]["shown"]
     assert best["setting"] == {"pollinate.tool.reach_m": 0.05}  # the only setting swept
     assert saved["defaults"]["setting"] == {"pollinate.tool.reach_m": 0.12}
     assert best["config"]["pollinate"]["tool"]["reach_m"] == 0.05
