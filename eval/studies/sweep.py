@@ -153,6 +153,21 @@ def best_row(rows: list[dict]) -> dict:
     return min(rows, key=key)
 
 
+#: A setting's comparison with the defaults where the grid changes the plants themselves
+#: (`sim.plant.*`): a flower of one side is not the other's, so nothing is paired.
+UNPAIRED = {"distinguishable": False, "paired": False,
+            "verdicts": ["not compared flower by flower: the grid changes the plants "
+                         "(sim.plant.*), so no flower is on both sides"],
+            "plane": {"mean_difference": None, "ci95": {"low": None, "high": None}},
+            "found": None, "fp": None, "new": {"flipped": [], "over_20": []}}
+
+
+def _changes_plants(keys: list[str]) -> bool:
+    """Whether the grid changes the generated plants' geometry (`sim.plant.*`), not only
+    their clouds or captures, so that a seed's flowers differ from setting to setting."""
+    return any(key.startswith("sim.plant.") for key in keys)
+
+
 def against_defaults(ours: list[dict], defaults: list[dict]) -> dict:
     """A setting's plant entries against the defaults' on the same plants
     (`paired.compare_runs`), and whether any difference is shown: found flowers, false
@@ -160,7 +175,7 @@ def against_defaults(ours: list[dict], defaults: list[dict]) -> dict:
     paired = compare_runs(ours, defaults)
     shown = (paired["found"]["shown"] or paired["fp"]["shown"]
              or any(fit["shown"] for fit in paired["fits"].values()))
-    return {"distinguishable": bool(shown), "verdicts": paired["verdicts"],
+    return {"distinguishable": bool(shown), "paired": True, "verdicts": paired["verdicts"],
             "plane": paired["fits"]["plane"], "found": paired["found"], "fp": paired["fp"],
             "new": paired["new"]}
 
@@ -307,8 +322,10 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     defaults = {"setting": {key: value_at(config, key) for key in keys},
                 "metrics": pooled[-1], "plants": per_plant[-1]}
     pooled, per_plant = pooled[:-1], per_plant[:-1]
-    compared = [against_defaults(entries[k], entries[-1]) for k in range(len(settings))]
-    if run.task == "pollinate":
+    paired = not _changes_plants(keys)
+    compared = [against_defaults(entries[k], entries[-1]) if paired else {**UNPAIRED}
+                for k in range(len(settings))]
+    if run.task == "pollinate" and paired:
         for k, c in enumerate(compared):
             c["pollinated"] = pollinated_against(entries[k], entries[-1])
             c["distinguishable"] = c["distinguishable"] or c["pollinated"]["shown"]
@@ -320,9 +337,10 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
             for setting, metrics, c in zip(typed, pooled, compared, strict=True)]
     if run.task == "pollinate":
         for row, c in zip(rows, compared, strict=True):
-            row.update(pollinated_won=c["pollinated"]["only_ours"],
-                       pollinated_lost=c["pollinated"]["only_theirs"],
-                       pollinated_vs_defaults_p=c["pollinated"]["p"])
+            against = c.get("pollinated") or {}
+            row.update(pollinated_won=against.get("only_ours"),
+                       pollinated_lost=against.get("only_theirs"),
+                       pollinated_vs_defaults_p=against.get("p"))
     best_index = rows.index(best_row(rows))
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=list(rows[0]))
@@ -365,14 +383,15 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
               + "; ".join(against["verdicts"][:1] + against["verdicts"][3:]))
         if run.task == "pollinate":
             share = "-" if row["pollinated"] is None else f"{row['pollinated']:.1%}"
+            versus = (f"; against the defaults {row['pollinated_won']} won, "
+                      f"{row['pollinated_lost']} lost (McNemar p "
+                      f"{p_text(row['pollinated_vs_defaults_p'])})" if against["paired"]
+                      else "")
             print(f"  pollinated {row['pollinated_flowers']} of {row['flowers']} "
                   f"({share}) {_bounds(row, 'pollinated', 3)}, from the true "
                   f"poses {row['pollinated_ceiling_flowers']} "
                   f"{_bounds(row, 'pollinated_ceiling', 3)}, {row['unreachable']} unreachable, "
-                  f"{row['collisions']} collisions in "
-                  f"{row['visits']} visits; against the defaults {row['pollinated_won']} won, "
-                  f"{row['pollinated_lost']} lost (McNemar p "
-                  f"{p_text(row['pollinated_vs_defaults_p'])})")
+                  f"{row['collisions']} collisions in {row['visits']} visits{versus}")
     print(f"sweep: {out_dir / 'sweep.csv'}, {out_dir / 'sweep.png'}, {out_dir / 'best.json'}")
     return best
 

@@ -353,9 +353,9 @@ def score_defaults(spec: TuneSpec) -> dict:
 
 def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> dict | None:
     """The chosen trial's settings against the defaults on the validation plants, flower by
-    flower (`paired.compare_runs`): whether any difference is shown, and the verdicts;
+    flower (`sweep.against_defaults`): whether any difference is shown, and the verdicts;
     None without validation plants."""
-    from flowerpose.eval.scoring.paired import compare_runs
+    from flowerpose.eval.studies.sweep import against_defaults
 
     if not defaults.get("validate_entries"):
         return None
@@ -365,11 +365,7 @@ def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> d
         chosen = _entries(scorer, spec.validate, spec.layers(settings), folder)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
-    paired = compare_runs(chosen, defaults["validate_entries"])
-    shown = (paired["found"]["shown"] or paired["fp"]["shown"]
-             or any(fit["shown"] for fit in paired["fits"].values()))
-    return {"distinguishable": bool(shown), "verdicts": paired["verdicts"],
-            "plane": paired["fits"]["plane"], "found": paired["found"], "fp": paired["fp"]}
+    return against_defaults(chosen, defaults["validate_entries"])
 
 
 def trial_rows(study: Any, spec: TuneSpec) -> list[dict]:

@@ -64,7 +64,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print("best: " + ", ".join(f"{k}={v}" for k, v in best["setting"].items())
           + f" ({measured}; its settings in {args.out / 'best.json'})"
           + ("" if best["vs_defaults"]["distinguishable"] else
-             "; not distinguishable from the defaults on these plants"))
+             "; not distinguishable from the defaults on these plants"
+             if best["vs_defaults"]["paired"] else
+             "; not compared with the defaults flower by flower: the grid changes the plants"))
     return 0
 
 

@@ -35,6 +35,19 @@ def test_a_tiny_sweep_names_the_best_setting_with_its_whole_typed_config(tmp_pat
     assert (tmp_path / "sweep.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow
+def test_a_sweep_that_changes_the_plants_compares_no_flower_with_the_defaults(tmp_path):
+    # Another petal jitter makes other flowers under the same seed's names: pairing them
+    # by name would compare one flower with another.
+    base = eval_config("easy")
+    grid = parse_grid(["sim.plant.petal_cup_jitter=0.0"], base)
+    run_sweep(base, grid, PlantSet("oracle", plants=1, seed=0), tmp_path, Execution(1))
+    against = json.loads((tmp_path / "best.json").read_text())["settings"][0]["vs_defaults"]
+    assert against["paired"] is False and against["found"] is None
+    assert "not compared flower by flower" in against["verdicts"][0]
+    assert (tmp_path / "plants-0").is_dir() and (tmp_path / "plants-defaults").is_dir()
+
+
 def _plant_metrics(rng, plants):
     return [{metric: float(v) for metric, v in zip(METRICS, rng.random(len(METRICS)),
                                                    strict=True)} for _ in range(plants)]
