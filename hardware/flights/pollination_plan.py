@@ -12,7 +12,9 @@ that the shaft may pass through the target flower's own corolla (its points of a
 colour within `touch_radius_m` of the centre). A flower whose axis cannot be taken is
 approached along the nearest direction within `cone_deg` of it that can, or reported
 unreachable with the reason. The visits are ordered to keep travel short (nearest
-neighbour, then 2-opt), on FarmBot's motion profile.
+neighbour, then 2-opt), on FarmBot's motion profile; a visit whose travel at the top of Z,
+the head turned for it, would pass the plant (a tall plant, a long tool) is left out with
+that reason and the rest ordered again.
 
 Frames and units: the bed frame, metres, radians (DESIGN.md); flower normals point out of
 the open face of the corolla, so the swab moves along minus the normal.
@@ -279,11 +281,21 @@ def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
     start = geometry.home if start is None else np.asarray(start, np.float64)
     plant = PlantObstacles.of(obstacles, corolla)
     visits = [plan_visit(f, plant, config, geometry, tool, profile) for f in flowers]
-    planned = [v for v in visits if v.status == "planned"]
-    order = _short_order(planned, start, geometry, profile)
-    ordered = [planned[k] for k in order]
-    moves = plan_moves(ordered, start, geometry)
-    _check_transfers(moves, plant.tree, config, geometry, tool, profile)
+    while True:
+        planned = [v for v in visits if v.status == "planned"]
+        order = _short_order(planned, start, geometry, profile)
+        ordered = [planned[k] for k in order]
+        moves = plan_moves(ordered, start, geometry)
+        blocked = _blocked_travel(moves, plant.tree, config, geometry, tool, profile)
+        if blocked is None:
+            break
+        # The travel to this visit, at the top of Z with the head turned for it, passes
+        # the plant: the visit is left out and the rest planned again without it.
+        flower, distance = blocked
+        visits = [Visit(v.flower, "unreachable", f"the travel to it at the top of Z passes "
+                        f"{distance * 1000:.0f} mm from the plant: the head, turned for "
+                        "this visit, hangs lower than the gantry can clear the plant")
+                  if v.flower == flower else v for v in visits]
     duration = sum(move_duration(a.pose.gantry, b.pose.gantry, profile) + END_OF_MOVE_S
                    for a, b in zip(moves, moves[1:], strict=False) if b.kind != "dwell")
     duration += config.dwell_s * len(ordered)
@@ -674,13 +686,14 @@ def plan_moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry = P
     return moves
 
 
-def _check_transfers(moves: list[Move], tree: cKDTree | None, config: PollinateConfig,
-                     geometry: BotGeometry, tool: PollinatorTool,
-                     profile: MotionProfile) -> None:
-    """Refuse a plan whose travel at the top of Z passes through the plant (a plant taller
-    than the gantry can clear)."""
+def _blocked_travel(moves: list[Move], tree: cKDTree | None, config: PollinateConfig,
+                    geometry: BotGeometry, tool: PollinatorTool, profile: MotionProfile
+                    ) -> tuple[int, float] | None:
+    """The first travel at the top of Z that passes within `clearance_m` of the plant (a
+    plant taller than the gantry clears with the head turned for the visit it travels to):
+    that visit's flower and the distance, metres; None where every travel is clear."""
     if tree is None:
-        return
+        return None
     for a, b in zip(moves, moves[1:], strict=False):
         if b.kind != "travel":
             continue
@@ -688,6 +701,5 @@ def _check_transfers(moves: list[Move], tree: cKDTree | None, config: PollinateC
         distance = min(head_gap(poses, tree, config.clearance_m, geometry),
                        tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min())
         if distance < config.clearance_m:
-            raise InputError(f"flower {b.flower}", f"the travel at the top of Z passes "
-                             f"{distance * 1000:.0f} mm from the plant: it is taller than "
-                             "the gantry can clear")
+            return b.flower, float(distance)
+    return None

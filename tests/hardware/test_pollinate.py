@@ -161,6 +161,29 @@ def test_a_flower_behind_a_leaf_is_approached_round_it_or_not_at_all():
     assert blocked.status == "unreachable" and "from the plant" in blocked.reason
 
 
+def test_a_visit_whose_travel_at_the_top_of_z_meets_the_plant_is_left_out_with_why():
+    from flowerpose.hardware.flights.scan_plan import poses_along
+    from flowerpose.hardware.kinematics import tool_points
+
+    flower = Flower(0, CENTER, np.array([0.0, 0.0, 1.0]))
+    clear = _plan([flower])
+    lift, travel = clear.moves[:2]
+    assert travel.kind == "travel"
+    # Something as tall as the swab hangs at the top of Z, halfway along the travel: far
+    # from the flower, its descent and its approach.
+    poses = poses_along(lift.pose, travel.pose, MotionProfile(),
+                        PollinateConfig().samples_per_move)
+    shaft = tool_points(poses, PollinateConfig().tool, PAPER_BOT)
+    middle = shaft[len(shaft) // 2]
+    tip = middle[np.argmin(middle[:, 2])]  # the swab's lowest point there
+    assert np.linalg.norm(tip[:2] - CENTER[:2]) > 0.3
+    post = tip + np.stack([np.zeros(20), np.zeros(20), np.linspace(-0.3, 0.0, 20)], 1)
+    plan = _plan([flower], post)
+    (visit,) = plan.visits
+    assert visit.status == "unreachable" and "travel to it at the top of Z" in visit.reason
+    assert not plan.planned and "travel" not in [m.kind for m in plan.moves]
+
+
 def test_the_order_is_no_longer_than_the_flowers_order():
     rng = np.random.default_rng(4)
     centres = CENTER + rng.uniform([-0.12, -0.12, -0.02], [0.12, 0.12, 0.05], (9, 3))
