@@ -12,9 +12,8 @@ that the shaft may pass through the target flower's own corolla (its points of a
 colour within `touch_radius_m` of the centre). A flower whose axis cannot be taken is
 approached along the nearest direction within `cone_deg` of it that can, or reported
 unreachable with the reason. The visits are ordered to keep travel short (nearest
-neighbour, then 2-opt), on FarmBot's motion profile; a visit whose travel at the top of Z,
-the head turned for it, would pass the plant (a tall plant, a long tool) is left out with
-that reason and the rest ordered again.
+neighbour, then 2-opt), on FarmBot's motion profile; a visit whose travel at the top of Z
+would pass the plant (a tall plant, a long tool) is left out with that reason.
 
 Frames and units: the bed frame, metres, radians (DESIGN.md); flower normals point out of
 the open face of the corolla, so the swab moves along minus the normal.
@@ -283,15 +282,12 @@ def plan_pollination(flowers: list[Flower], obstacles: np.ndarray | None,
     visits = [plan_visit(f, plant, config, geometry, tool, profile) for f in flowers]
     while True:
         planned = [v for v in visits if v.status == "planned"]
-        order = _short_order(planned, start, geometry, profile)
-        ordered = [planned[k] for k in order]
+        ordered = [planned[k] for k in _short_order(planned, start, geometry, profile)]
         moves = plan_moves(ordered, start, geometry)
         blocked = _blocked_travel(moves, plant.tree, config, geometry, tool, profile)
         if blocked is None:
             break
-        # The travel to this visit, at the top of Z with the head turned for it, passes
-        # the plant: the visit is left out and the rest planned again without it.
-        flower, distance = blocked
+        flower, distance = blocked  # left out, and the rest planned again without it
         visits = [Visit(v.flower, "unreachable", f"the travel to it at the top of Z passes "
                         f"{distance * 1000:.0f} mm from the plant: the head, turned for "
                         "this visit, hangs lower than the gantry can clear the plant")
@@ -689,9 +685,8 @@ def plan_moves(visits: list[Visit], start: np.ndarray, geometry: BotGeometry = P
 def _blocked_travel(moves: list[Move], tree: cKDTree | None, config: PollinateConfig,
                     geometry: BotGeometry, tool: PollinatorTool, profile: MotionProfile
                     ) -> tuple[int, float] | None:
-    """The first travel at the top of Z that passes within `clearance_m` of the plant (a
-    plant taller than the gantry clears with the head turned for the visit it travels to):
-    that visit's flower and the distance, metres; None where every travel is clear."""
+    """The first travel at the top of Z within `clearance_m` of the plant (the head turned
+    for the visit it travels to): that visit's flower and the distance, metres; or None."""
     if tree is None:
         return None
     for a, b in zip(moves, moves[1:], strict=False):
