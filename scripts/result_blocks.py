@@ -19,7 +19,7 @@ import numpy as np
 from scipy import stats as scipy_stats
 
 from flowerpose.eval.scoring.paired import flower_errors
-from flowerpose.eval.scoring.stats import interval_text, wilson
+from flowerpose.eval.scoring.stats import interval_text, p_text, wilson
 
 REPO = Path(__file__).resolve().parents[1]
 #: The pages that hold result blocks.
@@ -177,7 +177,7 @@ def tool_study(runs: Path) -> str:
              "against the default |", "|---|---|---|---|---|---|"]
     for row, m, c in zip(rows, metrics, against, strict=True):
         versus = "-" if c is None else (f"{c['only_ours']} won, {c['only_theirs']} lost "
-                                        f"(McNemar p {c['p']:.2g})")
+                                        f"(McNemar p {p_text(c['p'])})")
         lines.append(f"| {row} | {share(m, 'pollinated')} | {share(m, 'pollinated_ceiling')} "
                      f"| {m['unreachable']} | {m['collisions']} of {m['visits']} | {versus} |")
     best = max(metrics, key=lambda m: m["pollinated_ceiling"])

@@ -43,7 +43,7 @@ $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --s
     --out runs/pollinate-field-10 -q
 # Which pollinator reaches the flowers: the shaft's reach and offset, without the close look.
 $flowerpose sweep --task pollinate --source oracle --preset field --plants 10 --seed 0 \
-    --grid pollinate.tool.reach_m=0.2,0.24 --grid pollinate.tool.offset_down_m=0.03,0.07 \
+    --grid pollinate.tool.reach_m=0.2,0.24,0.28 --grid pollinate.tool.offset_down_m=0.07,0.1 \
     --set pollinate.look.views=0 --out runs/sweep-tool -q
 # Real photographs to a cloud three ways, timed and checked against the calibrated cameras
 # (the shared copy where there is one, else the published set, fetched).
