@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats as scipy_stats
 
+from flowerpose.atomic import write_text
 from flowerpose.eval.scoring.paired import flower_errors
 from flowerpose.eval.scoring.stats import interval_text, p_text, wilson
 
@@ -242,9 +243,7 @@ def main(runs: Path, only: set[str] | None = None) -> int:
         text = path.read_text(encoding="utf-8")
         filled = fill(text, runs, only)
         if filled != text:
-            partial = path.with_name(path.name + ".partial")
-            partial.write_text(filled, encoding="utf-8")
-            partial.replace(path)
+            write_text(path, filled)
         made = [name for name in blocks(text) if only is None or name in only]
         if made:
             print(f"{page}: {', '.join(made)}")

@@ -162,16 +162,19 @@ UNPAIRED = {"distinguishable": False, "paired": False,
             "found": None, "fp": None, "new": {"flipped": [], "over_20": []}}
 
 
-def _changes_plants(keys: list[str]) -> bool:
+def _changes_plants(keys: Iterable[str]) -> bool:
     """Whether the grid changes the generated plants' geometry (`sim.plant.*`), not only
     their clouds or captures, so that a seed's flowers differ from setting to setting."""
     return any(key.startswith("sim.plant.") for key in keys)
 
 
-def against_defaults(ours: list[dict], defaults: list[dict]) -> dict:
+def against_defaults(ours: list[dict], defaults: list[dict], keys: Iterable[str]) -> dict:
     """A setting's plant entries against the defaults' on the same plants
     (`paired.compare_runs`), and whether any difference is shown: found flowers, false
-    positives or a fit's paired error."""
+    positives or a fit's paired error. `keys`: the settings that differ from the defaults;
+    where they change the plants themselves, nothing is paired (`UNPAIRED`)."""
+    if _changes_plants(keys):
+        return {**UNPAIRED}
     paired = compare_runs(ours, defaults)
     shown = (paired["found"]["shown"] or paired["fp"]["shown"]
              or any(fit["shown"] for fit in paired["fits"].values()))
@@ -322,11 +325,11 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     defaults = {"setting": {key: value_at(config, key) for key in keys},
                 "metrics": pooled[-1], "plants": per_plant[-1]}
     pooled, per_plant = pooled[:-1], per_plant[:-1]
-    paired = not _changes_plants(keys)
-    compared = [against_defaults(entries[k], entries[-1]) if paired else {**UNPAIRED}
-                for k in range(len(settings))]
-    if run.task == "pollinate" and paired:
+    compared = [against_defaults(entries[k], entries[-1], keys) for k in range(len(settings))]
+    if run.task == "pollinate":
         for k, c in enumerate(compared):
+            if not c["paired"]:
+                continue
             c["pollinated"] = pollinated_against(entries[k], entries[-1])
             c["distinguishable"] = c["distinguishable"] or c["pollinated"]["shown"]
     rows = [{**setting, **metrics, "distinguishable_from_defaults": c["distinguishable"],

@@ -365,7 +365,7 @@ def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> d
         chosen = _entries(scorer, spec.validate, spec.layers(settings), folder)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
-    return against_defaults(chosen, defaults["validate_entries"])
+    return against_defaults(chosen, defaults["validate_entries"], settings)
 
 
 def trial_rows(study: Any, spec: TuneSpec) -> list[dict]:
