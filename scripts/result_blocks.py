@@ -31,7 +31,14 @@ BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)"
 
 
 def _json(path: Path) -> dict:
-    return json.loads(path.read_text(encoding="utf-8"))
+    """A run's JSON file; one line and exit status 2 where it is missing or unreadable (its
+    run has not been made: `make results` makes them all)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        print(f"result_blocks.py: {path}: {reason}", file=sys.stderr)
+        sys.exit(2)
 
 
 def accuracy_table(runs: Path) -> str:
