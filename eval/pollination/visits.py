@@ -287,13 +287,18 @@ def tally(outcomes: list[dict]) -> dict:
 
 def summarise_pollination(plants: list[dict]) -> dict:
     """report.json's `summary.pollination` from the plants' sections: visits, flowers,
-    successes, their rate with its Wilson interval, and the failures by cause."""
+    successes, their rate with its Wilson interval, the failures by cause, and the share of
+    visits that collided or pushed a leaf with its Wilson interval."""
     from flowerpose.eval.scoring.stats import wilson
 
     outcomes = [o for p in plants for o in p["flowers"]]
     counted = tally(outcomes)
-    return {"visits": sum(p["visits"] for p in plants), "flowers": len(outcomes), **counted,
-            "success_rate_ci95": wilson(counted["successes"], len(outcomes))}
+    visits = sum(p["visits"] for p in plants)
+    collisions = counted["failures"]["collision"]
+    return {"visits": visits, "flowers": len(outcomes), **counted,
+            "success_rate_ci95": wilson(counted["successes"], len(outcomes)),
+            "collision_share": round(collisions / visits, 4) if visits else None,
+            "collision_share_ci95": wilson(collisions, visits)}
 
 
 def success_by_error(plants: list[dict], truth_errors: dict[tuple[str, int], float],

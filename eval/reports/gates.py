@@ -22,7 +22,7 @@ from typing import Any
 
 from flowerpose.atomic import write_file, write_text
 from flowerpose.errors import InputError
-from flowerpose.eval.reports.report import markdown_table, summarise
+from flowerpose.eval.reports.report import markdown_table, run_summary, summary_template
 
 _OPERATORS = {">=": operator.ge, "<=": operator.le, "==": operator.eq, ">": operator.gt,
               "<": operator.lt}
@@ -55,9 +55,9 @@ class Outcome:
         return self.requirement.holds(self.measured)
 
 
-def parse_requirements(texts: list[str]) -> list[Requirement]:
-    """--require values, checked against the summary's keys: InputError for a malformed
-    one or a key that is not a number of the summary."""
+def parse_requirements(texts: list[str], task: str = "pose") -> list[Requirement]:
+    """--require values, checked against the summary's keys of a run of `task`: InputError
+    for a malformed one or a key that is not a number of the summary."""
     requirements = []
     for text in texts:
         match = _PATTERN.match(text)
@@ -71,14 +71,15 @@ def parse_requirements(texts: list[str]) -> list[Requirement]:
             raise InputError("require", f"'{text}': {number!r} is not a number") from None
         if not math.isfinite(value):
             raise InputError("require", f"'{text}': the bound must be finite")
-        check_key(key, "require", f"'{text}': ")
+        check_key(key, "require", f"'{text}': ", task)
         requirements.append(Requirement(key, op, value, text))
     return requirements
 
 
-def check_key(key: str, where: str, said: str = "") -> None:
-    """InputError unless `key` names a number of report.json's summary (dotted)."""
-    template = summarise([])
+def check_key(key: str, where: str, said: str = "", task: str = "pose") -> None:
+    """InputError unless `key` names a number of report.json's summary (dotted) in a run
+    of `task` (the pollination task's adds `pollination.*`)."""
+    template = summary_template(task)
     try:
         leaf = _lookup(template, key)
     except KeyError:
@@ -97,7 +98,7 @@ def check(report: dict, requirements: list[Requirement]) -> list[Outcome]:
     """Every requirement on the whole run ("all"), then on each plant."""
     outcomes = [Outcome("all", r, _number(report["summary"], r.key)) for r in requirements]
     for plant in report["plants"]:
-        summary = summarise([plant])
+        summary = run_summary([plant])
         outcomes += [Outcome(plant["plant"], r, _number(summary, r.key)) for r in requirements]
     return outcomes
 

@@ -73,6 +73,30 @@ def summarise(plants: list[dict], intervals: bool = True) -> dict:
             "failed": {m: sum(p["failed"][m] for p in plants) for m in METHODS}}
 
 
+def run_summary(plants: list[dict], intervals: bool = True) -> dict:
+    """The summary of plant entries as report.json holds it: `summarise`'s, with the
+    pollination task's sections (`pollination_task.pollination_summary`) where every entry
+    was visited."""
+    summary = summarise(plants, intervals)
+    if plants and all("pollination" in p for p in plants):
+        from flowerpose.eval.jobs.pollination_task import pollination_summary
+
+        summary.update(pollination_summary(plants))
+    return summary
+
+
+def summary_template(task: str = "pose") -> dict:
+    """An empty summary of a run of `task` ("pose" or "pollinate"): its keys, the numbers
+    a gate or an objective may name."""
+    summary = summarise([])
+    if task == "pollinate":
+        from flowerpose.eval.pollination.visits import summarise_pollination
+
+        summary.update({key: summarise_pollination([]) for key in (
+            "pollination", "pollination_ceiling", "pollination_scan_pose")})
+    return summary
+
+
 def _score(error: float | None) -> float:
     """A flower's share of the accuracy curve's area (`stats.accuracy_scores`)."""
     return 0.0 if error is None else float(accuracy_scores([error], 1)[0])

@@ -93,6 +93,18 @@ def found_verdict(found: dict) -> str:
                    else ", finds fewer")
 
 
+def pollinated_verdict(pollinated: dict) -> str:
+    """McNemar's comparison of flowers pollinated (`sweep.pollinated_against`) in words."""
+    said = (f"pollinated: {pollinated['only_ours']} only by this run, "
+            f"{pollinated['only_theirs']} only by the other (McNemar p {_p(pollinated['p'])})")
+    if pollinated.get("too_few"):
+        return said + f", {TOO_FEW} ({pollinated['flowers']})"
+    if not pollinated["shown"]:
+        return said + ", no difference shown"
+    return said + (", pollinates more" if pollinated["only_ours"] > pollinated["only_theirs"]
+                   else ", pollinates fewer")
+
+
 def fp_verdict(false: dict) -> str:
     """The false positives' comparison in words."""
     said = f"false positives: {false['ours']} against {false['theirs']} (p {_p(false['p'])})"

@@ -26,7 +26,7 @@ from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.jobs.plants import Plants, score_job
 from flowerpose.eval.pool import LOCAL, Execution, run_jobs
 from flowerpose.eval.reports.report import summarise
-from flowerpose.eval.scoring.paired import compare_runs
+from flowerpose.eval.scoring.paired import compare_runs, pollinated_verdict
 from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG, mcnemar, p_text
 from flowerpose.jsonio import write_json
 from flowerpose.stopwatch import Stopwatch
@@ -97,9 +97,9 @@ def pollination_metrics(entries: list[dict], intervals: bool = True) -> dict:
                         f"{name}_high": bounds.get("high"),
                         f"{name}_flowers": summary["successes"]})
         if key == "pollination":
-            visits, collisions = summary["visits"], summary["failures"]["collision"]
-            metrics.update(flowers=summary["flowers"], visits=visits, collisions=collisions,
-                           collision_share=round(collisions / visits, 4) if visits else None,
+            metrics.update(flowers=summary["flowers"], visits=summary["visits"],
+                           collisions=summary["failures"]["collision"],
+                           collision_share=summary["collision_share"],
                            unreachable=summary["failures"]["unreachable"])
     return metrics
 
@@ -178,9 +178,15 @@ def against_defaults(ours: list[dict], defaults: list[dict], keys: Iterable[str]
     paired = compare_runs(ours, defaults)
     shown = (paired["found"]["shown"] or paired["fp"]["shown"]
              or any(fit["shown"] for fit in paired["fits"].values()))
-    return {"distinguishable": bool(shown), "paired": True, "verdicts": paired["verdicts"],
-            "plane": paired["fits"]["plane"], "found": paired["found"], "fp": paired["fp"],
-            "new": paired["new"]}
+    compared = {"distinguishable": bool(shown), "paired": True,
+                "verdicts": paired["verdicts"], "plane": paired["fits"]["plane"],
+                "found": paired["found"], "fp": paired["fp"], "new": paired["new"]}
+    if ours and all("pollination" in e for e in (*ours, *defaults)):
+        pollinated = pollinated_against(ours, defaults)
+        compared.update(pollinated=pollinated,
+                        distinguishable=compared["distinguishable"] or pollinated["shown"],
+                        verdicts=[*compared["verdicts"], pollinated_verdict(pollinated)])
+    return compared
 
 
 #: What each metric's axis in sweep.png says, with its unit.
@@ -326,12 +332,6 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
                 "metrics": pooled[-1], "plants": per_plant[-1]}
     pooled, per_plant = pooled[:-1], per_plant[:-1]
     compared = [against_defaults(entries[k], entries[-1], keys) for k in range(len(settings))]
-    if run.task == "pollinate":
-        for k, c in enumerate(compared):
-            if not c["paired"]:
-                continue
-            c["pollinated"] = pollinated_against(entries[k], entries[-1])
-            c["distinguishable"] = c["distinguishable"] or c["pollinated"]["shown"]
     rows = [{**setting, **metrics, "distinguishable_from_defaults": c["distinguishable"],
              "plane_vs_defaults_deg": c["plane"]["mean_difference"],
              "plane_vs_defaults_low_deg": c["plane"]["ci95"]["low"],

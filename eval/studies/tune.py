@@ -13,16 +13,20 @@ The chosen trial is picked by validation, not training: among the training front
 Pareto front; with one objective the best CHOSEN_FROM trials) the highest validation F1,
 ties broken by the lower validation plane error. Without validation plants it is the
 training front's first, and the report says plainly that nothing was validated.
+
+With `--task pollinate` every plant's flowers are also visited and judged as `eval --task
+pollinate` does; the objectives by default are then the share pollinated and the share of
+visits that collided, and the choice goes by their validation bounds (`tune_task.py`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,10 +40,11 @@ from flowerpose.errors import InputError
 from flowerpose.eval.jobs.config import EvalConfig, eval_config
 from flowerpose.eval.jobs.plant_set import PlantSet
 from flowerpose.eval.jobs.plants import Plants, world_digest
-from flowerpose.eval.reports.report import markdown_table, run_record, summarise
+from flowerpose.eval.reports.report import markdown_table, run_record, run_summary
 from flowerpose.eval.scoring.paired import flower_errors
 from flowerpose.eval.scoring.stats import FLIP_DEG, GROSS_DEG
 from flowerpose.eval.studies.tune_space import Objective, Param, typed_settings
+from flowerpose.eval.studies.tune_task import POSE, TASKS, TuneTask
 from flowerpose.jsonio import write_json
 from flowerpose.log import LOG
 from flowerpose.outputs import check_folder_writable
@@ -50,13 +55,6 @@ CHOSEN_FROM = 5
 #: What tune writes into its --out folder (the study's database too, when it is there).
 TUNE_FILES = ("tune.json", "tune.md", "tune.html", "best.toml", "study.db", "plants",
               "trials")
-#: The summary numbers each trial records for training and validation (with their 95 %
-#: bounds; `f1_low` is the F1 of the recall's and precision's lower bounds).
-RECORDED = ("f1", "recall_visible", "precision", "fp", "found_visible", "visible",
-            "error_deg.plane.mean", "error_deg.plane.median", "recall_visible_ci95.low",
-            "precision_ci95.low", "error_deg.plane.mean_ci95.low",
-            "error_deg.plane.mean_ci95.high", "error_deg.plane.p90",
-            "error_deg.plane.p90_ci95.high", "error_deg.plane.over_90")
 
 
 @dataclass(frozen=True)
@@ -74,6 +72,9 @@ class TuneSpec:
     sampler_seed: int | None
     out_dir: Path
     cache: Path | None
+    task: TuneTask = POSE
+    """What a trial is scored on: the pose task, or the pollination task too (each plant's
+    flowers visited as `eval --task pollinate` does)."""
 
     def layers(self, settings: dict) -> tuple[dict, ...]:
         """The user's settings and then a trial's (`settings`), in the order they apply."""
@@ -84,32 +85,43 @@ class SetScorer:
     """Scores settings on plant sets: each set's config is its preset's (a real set's: the
     defaults') with the settings' layers over it; captures are made once per world
     (`plants.Plants`) and detections come from the stage cache where the same cloud was
-    detected with the same settings."""
+    detected with the same settings. With the pollination task each synthetic plant's
+    flowers are then visited and judged (`pollination_task.pollinate_plants`)."""
 
-    def __init__(self, out_dir: Path, cache: Path | None, workers: int | None = 1):
-        self.out_dir, self.cache = out_dir, cache
+    def __init__(self, out_dir: Path, cache: Path | None, workers: int | None = 1,
+                 task: TuneTask = POSE):
+        self.out_dir, self.cache, self.task = out_dir, cache, task
         self.plants = Plants(workers, cache)
 
     def config(self, plant_set: PlantSet, layers: tuple[dict, ...]) -> EvalConfig:
         return eval_config(DEFAULT_PRESET if plant_set.real else plant_set.preset, layers)
 
-    def score(self, plant_set: PlantSet, layers: tuple[dict, ...], out_dir: Path) -> list[dict]:
-        """Report.json plant entries of the settings on every plant of the set (each
-        scored into out_dir/NAME/)."""
+    def score(self, plant_set: PlantSet, layers: tuple[dict, ...], out_dir: Path
+              ) -> Iterator[dict]:
+        """Report.json plant entries of the settings on every plant of the set, one plant
+        at a time (each scored, and visited, into out_dir/NAME/)."""
         config = self.config(plant_set, layers)
         world = (f"{plant_set.source}-{plant_set.preset}-"
                  f"{world_digest(config, plant_set.source)}")
-        jobs = self.plants.jobs(plant_set, config, self.out_dir / "plants" / world).jobs
-        return [job.score(config, out_dir / job.name, self.cache)[0] for job in jobs]
+        plants = self.out_dir / "plants" / world
+        for job in self.plants.jobs(plant_set, config, plants).jobs:
+            entry = job.score(config, out_dir / job.name, self.cache)[0]
+            if self.task.name == "pollinate":
+                from flowerpose.eval.jobs.pollination_task import pollinate_plants
+
+                pollinate_plants([job], [entry], config, out_dir / job.name, 1,
+                                 [(plants / job.name, out_dir / job.name)])
+            yield entry
 
 
 def study_name(spec_space: tuple[Param, ...], train: tuple[PlantSet, ...],
-               objectives: tuple[Objective, ...]) -> tuple[str, dict]:
-    """The default study name and what it is made of: the space, the training plants, the
-    objectives and the code version (a study of another code is another study)."""
+               objectives: tuple[Objective, ...], task: TuneTask = POSE) -> tuple[str, dict]:
+    """The default study name and what it is made of: the task, the space, the training
+    plants, the objectives and the code version (a study of another code is another
+    study)."""
     from flowerpose.cache import code_version
 
-    identity = {"space": {p.key: p.to_json() for p in spec_space},
+    identity = {"task": task.name, "space": {p.key: p.to_json() for p in spec_space},
                 "train": [{"label": s.label, **s.describe()} for s in train],
                 "objectives": [o.text for o in objectives], "code": code_version()}
     digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:10]
@@ -212,14 +224,14 @@ def _entries(scorer: SetScorer, sets: tuple[PlantSet, ...], layers: tuple[dict, 
     return entries
 
 
-def _recorded(entries: list[dict] | None) -> dict | None:
-    """A trial's recorded scores (RECORDED) over its plant entries."""
+def _recorded(entries: list[dict] | None, task: TuneTask = POSE) -> dict | None:
+    """A trial's recorded scores (the task's `recorded`) over its plant entries."""
     from flowerpose.eval.reports.gates import summary_value
 
     if entries is None:
         return None
-    summary = summarise(entries)
-    recorded = {k: summary_value(summary, k) for k in RECORDED}
+    summary = run_summary(entries)
+    recorded = {k: summary_value(summary, k) for k in task.recorded}
     recorded["flipped_flowers"] = sorted(f"{plant}: flower {truth}" for (plant, truth), error
                                          in flower_errors(entries, "plane").items()
                                          if error > FLIP_DEG)
@@ -243,7 +255,7 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
         try:
             def report(entries: list[dict]) -> None:
                 if len(spec.objectives) == 1:
-                    trial.report(spec.objectives[0].value(summarise(entries, False)),
+                    trial.report(spec.objectives[0].value(run_summary(entries, False)),
                                  len(entries))
                     if trial.should_prune():
                         raise optuna.TrialPruned()
@@ -251,14 +263,14 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
             try:
                 train_entries = _entries(scorer, spec.train, layers, folder / "train",
                                          report)
-                train = summarise(train_entries, False)
+                train = run_summary(train_entries, False)
             except optuna.TrialPruned:
                 raise
             except Exception as err:  # noqa: BLE001 - recorded as the failed trial's reason
                 trial.set_user_attr("error", f"{type(err).__name__}: {err}"
                                     if not isinstance(err, InputError) else str(err))
                 raise
-            recorded = _recorded(train_entries)
+            recorded = _recorded(train_entries, spec.task)
             trial.set_user_attr("train", recorded)
             added = len(set(recorded["flipped_flowers"])
                         - set(trial.study.user_attrs.get(DEFAULTS_FLIPPED, [])))
@@ -266,7 +278,7 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
             # Infeasible to the sampler (a constraint above 0), whatever its objectives.
             trial.set_constraint("new_flipped", added)
             trial.set_user_attr("validate", _recorded(
-                _entries(scorer, spec.validate, layers, folder / "validate")))
+                _entries(scorer, spec.validate, layers, folder / "validate"), spec.task))
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         values = tuple(o.value(train) for o in spec.objectives)
@@ -283,7 +295,7 @@ def run_trials(spec: TuneSpec, trials: int) -> int:
 
     quiet_optuna()
     study = open_study(spec, {}, create=False)
-    scorer = SetScorer(spec.out_dir, spec.cache, workers=1)
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=1, task=spec.task)
     watch = Stopwatch()
 
     def said(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
@@ -340,13 +352,14 @@ def score_defaults(spec: TuneSpec) -> dict:
     """The user's settings without a trial's, on training and validation plants: the
     recorded scores, and the validation plant entries (`validate_entries`, for the
     paired comparison with the chosen trial)."""
-    scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=None, task=spec.task)
     folder = spec.out_dir / "trials" / "defaults"
     layers = spec.layers({})
     try:
         validate = _entries(scorer, spec.validate, layers, folder / "validate")
-        return {"train": _recorded(_entries(scorer, spec.train, layers, folder / "train")),
-                "validate": _recorded(validate), "validate_entries": validate}
+        return {"train": _recorded(_entries(scorer, spec.train, layers, folder / "train"),
+                                   spec.task),
+                "validate": _recorded(validate, spec.task), "validate_entries": validate}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 
@@ -359,7 +372,7 @@ def chosen_against_defaults(spec: TuneSpec, settings: dict, defaults: dict) -> d
 
     if not defaults.get("validate_entries"):
         return None
-    scorer = SetScorer(spec.out_dir, spec.cache, workers=None)
+    scorer = SetScorer(spec.out_dir, spec.cache, workers=None, task=spec.task)
     folder = spec.out_dir / "trials" / "chosen"
     try:
         chosen = _entries(scorer, spec.validate, spec.layers(settings), folder)
@@ -411,10 +424,10 @@ def front(study: Any, spec: TuneSpec) -> list[Any]:
     return sorted(complete, key=lambda t: sign * t.values[0])[:CHOSEN_FROM]
 
 
-def choose(candidates: list[Any], validated: bool, defaults_flipped: list[str] = ()
-           ) -> Any | None:
-    """The chosen trial (CHOICE_RULE), by the validation scores' 95 % bounds, not their
-    point values (or, without validation, the front's first); never one that flips a
+def choose(candidates: list[Any], validated: bool, defaults_flipped: list[str] = (),
+           task: TuneTask = POSE) -> Any | None:
+    """The chosen trial (the task's `rule`), by the validation scores' 95 % bounds, not
+    their point values (or, without validation, the front's first); never one that flips a
     normal on the validation plants that the defaults (`defaults_flipped`) did not."""
     if validated:
         candidates = [t for t in candidates if not set(
@@ -425,20 +438,7 @@ def choose(candidates: list[Any], validated: bool, defaults_flipped: list[str] =
     if not validated:
         return candidates[0]
 
-    def key(trial: Any) -> tuple[float, float]:
-        scores = trial.user_attrs.get("validate") or {}
-        f1 = scores.get("f1_low")
-        plane = scores.get("error_deg.plane.mean_ci95.high")
-        return (-(f1 if f1 is not None else -1.0), plane if plane is not None else math.inf)
-
-    return min(candidates, key=key)
-
-
-CHOICE_RULE = ("the chosen trial: among the training front (trials that flip no normal the "
-               "defaults did not), none that flips one on the validation plants; the "
-               "highest lower bound of the validation F1 (the F1 of the 95 % lower bounds of "
-               "the recall of visible flowers and of the precision), ties broken by the "
-               "lower upper bound of the validation plane error's mean")
+    return min(candidates, key=lambda trial: task.rank(trial.user_attrs.get("validate") or {}))
 
 
 def best_toml(settings: dict) -> str:
@@ -447,37 +447,30 @@ def best_toml(settings: dict) -> str:
                          "(flowerpose eval --config FILE)")
 
 
-def _cell(scores: dict | None, key: str) -> str:
-    if not scores or scores.get(key) is None:
-        return "-"
-    value = scores[key]
-    return f"{value:.2f}°" if key.startswith("error_deg") else f"{value:.3f}"
-
-
 def tune_markdown(report: dict) -> str:
     """tune.md: the front (or top trials) with training and validation scores, the
     defaults' row, the chosen trial and its rule, the gaps and the warnings."""
-    keys = ("f1", "error_deg.plane.mean")
-    bounds = ("f1_low", "error_deg.plane.mean_ci95.high")
-    header = ["trial", "settings", *(f"train {k}" for k in keys),
-              *(f"validate {k}" for k in keys), "validate F1, lower bound",
-              "validate plane mean, upper bound", "gap F1"]
+    task = TASKS[report.get("task", POSE.name)]
+    first = task.shown[0]
+    header = ["trial", "settings", *(f"train {m.label}" for m in task.shown),
+              *(f"validate {m.label}" for m in task.shown), *(m.label for m in task.ranked),
+              f"gap {first.label}"]
     rows = []
     defaults = report["defaults"]
     for row in report["front"]:
-        gap = ("-" if not row["validate"] or row["validate"].get("f1") is None
-               or row["train"].get("f1") is None
-               else f"{row['train']['f1'] - row['validate']['f1']:+.3f}")
+        gap = ("-" if not row["validate"] or row["validate"].get(first.key) is None
+               or row["train"].get(first.key) is None
+               else f"{row['train'][first.key] - row['validate'][first.key]:+.3f}")
         chosen = " (chosen)" if row["number"] == report.get("chosen", {}).get("number") else ""
         rows.append([f"{row['number']}{chosen}",
                      ", ".join(f"{k}={_short(v)}" for k, v in row["settings"].items()),
-                     *(_cell(row["train"], k) for k in keys),
-                     *(_cell(row["validate"], k) for k in keys),
-                     *(_cell(row["validate"], k) for k in bounds), gap])
+                     *(m.cell(row["train"]) for m in task.shown),
+                     *(m.cell(row["validate"]) for m in task.shown),
+                     *(m.cell(row["validate"]) for m in task.ranked), gap])
     rows.append(["defaults", "(the settings without a trial's)",
-                 *(_cell(defaults["train"], k) for k in keys),
-                 *(_cell(defaults["validate"], k) for k in keys),
-                 *(_cell(defaults["validate"], k) for k in bounds), "-"])
+                 *(m.cell(defaults["train"]) for m in task.shown),
+                 *(m.cell(defaults["validate"]) for m in task.shown),
+                 *(m.cell(defaults["validate"]) for m in task.ranked), "-"])
     counts = report["counts"]
     lines = [f"# flowerpose tune: {report['study']['name']}", "",
              f"`{report['run']['command']}` ({report['run']['date']}); storage "
@@ -487,7 +480,7 @@ def tune_markdown(report: dict) -> str:
              "Training: " + "; ".join(s["label"] for s in report["train"]) + ". Validation: "
              + ("; ".join(s["label"] for s in report["validate"]) if report["validate"]
                 else "**none: nothing was validated**, the choice is by training alone") + ".",
-             "", markdown_table(header, rows), "", f"Rule: {CHOICE_RULE}."]
+             "", markdown_table(header, rows), "", f"Rule: {report['rule']}."]
     against = report.get("chosen_vs_defaults")
     if against is not None:
         lines += ["", "The chosen trial against the defaults on the validation plants, flower "
@@ -501,25 +494,18 @@ def _short(value: Any) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
-def warnings_of(chosen: dict | None, defaults: dict, against: dict | None = None) -> list[str]:
+def warnings_of(chosen: dict | None, defaults: dict, against: dict | None = None,
+                task: TuneTask = POSE) -> list[str]:
     """What the report must say of the chosen trial against the defaults: worse point
-    values, and, compared flower by flower on the validation plants (`against`), that no
-    difference is shown."""
+    values (the task's `shown`), and, compared flower by flower on the validation plants
+    (`against`), that no difference is shown."""
     if chosen is None or not chosen["validate"] or not defaults["validate"]:
         return []
-    mine, theirs = chosen["validate"], defaults["validate"]
     said = []
     if against is not None and not against["distinguishable"]:
         said.append("the chosen settings are not distinguishable from the defaults on the "
                     "validation plants (" + "; ".join(against["verdicts"]) + ")")
-    if (mine.get("f1") or 0) < (theirs.get("f1") or 0):
-        said.append(f"the chosen settings' validation F1 ({mine['f1']:.3f}) is below the "
-                    f"defaults' ({theirs['f1']:.3f})")
-    plane, base = mine.get("error_deg.plane.mean"), theirs.get("error_deg.plane.mean")
-    if plane is not None and base is not None and plane > base:
-        said.append(f"the chosen settings' validation plane error ({plane:.2f}°) is above the "
-                    f"defaults' ({base:.2f}°)")
-    return said
+    return said + task.worse(chosen["validate"], defaults["validate"])
 
 
 def write_html(path: Path, study: Any, spec: TuneSpec, markdown: str) -> Path:
@@ -563,13 +549,14 @@ def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
     rows = trial_rows(study, spec)
     candidates = front(study, spec)
     chosen_trial = choose(candidates, bool(spec.validate),
-                          (defaults.get("validate") or {}).get("flipped_flowers", []))
+                          (defaults.get("validate") or {}).get("flipped_flowers", []), spec.task)
     by_number = {r["number"]: r for r in rows}
     chosen = None if chosen_trial is None else by_number[chosen_trial.number]
     against = (None if chosen is None or not spec.validate
                else chosen_against_defaults(spec, chosen["settings"], defaults))
     states = [t.state for t in study.trials]
-    report = {"run": run_record(), "study": {"name": spec.study_name, "storage": spec.storage},
+    report = {"run": run_record(), "task": spec.task.name,
+              "study": {"name": spec.study_name, "storage": spec.storage},
               "space": {p.key: p.to_json() for p in spec.space},
               "objectives": [o.text for o in spec.objectives],
               "train": [{"label": s.label, **s.describe()} for s in spec.train],
@@ -579,9 +566,10 @@ def report_study(spec: TuneSpec, defaults: dict, seconds: float) -> dict:
                          "failed": states.count(optuna.trial.TrialState.FAIL)},
               "defaults": {k: v for k, v in defaults.items() if k != "validate_entries"},
               "trials": rows, "front": [by_number[t.number] for t in candidates],
-              "rule": CHOICE_RULE if spec.validate else "nothing was validated: the training "
+              "rule": spec.task.rule if spec.validate else "nothing was validated: the training "
               "front's first", "chosen": chosen, "chosen_vs_defaults": against,
-              "warnings": warnings_of(chosen, defaults, against), "seconds": round(seconds, 1)}
+              "warnings": warnings_of(chosen, defaults, against, spec.task),
+              "seconds": round(seconds, 1)}
     write_json(spec.out_dir / "tune.json", report)
     markdown = tune_markdown(report)
     write_text(spec.out_dir / "tune.md", markdown)

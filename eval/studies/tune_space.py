@@ -141,8 +141,6 @@ def _check(config: Any, key: str, value: Any, where: str) -> None:
         raise InputError(where, f"{value!r}: {err.problem}") from None
 
 
-#: Objectives by default: the detection F1 up, the plane error down.
-DEFAULT_OBJECTIVES = ("max:f1", "min:error_deg.plane.mean")
 #: The value an objective takes when its score is missing (no flower found, no error).
 MISSING = {"maximize": 0.0, "minimize": 180.0}
 
@@ -167,17 +165,19 @@ class Objective:
         return MISSING[self.direction] if measured is None else float(measured)
 
 
-def parse_objectives(texts: list[str]) -> list[Objective]:
-    """--objective max:KEY / min:KEY, checked against the summary's keys."""
+def parse_objectives(texts: list[str], task: str = "pose") -> list[Objective]:
+    """--objective max:KEY / min:KEY, checked against the summary's keys of a run of `task`
+    (none: the task's own objectives, `tune_task.TASKS`)."""
     from flowerpose.eval.reports.gates import check_key
+    from flowerpose.eval.studies.tune_task import TASKS
 
     objectives = []
-    for text in texts or DEFAULT_OBJECTIVES:
+    for text in texts or TASKS[task].objectives:
         direction, sep, key = text.partition(":")
         if not sep or direction not in ("max", "min"):
             raise InputError("--objective", f"{text!r}: expected max:KEY or min:KEY, e.g. "
                              "max:f1")
-        check_key(key, "--objective")
+        check_key(key, "--objective", task=task)
         objectives.append(Objective("maximize" if direction == "max" else "minimize", key))
     if len({o.key for o in objectives}) < len(objectives):
         raise InputError("--objective", "each objective once")

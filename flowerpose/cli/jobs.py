@@ -61,7 +61,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from flowerpose.eval.reports.gates import parse_requirements
     from flowerpose.eval.scoring.methods import ExternalMethod, parse_compare, parse_method
 
-    requirements = parse_requirements(args.require)  # a bad gate says so before any work
+    requirements = parse_requirements(args.require, args.task)  # a bad gate: said first
     if (args.junit or args.summary) and not requirements:
         raise InputError("--junit" if args.junit else "--summary", "needs --require")
     for path, flag in ((args.junit, "--junit"), (args.summary, "--summary")):

@@ -282,17 +282,22 @@ def cmd_tune(args: argparse.Namespace) -> int:
         validation_default,
     )
     from flowerpose.eval.studies.tune_space import parse_objectives, read_space
+    from flowerpose.eval.studies.tune_task import TASKS as TUNE_TASKS
     from flowerpose.stopwatch import Stopwatch
 
     preset_config = eval_config(args.preset or DEFAULT_PRESET)
     overrides = setting_layers(preset_config, args)
     base = functools.reduce(apply_overrides, overrides, preset_config)
     space = tuple(read_space(args.space, base))
-    objectives = tuple(parse_objectives(args.objective))
+    task = TUNE_TASKS[args.task]
+    objectives = tuple(parse_objectives(args.objective, task.name))
     train = parse_sets(args.train) if args.train else [
         PlantSet(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
     validate = parse_sets(args.validate) if args.validate else validation_default(train)
     for plant_set in (*train, *validate):
+        if plant_set.real and task.name == "pollinate":
+            raise InputError("--task", f"pollinate needs synthetic plants, whose flowers' "
+                             f"true poses judge the visits; {plant_set.label} is real")
         if not plant_set.real:
             refuse_fresh(plant_set.seed, plant_set.plants, "--train/--validate/--seed")
     storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
@@ -303,10 +308,11 @@ def cmd_tune(args: argparse.Namespace) -> int:
         raise InputError("--study", f"{storage} is on this machine's disk, which a remote "
                          "Ray cluster does not reach: give a storage it reaches (an RDB URL, "
                          "e.g. postgresql://..., or journal:///PATH on a shared file system)")
-    default_name, identity = study_name(space, tuple(train), objectives)
+    default_name, identity = study_name(space, tuple(train), objectives, task)
     cache = stage_cache(args)
     spec = TuneSpec(space, tuple(train), tuple(validate), objectives, overrides, storage,
-                    args.study_name or default_name, args.sampler_seed, args.out, cache)
+                    args.study_name or default_name, args.sampler_seed, args.out, cache,
+                    task)
     watch = Stopwatch()
     with owned(args.out, "tune", args.overwrite, TUNE_FILES), jobs_on(args):
         args.out.mkdir(parents=True, exist_ok=True)
@@ -361,7 +367,9 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
         epilog="examples:\n"
         "  flowerpose tune --space examples/tuning/space.toml --trials 40 --out tune --plants 3\n"
         "  flowerpose tune --space examples/tuning/space.toml --trials 100 --train oracle-10 "
-        "--train field-10 --validate paper-plant-3 --workers 2 --out tune-field")
+        "--train field-10 --validate paper-plant-3 --workers 2 --out tune-field\n"
+        "  flowerpose tune --task pollinate --space examples/tuning/tool.toml --trials 20 "
+        "--preset field --plants 5 --out tune-tool")
     p.add_argument("--space", type=Path, required=True, metavar="SPACE.toml",
                    help="the settings to search: \"KEY\" = { low = L, high = H [, log = true]"
                    " [, int = true] } or { choices = [...] }, one line per dotted key")
@@ -389,9 +397,15 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--study-name", metavar="NAME",
                    help="the study's name (default: made from the space, the training "
                    "plants, the objectives and the code version)")
+    p.add_argument("--task", choices=TASKS, default="pose",
+                   help="pose: score each trial by the flowers found and their poses; "
+                   "pollinate: also visit each plant's flowers as eval --task pollinate "
+                   "does (synthetic plants only; a study of the pollinator's geometry or the "
+                   "planner's settings) (default: %(default)s)")
     p.add_argument("--objective", action="append", default=[], metavar="max:KEY|min:KEY",
                    help="an objective over the report summary's keys (repeatable; default: "
-                   "max:f1 and min:error_deg.plane.mean)")
+                   "max:f1 and min:error_deg.plane.mean; with --task pollinate "
+                   "max:pollination.success_rate and min:pollination.collision_share)")
     p.add_argument("--sampler-seed", type=SEED, default=None, metavar="N",
                    help="seed of the sampler: the same trials again, with one worker "
                    "(default: none)")

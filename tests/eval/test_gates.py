@@ -75,3 +75,31 @@ def test_the_report_records_the_suite(tmp_path):
                   suite=suite)
     report = run_eval(EvalConfig(), run, tmp_path / "out", Execution(1))
     assert report["suite"] == suite
+
+
+def test_a_pollination_gate_is_a_number_only_of_a_pollination_run():
+    """The pollination task's summary adds `pollination.*`: a gate on it is checked where
+    the visits are flown, and refused before any work where they are not."""
+    gate = "pollination.success_rate>=0.8"
+    assert parse_requirements([gate, "pollination.collision_share<=0.02"], "pollinate")
+    with pytest.raises(InputError, match="not a number of the report's summary"):
+        parse_requirements([gate])
+
+
+def test_each_plants_gate_reads_its_own_pollination():
+    from flowerpose.eval.reports.gates import check
+
+    def plant(name, outcomes, visits):
+        return {"plant": name, "gt": 0, "visible": 0, "detections": 0, "found": 0,
+                "found_visible": 0, "extra": 0, "fp": 0, "matches": [],
+                "error_deg": {m: [] for m in ("plane", "superellipsoid", "paraboloid")},
+                "failed": {m: 0 for m in ("plane", "superellipsoid", "paraboloid")},
+                **{key: {"visits": visits, "flowers": [{"flower": k, "outcome": o}
+                                                       for k, o in enumerate(outcomes)]}
+                   for key in ("pollination", "pollination_ceiling")}}
+
+    plants = [plant("a", ["success", "success"], 2), plant("b", ["success", "collision"], 2)]
+    [gate] = parse_requirements(["pollination.success_rate>=0.9"], "pollinate")
+    report = {"summary": {"pollination": {"success_rate": 0.75}}, "plants": plants}
+    measured = {o.scope: o.measured for o in check(report, [gate])}
+    assert measured == {"all": 0.75, "a": 1.0, "b": 0.5}

@@ -86,7 +86,10 @@ def test_eval_reports_pollination_and_its_curve(tmp_path):
     summary = report["summary"]
     for key in ("pollination", "pollination_ceiling"):
         assert set(summary[key]) == {"visits", "flowers", "successes", "success_rate",
-                                    "success_rate_ci95", "failures"}
+                                    "success_rate_ci95", "failures", "collision_share",
+                                    "collision_share_ci95"}
+        collided = summary[key]["failures"]["collision"]
+        assert summary[key]["collision_share"] == round(collided / summary[key]["visits"], 4)
     plant = report["plants"][0]
     assert len(plant["pollination"]["flowers"]) == plant["gt"]
     assert sum(r["flowers"] for r in report["pollination_by_error"]) > 0

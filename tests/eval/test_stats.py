@@ -242,3 +242,19 @@ def test_mcnemar_counts_a_flower_once_across_its_repeats():
     for entry in fewer[:2]:
         entry["matches"] = entry["matches"][1:]
     assert compare_runs(fewer, theirs)["found"]["only_theirs"] == 0
+
+
+def test_pollinated_flowers_compared_in_words_say_too_few_under_ten():
+    from flowerpose.eval.scoring.paired import pollinated_verdict
+
+    flowers = {(0, k) for k in range(40)}
+    ours = {(0, k) for k in range(30)}
+    theirs = {(0, k) for k in range(18)}
+    assert pollinated_verdict(stats.mcnemar(ours, theirs, len(flowers))).endswith(
+        ", pollinates more")
+    assert pollinated_verdict(stats.mcnemar(theirs, ours, len(flowers))).endswith(
+        ", pollinates fewer")
+    assert pollinated_verdict(stats.mcnemar(ours, ours, len(flowers))).endswith(
+        "no difference shown")
+    few = pollinated_verdict(stats.mcnemar({(0, 1)}, set(), 5))
+    assert "too few" in few and few.startswith("pollinated: 1 only by this run, 0 only by")

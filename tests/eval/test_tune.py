@@ -7,6 +7,7 @@ import pytest
 from realplants import write_real_plant
 
 from flowerpose.cli import main
+from flowerpose.errors import InputError
 from flowerpose.eval.studies import tune
 
 SPACE = '"cluster.eps" = { low = 0.006, high = 0.014, log = true }\n' \
@@ -171,3 +172,78 @@ def test_a_trial_that_adds_a_flip_is_infeasible_and_never_chosen():
     assert choose([flips, clean], True, ["val: seed-11 flower 1"]) is clean
     assert choose([flips], True, []) is None
     assert choose([flips, clean], False) is flips
+
+
+def _scored(number, pollinated_low, collisions_high, values=(0.9, 0.01)):
+    trial = _Trial(number, list(values))
+    trial.user_attrs["validate"].update({
+        "pollination.success_rate_ci95.low": pollinated_low,
+        "pollination.collision_share_ci95.high": collisions_high})
+    return trial
+
+
+def test_a_pollination_study_chooses_by_the_validation_bounds_of_pollinated_then_collided():
+    from flowerpose.eval.studies.tune import choose
+    from flowerpose.eval.studies.tune_task import POLLINATE
+
+    more = _scored(1, 0.80, 0.05)
+    fewer_collisions = _scored(2, 0.80, 0.02)
+    less = _scored(3, 0.75, 0.0)
+    assert choose([more, less], True, [], POLLINATE) is more
+    assert choose([more, fewer_collisions, less], True, [], POLLINATE) is fewer_collisions
+    # A trial without the scores (its visits never flown) ranks last.
+    assert choose([_scored(4, None, None), less], True, [], POLLINATE) is less
+
+
+def test_a_pollination_studys_warnings_name_what_got_worse():
+    from flowerpose.eval.studies.tune import warnings_of
+    from flowerpose.eval.studies.tune_task import POLLINATE
+
+    defaults = {"validate": {"pollination.success_rate": 0.8,
+                             "pollination.collision_share": 0.01}}
+    chosen = {"validate": {"pollination.success_rate": 0.75,
+                           "pollination.collision_share": 0.03}}
+    said = warnings_of(chosen, defaults, None, POLLINATE)
+    assert said == ["the chosen settings' validation share pollinated (0.750) is below the "
+                    "defaults' (0.800)",
+                    "the chosen settings' validation share of visits that collided (0.030) "
+                    "is above the defaults' (0.010)"]
+    assert warnings_of(defaults, defaults, None, POLLINATE) == []
+
+
+def test_a_pollination_study_takes_its_own_objectives_and_refuses_real_plants(
+        tmp_path, plants, capsys):
+    from flowerpose.eval.studies.tune_space import parse_objectives
+
+    assert [o.text for o in parse_objectives([], "pollinate")] == [
+        "max:pollination.success_rate", "min:pollination.collision_share"]
+    with pytest.raises(InputError, match="not a number of the report's summary"):
+        parse_objectives(["max:pollination.success_rate"])
+    assert _tune(tmp_path, plants, SPACE, 1, "--task", "pollinate") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pollinate needs synthetic plants" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_pollination_studys_scorer_visits_each_plant_and_records_the_share_pollinated(
+        tmp_path):
+    from flowerpose.eval.jobs.plant_set import PlantSet
+    from flowerpose.eval.studies.tune import SetScorer, _recorded
+    from flowerpose.eval.studies.tune_task import POLLINATE
+
+    # No path search and no close look: the scorer's wiring is on trial here.
+    layers = ({"pollinate.path_checks": 0, "pollinate.look.views": 0},)
+    scorer = SetScorer(tmp_path, None, task=POLLINATE)
+    [entry] = scorer.score(PlantSet("oracle", "easy", 1, 2), layers, tmp_path / "trial")
+    visited = entry["pollination"]
+    assert len(visited["flowers"]) == entry["gt"] and "pollination_ceiling" in entry
+    assert (tmp_path / "trial" / entry["plant"] / "flight.json").exists()
+    recorded = _recorded([entry], POLLINATE)
+    assert recorded["pollination.successes"] == visited["successes"] > 0
+    assert recorded["pollination.success_rate"] == round(
+        visited["successes"] / len(visited["flowers"]), 4)
+    assert 0 <= recorded["pollination.success_rate_ci95.low"] <= recorded[
+        "pollination.success_rate"]
+    assert recorded["pollination.collision_share"] == round(
+        visited["failures"]["collision"] / visited["visits"], 4)
