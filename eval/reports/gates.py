@@ -85,8 +85,12 @@ def check_key(key: str, where: str, said: str = "", task: str = "pose") -> None:
     except KeyError:
         leaf = {}
     if isinstance(leaf, dict):
+        if task != "pollinate" and key in _leaves(summary_template("pollinate")):
+            raise InputError(where, f"{said}{key} is a number of the pollination task's "
+                             "summary only: run with --task pollinate")
         raise InputError(where, f"{said}{key} is not a number of the report's summary (its "
                          f"numbers: {', '.join(_leaves(template))})")
+
 
 
 def summary_value(summary: dict, key: str) -> float | None:

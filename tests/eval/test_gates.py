@@ -82,7 +82,7 @@ def test_a_pollination_gate_is_a_number_only_of_a_pollination_run():
     the visits are flown, and refused before any work where they are not."""
     gate = "pollination.success_rate>=0.8"
     assert parse_requirements([gate, "pollination.collision_share<=0.02"], "pollinate")
-    with pytest.raises(InputError, match="not a number of the report's summary"):
+    with pytest.raises(InputError, match="the pollination task's summary only"):
         parse_requirements([gate])
 
 

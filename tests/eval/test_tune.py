@@ -217,7 +217,7 @@ def test_a_pollination_study_takes_its_own_objectives_and_refuses_real_plants(
 
     assert [o.text for o in parse_objectives([], "pollinate")] == [
         "max:pollination.success_rate", "min:pollination.collision_share"]
-    with pytest.raises(InputError, match="not a number of the report's summary"):
+    with pytest.raises(InputError, match="run with --task pollinate"):
         parse_objectives(["max:pollination.success_rate"])
     assert _tune(tmp_path, plants, SPACE, 1, "--task", "pollinate") == 2
     err = capsys.readouterr().err
