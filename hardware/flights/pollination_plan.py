@@ -87,7 +87,8 @@ class PollinateConfig:
     boxes, `kinematics.head_boxes`) or the shaft anywhere along a visit. Less does not
     reach more: with 0.005 (the planner's ceiling, 10 field plants, seeds 0-9) 5 more
     flowers were planned and 5 others lost, 4 of them to leaves pushed 15-65 mm aside
-    (a field cloud has holes where a leaf is)."""
+    (a field cloud has holes where a leaf is). Below `calyx_radius_m`, or the target's own
+    sepals block every visit."""
     touch_radius_m: float = 0.02
     """The target flower's own points (of a flower's colour, when the cloud's colours are
     given) within this distance of its centre may touch the shaft and swab (its corolla);
@@ -153,6 +154,14 @@ class PollinateConfig:
         if self.path_checks < 0:
             raise InputError("pollinate.path_checks", f"must be 0 or more, got "
                              f"{self.path_checks}")
+        if self.clearance_m >= self.calyx_radius_m:
+            # The swab rests at the centre: the target's own sepals and stalk just beyond
+            # the calyx radius would then block every visit (a field plant's true poses,
+            # seed 1, calyx 12 mm: 9 of 11 planned at 10 mm, 1 at 12.5 mm, none at 15 mm).
+            raise InputError("pollinate.clearance_m", f"must be below pollinate."
+                             f"calyx_radius_m ({self.calyx_radius_m:g}), got "
+                             f"{self.clearance_m:g}: the target's own sepals would block "
+                             "every visit; raise both together")
         if not 0 <= self.cone_deg < 90:
             raise InputError("pollinate.cone_deg", f"must be 0 or more, below 90, got "
                              f"{self.cone_deg}")

@@ -87,6 +87,20 @@ def test_a_bad_tool_is_refused_naming_its_setting(settings, words):
         PollinatorTool(**settings)
 
 
+def test_a_clearance_the_targets_own_sepals_would_break_is_refused_before_any_work(
+        tmp_path, capsys):
+    from flowerpose.cli import main
+    from flowerpose.errors import InputError
+
+    with pytest.raises(InputError, match="calyx_radius_m"):
+        PollinateConfig(clearance_m=0.015)
+    assert PollinateConfig(clearance_m=0.015, calyx_radius_m=0.02).clearance_m == 0.015
+    assert main(["sweep", "--task", "pollinate", "--grid", "pollinate.clearance_m=0.01,0.015",
+                 "--out", str(tmp_path / "never")]) == 2
+    assert "own sepals would block every visit" in capsys.readouterr().err
+    assert not (tmp_path / "never").exists()
+
+
 def test_tool_at_puts_the_tip_where_asked_along_the_direction_asked():
     rng = np.random.default_rng(3)
     tips = rng.uniform([0.5, 0.3, 0.05], [2.5, 1.2, 0.3], (100, 3))
