@@ -211,12 +211,68 @@ def _tool(setting: dict, sweep: dict) -> str:
     return f"{values['reach_m'] * 100:g} cm, {values['offset_down_m'] * 100:g} cm"
 
 
+def tool_tune(runs: Path) -> str:
+    """The same question as a search (`tune --task pollinate` over the tool's reach and
+    offset and the standoff): the training front and the defaults on the validation
+    plants, the chosen trial, and whether any reaches 95 % with the true poses."""
+    tune = _json(runs / "tune-tool" / "tune.json")
+
+    def setting(row: dict) -> str:
+        values = row["settings"]
+        return (f"{values['pollinate.tool.reach_m'] * 100:.1f} cm, "
+                f"{values['pollinate.tool.offset_down_m'] * 100:.1f} cm, "
+                f"{values['pollinate.standoff_m'] * 100:.1f} cm")
+
+    def scores(scores: dict, train: dict) -> str:
+        return (f"{train['pollination.success_rate']:.1%} | "
+                f"{scores['pollination.successes']} of {scores['pollination.flowers']} "
+                f"({scores['pollination.success_rate']:.1%}) "
+                f"[{scores['pollination.success_rate_ci95.low']:.0%}, "
+                f"{scores['pollination.success_rate_ci95.high']:.0%}] | "
+                f"{scores['pollination_ceiling.success_rate']:.1%} | "
+                f"{scores['pollination.failures.collision']} of {scores['pollination.visits']}")
+
+    chosen = tune["chosen"]
+    rows = [(f"{row['number']}" + (" (chosen)" if chosen and row["number"] == chosen["number"]
+                                   else ""), setting(row), scores(row["validate"], row["train"]))
+            for row in tune["front"]]
+    defaults = tune["defaults"]
+    from flowerpose.hardware.flights.pollination_plan import PollinateConfig
+
+    shipped = PollinateConfig()
+    rows.append(("defaults", setting({"settings": {
+        "pollinate.tool.reach_m": shipped.tool.reach_m,
+        "pollinate.tool.offset_down_m": shipped.tool.offset_down_m,
+        "pollinate.standoff_m": shipped.standoff_m}}),
+        scores(defaults["validate"], defaults["train"])))
+    lines = ["| trial | reach, offset under the lens, standoff | pollinated (training) | "
+             "pollinated (validation) | pollinated, true poses (validation) | collisions "
+             "(validation visits) |", "|---|---|---|---|---|---|"]
+    lines += [f"| {name} | {what} | {numbers} |" for name, what, numbers in rows]
+    best = max([*tune["front"], defaults],
+               key=lambda r: r["validate"]["pollination_ceiling.success_rate"])
+    ceiling = best["validate"]["pollination_ceiling.success_rate"]
+    answer = ("A trial reaches 95% of the validation flowers with the true poses."
+              if ceiling >= 0.95 else "No trial on the front reaches 95% of the validation "
+              f"flowers even with the true poses; the most is {ceiling:.1%}.")
+    against = tune.get("chosen_vs_defaults") or {}
+    verdict = next((v for v in against.get("verdicts", []) if v.startswith("pollinated")),
+                   None)
+    counts = tune["counts"]
+    return (f"{counts['complete']} trials, training on "
+            + "; ".join(s["label"] for s in tune["train"]) + ", validated on "
+            + "; ".join(s["label"] for s in tune["validate"])
+            + ". The training front and the defaults:\n\n" + "\n".join(lines) + "\n\n"
+            + answer + (f" The chosen trial against the defaults on the validation "
+                        f"flowers: {verdict}." if verdict else "") + "\n")
+
+
 #: What makes each block.
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "accuracy-table": accuracy_table, "compare-example": compare_example,
     "flowers-needed": flowers_needed, "wilson-example": wilson_example,
     "uncertain-flag": uncertain_flag, "photos-bench": photos_bench,
-    "tool-study": tool_study}
+    "tool-study": tool_study, "tool-tune": tool_tune}
 
 
 def blocks(text: str) -> list[str]:

@@ -45,6 +45,10 @@ $flowerpose eval --task pollinate --source oracle --preset field --plants 10 --s
 $flowerpose sweep --task pollinate --source oracle --preset field --plants 10 --seed 0 \
     --grid pollinate.tool.reach_m=0.2,0.24,0.28 --grid pollinate.tool.offset_down_m=0.07,0.1 \
     --set pollinate.look.views=0 --out runs/sweep-tool -q
+# The same question as a search, chosen on plants the search never trained on.
+$flowerpose tune --task pollinate --space examples/tuning/tool.toml --trials 6 \
+    --preset field --plants 3 --seed 0 --sampler-seed 1 --workers 2 \
+    --set pollinate.look.views=0 --out runs/tune-tool --overwrite -q
 # Real photographs to a cloud three ways, timed and checked against the calibrated cameras
 # (the shared copy where there is one, else the published set, fetched).
 photos=${FLOWERPOSE_SHARED:-../shared}/real-photos/romi-arabidopsis

@@ -83,26 +83,25 @@ def tails_verdict(new: dict) -> str:
 
 def found_verdict(found: dict) -> str:
     """McNemar's comparison of found flowers in words."""
-    said = (f"found: {found['only_ours']} only by this run, {found['only_theirs']} only by "
-            f"the other (McNemar p {_p(found['p'])})")
-    if found.get("too_few"):
-        return said + f", {TOO_FEW} ({found['flowers']})"
-    if not found["shown"]:
-        return said + ", no difference shown"
-    return said + (", finds more" if found["only_ours"] > found["only_theirs"]
-                   else ", finds fewer")
+    return mcnemar_verdict(found, "found", "finds")
 
 
 def pollinated_verdict(pollinated: dict) -> str:
     """McNemar's comparison of flowers pollinated (`sweep.pollinated_against`) in words."""
-    said = (f"pollinated: {pollinated['only_ours']} only by this run, "
-            f"{pollinated['only_theirs']} only by the other (McNemar p {_p(pollinated['p'])})")
-    if pollinated.get("too_few"):
-        return said + f", {TOO_FEW} ({pollinated['flowers']})"
-    if not pollinated["shown"]:
+    return mcnemar_verdict(pollinated, "pollinated", "pollinates")
+
+
+def mcnemar_verdict(test: dict, what: str, does: str) -> str:
+    """McNemar's comparison (`stats.mcnemar`) of the flowers `what` ("found") in words,
+    `does` ("finds") saying which side does more."""
+    said = (f"{what}: {test['only_ours']} only by this run, {test['only_theirs']} only by "
+            f"the other (McNemar p {_p(test['p'])})")
+    if test.get("too_few"):
+        return said + f", {TOO_FEW} ({test['flowers']})"
+    if not test["shown"]:
         return said + ", no difference shown"
-    return said + (", pollinates more" if pollinated["only_ours"] > pollinated["only_theirs"]
-                   else ", pollinates fewer")
+    return said + (f", {does} more" if test["only_ours"] > test["only_theirs"]
+                   else f", {does} fewer")
 
 
 def fp_verdict(false: dict) -> str:
