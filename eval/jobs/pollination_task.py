@@ -16,10 +16,10 @@ from flowerpose.eval.pollination.visits import (
     LookSetup,
     plan_and_score,
     success_by_error,
-    summarise_pollination,
     write_success_plot,
 )
 from flowerpose.eval.pool import run_jobs
+from flowerpose.eval.scoring.pollinated import pollination_sections
 from flowerpose.pipeline.colour import flower_coloured
 from flowerpose.sim.export import read_plant
 
@@ -79,12 +79,8 @@ def pollination_summary(entries: list[dict]) -> dict:
     (with the close look where it ran), from the scan's poses alone (where a close look
     ran: the same flowers without it, and the pairs' changes) and from the true ones (the
     planner's ceiling)."""
-    summary = {"pollination": summarise_pollination([e["pollination"] for e in entries]),
-               "pollination_ceiling": summarise_pollination([e["pollination_ceiling"]
-                                                             for e in entries])}
-    if entries and all("pollination_scan_pose" in e for e in entries):
-        summary["pollination_scan_pose"] = summarise_pollination(
-            [e["pollination_scan_pose"] for e in entries])
+    summary = pollination_sections(entries)
+    if "pollination_scan_pose" in summary:
         summary["close_look"] = paired_look(entries)
     return summary
 

@@ -21,7 +21,8 @@ import numpy as np
 
 from flowerpose.cloudio import Cloud
 from flowerpose.eval.pollination.contact import ContactWorld
-from flowerpose.eval.pollination.visits import CAUSES, PollinationScoreConfig, flown_visits, judge
+from flowerpose.eval.pollination.visits import PollinationScoreConfig, flown_visits, judge
+from flowerpose.eval.scoring.pollinated import CAUSES
 from flowerpose.hardware.flights.pollination_plan import (
     Flower,
     PollinateConfig,

@@ -28,6 +28,7 @@ import numpy as np
 from flowerpose.cloudio import Cloud
 from flowerpose.errors import InputError
 from flowerpose.eval.pollination.contact import ContactWorld, Touches
+from flowerpose.eval.scoring.pollinated import CAUSES, tally
 from flowerpose.hardware.backends.sim_camera import SimCameraConfig
 from flowerpose.hardware.bot import KinematicBot
 from flowerpose.hardware.flights.close_look import CloseLook
@@ -48,9 +49,6 @@ from flowerpose.pipeline.pose import PoseConfig
 from flowerpose.sim.contact import ContactConfig
 from flowerpose.sim.pieces import FLOWER_PARTS, Part
 from flowerpose.stopwatch import Stopwatch
-
-#: The causes a visit fails for, in the order they are looked at.
-CAUSES = ("missed", "no pose", "uncertain", "unreachable", "pose off", "collision")
 
 
 @dataclass(frozen=True)
@@ -274,31 +272,6 @@ def _others(world: ContactWorld, touches: Touches, flower: int) -> np.ndarray:
     patches = touches.patches
     part, owner = world.patches.part[patches], world.patches.flower[patches]
     return patches[np.isin(part, OTHER_FLOWER_PARTS) & (owner >= 0) & (owner != flower)]
-
-
-def tally(outcomes: list[dict]) -> dict:
-    """Successes, their rate and the failures by cause of a list of flower outcomes."""
-    successes = sum(o["outcome"] == "success" for o in outcomes)
-    return {"successes": successes, "success_rate": round(successes / len(outcomes), 4)
-            if outcomes else None,
-            "failures": {cause: sum(o["outcome"] == cause for o in outcomes)
-                         for cause in CAUSES}}
-
-
-def summarise_pollination(plants: list[dict]) -> dict:
-    """report.json's `summary.pollination` from the plants' sections: visits, flowers,
-    successes, their rate with its Wilson interval, the failures by cause, and the share of
-    visits that collided or pushed a leaf with its Wilson interval."""
-    from flowerpose.eval.scoring.stats import wilson
-
-    outcomes = [o for p in plants for o in p["flowers"]]
-    counted = tally(outcomes)
-    visits = sum(p["visits"] for p in plants)
-    collisions = counted["failures"]["collision"]
-    return {"visits": visits, "flowers": len(outcomes), **counted,
-            "success_rate_ci95": wilson(counted["successes"], len(outcomes)),
-            "collision_share": round(collisions / visits, 4) if visits else None,
-            "collision_share_ci95": wilson(collisions, visits)}
 
 
 def success_by_error(plants: list[dict], truth_errors: dict[tuple[str, int], float],

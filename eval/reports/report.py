@@ -14,6 +14,7 @@ import numpy as np
 from tabulate import tabulate
 
 from flowerpose.atomic import write_text
+from flowerpose.eval.scoring.pollinated import SECTIONS, pollination_sections, summarise_pollination
 from flowerpose.eval.scoring.stats import (
     NO_INTERVAL,
     accuracy_curve,
@@ -75,14 +76,9 @@ def summarise(plants: list[dict], intervals: bool = True) -> dict:
 
 def run_summary(plants: list[dict], intervals: bool = True) -> dict:
     """The summary of plant entries as report.json holds it: `summarise`'s, with the
-    pollination task's sections (`pollination_task.pollination_summary`) where every entry
-    was visited."""
-    summary = summarise(plants, intervals)
-    if plants and all("pollination" in p for p in plants):
-        from flowerpose.eval.jobs.pollination_task import pollination_summary
-
-        summary.update(pollination_summary(plants))
-    return summary
+    pollination task's sections where every entry was visited
+    (`pollinated.pollination_sections`)."""
+    return {**summarise(plants, intervals), **pollination_sections(plants)}
 
 
 def summary_template(task: str = "pose") -> dict:
@@ -90,10 +86,7 @@ def summary_template(task: str = "pose") -> dict:
     a gate or an objective may name."""
     summary = summarise([])
     if task == "pollinate":
-        from flowerpose.eval.pollination.visits import summarise_pollination
-
-        summary.update({key: summarise_pollination([]) for key in (
-            "pollination", "pollination_ceiling", "pollination_scan_pose")})
+        summary.update({key: summarise_pollination([]) for key in SECTIONS})
     return summary
 
 

@@ -84,9 +84,9 @@ def _metrics(entries: list[dict], seconds: list[float], intervals: bool = True) 
 def pollination_metrics(entries: list[dict], intervals: bool = True) -> dict:
     """A pollination sweep's metrics over plant entries: the share of flowers pollinated
     from the estimated poses and from the true ones (the planner's ceiling), with their
-    Wilson 95 % bounds (`visits.summarise_pollination`); the visits, the visits that
+    Wilson 95 % bounds (`pollinated.summarise_pollination`); the visits, the visits that
     collided or pushed a leaf and their share; the flowers no approach reached."""
-    from flowerpose.eval.pollination.visits import summarise_pollination
+    from flowerpose.eval.scoring.pollinated import summarise_pollination
 
     metrics: dict = {}
     for name, key in (("pollinated", "pollination"), ("pollinated_ceiling",

@@ -16,7 +16,7 @@ POSE_RECORDED = ("f1", "recall_visible", "precision", "fp", "found_visible", "vi
                  "precision_ci95.low", "error_deg.plane.mean_ci95.low",
                  "error_deg.plane.mean_ci95.high", "error_deg.plane.p90",
                  "error_deg.plane.p90_ci95.high", "error_deg.plane.over_90")
-#: And a pollination trial's, from its visits (`visits.summarise_pollination`).
+#: And a pollination trial's, from its visits (`pollinated.summarise_pollination`).
 POLLINATION_RECORDED = ("pollination.success_rate", "pollination.success_rate_ci95.low",
                         "pollination.success_rate_ci95.high", "pollination.successes",
                         "pollination.flowers", "pollination.visits",

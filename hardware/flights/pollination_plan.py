@@ -15,8 +15,7 @@ unreachable with the reason. The visits are ordered to keep travel short (neares
 neighbour, then 2-opt), on FarmBot's motion profile; a visit whose travel at the top of Z
 would pass the plant (a tall plant, a long tool) is left out with that reason.
 
-Frames and units: the bed frame, metres, radians (DESIGN.md); flower normals point out of
-the open face of the corolla, so the swab moves along minus the normal.
+Frames, units: bed frame, metres, radians; normals point out of the corolla's open face.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
-from flowerpose.errors import InputError
+from flowerpose.config import require
 from flowerpose.hardware.flights.approach_path import joint_state, plan_path
 from flowerpose.hardware.flights.scan_plan import poses_along
 from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry, PollinatorTool
@@ -88,7 +87,7 @@ class PollinateConfig:
     reach more: with 0.005 (the planner's ceiling, 10 field plants, seeds 0-9) 5 more
     flowers were planned and 5 others lost, 4 of them to leaves pushed 15-65 mm aside
     (a field cloud has holes where a leaf is). Below `calyx_radius_m`, or the target's own
-    sepals block every visit."""
+    sepals block every visit (a field plant, seed 1: 9 of 11 planned at 10 mm, none at 15)."""
     touch_radius_m: float = 0.02
     """The target flower's own points (of a flower's colour, when the cloud's colours are
     given) within this distance of its centre may touch the shaft and swab (its corolla);
@@ -148,23 +147,15 @@ class PollinateConfig:
         for name in ("standoff_m", "clearance_m", "touch_radius_m", "straight_within_m",
                      "cone_step_deg", "path_box_m", "path_step_m", "path_tries", "path_bend_m",
                      "rim_margin_m", "cone_azimuths"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"pollinate.{name}", f"must be positive, got "
-                                 f"{getattr(self, name)}")
-        if self.path_checks < 0:
-            raise InputError("pollinate.path_checks", f"must be 0 or more, got "
-                             f"{self.path_checks}")
-        if self.clearance_m >= self.calyx_radius_m:
-            # The swab rests at the centre: the target's own sepals and stalk just beyond
-            # the calyx radius would then block every visit (a field plant's true poses,
-            # seed 1, calyx 12 mm: 9 of 11 planned at 10 mm, 1 at 12.5 mm, none at 15 mm).
-            raise InputError("pollinate.clearance_m", f"must be below pollinate."
-                             f"calyx_radius_m ({self.calyx_radius_m:g}), got "
-                             f"{self.clearance_m:g}: the target's own sepals would block "
-                             "every visit; raise both together")
-        if not 0 <= self.cone_deg < 90:
-            raise InputError("pollinate.cone_deg", f"must be 0 or more, below 90, got "
-                             f"{self.cone_deg}")
+            require(getattr(self, name) > 0, f"pollinate.{name}",
+                    f"must be positive, got {getattr(self, name)}")
+        require(self.path_checks >= 0, "pollinate.path_checks", "must be 0 or more, got "
+                f"{self.path_checks}")
+        require(self.clearance_m < self.calyx_radius_m, "pollinate.clearance_m",
+                f"must be below pollinate.calyx_radius_m ({self.calyx_radius_m:g}), got "
+                f"{self.clearance_m:g}: the target's own sepals would block every visit")
+        require(0 <= self.cone_deg < 90, "pollinate.cone_deg",
+                f"must be 0 or more, below 90, got {self.cone_deg}")
 
     @property
     def plans_uncertain(self) -> bool:

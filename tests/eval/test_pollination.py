@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from flowerpose.eval.jobs.plant_set import PlantSet
-from flowerpose.eval.pollination.visits import CAUSES, PollinationScoreConfig, plan_and_score
+from flowerpose.eval.pollination.visits import PollinationScoreConfig, plan_and_score
 from flowerpose.eval.pool import Execution
+from flowerpose.eval.scoring.pollinated import CAUSES
 from flowerpose.hardware.flights.pollination_plan import PollinateConfig
 
 
