@@ -174,13 +174,17 @@ def _storage(url: str) -> Any:
                          f"{str(error).splitlines()[0]}") from None
 
 
-def open_study(spec: TuneSpec, identity: dict, create: bool) -> Any:
+def open_study(spec: TuneSpec, identity: dict, create: bool, worker: int = 0) -> Any:
     """The spec's study: created (or, made by the same space, plants and objectives,
-    loaded to add trials to); one of that name made otherwise is refused."""
+    loaded to add trials to); one of that name made otherwise is refused. `worker`: which
+    of the processes adding trials at once opens it; each seeds its sampler apart
+    (`--sampler-seed` plus the worker's number), or they would all draw the same
+    settings."""
     import optuna
 
     quiet_optuna()
-    sampler = optuna.samplers.TPESampler(seed=spec.sampler_seed)
+    sampler = optuna.samplers.TPESampler(
+        seed=None if spec.sampler_seed is None else spec.sampler_seed + worker)
     pruner = (optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=1)
               if len(spec.objectives) == 1 else optuna.pruners.NopPruner())
     storage = _storage(spec.storage)
@@ -287,14 +291,15 @@ def _objective(spec: TuneSpec, scorer: SetScorer):
     return objective
 
 
-def run_trials(spec: TuneSpec, trials: int) -> int:
+def run_trials(spec: TuneSpec, trials: int, worker: int = 0) -> int:
     """Add `trials` trials to the spec's study here (a worker process, a Ray task or the
-    command itself); a trial that raises is recorded as failed with its reason and the
+    command itself; `worker`, its number among those adding trials at once, seeds its
+    sampler apart); a trial that raises is recorded as failed with its reason and the
     study goes on. Returns the trials run."""
     import optuna
 
     quiet_optuna()
-    study = open_study(spec, {}, create=False)
+    study = open_study(spec, {}, create=False, worker=worker)
     scorer = SetScorer(spec.out_dir, spec.cache, workers=1, task=spec.task)
     watch = Stopwatch()
 

@@ -342,8 +342,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
                 tasks = args.trials if args.ray is not None else min(workers, args.trials)
                 shares = [args.trials // tasks + (k < args.trials % tasks) for k in range(tasks)]
-                run_jobs(run_trials, [(spec, n) for n in shares], workers, stage="tune",
-                         labels=[f"worker {k}" for k in range(tasks)])
+                run_jobs(run_trials, [(spec, n, k) for k, n in enumerate(shares)], workers,
+                         stage="tune", labels=[f"worker {k}" for k in range(tasks)])
         finally:
             report = report_study(spec, defaults, watch.elapsed())
     from flowerpose.eval.studies.tune import tune_markdown

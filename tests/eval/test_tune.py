@@ -247,3 +247,27 @@ def test_a_pollination_studys_scorer_visits_each_plant_and_records_the_share_pol
         "pollination.success_rate"]
     assert recorded["pollination.collision_share"] == round(
         visited["failures"]["collision"] / visited["visits"], 4)
+
+
+def test_workers_adding_trials_at_once_draw_different_settings(tmp_path):
+    """--sampler-seed with several workers: each worker's sampler is seeded apart, so the
+    first (random) trials of two workers are not the same settings twice."""
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.studies.tune import TuneSpec, open_study, study_name
+    from flowerpose.eval.studies.tune_space import parse_objectives, read_space
+
+    (tmp_path / "space.toml").write_text(SPACE)
+    space = tuple(read_space(tmp_path / "space.toml", eval_config("field")))
+    objectives = tuple(parse_objectives([]))
+    name, identity = study_name(space, (), objectives)
+    spec = TuneSpec(space, (), (), objectives, (), f"sqlite:///{tmp_path / 'study.db'}", name,
+                    3, tmp_path, None)
+    open_study(spec, identity, create=True)
+
+    def first_draw(worker):
+        study = open_study(spec, {}, create=False, worker=worker)
+        trial = study.ask()
+        return {p.key: p.suggest(trial) for p in space}
+
+    assert first_draw(0) == first_draw(0)  # one worker: the same trials again
+    assert first_draw(0) != first_draw(1)
