@@ -223,14 +223,19 @@ def tool_tune(runs: Path) -> str:
                 f"{values['pollinate.tool.offset_down_m'] * 100:.1f} cm, "
                 f"{values['pollinate.standoff_m'] * 100:.1f} cm")
 
+    def share(value: float | None, digits: int = 1) -> str:
+        return "-" if value is None else f"{value:.{digits}%}"
+
     def scores(scores: dict, train: dict) -> str:
-        return (f"{train['pollination.success_rate']:.1%} | "
-                f"{scores['pollination.successes']} of {scores['pollination.flowers']} "
-                f"({scores['pollination.success_rate']:.1%}) "
-                f"[{scores['pollination.success_rate_ci95.low']:.0%}, "
-                f"{scores['pollination.success_rate_ci95.high']:.0%}] | "
-                f"{scores['pollination_ceiling.success_rate']:.1%} | "
-                f"{scores['pollination.failures.collision']} of {scores['pollination.visits']}")
+        return (f"{share(train['pollination.success_rate'])} | "
+                f"{int(scores['pollination.successes'])} of "
+                f"{int(scores['pollination.flowers'])} "
+                f"({share(scores['pollination.success_rate'])}) "
+                f"[{share(scores['pollination.success_rate_ci95.low'], 0)}, "
+                f"{share(scores['pollination.success_rate_ci95.high'], 0)}] | "
+                f"{share(scores['pollination_ceiling.success_rate'])} | "
+                f"{int(scores['pollination.failures.collision'])} of "
+                f"{int(scores['pollination.visits'])}")
 
     chosen = tune["chosen"]
     rows = [(f"{row['number']}" + (" (chosen)" if chosen and row["number"] == chosen["number"]
@@ -249,9 +254,8 @@ def tool_tune(runs: Path) -> str:
              "pollinated (validation) | pollinated, true poses (validation) | collisions "
              "(validation visits) |", "|---|---|---|---|---|---|"]
     lines += [f"| {name} | {what} | {numbers} |" for name, what, numbers in rows]
-    best = max([*tune["front"], defaults],
-               key=lambda r: r["validate"]["pollination_ceiling.success_rate"])
-    ceiling = best["validate"]["pollination_ceiling.success_rate"]
+    ceiling = max(r["validate"]["pollination_ceiling.success_rate"] or 0.0
+                  for r in [*tune["front"], defaults])
     answer = ("A trial reaches 95% of the validation flowers with the true poses."
               if ceiling >= 0.95 else "No trial on the front reaches 95% of the validation "
               f"flowers even with the true poses; the most is {ceiling:.1%}.")

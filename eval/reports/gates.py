@@ -150,7 +150,12 @@ def _lookup(tree: Any, key: str) -> Any:
 
 
 def _number(summary: dict, key: str) -> float | None:
-    value = _lookup(summary, key)
+    """The number under a dotted key; None where there is none (no flower found, or a
+    section this run has not: the close look's `pollination_scan_pose` without a look)."""
+    try:
+        value = _lookup(summary, key)
+    except KeyError:
+        return None
     return None if value is None else float(value)
 
 

@@ -383,7 +383,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
               f"({row['new_flipped']} new), {row['over_20']} over 20°, worst "
               f"{row['worst_deg']}° ({row['worst_flower']}), {row['seconds_per_plant']} s/plant; "
               "against the defaults: "
-              + "; ".join(against["verdicts"][:1] + against["verdicts"][3:]))
+              + "; ".join(v for v in against["verdicts"][:1] + against["verdicts"][3:]
+                          if not v.startswith("pollinated:")))
         if run.task == "pollinate":
             share = "-" if row["pollinated"] is None else f"{row['pollinated']:.1%}"
             versus = (f"; against the defaults {row['pollinated_won']} won, "

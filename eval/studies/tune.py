@@ -103,14 +103,13 @@ class SetScorer:
         config = self.config(plant_set, layers)
         world = (f"{plant_set.source}-{plant_set.preset}-"
                  f"{world_digest(config, plant_set.source)}")
-        plants = self.out_dir / "plants" / world
-        for job in self.plants.jobs(plant_set, config, plants).jobs:
+        for job in self.plants.jobs(plant_set, config, self.out_dir / "plants" / world).jobs:
             entry = job.score(config, out_dir / job.name, self.cache)[0]
-            if self.task.name == "pollinate":
+            if self.task.name == "pollinate":  # the plant's files where its truth is
                 from flowerpose.eval.jobs.pollination_task import pollinate_plants
 
                 pollinate_plants([job], [entry], config, out_dir / job.name, 1,
-                                 [(plants / job.name, out_dir / job.name)])
+                                 [(job.truth.parent, out_dir / job.name)])
             yield entry
 
 
@@ -199,7 +198,7 @@ def open_study(spec: TuneSpec, identity: dict, create: bool, worker: int = 0) ->
         study.set_user_attr("identity", identity)
     else:
         mine = {k: v for k, v in identity.items() if k != "code"}
-        theirs = {k: v for k, v in made.items() if k != "code"}
+        theirs = {"task": "pose", **{k: v for k, v in made.items() if k != "code"}}
         if mine != theirs:
             differs = ", ".join(k for k in mine if mine[k] != theirs.get(k))
             raise InputError("--study-name", f"{spec.study_name}: that study was made with "
@@ -466,7 +465,8 @@ def tune_markdown(report: dict) -> str:
         gap = ("-" if not row["validate"] or row["validate"].get(first.key) is None
                or row["train"].get(first.key) is None
                else f"{row['train'][first.key] - row['validate'][first.key]:+.3f}")
-        chosen = " (chosen)" if row["number"] == report.get("chosen", {}).get("number") else ""
+        chosen = (" (chosen)" if row["number"] == (report.get("chosen") or {}).get("number")
+                  else "")
         rows.append([f"{row['number']}{chosen}",
                      ", ".join(f"{k}={_short(v)}" for k, v in row["settings"].items()),
                      *(m.cell(row["train"]) for m in task.shown),

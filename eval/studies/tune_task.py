@@ -34,6 +34,8 @@ class Measure:
     label: str
     higher_is_better: bool
     degrees: bool = False
+    said: str = ""
+    """Its name in a warning (default: `label`)."""
 
     def cell(self, scores: dict | None) -> str:
         if not scores or scores.get(self.key) is None:
@@ -71,16 +73,17 @@ class TuneTask:
             ours, base = mine.get(m.key), theirs.get(m.key)
             if ours is None or base is None or ours == base or (ours > base) == m.higher_is_better:
                 continue
-            unit = "°" if m.degrees else ""
-            said.append(f"the chosen settings' validation {m.label} ({ours:.3f}{unit}) is "
-                        f"{'below' if m.higher_is_better else 'above'} the defaults' "
-                        f"({base:.3f}{unit})")
+            shown = (lambda v: f"{v:.2f}°") if m.degrees else (lambda v: f"{v:.3f}")
+            said.append(f"the chosen settings' validation {m.said or m.label} ({shown(ours)}) "
+                        f"is {'below' if m.higher_is_better else 'above'} the defaults' "
+                        f"({shown(base)})")
         return said
 
 
 POSE = TuneTask(
     "pose", ("max:f1", "min:error_deg.plane.mean"), POSE_RECORDED,
-    (Measure("f1", "F1", True), Measure("error_deg.plane.mean", "plane error", False, True)),
+    (Measure("f1", "f1", True, said="F1"),
+     Measure("error_deg.plane.mean", "error_deg.plane.mean", False, True, "plane error")),
     (Measure("f1_low", "validate F1, lower bound", True),
      Measure("error_deg.plane.mean_ci95.high", "validate plane mean, upper bound", False,
              True)),

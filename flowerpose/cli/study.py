@@ -395,8 +395,8 @@ def add_tune(sub: argparse._SubParsersAction) -> None:
                    help="the Optuna storage: an RDB URL (sqlite:///FILE, postgresql://...) or "
                    "journal:///FILE (default: sqlite:///DIR/study.db)")
     p.add_argument("--study-name", metavar="NAME",
-                   help="the study's name (default: made from the space, the training "
-                   "plants, the objectives and the code version)")
+                   help="the study's name (default: made from the task, the space, the "
+                   "training plants, the objectives and the code version)")
     p.add_argument("--task", choices=TASKS, default="pose",
                    help="pose: score each trial by the flowers found and their poses; "
                    "pollinate: also visit each plant's flowers as eval --task pollinate "

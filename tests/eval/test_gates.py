@@ -103,3 +103,7 @@ def test_each_plants_gate_reads_its_own_pollination():
     report = {"summary": {"pollination": {"success_rate": 0.75}}, "plants": plants}
     measured = {o.scope: o.measured for o in check(report, [gate])}
     assert measured == {"all": 0.75, "a": 1.0, "b": 0.5}
+    # A section this run has not (no close look: no scan-pose flight) fails, no traceback.
+    [looked] = parse_requirements(["pollination_scan_pose.success_rate>=0.5"], "pollinate")
+    outcomes = check(report, [looked])
+    assert all(o.measured is None and not o.passed for o in outcomes)

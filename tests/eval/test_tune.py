@@ -271,3 +271,22 @@ def test_workers_adding_trials_at_once_draw_different_settings(tmp_path):
 
     assert first_draw(0) == first_draw(0)  # one worker: the same trials again
     assert first_draw(0) != first_draw(1)
+
+
+def test_a_study_made_before_tasks_is_the_pose_tasks_and_resumes(tmp_path):
+    from flowerpose.eval.jobs.config import eval_config
+    from flowerpose.eval.studies.tune import TuneSpec, open_study, study_name
+    from flowerpose.eval.studies.tune_space import parse_objectives, read_space
+    from flowerpose.eval.studies.tune_task import POLLINATE
+
+    (tmp_path / "space.toml").write_text(SPACE)
+    space = tuple(read_space(tmp_path / "space.toml", eval_config("field")))
+    objectives = tuple(parse_objectives([]))
+    name, identity = study_name(space, (), objectives)
+    spec = TuneSpec(space, (), (), objectives, (), f"sqlite:///{tmp_path / 'study.db'}", name,
+                    None, tmp_path, None)
+    older = {k: v for k, v in identity.items() if k != "task"}  # as an older version made it
+    open_study(spec, older, create=True)
+    assert open_study(spec, identity, create=True).user_attrs["identity"] == older
+    with pytest.raises(InputError, match="another task"):
+        open_study(spec, study_name(space, (), objectives, POLLINATE)[1], create=True)
