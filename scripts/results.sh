@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The runs behind docs/results.md and the README's results table, then the page itself
 # and the gallery (`make results`). Each run writes under runs/ (ignored by git); the page
-# cites each run's command, code, date and machine. About 70 minutes on 2 cores, and
-# an hour more for the pollinator sweep. Runs only
+# cites each run's command, code, date and machine. About 70 minutes on 2 cores, an hour
+# more for the pollinator sweep and 16 minutes for its search. Runs only
 # from a clean tree: every number on the page is then the commit's it names.
 set -euo pipefail
 cd "$(dirname "$0")/.."
