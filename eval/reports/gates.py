@@ -92,7 +92,6 @@ def check_key(key: str, where: str, said: str = "", task: str = "pose") -> None:
                          f"numbers: {', '.join(_leaves(template))})")
 
 
-
 def summary_value(summary: dict, key: str) -> float | None:
     """The number a summary holds under a dotted key (None where there is none)."""
     return _number(summary, key)

@@ -375,6 +375,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
                 "source": source,
                 "seconds": round(watch.elapsed(), 2)})
     for row, against in zip(rows, compared, strict=True):
+        # The pollinated comparison, last where there is one, has its own line below.
+        pose_verdicts = against["verdicts"][:-1 if "pollinated" in against else None]
         print(", ".join(f"{k}={row[k]}" for k in keys) + f": recall_visible "
               f"{row['recall_visible']} {_bounds(row, 'recall_visible', 3)}, fp_rate "
               f"{row['fp_rate']}, plane {row['plane_mean_deg']}° "
@@ -383,8 +385,7 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
               f"({row['new_flipped']} new), {row['over_20']} over 20°, worst "
               f"{row['worst_deg']}° ({row['worst_flower']}), {row['seconds_per_plant']} s/plant; "
               "against the defaults: "
-              + "; ".join(v for v in against["verdicts"][:1] + against["verdicts"][3:]
-                          if not v.startswith("pollinated:")))
+              + "; ".join(pose_verdicts[:1] + pose_verdicts[3:]))
         if run.task == "pollinate":
             share = "-" if row["pollinated"] is None else f"{row['pollinated']:.1%}"
             versus = (f"; against the defaults {row['pollinated_won']} won, "

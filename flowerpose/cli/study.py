@@ -29,13 +29,12 @@ from flowerpose.cli.options import (
 )
 from flowerpose.config import DEFAULT_PRESET
 from flowerpose.errors import InputError
-from flowerpose.eval.jobs.eval_run import TASKS
+from flowerpose.eval.jobs.eval_run import TASKS, EvalRun
 from flowerpose.eval.jobs.plant_set import SOURCES, SYNTHETIC_SOURCES, PlantSet
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from flowerpose.eval.jobs.config import eval_config
-    from flowerpose.eval.jobs.eval_run import EvalRun
     from flowerpose.eval.pool import Execution
     from flowerpose.eval.studies.sweep import parse_grid, run_sweep, sweep_outputs
 
@@ -295,9 +294,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
         PlantSet(args.source, args.preset or DEFAULT_PRESET, args.plants, args.seed)]
     validate = parse_sets(args.validate) if args.validate else validation_default(train)
     for plant_set in (*train, *validate):
-        if plant_set.real and task.name == "pollinate":
-            raise InputError("--task", f"pollinate needs synthetic plants, whose flowers' "
-                             f"true poses judge the visits; {plant_set.label} is real")
+        EvalRun(plant_set, task=task.name)  # refuses a real set for the pollination task
         if not plant_set.real:
             refuse_fresh(plant_set.seed, plant_set.plants, "--train/--validate/--seed")
     storage = args.study or f"sqlite:///{(args.out / 'study.db').resolve()}"
