@@ -17,9 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from flowerpose.hardware.flights.clearance import shaft_points
 from flowerpose.hardware.flights.scan_plan import head_points
-from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_TOOL, PollinatorTool
-from flowerpose.hardware.kinematics import JOINT_NAMES, HeadPose, joint_positions, tool_points
+from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT, PAPER_TOOL, PollinatorTool
+from flowerpose.hardware.kinematics import JOINT_NAMES, HeadPose, joint_positions
 from flowerpose.hardware.trajectory import Timeline
 from flowerpose.sim.contact import ContactConfig, PlantPatches, add_plant, plant_patches
 
@@ -114,7 +115,8 @@ class ContactWorld:
         4 cm (all False for no tree)."""
         if tree is None:
             return np.zeros(len(np.atleast_1d(pose.yaw)), bool)
-        tool = tool_points(pose, self.tool, samples=12)
+        # Points half near_m apart: one touching the shaft is within near_m of one of them.
+        tool = shaft_points(pose, self.tool, PAPER_BOT, self.near_m / 2)
         head = head_points(pose)
         reach = self.near_m + 0.05  # farther than this is far: the query stops there
         tool_gap = tree.query(tool.reshape(-1, 3), distance_upper_bound=reach)[0]

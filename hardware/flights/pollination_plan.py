@@ -29,13 +29,12 @@ from scipy.spatial import cKDTree
 
 from flowerpose.config import require
 from flowerpose.hardware.flights.approach_path import joint_state, plan_path
-from flowerpose.hardware.flights.scan_plan import poses_along
+from flowerpose.hardware.flights.clearance import checked_poses, gap
 from flowerpose.hardware.geometry import PAPER_BOT, BotGeometry, PollinatorTool
 from flowerpose.hardware.kinematics import (
     HeadPose,
     UnreachableError,
     check_reachable,
-    head_boxes,
     tool_at,
     tool_points,
 )
@@ -112,7 +111,14 @@ class PollinateConfig:
     soil_margin_m: float = 0.005
     """Least height of the swab above the soil."""
     samples_per_move: int = 12
-    """Poses checked along each move."""
+    """Fewest poses checked along each move (more where `check_step_m` asks)."""
+    check_step_m: float = 0.005
+    """Largest distance any point of the head or the pollinator moves between two poses
+    checked along a move, and between two points checked along the shaft
+    (`flights/clearance.py`): at most `clearance_m`, so that a point touching them lies
+    within about half of it from a checked place and fails the check. Twelve poses a move
+    whatever its length missed a neighbour's petal or a leaf between two of them (the
+    planner's ceiling, 10 field plants, seeds 0-9, a 15 cm tool: 3 of its 7 collisions)."""
     path_checks: int = 4000
     """Most clearance tests the search for a path round the plant may make for one approach
     direction, where the straight descent to it is blocked (0: straight descents only). A
@@ -130,7 +136,7 @@ class PollinateConfig:
     path_step_m: float = 0.005
     """Spacing of the clearance tests along the path's segments while searching (an angle
     counts as `approach_path.ANGLE_LEVER_M` metres a radian); each segment is then checked
-    as flown, `samples_per_move` poses a move."""
+    as flown (`check_step_m`)."""
 
     tool: PollinatorTool = field(default_factory=PollinatorTool)
     """The pollinator on the head (`geometry.PollinatorTool`): where its swab is, how long
@@ -146,11 +152,14 @@ class PollinateConfig:
     def __post_init__(self):
         for name in ("standoff_m", "clearance_m", "touch_radius_m", "straight_within_m",
                      "cone_step_deg", "path_box_m", "path_step_m", "path_tries", "path_bend_m",
-                     "rim_margin_m", "cone_azimuths"):
+                     "rim_margin_m", "cone_azimuths", "check_step_m"):
             require(getattr(self, name) > 0, f"pollinate.{name}",
                     f"must be positive, got {getattr(self, name)}")
         require(self.path_checks >= 0, "pollinate.path_checks", "must be 0 or more, got "
                 f"{self.path_checks}")
+        require(self.check_step_m <= self.clearance_m, "pollinate.check_step_m",
+                f"must be at most pollinate.clearance_m ({self.clearance_m:g}), got "
+                f"{self.check_step_m:g}: a point between two checked places could touch")
         require(self.clearance_m < self.calyx_radius_m, "pollinate.clearance_m",
                 f"must be below pollinate.calyx_radius_m ({self.calyx_radius_m:g}), got "
                 f"{self.clearance_m:g}: the target's own sepals would block every visit")
@@ -472,25 +481,15 @@ def _top_over(pose: HeadPose, geometry: BotGeometry) -> HeadPose:
     return HeadPose(gantry, pose.yaw, pose.pitch)
 
 
-def _gap(poses: HeadPose, tree: cKDTree, shaft_tree: cKDTree | None, reach_m: float,
-         geometry: BotGeometry, tool: PollinatorTool) -> tuple[float, str]:
-    """Least distance, metres, from the plant to the head's housings (any point of `tree`)
-    or the pollinator's shaft (any point of `shaft_tree`) over `poses`, and which of the two
-    it is ("camera head" or "pollinator")."""
-    head = head_gap(poses, tree, reach_m, geometry)
-    shaft = (shaft_tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min()
-             if shaft_tree is not None else np.inf)
-    return (head, "camera head") if head <= shaft else (float(shaft), "pollinator")
-
-
 def _too_close(poses: HeadPose, tree: cKDTree, shaft_tree: cKDTree | None, name: str,
                config: PollinateConfig, geometry: BotGeometry, tool: PollinatorTool) -> str:
     """Where `poses` (the move called `name`) come within `clearance_m` of the plant ("" if
     nowhere)."""
-    gap, part = _gap(poses, tree, shaft_tree, config.clearance_m, geometry, tool)
-    if gap >= config.clearance_m:
+    least, part = gap(poses, tree, shaft_tree, config.clearance_m, geometry, tool,
+                      config.check_step_m)
+    if least >= config.clearance_m:
         return ""
-    return (f"the {part} passes {gap * 1000:.0f} mm from the plant on the {name} (least "
+    return (f"the {part} passes {least * 1000:.0f} mm from the plant on the {name} (least "
             f"{config.clearance_m * 1000:.0f} mm)")
 
 
@@ -501,7 +500,7 @@ def _descent_blocked(pre: HeadPose, tree: cKDTree | None, config: PollinateConfi
     (the head and the shaft to any point; "" if never)."""
     if tree is None:
         return ""
-    poses = poses_along(_top_over(pre, geometry), pre, profile, config.samples_per_move)
+    poses = _along(_top_over(pre, geometry), pre, config, geometry, tool, profile)
     return _too_close(poses, tree, tree, "descent", config, geometry, tool)
 
 
@@ -513,7 +512,7 @@ def _approach_blocked(pre: HeadPose, steps: list[HeadPose], tree: cKDTree | None
     if tree is None:
         return ""
     for a, b in zip([pre, *steps[:-1]], steps, strict=True):
-        poses = poses_along(a, b, profile, config.samples_per_move)
+        poses = _along(a, b, config, geometry, tool, profile)
         reason = _too_close(poses, tree, others, "approach", config, geometry, tool)
         if reason:
             return reason
@@ -537,7 +536,8 @@ def _route(pre: HeadPose, tree: cKDTree | None, config: PollinateConfig,
         taper = min(1.0, float(np.linalg.norm(pose.gantry - pre.gantry)) / BEND_TAPER_M)
         margin = config.clearance_m + config.path_bend_m * taper
         return (not _unreachable(pose, pose, config, geometry, tool)
-                and _gap(pose, tree, tree, margin, geometry, tool)[0] >= margin)
+                and gap(pose, tree, tree, margin, geometry, tool, config.check_step_m)[0]
+                >= margin)
 
     box = np.array([config.path_box_m, config.path_box_m])
     lower = np.concatenate([np.maximum(pre.gantry[:2] - box, geometry.gantry_min[:2]),
@@ -565,15 +565,22 @@ def _route(pre: HeadPose, tree: cKDTree | None, config: PollinateConfig,
 BEND_TAPER_M = 0.05
 
 
-def _flown(a: HeadPose, b: HeadPose, profile: MotionProfile, samples: int) -> HeadPose:
-    """The poses the executor takes from a to b: the gantry on its motion profile with the
-    head still, then the head's turn."""
-    move = poses_along(HeadPose(a.gantry, a.yaw, a.pitch), HeadPose(b.gantry, a.yaw, a.pitch),
-                       profile, samples)
-    share = np.linspace(0.0, 1.0, samples)
-    return HeadPose(np.vstack([move.gantry, np.tile(b.gantry, (samples, 1))]),
-                    np.concatenate([move.yaw, a.yaw + share * (b.yaw - a.yaw)]),
-                    np.concatenate([move.pitch, a.pitch + share * (b.pitch - a.pitch)]))
+def _along(a: HeadPose, b: HeadPose, config: PollinateConfig, geometry: BotGeometry,
+           tool: PollinatorTool, profile: MotionProfile) -> HeadPose:
+    """The poses checked along the move from a to b (`clearance.checked_poses`)."""
+    return checked_poses(a, b, profile, config.check_step_m, geometry, tool,
+                         config.samples_per_move)
+
+
+def _flown(a: HeadPose, b: HeadPose, config: PollinateConfig, geometry: BotGeometry,
+           tool: PollinatorTool, profile: MotionProfile) -> HeadPose:
+    """The poses the executor takes from a to b, as checked: the gantry on its motion
+    profile with the head still, then the head's turn."""
+    move = _along(a, HeadPose(b.gantry, a.yaw, a.pitch), config, geometry, tool, profile)
+    turn = _along(HeadPose(b.gantry, a.yaw, a.pitch), b, config, geometry, tool, profile)
+    return HeadPose(np.vstack([move.gantry, turn.gantry]),
+                    np.concatenate([move.yaw, turn.yaw]),
+                    np.concatenate([move.pitch, turn.pitch]))
 
 
 def flyable(a: HeadPose, b: HeadPose, tree: cKDTree, config: PollinateConfig,
@@ -588,35 +595,16 @@ def flyable(a: HeadPose, b: HeadPose, tree: cKDTree, config: PollinateConfig,
         poses = [HeadPose(s[:3], s[3], s[4]) for s in ends[0] + share * (ends[1] - ends[0])]
         fine = True
         for u, v in zip(poses, poses[1:], strict=False):
-            both = [_flown(u, v, profile, config.samples_per_move),
-                    _flown(v, u, profile, config.samples_per_move)]
+            both = [_flown(u, v, config, geometry, tool, profile),
+                    _flown(v, u, config, geometry, tool, profile)]
             if any(_unreachable(p, p, config, geometry, tool)
-                   or _gap(p, tree, tree, config.clearance_m, geometry, tool)[0]
-                   < config.clearance_m for p in both):
+                   or gap(p, tree, tree, config.clearance_m, geometry, tool,
+                          config.check_step_m)[0] < config.clearance_m for p in both):
                 fine = False
                 break
         if fine:
             return poses[1:]
     return None
-
-
-def head_gap(poses: HeadPose, tree: cKDTree, reach_m: float,
-             geometry: BotGeometry = PAPER_BOT) -> float:
-    """Least distance, metres, between the plant's points (`tree`) and the head's housings
-    (`kinematics.head_boxes`) over `poses`: 0 for a point inside one, inf when none is
-    within reach_m of them."""
-    centres, rotations, half = head_boxes(poses, geometry)
-    centres, rotations = centres.reshape(-1, 3), rotations.reshape(-1, 3, 3)
-    box = np.tile(np.arange(len(half)), len(centres) // len(half))
-    near = tree.query_ball_point(centres, np.linalg.norm(half, axis=1).max() + reach_m)
-    counts = np.array([len(n) for n in near])
-    if not counts.sum():
-        return np.inf
-    owner = np.repeat(np.arange(len(near)), counts)
-    points = tree.data[np.concatenate([np.asarray(n, int) for n in near])]
-    local = np.einsum("kji,kj->ki", rotations[owner], points - centres[owner])
-    outside = np.maximum(np.abs(local) - half[box[owner]], 0.0)
-    return float(np.sqrt((outside ** 2).sum(axis=1)).min())
 
 
 def _transfer_cost(a: np.ndarray, b: np.ndarray, profile: MotionProfile) -> float:
@@ -692,9 +680,9 @@ def _blocked_travel(moves: list[Move], tree: cKDTree | None, config: PollinateCo
     for a, b in zip(moves, moves[1:], strict=False):
         if b.kind != "travel":
             continue
-        poses = poses_along(a.pose, b.pose, profile, config.samples_per_move)
-        distance = min(head_gap(poses, tree, config.clearance_m, geometry),
-                       tree.query(tool_points(poses, tool, geometry).reshape(-1, 3))[0].min())
+        poses = _along(a.pose, b.pose, config, geometry, tool, profile)
+        distance = gap(poses, tree, tree, config.clearance_m, geometry, tool,
+                       config.check_step_m)[0]
         if distance < config.clearance_m:
             return b.flower, float(distance)
     return None

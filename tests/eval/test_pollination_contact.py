@@ -73,3 +73,22 @@ def test_a_leaflet_gives_way_by_about_as_far_as_the_tool_drives_into_it(world):
     # Driven 15 mm past where it grew, the leaflet moves that far plus the swab's radius
     # (4 mm) and half its thickness, give or take where on it the swab landed.
     assert 0.015 < pushed.push_m < 0.03
+
+
+def test_a_point_touching_a_long_shaft_midway_between_twelve_points_is_near():
+    from types import SimpleNamespace
+
+    from scipy.spatial import cKDTree
+
+    from flowerpose.hardware.geometry import PollinatorTool
+    from flowerpose.hardware.kinematics import HeadPose, tool_points
+
+    tool = PollinatorTool(reach_m=0.24, offset_down_m=0.07)
+    pose = tool_at(np.array([1.5, 0.75, 0.2]), np.array([0.0, 0.0, -1.0]), tool)
+    pose = HeadPose(pose.gantry[None], np.array([pose.yaw]), np.array([pose.pitch]))
+    # On the shaft's surface (2 mm from its axis), halfway between two of twelve points.
+    point = tool_points(pose, tool, samples=23)[0, 11] + np.array([0.002, 0.0, 0.0])
+    twelve = tool_points(pose, tool, samples=12)[0]
+    assert np.linalg.norm(twelve - point, axis=1).min() > 0.01  # twelve would miss it
+    world = SimpleNamespace(tool=tool, near_m=0.01)  # all `_near` reads of the world
+    assert ContactWorld._near(world, pose, cKDTree(point[None, :])).all()

@@ -11,11 +11,11 @@ pytest.importorskip("ompl")
 
 from flowerpose.cloudio import Cloud, write_cloud  # noqa: E402
 from flowerpose.hardware.flights.approach_path import joint_state  # noqa: E402
+from flowerpose.hardware.flights.clearance import gap  # noqa: E402
 from flowerpose.hardware.flights.pollination_plan import (  # noqa: E402
     Flower,
     PollinateConfig,
     _flown,
-    _gap,
     plan_pollination,
 )
 from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL  # noqa: E402
@@ -67,8 +67,10 @@ def test_a_flower_under_a_leaf_is_reached_down_a_path_that_keeps_its_clearance()
     assert np.isclose(top.gantry[2], PAPER_BOT.gantry_max[2])
     flown = [top, *visit.path]
     for a, b in zip(flown, flown[1:], strict=False):  # down the path and back up it
-        for poses in (_flown(a, b, profile, 12), _flown(b, a, profile, 12)):
-            assert _gap(poses, tree, tree, 0.05, PAPER_BOT, PAPER_TOOL)[0] >= config.clearance_m
+        for poses in (_flown(a, b, config, PAPER_BOT, PAPER_TOOL, profile),
+                      _flown(b, a, config, PAPER_BOT, PAPER_TOOL, profile)):
+            assert gap(poses, tree, tree, 0.05, PAPER_BOT, PAPER_TOOL,
+                       config.check_step_m)[0] >= config.clearance_m
     # The path goes round the leaf: some waypoint is beside it, below its height.
     beside = [p for p in visit.path if p.gantry[2] < leaf[0, 2]
               and np.abs(p.gantry[:2] - CENTER[:2]).max() > 0.07]

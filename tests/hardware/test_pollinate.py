@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from flowerpose.hardware.flights.clearance import head_gap
 from flowerpose.hardware.flights.pollination_plan import (
     Flower,
     PollinateConfig,
     _short_order,
     _transfer_cost,
-    head_gap,
     plan_pollination,
 )
-from flowerpose.hardware.geometry import PAPER_BOT
+from flowerpose.hardware.geometry import PAPER_BOT, PAPER_TOOL
 from flowerpose.hardware.kinematics import HeadPose, joint_positions, tool_at, tool_forward
 from flowerpose.hardware.motion import MotionProfile, move_trajectory
 
@@ -99,6 +99,60 @@ def test_a_clearance_the_targets_own_sepals_would_break_is_refused_before_any_wo
                  "--out", str(tmp_path / "never")]) == 2
     assert "own sepals would block every visit" in capsys.readouterr().err
     assert not (tmp_path / "never").exists()
+
+
+def test_a_check_step_wider_than_the_clearance_is_refused():
+    from flowerpose.errors import InputError
+
+    with pytest.raises(InputError, match="check_step_m: must be at most"):
+        PollinateConfig(check_step_m=0.02)
+
+
+def test_no_point_of_the_head_or_shaft_moves_more_than_a_step_between_checked_poses():
+    from flowerpose.hardware.flights.clearance import checked_poses, shaft_points
+    from flowerpose.hardware.geometry import PollinatorTool
+    from flowerpose.hardware.kinematics import head_boxes
+
+    tool = PollinatorTool(reach_m=0.24, offset_down_m=0.07)
+    a = HeadPose(np.array([0.8, 0.4, -0.02]), 0.0, 0.3)
+    b = HeadPose(np.array([1.6, 0.9, -0.30]), 2.5, 1.9)  # a long move with a big turn
+    poses = checked_poses(a, b, MotionProfile(), 0.005, PAPER_BOT, tool)
+    shaft = shaft_points(poses, tool, PAPER_BOT, 0.005)
+    corners = head_boxes(poses)[0]
+    for points in (shaft, corners):
+        steps = np.linalg.norm(np.diff(points, axis=0), axis=-1)
+        assert steps.max() <= 0.005 + 1e-12
+    assert np.linalg.norm(np.diff(shaft, axis=1), axis=-1).max() <= 0.005 + 1e-12
+    assert len(poses.yaw) > PollinateConfig().samples_per_move
+
+
+def test_a_petal_between_two_poses_the_old_fixed_count_checked_blocks_the_descent():
+    from flowerpose.hardware.flights.clearance import checked_poses, gap
+    from flowerpose.hardware.flights.pollination_plan import _top_over
+    from flowerpose.hardware.flights.scan_plan import poses_along
+    from flowerpose.hardware.kinematics import tool_points
+
+    config, profile, tool = PollinateConfig(path_checks=0), MotionProfile(), PAPER_TOOL
+    flower = Flower(0, CENTER, np.array([0.6, 0.0, 0.8]))  # the shaft sweeps a slanted strip
+    (clear,) = _plan([flower], path_checks=0).visits
+    top = _top_over(clear.pre, PAPER_BOT)
+    # Of the places the shaft's outer half passes going down, the one farthest from every
+    # place the old check looked at (twelve poses, six points along the shaft).
+    swept = tool_points(poses_along(top, clear.pre, profile, 111), tool, PAPER_BOT, 51)
+    swept = swept[:, 25:].reshape(-1, 3)
+    coarse = tool_points(poses_along(top, clear.pre, profile, 12), tool, PAPER_BOT, 6)
+    unseen = cKDTree(coarse.reshape(-1, 3)).query(swept)[0]
+    petal = swept[np.argmax(unseen)]
+    assert unseen.max() > config.clearance_m  # the old check passed it
+    (visit,) = plan_pollination([flower], petal[None, :], config).visits
+    assert visit.status == "unreachable" or visit.off_axis_deg > 0 or not np.allclose(
+        joint_positions(visit.pre)[3:], joint_positions(clear.pre)[3:])
+    if visit.status == "planned":  # the descent it takes keeps clear of the petal, finely
+        fine = checked_poses(_top_over(visit.pre, PAPER_BOT), visit.pre, profile, 0.001,
+                             PAPER_BOT, tool)
+        petal_tree = cKDTree(petal[None, :])
+        least = gap(fine, petal_tree, petal_tree, 0.05, PAPER_BOT, tool, 0.001)[0]
+        assert least >= config.clearance_m - config.check_step_m
 
 
 def test_tool_at_puts_the_tip_where_asked_along_the_direction_asked():
@@ -302,7 +356,8 @@ def test_a_leaf_inside_the_heads_housing_blocks_the_axis_though_far_from_its_cen
     assert visit.status == "planned"
     assert visit.off_axis_deg > 0 or not np.allclose(joint_positions(visit.pre)[3:],
                                                      joint_positions(clear.pre)[3:])
-    assert head_gap(visit.pre, cKDTree(leaf[None, :]), 0.05) >= PollinateConfig().clearance_m
+    gap = head_gap(visit.pre, cKDTree(leaf[None, :]), 0.05, PAPER_BOT)
+    assert gap >= PollinateConfig().clearance_m
 
 
 def test_the_upside_down_head_puts_the_tip_where_the_usual_one_does():
