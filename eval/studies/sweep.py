@@ -296,11 +296,10 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
     configs = [apply_overrides(config, s) for s in settings] + [config]
     made = Plants(workers, cache)
     separate = _separate_plants(keys, source)
-    jobs, plant_folders = [], []
+    jobs = []
     for k, cfg in enumerate(configs):
         folder = out_dir / (f"plants-{_name(k, settings)}" if separate else "plants")
         jobs.append(made.jobs(plant_set, cfg, folder).jobs)
-        plant_folders.append(folder)
     names = [job.name for job in jobs[0]]
     job_args = [(job, cfg, out_dir / f"setting-{_name(k, settings)}" / job.name, cache)
                 for k, cfg in enumerate(configs) for job in jobs[k]]
@@ -320,8 +319,8 @@ def run_sweep(config: EvalConfig, grid: list[tuple[str, list[str]]], plants: Pla
         for k, cfg in enumerate(configs):
             setting = out_dir / f"setting-{_name(k, settings)}"
             pollinate_plants(jobs[k], entries[k], cfg, setting, workers,
-                             [(plant_folders[k] / job.name, setting / job.name)
-                              for job in jobs[k]])
+                             # A world made before for another setting is that one's.
+                             [(job.truth.parent, setting / job.name) for job in jobs[k]])
     pooled, per_plant = [], []
     for k in range(len(configs)):
         chunk = results[k * len(names):(k + 1) * len(names)]
