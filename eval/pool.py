@@ -4,10 +4,11 @@ address, an existing cluster with one, or "auto").
 
 Every job is one plant's work at one stage (generate, capture: scan + frames +
 reconstruction, score, a sweep setting's evaluation), so the plants' scans,
-reconstructions and detections overlap wherever there are cores for them. On Ray a job
-that raises is tried once more; one that fails again is reported by plant and stage
-(`JobsFailed`) after every other job has finished, so their results, written by the
-jobs themselves into the run's folder and the stage cache, are kept.
+reconstructions and detections overlap wherever there are cores for them. A job that
+raises (on Ray, after one more try) is reported by plant and stage (`JobsFailed`, or the
+bad input's own error where every failure was bad input) once every other job of the
+stage has finished, so their results, written by the jobs themselves into the run's
+folder and the stage cache, are kept, and the same command run again does only the rest.
 """
 
 from __future__ import annotations
@@ -128,31 +129,39 @@ def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
         return _run_on_ray(_session, function, jobs, describe, stage,
                            labels or [f"job {k}" for k in range(len(jobs))], cpus,
                            _task_gpus(gpu, stage))
+    labels = labels or [f"job {k}" for k in range(len(jobs))]
     results: list[Any] = [None] * len(jobs)
+    failures: list[tuple[str, BaseException]] = []
     pool = _pool(min(workers or os.cpu_count() or 1, len(jobs)))
     with Tally(len(jobs) if describe is not None else 0, stage) as tally:
 
-        def report(k: int, value: Any) -> None:
+        def settle(k: int, outcome: Callable[[], Any]) -> None:
+            try:
+                results[k] = outcome()
+            except Exception as error:  # the job's own failure; Ctrl-C and SIGTERM go on up
+                failures.append((labels[k], error))
+                LOG.warning(f"{labels[k]}: {stage} failed: {one_line(error)}")
+                LOG.debug(f"{labels[k]}: {stage} failed", exc_info=error)
+                return
             if describe is not None:
-                tally.finished(describe(k, value))
+                tally.finished(describe(k, results[k]))
 
         if pool is None:
             for k, job in enumerate(jobs):
-                results[k] = function(*job)
-                report(k, results[k])
-            return results
-        try:
-            futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
-            for future in as_completed(futures):
-                k = futures[future]
-                results[k] = future.result()
-                report(k, results[k])
-        except BaseException:
-            # Ctrl-C, SIGTERM or a failed job: no new job starts, and the workers, which
-            # ignore Ctrl-C, end with this process (`processes.die_with_parent`).
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-    pool.shutdown()
+                settle(k, lambda job=job: function(*job))
+        else:
+            try:
+                futures = {pool.submit(function, *job): k for k, job in enumerate(jobs)}
+                for future in as_completed(futures):
+                    settle(futures[future], future.result)
+            except BaseException:
+                # Ctrl-C or SIGTERM: no new job starts, and the workers, which ignore
+                # Ctrl-C, end with this process (`processes.die_with_parent`).
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
+    if failures:
+        raise failed(stage, failures, retried=False)
     return results
 
 
@@ -258,8 +267,18 @@ def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
                 ray.cancel(ref, force=True)
             raise
     if failures:
-        raise JobsFailed(stage, failures)
+        raise failed(stage, failures, retried=True)
     return results
+
+
+def failed(stage: str, failures: list[tuple[str, BaseException]], retried: bool
+           ) -> Exception:
+    """What a stage whose jobs failed raises: where every failure was bad input, the first
+    one's own `InputError` (one line naming its flag, exit 2, as if it had failed alone);
+    else `JobsFailed`, naming each plant. retried: each failed job was tried again."""
+    if all(isinstance(error, InputError) for _, error in failures):
+        return failures[0][1]
+    return JobsFailed(stage, failures, retried)
 
 
 #: Cores a capture job (render, match, stereo: each multi-threaded) asks of a Ray node, at

@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"flowerpose: error: {say_flags(parser, args, str(err))}", file=sys.stderr)
         return 2
     except JobsFailed as err:
-        # Plants whose jobs failed on every try (Ray); the others' results are kept.
+        # Plants whose jobs failed (on Ray, on every try); the others' results are kept.
         print(f"flowerpose: error: {err}", file=sys.stderr)
         return 2 if err.user_error else 1
     except ModuleNotFoundError as err:
