@@ -14,6 +14,7 @@ folder and the stage cache, are kept, and the same command run again does only t
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing
 import os
 import socket
@@ -140,8 +141,10 @@ def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
                 results[k] = outcome()
             except Exception as error:  # the job's own failure; Ctrl-C and SIGTERM go on up
                 failures.append((labels[k], error))
-                LOG.warning(f"{labels[k]}: {stage} failed: {one_line(error)}")
-                LOG.debug(f"{labels[k]}: {stage} failed", exc_info=error)
+                # Bad input is said once, as the command's own error line, at the end.
+                LOG.log(logging.DEBUG if isinstance(error, InputError) else logging.WARNING,
+                        f"{labels[k]}: {stage} failed: {one_line(error)}", exc_info=error
+                        if LOG.isEnabledFor(logging.DEBUG) else None)
                 return
             if describe is not None:
                 tally.finished(describe(k, results[k]))
