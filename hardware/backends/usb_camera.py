@@ -361,9 +361,11 @@ class UsbCamera(RecordingCamera):
                               "that recording first")
         self.check()
         scan_dir = Path(path).parent
-        recording = _Recording(scan_dir, last_recorded(scan_dir)[0], self.config, self._fail,
-                               self._clock())
+        recording = _Recording(scan_dir, last_recorded(scan_dir)[0], self.config, self._fail)
         with self._state:
+            # Started under the capture thread's lock: every frame stamped after the start
+            # is offered to this recording, however long opening its files took.
+            recording.begin(self._clock())
             self._recording = self._session = recording
 
     def stop_recording(self) -> Recording:
@@ -416,13 +418,13 @@ class _Recording:
     their times to frame_times.csv, numbered from `first_index`."""
 
     def __init__(self, scan_dir: Path, first_index: int, config: UsbCameraConfig,
-                 fail: Callable[[CameraError], None], start: float):
+                 fail: Callable[[CameraError], None]):
         self.folder = scan_dir / "frames"
         self.folder.mkdir(parents=True, exist_ok=True)
-        self.start = start
+        self.start = math.nan
         self.count = self.dropped = 0
-        self._keeper = (None if config.choose is None else FrameKeeper(
-            start, config.choose.duration_s, config.choose.bins, config.choose.keep))
+        self._choose = config.choose
+        self._keeper: FrameKeeper | None = None
         self._reserve = int(config.disk_reserve_mb * 1e6)
         self._next = first_index
         self._quality = config.jpeg_quality
@@ -437,6 +439,14 @@ class _Recording:
         self._thread = threading.Thread(target=self._write_loop, name="usb-camera-writer",
                                         daemon=True)
         self._thread.start()
+
+    def begin(self, start: float) -> None:
+        """Start at bot-clock `start` (seconds), before the first frame is offered: the
+        frame choice's bins count from it."""
+        self.start = start
+        if self._choose is not None:
+            self._keeper = FrameKeeper(start, self._choose.duration_s, self._choose.bins,
+                                       self._choose.keep)
 
     def offer(self, image: np.ndarray, t: float) -> None:
         """Queue a frame for saving; count it as dropped when the writer is behind."""

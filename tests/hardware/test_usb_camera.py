@@ -13,6 +13,7 @@ import pytest
 from cloud_fakes import FakeCapture
 
 from flowerpose.errors import InputError
+from flowerpose.hardware.backends import usb_camera
 from flowerpose.hardware.backends.usb_camera import (
     FrameChoice,
     UsbCamera,
@@ -178,10 +179,19 @@ def test_a_camera_that_stops_mid_recording_fails_the_check(tmp_path):
     camera.close()
 
 
-def test_choosing_while_recording_writes_only_the_kept_frames(tmp_path):
+def test_choosing_while_recording_writes_only_the_kept_frames(tmp_path, monkeypatch):
     # Room to queue every frame: none is dropped, however slowly this machine saves them.
     config = dataclasses.replace(SMALL, choose=FrameChoice(duration_s=0.2, bins=4, keep=2),
                                  queue_frames=1000)
+    # The recording's files open slowly, as on a loaded machine: the frames taken meanwhile
+    # are before its start, not lost from its first bin.
+    open_rows = usb_camera.open_rows
+
+    def slow_open_rows(*args):
+        time.sleep(0.2)
+        return open_rows(*args)
+
+    monkeypatch.setattr(usb_camera, "open_rows", slow_open_rows)
     # Bot time by frames, not by the wall clock: 10 frames a bin of 0.05 s.
     camera, capture = _camera(FakeCapture(fps=200.0), config, clock=TickingClock(0.005))
     camera.start_recording(tmp_path / "video.mp4")
