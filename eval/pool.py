@@ -259,7 +259,10 @@ def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
                 except ray.exceptions.RayError as error:
                     cause = getattr(error, "cause", None) or error
                     failures.append((labels[k], cause))
-                    LOG.warning(f"{labels[k]}: {stage} failed on every try: {one_line(cause)}")
+                    # Bad input is said once, as the command's own error line, at the end.
+                    LOG.log(logging.DEBUG if isinstance(cause, InputError) else
+                            logging.WARNING,
+                            f"{labels[k]}: {stage} failed on every try: {one_line(cause)}")
                     continue
                 session.tasks_by_node[node] += 1
                 if describe is not None:

@@ -38,15 +38,14 @@ class InputError(PicklableError):
 
 class JobsFailed(PicklableError):
     """Jobs of one stage that failed on every try, named by plant, once the stage's other
-    jobs have finished (their results are kept). `user_error`: every cause was bad input,
-    so the command line says exit 2, as for one; else 1. `retried`: each was tried again
-    (on Ray) before it counted as failed."""
+    jobs have finished (their results are kept); exit 1. Where every cause was bad input
+    the pool raises the first one's own `InputError` instead (`eval.pool.failed`).
+    `retried`: each was tried again (on Ray) before it counted as failed."""
 
     def __init__(self, stage: str, failures: list[tuple[str, BaseException]],
                  retried: bool = True):
         self.stage = stage
         self.failures = [(label, one_line(error)) for label, error in failures]
-        self.user_error = all(isinstance(error, InputError) for _, error in failures)
         super().__init__(f"{len(failures)} {stage} job(s) failed"
                          + (" after a retry" if retried else "") + ": "
                          + "; ".join(f"{label}: {line}" for label, line in self.failures))

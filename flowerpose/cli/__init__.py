@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     except JobsFailed as err:
         # Plants whose jobs failed (on Ray, on every try); the others' results are kept.
         print(f"flowerpose: error: {err}", file=sys.stderr)
-        return 2 if err.user_error else 1
+        return 1
     except ModuleNotFoundError as err:
         # An optional package of an extra the install left out: say which extra.
         missing = missing_extra(err.name or "", f"flowerpose {args.command}")
