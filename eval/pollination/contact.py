@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from flowerpose.hardware.flights.clearance import shaft_points
+from flowerpose.hardware.flights.clearance import lever_m, shaft_points
 from flowerpose.hardware.flights.scan_plan import head_points
 from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT, PAPER_TOOL, PollinatorTool
 from flowerpose.hardware.kinematics import JOINT_NAMES, HeadPose, joint_positions
@@ -113,17 +113,27 @@ class ContactWorld:
         """(N,) whether the pollinator at each pose is within near_m of the points in
         `tree`, or the head's centres (camera, pitch axis) within near_m plus its boxes'
         4 cm (all False for no tree)."""
+        near = np.zeros(len(np.atleast_1d(pose.yaw)), bool)
         if tree is None:
-            return np.zeros(len(np.atleast_1d(pose.yaw)), bool)
+            return near
+        reach = self.near_m + 0.05  # farther than this is far: the queries stop there
+        # Every point of the head and the tool lies within the lever of the UTM's centre:
+        # a pose whose UTM is farther than that from the plant is far (most of a flight).
+        lever = lever_m(PAPER_BOT, self.tool)
+        close = np.flatnonzero(np.isfinite(tree.query(
+            np.atleast_2d(pose.gantry), distance_upper_bound=lever + reach)[0]))
+        if not len(close):
+            return near
+        pose = HeadPose(np.atleast_2d(pose.gantry)[close], np.atleast_1d(pose.yaw)[close],
+                        np.atleast_1d(pose.pitch)[close])
         # Points half near_m apart: one touching the shaft is within near_m of one of them.
         tool = shaft_points(pose, self.tool, PAPER_BOT, self.near_m / 2)
         head = head_points(pose)
-        reach = self.near_m + 0.05  # farther than this is far: the query stops there
         tool_gap = tree.query(tool.reshape(-1, 3), distance_upper_bound=reach)[0]
         head_gap = tree.query(head.reshape(-1, 3), distance_upper_bound=reach)[0]
         tool_gap, head_gap = tool_gap.reshape(tool.shape[:-1]), head_gap.reshape(head.shape[:-1])
-        return (tool_gap.min(axis=-1) < self.near_m) | (head_gap.min(axis=-1)
-                                                         < self.near_m + 0.05)
+        near[close] = (tool_gap.min(axis=-1) < self.near_m) | (head_gap.min(axis=-1) < reach)
+        return near
 
     def fly(self, timeline: Timeline, t0: float, t1: float,
             at_time: float | None = None) -> Touches:
