@@ -160,13 +160,17 @@ class PollinatorTool:
     the gantry carries it. Metres, in the pitch bracket's frame: along the optical axis
     from the pitch axis, and towards the image's bottom from that axis."""
 
-    reach_m: float = 0.12
-    """The swab tip's centre ahead of the pitch axis along the shaft: 8 cm past the camera's
-    optical centre, so the lens stays clear of the flower it touches."""
-    offset_down_m: float = 0.03
-    """The shaft's offset from the optical axis towards the image's bottom: 3 cm, so even
-    its tip, 8 cm ahead of the lens, is 20.6 degrees off the axis, outside the camera's
-    18.75 degree half field of view (the tool never shows in a scan frame)."""
+    reach_m: float = 0.15
+    """The swab tip's centre ahead of the pitch axis along the shaft: 11 cm past the
+    camera's optical centre, so the lens stays clear of the flower it touches. Chosen by
+    `tune --task pollinate` (docs/guides/pollination.md) with `offset_down_m` and the
+    standoff. From the true poses (the planner's ceiling, 10 field plants, seeds 0-9) a
+    12 cm shaft 3 cm under the lens reached 110 of 134 flowers, this one 122."""
+    offset_down_m: float = 0.054
+    """The shaft's offset from the optical axis towards the image's bottom: 5.4 cm, so even
+    its tip, 11 cm ahead of the lens, is 26 degrees off the axis, outside the camera's
+    18.75 degree half field of view (the tool never shows in a scan frame); and the lower
+    the swab hangs, the lower the flowers it reaches under the UTM's lowest Z."""
     shaft_start_m: float = 0.02
     """Where the shaft leaves the bracket, ahead of the pitch axis."""
     shaft_radius_m: float = 0.002

@@ -3,7 +3,7 @@
 Before the pollinator touches a flower, the head's camera takes a few frames of it from
 the pre-approach pose and a few centimetres round it (`hardware/flights/close_look.py`).
 Their poses are the bot's own (recorded, as a scan's are), so the frames are a small scan
-of one flower at about 15 cm, three times nearer than the whole-plant scan: this stage
+of one flower at about 18 cm, more than twice as near as the whole-plant scan: this stage
 reconstructs them by the dense stage (`dense.reconstruct_dense`, with close-range
 settings), crops the points round the scan's estimate and estimates the flower's pose by
 the pose stage (`pose.estimate_pose`), as the pipeline does on a plant's cloud; its
@@ -60,8 +60,8 @@ class CloseLookConfig:
     four views, 2.4 with three (right and above) and 2.9 with three in a row (right and
     left); each view costs about 5 s of the bot's time."""
     baseline_m: float = 0.02
-    """How far the camera steps between the frames, metres: at the look's 15 cm, 2 cm is
-    7.6 degrees of parallax, enough to measure depth to a millimetre and little enough
+    """How far the camera steps between the frames, metres: at the look's 18 cm, 2 cm is
+    6.3 degrees of parallax, enough to measure depth to a millimetre and little enough
     that the views look alike."""
     settle_s: float = 2.0
     """Seconds the head rests before each frame: the camera's autofocus settles in 2 s

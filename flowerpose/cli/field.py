@@ -376,7 +376,7 @@ def add_pollinate(sub: argparse._SubParsersAction) -> None:
                    "the camera's calibrated intrinsics at 1280 x 720 (default: estimated from "
                    "a 62.2 degree horizontal field of view)")
     p.add_argument("--focus", type=float, metavar="F", help="--camera: the manual focus "
-                   "(V4L2 focus_absolute) that is sharp at the close look's 15 cm, calibrated "
+                   "(V4L2 focus_absolute) that is sharp at the close look's 18 cm, calibrated "
                    "with it (default: locked where the autofocus settles as the camera opens, "
                    "which may be far)")
     add_config_options(p, profile=False, detector=False,

@@ -4,7 +4,7 @@ last approach is planned from what it sees.
 A pose from a whole-plant scan is a few degrees and millimetres off, and now and then
 backwards; a pollinating robot servos on a close view before it touches. At the
 pre-approach pose (the swab `standoff_m` out along the flower's axis, the camera about
-15 cm from the flower) the executor (`pollination_flight.py`) hands the visit to
+18 cm from the flower) the executor (`pollination_flight.py`) hands the visit to
 `CloseLook.visit`, which:
 
 1. takes `look.views` frames, the camera at the pre-approach pose's optical centre and
@@ -127,7 +127,7 @@ class CloseLook:
         for index, aimed in enumerate(look_poses(visit.pre, flower.center, look.views,
                                                  look.baseline_m, self.geometry)):
             # Aimed at the flower where that is clear, else as the pre-approach pose looks
-            # (the flower lies about 12 degrees below the image's centre there).
+            # (the flower lies about 17 degrees below the image's centre there).
             step = forward(aimed, self.geometry)[0] - forward(visit.pre, self.geometry)[0]
             shifted = HeadPose(visit.pre.gantry + step, visit.pre.yaw, visit.pre.pitch)
             for pose in (aimed, shifted):

@@ -53,15 +53,15 @@ from flowerpose.pipeline.pose import PoseConfig
 class PollinateConfig:
     """How a flower is visited, metres and degrees."""
 
-    standoff_m: float = 0.065
+    standoff_m: float = 0.061
     """The pre-approach pose: the swab this far out along the flower's axis. Farther out,
     the head reaches it (and leaves it) clear of the foliage round the flower, which the
-    cloud holds only where the scan saw it. Measured (`eval --task pollinate --source
-    oracle`, estimated poses; pollinated, and leaves pushed over 1 cm in visits), 0.05 and
-    0.065: seeds 0-9 111 and 114 of 134, 2 and 0 of 113-114; seeds 100-109 (held out) 96
-    and 99 of 123, 3 and 0 of 102. On the planner's ceiling (true poses, 10 field plants,
-    seeds 0-9, 8 directions a ring), 0.045 and 0.085 pollinated 106 of 134 as 0.065 did
-    (3 and 2 flowers won, as many lost)."""
+    cloud holds only where the scan saw it. Chosen with the pollinator's geometry by `tune
+    --task pollinate` (the 12 cm tool's was 0.065). With that tool it mattered little: on
+    the planner's ceiling (true poses, 10 field plants, seeds 0-9) 0.045 and 0.085
+    pollinated 106 of 134 as 0.065 did (3 and 2 flowers won, as many lost); 0.05 against
+    0.065 on estimated poses pushed leaves over 1 cm in 2 and 3 visits where 0.065 pushed
+    none."""
     press_m: float = 0.002
     """How far past the flower's centre the swab goes, to touch it with a little force."""
     dwell_s: float = 1.0

@@ -153,12 +153,15 @@ def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in
     from flowerpose.eval.pollination.contact import ContactWorld
     from flowerpose.eval.pollination.visits import flown_visits, judge
     from flowerpose.hardware.flights.pollination_plan import Flower, plan_pollination
-    from flowerpose.hardware.geometry import PAPER_TOOL
+    from flowerpose.hardware.geometry import PollinatorTool
     from flowerpose.hardware.kinematics import head_boxes
     from flowerpose.sim.pieces import Part
 
     center, up = np.array([1.5, 0.75, 0.15]), np.array([0.0, 0.0, 1.0])
-    (clear,) = plan_pollination([Flower(0, center, up)], None).visits
+    # The scene is built for a 12 cm shaft (test_approach_path.py's SHORT).
+    config = PollinateConfig(tool=PollinatorTool(reach_m=0.12, offset_down_m=0.03),
+                             standoff_m=0.065)
+    (clear,) = plan_pollination([Flower(0, center, up)], None, config).visits
     centres, rotations, half = head_boxes(clear.pre)
     over_head = max(float((centres[k] + np.abs(rotations[k]) @ half[k])[2]) for k in range(2))
     plant = handmade_plant([(center, up)], [box([*center[:2], over_head + 0.03],
@@ -166,13 +169,13 @@ def test_a_flower_under_a_leaf_is_pollinated_down_a_path_that_touches_no_leaf_in
     points, faces = trimesh.sample.sample_surface_even(plant.mesh, 20000, seed=0)
     cloud = Cloud(np.asarray(points), np.asarray(plant.mesh.visual.face_colors[faces][:, :3],
                                                  np.uint8))
-    plan = plan_pollination([Flower(0, center, up)], cloud.points)
+    plan = plan_pollination([Flower(0, center, up)], cloud.points, config)
     (visit,) = plan.visits
     assert visit.status == "planned" and visit.path
     timeline, flown, _ = flown_visits(plan, tmp_path)
-    world = ContactWorld(plant)
+    world = ContactWorld(plant, tool=config.tool)
     outcome = judge(plant.flowers[0], 0, plan, flown, timeline, world,
-                    PollinationScoreConfig(), PAPER_TOOL)
+                    PollinationScoreConfig(), config.tool)
     assert outcome["outcome"] == "success", outcome
     touched = world.fly(timeline, flown[0]["t0"], flown[0]["t1"]).patches
     assert not np.isin(world.patches.part[touched], [int(Part.LEAF)]).any()

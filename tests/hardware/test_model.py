@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT
+from flowerpose.hardware.geometry import FARMBOT_ASSETS, PAPER_BOT, PAPER_TOOL
 from flowerpose.hardware.kinematics import JOINT_NAMES, HeadPose, forward, joint_positions
 
 MODELS = sorted(FARMBOT_ASSETS.glob("*.xml"))
@@ -74,6 +74,20 @@ def test_camera_pose_matches_forward(scene):
         assert np.abs(data.cam_xpos[camera] - position).max() < 1e-6
         mujoco_rotation = data.cam_xmat[camera].reshape(3, 3) @ OPENCV_FROM_MUJOCO
         assert np.abs(mujoco_rotation - rotation).max() < 1e-6
+
+
+def test_the_drawn_pollinator_is_the_one_planned_for(scene):
+    # In the pitch bracket's frame: x along the optical axis, z up (the image's top).
+    body = scene.body("pollinator")
+    assert np.allclose(body.pos, [0.0, 0.0, -PAPER_TOOL.offset_down_m])
+    assert np.allclose(scene.site("pollinator_tip").pos, [PAPER_TOOL.reach_m, 0.0, 0.0])
+    swab, shaft = scene.geom("pollinator_swab"), scene.geom("pollinator_shaft")
+    assert np.allclose(swab.pos, [PAPER_TOOL.reach_m, 0.0, 0.0])
+    assert swab.size[0] == pytest.approx(PAPER_TOOL.tip_radius_m)
+    assert shaft.size[0] == pytest.approx(PAPER_TOOL.shaft_radius_m)
+    # A capsule's half length, from the shaft's start to the swab's back.
+    assert shaft.size[1] == pytest.approx(
+        (PAPER_TOOL.reach_m - PAPER_TOOL.tip_radius_m - PAPER_TOOL.shaft_start_m) / 2)
 
 
 def test_home_keyframe_is_farmbot_home(scene):

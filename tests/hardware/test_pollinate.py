@@ -62,11 +62,11 @@ def test_another_tool_is_shaped_in_the_contact_model_where_its_kinematics_put_it
     assert model.geom("pollinator_swab").size[0] == pytest.approx(0.005)
 
 
-def test_a_longer_shaft_reaches_a_low_flower_the_papers_cannot():
+def test_a_longer_shaft_reaches_a_low_flower_a_shorter_cannot():
     from flowerpose.hardware.geometry import PollinatorTool
 
     low = Flower(0, np.array([1.5, 0.75, 0.04]), np.array([1.0, 0.0, 0.0]))
-    (short,) = _plan([low]).visits
+    (short,) = _plan([low], tool=PollinatorTool(reach_m=0.12, offset_down_m=0.03)).visits
     assert short.status == "unreachable" and "Z travel" in short.reason
     (longer,) = _plan([low], tool=PollinatorTool(reach_m=0.22)).visits
     assert longer.status == "planned"
