@@ -25,8 +25,9 @@ from flowerpose.jsonio import read_json, write_json  # noqa: E402
 
 CENTER = np.array([1.5, 0.75, 0.15])
 UP = np.array([0.0, 0.0, 1.0])
-#: The leaf scenes are built for a 12 cm shaft 3 cm under the lens, 6.5 cm out: with the
-#: default 15 cm one the search finds no way under the leaf (the planner's open question).
+#: The leaf scenes are built for a 12 cm shaft 3 cm under the lens, 6.5 cm out: the default
+#: 15 cm one, hanging from the top of Z at the pre-approach pose's angles where every path
+#: starts, would already pierce a leaf 3 cm over its pre-approach head.
 SHORT = {"tool": PollinatorTool(reach_m=0.12, offset_down_m=0.03), "standoff_m": 0.065}
 SHORT_SET = ["--set", "pollinate.tool.reach_m=0.12", "--set", "pollinate.tool.offset_down_m=0.03",
              "--set", "pollinate.standoff_m=0.065"]
