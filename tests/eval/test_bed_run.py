@@ -206,9 +206,8 @@ def test_with_pollinate_each_detected_plant_is_visited_and_scored(bed_run, tmp_p
     bed, done, _ = bed_run
     out = shutil.copytree(done, tmp_path / "pollinated")
     scans = {n: (out / "plants" / n / "scan" / "scan.json").read_text() for n in ("a", "b")}
-    # Without the close look, which test_close_look.py flies: half the flights to replay.
     assert main(["field", "--sim", "--bed", str(bed), "--out", str(out), *SMALL,
-                 "--pollinate", "--set", "pollinate.look.views=0", "-q"]) == 0
+                 "--pollinate", "-q"]) == 0
     said = capsys.readouterr().out
     assert "pollination from estimated poses:" in said
     report = json.loads((out / "report.json").read_text())

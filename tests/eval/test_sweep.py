@@ -139,7 +139,8 @@ def test_a_pollination_sweep_ranks_the_settings_by_the_flowers_pollinated(tmp_pa
 
     # No path search and no close look: the sweep's pollination is on trial here.
     base = apply_overrides(eval_config("easy"), {"pollinate.path_checks": "0",
-                                                 "pollinate.look.views": "0"})
+                                                 "pollinate.look.views": "0",
+                                                 "pollinate.tool.offset_down_m": "0.03"})
     # A shaft too short to reach past the head's own housing pollinates nothing.
     grid = parse_grid(["pollinate.tool.reach_m=0.05"], base)
     run = EvalRun(PlantSet("oracle", plants=1, seed=2), task="pollinate")
@@ -159,7 +160,7 @@ def test_a_pollination_sweep_ranks_the_settings_by_the_flowers_pollinated(tmp_pa
     against = saved["settings"][0]["vs_defaults"]
     assert against["distinguishable"] == against["pollinated"]["shown"]
     assert best["setting"] == {"pollinate.tool.reach_m": 0.05}  # the only setting swept
-    assert saved["defaults"]["setting"] == {"pollinate.tool.reach_m": 0.12}
+    assert saved["defaults"]["setting"] == {"pollinate.tool.reach_m": 0.15}
     assert best["config"]["pollinate"]["tool"]["reach_m"] == 0.05
     # Each setting's flights beside its flowers; the plant's files shared.
     assert (tmp_path / "setting-0" / "seed-2" / "flight.json").exists()
