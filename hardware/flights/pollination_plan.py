@@ -59,9 +59,9 @@ class PollinateConfig:
     cloud holds only where the scan saw it. Chosen with the pollinator's geometry by `tune
     --task pollinate` (the 12 cm tool's was 0.065). With that tool it mattered little: on
     the planner's ceiling (true poses, 10 field plants, seeds 0-9) 0.045 and 0.085
-    pollinated 106 of 134 as 0.065 did (3 and 2 flowers won, as many lost); 0.05 against
-    0.065 on estimated poses pushed leaves over 1 cm in 2 and 3 visits where 0.065 pushed
-    none."""
+    pollinated 106 of 134 as 0.065 did (3 and 2 flowers won, as many lost); on estimated
+    poses 0.05 pushed leaves over 1 cm in 2 visits (seeds 0-9) and 3 (seeds 100-109) where
+    0.065 pushed none."""
     press_m: float = 0.002
     """How far past the flower's centre the swab goes, to touch it with a little force."""
     dwell_s: float = 1.0
