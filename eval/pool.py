@@ -141,10 +141,7 @@ def run_jobs(function: Callable, jobs: list[tuple], workers: int | None,
                 results[k] = outcome()
             except Exception as error:  # the job's own failure; Ctrl-C and SIGTERM go on up
                 failures.append((labels[k], error))
-                # Bad input is said once, as the command's own error line, at the end.
-                LOG.log(logging.DEBUG if isinstance(error, InputError) else logging.WARNING,
-                        f"{labels[k]}: {stage} failed: {one_line(error)}", exc_info=error
-                        if LOG.isEnabledFor(logging.DEBUG) else None)
+                _say_failed(labels[k], f"{stage} failed", error, traceback=True)
                 return
             if describe is not None:
                 tally.finished(describe(k, results[k]))
@@ -259,10 +256,7 @@ def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
                 except ray.exceptions.RayError as error:
                     cause = getattr(error, "cause", None) or error
                     failures.append((labels[k], cause))
-                    # Bad input is said once, as the command's own error line, at the end.
-                    LOG.log(logging.DEBUG if isinstance(cause, InputError) else
-                            logging.WARNING,
-                            f"{labels[k]}: {stage} failed on every try: {one_line(cause)}")
+                    _say_failed(labels[k], f"{stage} failed on every try", cause)
                     continue
                 session.tasks_by_node[node] += 1
                 if describe is not None:
@@ -275,6 +269,15 @@ def _run_on_ray(session: RayJobs, function: Callable, jobs: list[tuple],
     if failures:
         raise failed(stage, failures, retried=True)
     return results
+
+
+def _say_failed(label: str, what: str, error: BaseException, traceback: bool = False) -> None:
+    """Log a job's failure as it happens: bad input at debug level, since it is said once,
+    as the command's own error line, at the end; any other as a warning. traceback: with
+    it, where -v asks for debug."""
+    LOG.log(logging.DEBUG if isinstance(error, InputError) else logging.WARNING,
+            f"{label}: {what}: {one_line(error)}",
+            exc_info=error if traceback and LOG.isEnabledFor(logging.DEBUG) else None)
 
 
 def failed(stage: str, failures: list[tuple[str, BaseException]], retried: bool

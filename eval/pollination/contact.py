@@ -119,12 +119,12 @@ class ContactWorld:
         reach = self.near_m + 0.05  # farther than this is far: the queries stop there
         # Every point of the head and the tool lies within the lever of the UTM's centre:
         # a pose whose UTM is farther than that from the plant is far (most of a flight).
-        lever = lever_m(PAPER_BOT, self.tool)
+        gantry = np.atleast_2d(pose.gantry)
         close = np.flatnonzero(np.isfinite(tree.query(
-            np.atleast_2d(pose.gantry), distance_upper_bound=lever + reach)[0]))
+            gantry, distance_upper_bound=lever_m(PAPER_BOT, self.tool) + reach)[0]))
         if not len(close):
             return near
-        pose = HeadPose(np.atleast_2d(pose.gantry)[close], np.atleast_1d(pose.yaw)[close],
+        pose = HeadPose(gantry[close], np.atleast_1d(pose.yaw)[close],
                         np.atleast_1d(pose.pitch)[close])
         # Points half near_m apart: one touching the shaft is within near_m of one of them.
         tool = shaft_points(pose, self.tool, PAPER_BOT, self.near_m / 2)

@@ -29,8 +29,10 @@ UP = np.array([0.0, 0.0, 1.0])
 #: 15 cm one, hanging from the top of Z at the pre-approach pose's angles where every path
 #: starts, would already pierce a leaf 3 cm over its pre-approach head.
 SHORT = {"tool": PollinatorTool(reach_m=0.12, offset_down_m=0.03), "standoff_m": 0.065}
-SHORT_SET = ["--set", "pollinate.tool.reach_m=0.12", "--set", "pollinate.tool.offset_down_m=0.03",
-             "--set", "pollinate.standoff_m=0.065"]
+SHORT_SET = [word for key, value in (("tool.reach_m", SHORT["tool"].reach_m),
+                                     ("tool.offset_down_m", SHORT["tool"].offset_down_m),
+                                     ("standoff_m", SHORT["standoff_m"]))
+             for word in ("--set", f"pollinate.{key}={value}")]
 
 
 def sheet(center, size, normal_axis: int, spacing: float = 0.004) -> np.ndarray:
